@@ -1,0 +1,37 @@
+"""ament_python packaging of haptic_topology (also installable with pip into a venv)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'haptic_topology'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*']),
+    package_data={PACKAGE: ['py.typed']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+        (f'share/{PACKAGE}', ['package.xml']),
+        (f'share/{PACKAGE}/config', sorted(glob('config/*.yaml'))),
+        (f'share/{PACKAGE}/config/linkages', sorted(glob('config/linkages/*.yaml'))),
+        (f'share/{PACKAGE}/config/scenarios', sorted(glob('config/scenarios/*.yaml'))),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='haptic-dev',
+    maintainer_email='dev@haptic.local',
+    description='Haptic rendering of topological constraints of serial virtual linkages',
+    license='Apache-2.0',
+    python_requires='>=3.11',
+    entry_points={
+        'console_scripts': [
+            'haptic-topology = haptic_topology.cli:main',
+            'device_driver = haptic_topology.nodes.device_driver:main',
+            'lmi_controller = haptic_topology.nodes.lmi_controller:main',
+            've_sim = haptic_topology.nodes.ve_sim:main',
+            'recorder = haptic_topology.nodes.recorder:main',
+        ],
+    },
+)
