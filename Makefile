@@ -1,0 +1,53 @@
+# Developer entry points. Everything runs from the venv that scripts/setup.sh maintains.
+#   make demo   set up (first time ~1-2 min), then run the demo
+#   make test   set up, then lint + typecheck + pytest; fails if any of them fails
+SHELL := /bin/bash
+.SHELLFLAGS := -euo pipefail -c
+.DEFAULT_GOAL := help
+
+VENV ?= .venv
+BIN := $(VENV)/bin
+export HAPTIC_VENV := $(abspath $(VENV))
+
+# The demo command; later issues replace the smoke run with `haptic-topology run ...`.
+DEMO_MSGS := from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+define DEMO_CMD
+$(BIN)/haptic-topology --help
+$(BIN)/haptic-topology info
+$(BIN)/python -c "$(DEMO_MSGS); print('messages import:', DeviceState.__name__, DeviceCommand.__name__, LmiUpdate.__name__, HandInput.__name__)"
+endef
+export DEMO_CMD
+
+PYTEST_ARGS ?=
+
+.PHONY: help setup test lint typecheck pytest demo clean
+
+help:
+	@echo 'make demo       set up the venv and run the demo'
+	@echo 'make test       set up, then lint + typecheck + pytest'
+	@echo 'make setup      create/update .venv (idempotent, seconds when nothing changed)'
+	@echo 'make lint | typecheck | pytest   one check (assumes setup)'
+	@echo 'make clean      remove .venv and build output'
+
+setup:
+	@bash scripts/setup.sh
+
+test: setup
+	@$(MAKE) --no-print-directory lint typecheck pytest
+
+lint:
+	$(BIN)/ruff check .
+
+typecheck:
+	$(BIN)/mypy
+
+# pytest exits 5 when it collects no tests; make treats every non-zero status as failure.
+pytest:
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+demo: setup
+	@eval "$$DEMO_CMD"
+
+clean:
+	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache *.egg-info
+	find . -path ./.venv -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

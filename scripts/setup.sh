@@ -1,0 +1,133 @@
+#!/usr/bin/env bash
+# Idempotent development setup: venv + locked wheels + haptic_topology_msgs + haptic_topology.
+#
+# Each step runs only when its inputs changed (sha256 stamps inside the venv), so a second run
+# with nothing changed takes a second or two. Safe with no stdin (CI).
+#
+#   1. <venv> from python3.11, if missing
+#   2. pip install --no-deps -r requirements.lock                (stamp: hash of the lock)
+#   3. build msg_schemas/ with cmake, install into the venv prefix (stamp: msg_schemas/ + lock)
+#   4. pip install -e . (editable: Python edits need no reinstall)  (stamp: packaging files)
+#      + share/haptic_topology/{package.xml,config} as symlinks, ament index marker
+#   5. <site-packages>/haptic_topology_env.pth: AMENT_PREFIX_PATH for every venv process
+#
+# Environment: HAPTIC_VENV (default <repo>/.venv), PYTHON (default python3.11).
+set -euo pipefail
+
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+venv=${HAPTIC_VENV:-$root/.venv}
+python=${PYTHON:-python3.11}
+t0=$(date +%s.%N)
+
+say() { printf 'setup: %s\n' "$*"; }
+die() { printf 'setup: ERROR: %s\n' "$*" >&2; exit 1; }
+
+# --- prerequisites ---------------------------------------------------------------------------
+command -v "$python" >/dev/null 2>&1 \
+  || die "$python not found. Install CPython 3.11 (the ROS 2 Jazzy wheels are cp311 only)."
+"$python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
+  || die "$python is $("$python" -V 2>&1), need Python 3.11 (the ROS 2 Jazzy wheels are cp311)."
+for tool in cmake gcc g++ make; do
+  command -v "$tool" >/dev/null 2>&1 \
+    || die "$tool not found; it builds msg_schemas/ (apt-get install cmake build-essential)."
+done
+
+hash_files() { # sha256 over the names and contents of the given files, in sorted order
+  local f
+  printf '%s\n' "$@" | LC_ALL=C sort | while IFS= read -r f; do
+    printf '%s\n' "${f#"$root"/}"
+    sha256sum < "$f"
+  done | sha256sum | cut -d' ' -f1
+}
+stamp_ok() { [[ -f "$venv/.stamp-$1" && "$(cat "$venv/.stamp-$1")" == "$2" ]]; }
+stamp_set() { printf '%s\n' "$2" > "$venv/.stamp-$1"; }
+
+# --- 1. venv ---------------------------------------------------------------------------------
+if [[ ! -x "$venv/bin/python" ]]; then
+  say "creating $venv with $("$python" -V 2>&1)"
+  "$python" -m venv "$venv"
+fi
+vpy="$venv/bin/python"
+"$vpy" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
+  || die "$venv is not a Python 3.11 venv; remove it (make clean) and run again."
+
+# --- 2. locked wheels ------------------------------------------------------------------------
+lock_hash=$(hash_files "$root/requirements.lock")
+if ! stamp_ok lock "$lock_hash"; then
+  say "installing requirements.lock (exact pins, no resolver)"
+  export PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_INPUT=1
+  # pip first, alone: the lock's pip version is the one that installs the rest.
+  pip_pin=$(grep -E '^pip==' "$root/requirements.lock")
+  "$vpy" -m pip install -qq "$pip_pin"
+  "$vpy" -m pip install -qq --no-deps -r "$root/requirements.lock"
+  "$vpy" -m pip check
+  rm -f "$venv/.stamp-msgs"  # wheels changed: their cmake files need the include fix again
+  stamp_set lock "$lock_hash"
+fi
+
+# --- 3. haptic_topology_msgs -----------------------------------------------------------------
+mapfile -t msg_files < <(find "$root/msg_schemas" -type f)
+msgs_hash=$(hash_files "${msg_files[@]}" "$root/requirements.lock")
+if ! stamp_ok msgs "$msgs_hash"; then
+  # The wheels' exported CMake files carry their build machine's Python and numpy include dirs
+  # (/opt/python/cp311-cp311/...); cmake then fails with "Imported target ... includes
+  # non-existent path". Point them at this venv's dirs.
+  read -r py_inc np_inc < <("$vpy" -c \
+    'import sysconfig, numpy; print(sysconfig.get_paths()["include"], numpy.get_include())')
+  bogus=/opt/python/cp311-cp311
+  mapfile -t bad < <(grep -rl --include='*.cmake' "$bogus" "$venv/share" || true)
+  if ((${#bad[@]})); then
+    say "fixing build-machine include paths in ${#bad[@]} wheel cmake files"
+    sed -i -e "s|$bogus/lib/python3.11/site-packages/numpy/_core/include|$np_inc|g" \
+           -e "s|$bogus/include/python3.11|$py_inc|g" "${bad[@]}"
+  fi
+  build="$venv/build/haptic_topology_msgs"
+  say "building msg_schemas/ (haptic_topology_msgs) in $build"
+  rm -rf "$build" && mkdir -p "$build"
+  AMENT_PREFIX_PATH="$venv" cmake -S "$root/msg_schemas" -B "$build" \
+    -DCMAKE_BUILD_TYPE=Release \
+    -DCMAKE_INSTALL_PREFIX="$venv" \
+    -DCMAKE_PREFIX_PATH="$venv" \
+    -DPython3_EXECUTABLE="$vpy" \
+    -DBUILD_TESTING=OFF > "$build.configure.log" 2>&1 \
+    || { tail -40 "$build.configure.log" >&2; die "cmake configure failed (log: $build.configure.log)"; }
+  AMENT_PREFIX_PATH="$venv" cmake --build "$build" -j "$(nproc)" > "$build.build.log" 2>&1 \
+    || { tail -40 "$build.build.log" >&2; die "msg build failed (log: $build.build.log)"; }
+  cmake --install "$build" > "$build.install.log" 2>&1 \
+    || { tail -40 "$build.install.log" >&2; die "msg install failed (log: $build.install.log)"; }
+  "$vpy" -c 'import haptic_topology_msgs.msg' \
+    || die "haptic_topology_msgs built but does not import"
+  stamp_set msgs "$msgs_hash"
+fi
+
+# --- 4. haptic_topology itself ---------------------------------------------------------------
+pkg_hash=$(hash_files "$root/setup.py" "$root/setup.cfg" "$root/pyproject.toml" \
+  "$root/requirements.lock")
+if ! stamp_ok pkg "$pkg_hash"; then
+  say "installing haptic_topology (editable)"
+  # --no-build-isolation: build with the locked setuptools/wheel from the venv, fetch nothing.
+  "$vpy" -m pip install -qq --no-deps --no-build-isolation -e "$root"
+  stamp_set pkg "$pkg_hash"
+fi
+# An editable (PEP 660) install does not install setup.py's data_files, so lay out the share
+# tree that `colcon build --symlink-install` would make: the ament index marker plus symlinks to
+# package.xml and config/ (config edits and new files show up with no reinstall).
+share="$venv/share/haptic_topology"
+index="$venv/share/ament_index/resource_index/packages"
+mkdir -p "$share" "$index"
+[[ -f "$index/haptic_topology" ]] || : > "$index/haptic_topology"
+for item in package.xml config; do
+  [[ "$(readlink "$share/$item" 2>/dev/null)" == "$root/$item" ]] || ln -sfn "$root/$item" "$share/$item"
+done
+
+# --- 5. environment hook for every process of the venv ---------------------------------------
+site=$("$vpy" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+pth="$site/haptic_topology_env.pth"
+# One line (a .pth runs lines that start with "import"): put the venv prefix first on
+# AMENT_PREFIX_PATH so ament_index finds haptic_topology(_msgs) with no sourced setup file.
+line="import os, sys; _p = os.environ.get('AMENT_PREFIX_PATH', ''); sys.prefix in _p.split(os.pathsep) or os.environ.__setitem__('AMENT_PREFIX_PATH', os.pathsep.join(x for x in (sys.prefix, _p) if x))"
+if [[ ! -f "$pth" || "$(cat "$pth")" != "$line" ]]; then
+  printf '%s\n' "$line" > "$pth"
+fi
+
+say "ready: $venv ($(awk "BEGIN { printf \"%.1f\", $(date +%s.%N) - $t0 }") s)"
