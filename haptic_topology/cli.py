@@ -1,0 +1,121 @@
+"""``haptic-topology``: the project's command line.
+
+Subcommands are registered in :data:`COMMANDS`; each is a :class:`Command` with a function that
+adds its arguments and a function that runs it and returns the exit status. Later work adds
+``simulate``, ``run``, ``replay`` and ``analyze`` the same way. Only implemented subcommands are
+listed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata as md
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from haptic_topology import MSGS_PACKAGE_NAME, PACKAGE_NAME, __version__
+from haptic_topology.errors import HapticTopologyError
+
+
+@dataclass(frozen=True)
+class Command:
+    """One subcommand: ``name``, one-line ``help``, argument setup and the function to run."""
+
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+def _dist_version(*names: str) -> str:
+    """Version of the first installed distribution among ``names``, or ``'not installed'``."""
+    for name in names:
+        try:
+            return md.version(name)
+        except md.PackageNotFoundError:
+            continue
+    return 'not installed'
+
+
+def _share_dir(package: str) -> str:
+    try:
+        from ament_index_python.packages import (
+            PackageNotFoundError,
+            get_package_share_directory,
+        )
+    except ImportError:
+        return 'ament_index_python not installed'
+    try:
+        return str(get_package_share_directory(package))
+    except PackageNotFoundError:
+        return 'not found on AMENT_PREFIX_PATH'
+
+
+def _info_arguments(parser: argparse.ArgumentParser) -> None:
+    del parser  # no options
+
+
+def _info(args: argparse.Namespace) -> int:
+    """Print versions, share directories and message types; 0 if the messages are usable."""
+    del args
+    from haptic_topology import msgdefs
+
+    print(f'haptic_topology {__version__}')
+    print(f'python          {sys.version.split()[0]} ({sys.prefix})')
+    print(f'rclpy           {_dist_version("ros-jazzy-rclpy", "ros-rclpy", "rclpy")}')
+    print(f'pinocchio       {_dist_version("pin", "pinocchio")}')
+    print(f'numpy           {_dist_version("numpy")}')
+    print(f'rosbags         {_dist_version("rosbags")}')
+    print(f'share {PACKAGE_NAME}:      {_share_dir(PACKAGE_NAME)}')
+    print(f'share {MSGS_PACKAGE_NAME}: {_share_dir(MSGS_PACKAGE_NAME)}')
+    print(f'.msg definitions from: {msgdefs.msg_directory()}')
+    try:
+        import haptic_topology_msgs.msg as built
+    except ImportError as exc:
+        built = None
+        print(f'built message package: not importable ({exc})')
+    for full_name in msgdefs.message_definitions():
+        short = full_name.rsplit('/', 1)[-1]
+        status = 'built' if built is not None and hasattr(built, short) else 'definition only'
+        print(f'  {full_name}  [{status}]')
+    return 0
+
+
+#: Registered subcommands, in the order ``--help`` lists them.
+COMMANDS: tuple[Command, ...] = (
+    Command('info', 'print versions, share directories and message types', _info_arguments,
+            _info),
+)
+
+
+def build_parser(commands: Sequence[Command] = COMMANDS) -> argparse.ArgumentParser:
+    """The argument parser with one subparser per entry of ``commands``."""
+    parser = argparse.ArgumentParser(
+        prog='haptic-topology',
+        description='Haptic rendering of topological constraints of serial virtual linkages.',
+    )
+    parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
+    for cmd in commands:
+        p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
+        cmd.add_arguments(p)
+        p.set_defaults(_run=cmd.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``haptic-topology`` console script; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    run: Callable[[argparse.Namespace], int] = args._run
+    try:
+        return run(args)
+    except HapticTopologyError as exc:
+        print(f'haptic-topology {args.command}: error: {exc}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())
