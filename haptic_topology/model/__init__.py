@@ -1,0 +1,17 @@
+"""Linkage description (YAML or URDF) -> Pinocchio model with a grasp frame."""
+
+from haptic_topology.model.linkage import (
+    ConstraintSettings,
+    JointType,
+    Linkage,
+    LinkageModel,
+    LinkSpec,
+    TaskSpace,
+    build_model,
+    linkage_from_dict,
+    load_linkage,
+    to_dict,
+)
+
+__all__ = ['ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage', 'LinkageModel',
+           'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage', 'to_dict']
