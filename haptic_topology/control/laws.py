@@ -1,0 +1,127 @@
+"""Device control laws of the paper as pure functions: eq. 10 and eq. 14 (with eq. 13).
+
+All vectors are task vectors at the user's hand (m = 3 planar, 6 spatial; layouts in
+:mod:`haptic_topology.dynamics.taskspace`), all matrices m x m. Units: wrenches N / N m,
+poses m / rad, twists m/s / rad/s; ``M_d`` kg / kg m^2; ``k_tc`` N/(m kg), ``b_tc`` N s/(m kg)
+(the penalty of eq. 13 is an acceleration, multiplied by ``M_d``).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from haptic_topology.dynamics.taskspace import pose_difference
+from haptic_topology.model.linkage import TaskSpace
+
+
+class ControlMode(enum.IntEnum):
+    """Control law; values equal ``haptic_topology_msgs/DeviceCommand.MODE_*``."""
+
+    PENALTY = 0             # eq. 14: eq. 10 plus penalties along N(J_h^T) (eq. 13)
+    ACCELERATION_ONLY = 1   # eq. 10: topology at the acceleration level only
+    ZERO = 2                # no force (safe state)
+
+    @classmethod
+    def parse(cls, name: str) -> ControlMode:
+        """Mode from its CLI / parameter name: penalty, acceleration_only, zero."""
+        try:
+            return cls[name.upper()]
+        except KeyError:
+            raise ValueError(f'mode: expected one of penalty, acceleration_only, zero, got '
+                             f'{name!r}') from None
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+@dataclass(frozen=True)
+class ControlGains:
+    """Gains of the coordination channel and of the topological penalty.
+
+    ``k_pc``/``b_pc`` (m): coordination stiffness/damping (eqs. 15-16, N/m, N m/rad,
+    N s/m, N m s/rad); ``k_tc``/``b_tc``: penalty stiffness and damping of eq. 13;
+    ``b_d``/``k_d`` (m x m): desired VT damping and stiffness of eq. 4 (zero in the paper).
+    """
+
+    k_pc: np.ndarray
+    b_pc: np.ndarray
+    k_tc: float
+    b_tc: float
+    b_d: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    k_d: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    def with_penalty(self, k_tc: float, b_tc: float) -> ControlGains:
+        return ControlGains(self.k_pc, self.b_pc, k_tc, b_tc, self.b_d, self.k_d)
+
+
+def coordination_wrench(x_vt: np.ndarray, xd_vt: np.ndarray, x_h: np.ndarray,
+                        xd_h: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray,
+                        task: TaskSpace) -> np.ndarray:
+    """``F_pc = K_pc (x_vt - x_h) + B_pc (xd_vt - xd_h)``: the spring-damper of Fig. 1.
+
+    Acts on the device towards the VT; the VT feels ``-F_pc``.
+    """
+    return k_pc * pose_difference(x_vt, x_h, task) + b_pc * (xd_vt - xd_h)
+
+
+def acceleration_control(lambda_inv: np.ndarray, m_d: np.ndarray, c_d: np.ndarray,
+                         f_h: np.ndarray, f_env: np.ndarray, f_pc: np.ndarray,
+                         x_h: np.ndarray, xd_h: np.ndarray,
+                         b_d: np.ndarray | None = None,
+                         k_d: np.ndarray | None = None) -> np.ndarray:
+    """Impedance control at the acceleration level, eq. 10::
+
+        u = (M_d L - I) F_h + M_d L (F_env + F_pc) + (C_d - M_d L b_d) xd_h - M_d L k_d x_h
+
+    with ``L = Lambda_h^-1`` (eq. 6). Applied to the device of eq. 9 it gives
+    ``xdd_h = Lambda_h^-1 (F_h + F_env + F_pc - b_d xd_h - k_d x_h)`` (eq. 5).
+    """
+    ml = m_d @ lambda_inv
+    u = ml @ (f_h + f_env + f_pc) - f_h + c_d @ xd_h
+    if b_d is not None and b_d.size:
+        u -= ml @ (b_d @ xd_h)
+    if k_d is not None and k_d.size:
+        u -= ml @ (k_d @ x_h)
+    return u
+
+
+def penalty_acceleration(projector: np.ndarray, error: np.ndarray, error_rate: np.ndarray,
+                         k_tc: float, b_tc: float) -> np.ndarray:
+    """``sum_i (k_tc n_i^T e + b_tc n_i^T edot) n_i`` of eq. 13 (without ``M_d``).
+
+    ``projector`` is ``sum_i w_i n_i n_i^T`` in the task coordinates (see
+    ``ConstraintDirections.projector``); ``e = x_vt - x_h``, ``edot = xd_vt - xd_h``.
+    """
+    return projector @ (k_tc * error + b_tc * error_rate)
+
+
+def penalty_control(lambda_inv: np.ndarray, m_d: np.ndarray, c_d: np.ndarray,
+                    f_h: np.ndarray, f_env: np.ndarray, f_pc: np.ndarray,
+                    x_h: np.ndarray, xd_h: np.ndarray, x_vt: np.ndarray, xd_vt: np.ndarray,
+                    projector: np.ndarray, k_tc: float, b_tc: float, task: TaskSpace,
+                    b_d: np.ndarray | None = None,
+                    k_d: np.ndarray | None = None) -> np.ndarray:
+    """The proposed control, eq. 14: eq. 10 plus ``u_add = M_d * penalty`` (eq. 13)."""
+    u = acceleration_control(lambda_inv, m_d, c_d, f_h, f_env, f_pc, x_h, xd_h, b_d, k_d)
+    e = pose_difference(x_vt, x_h, task)
+    return u + m_d @ penalty_acceleration(projector, e, xd_vt - xd_h, k_tc, b_tc)
+
+
+def control_wrench(mode: ControlMode, lambda_inv: np.ndarray, m_d: np.ndarray,
+                   c_d: np.ndarray, f_h: np.ndarray, f_pc: np.ndarray, x_h: np.ndarray,
+                   xd_h: np.ndarray, x_vt: np.ndarray, xd_vt: np.ndarray,
+                   projector: np.ndarray, gains: ControlGains, task: TaskSpace,
+                   f_env: np.ndarray | None = None) -> np.ndarray:
+    """Device wrench ``u`` for ``mode``: eq. 14, eq. 10, or zero."""
+    if mode is ControlMode.ZERO:
+        return np.zeros(task.dim)
+    fe = np.zeros(task.dim) if f_env is None else f_env
+    if mode is ControlMode.ACCELERATION_ONLY:
+        return acceleration_control(lambda_inv, m_d, c_d, f_h, fe, f_pc, x_h, xd_h,
+                                    gains.b_d, gains.k_d)
+    return penalty_control(lambda_inv, m_d, c_d, f_h, fe, f_pc, x_h, xd_h, x_vt, xd_vt,
+                           projector, gains.k_tc, gains.b_tc, task, gains.b_d, gains.k_d)

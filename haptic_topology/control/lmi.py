@@ -1,0 +1,162 @@
+"""Local model of interaction (LMI): reduced VT dynamics at the haptic rate (eqs. 17-20).
+
+Between two updates from the full simulation the LMI integrates the virtual tool with ``D``,
+``G``, ``J_h`` and the SVD of ``J_h`` frozen at the update (eqs. 17-19), Coriolis terms
+neglected::
+
+    eq. 17:  D^ qdd + G^ = J^_h^T F_vt        eq. 20:  D^ qdd = J^_h^T F_vt
+
+and moves the VT hand with the frozen Jacobian, ``xd_vt = J^_h dq``. ``F_vt`` is the wrench
+the haptic loop applies to the VT at the hand (the user's ``F_h``, minus the coordination
+wrench ``F_pc`` when the coupling acts on the VT).
+
+Timing: the LMI state "has consumed input k" when it has integrated the force computed at
+device state k over the interval from state k to state k+1; it then represents the VT at the
+time of state k+1. An update from the full simulation carries the seq of the last hand input
+it consumed; on re-sync the LMI takes the VE's state and replays the inputs it has recorded
+since (so the lag of the update costs no time), with the new matrices.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from haptic_topology.dynamics.constraints import ConstraintDirections, task_scale
+from haptic_topology.dynamics.linkage_dynamics import DynamicsSnapshot
+from haptic_topology.dynamics.taskspace import integrate_pose
+from haptic_topology.model.linkage import TaskSpace
+
+
+class LmiModel(enum.Enum):
+    """Which reduced dynamics the LMI integrates."""
+
+    EQ17 = 'eq17'   # D^ qdd + G^ = J^T F_vt
+    EQ20 = 'eq20'   # D^ qdd = J^T F_vt (Section VIII: the VT moves freely under F_vt)
+
+
+@dataclass(frozen=True)
+class LmiSnapshot:
+    """Contents of one LMI update (``haptic_topology_msgs/LmiUpdate``), as numpy arrays."""
+
+    seq: int
+    hand_input_seq: int
+    task: TaskSpace
+    q: np.ndarray
+    dq: np.ndarray
+    mass_matrix: np.ndarray         # d x d
+    gravity: np.ndarray             # d
+    hand_jacobian: np.ndarray       # m x d
+    singular_values: np.ndarray     # min(m, d), of the weighted Jacobian
+    left_vectors: np.ndarray        # m x m
+    weights: np.ndarray             # m
+    constraint_count: int
+    characteristic_length: float
+    hand_pose: np.ndarray           # m
+    hand_twist: np.ndarray          # m
+
+    @classmethod
+    def from_dynamics(cls, snap: DynamicsSnapshot, task: TaskSpace, characteristic_length: float,
+                      seq: int, hand_input_seq: int) -> LmiSnapshot:
+        c = snap.constraints
+        return cls(seq, hand_input_seq, task, snap.q, snap.dq, snap.mass_matrix, snap.gravity,
+                   snap.hand_jacobian, c.singular_values, c.left_vectors, c.weights, c.count,
+                   characteristic_length, snap.hand_pose, snap.hand_twist)
+
+    def constraints(self) -> ConstraintDirections:
+        return ConstraintDirections(self.singular_values, self.left_vectors, self.weights,
+                                    self.constraint_count,
+                                    task_scale(self.task, self.characteristic_length))
+
+
+@dataclass
+class _Input:
+    seq: int
+    wrench: np.ndarray
+    dt: float | None = None
+
+
+class LocalModel:
+    """The LMI: frozen-matrix VT dynamics stepped once per device cycle (eqs. 17-20)."""
+
+    def __init__(self, task: TaskSpace, model: LmiModel = LmiModel.EQ17,
+                 history: int = 256) -> None:
+        self.task = task
+        self.model = model
+        self.snapshot: LmiSnapshot | None = None
+        self._history: deque[_Input] = deque(maxlen=history)
+        self.consumed = -1
+        m = task.dim
+        self.lambda_inv = np.zeros((m, m))
+        self.projector = np.zeros((m, m))
+        self.constraint_count = 0
+        self.q = np.zeros(0)
+        self.dq = np.zeros(0)
+        self.x_vt = np.zeros(m)
+        self.xd_vt = np.zeros(m)
+        self._accel_map = np.zeros((0, m))   # D^-1 J^T
+        self._accel_bias = np.zeros(0)       # D^-1 G (eq. 17) or 0 (eq. 20)
+        self._jacobian = np.zeros((m, 0))
+
+    @property
+    def synced(self) -> bool:
+        return self.snapshot is not None
+
+    def sync(self, snap: LmiSnapshot) -> None:
+        """Re-sync to an update: take its matrices and state, replay the newer inputs."""
+        if snap.task is not self.task:
+            raise ValueError(f'task_dim must be {self.task.dim}, got {snap.task.dim}')
+        factor = cho_factor(snap.mass_matrix)
+        j = snap.hand_jacobian
+        self._accel_map = cho_solve(factor, j.T)
+        self._accel_bias = (cho_solve(factor, snap.gravity) if self.model is LmiModel.EQ17
+                            else np.zeros_like(snap.gravity))
+        self._jacobian = j
+        lam = j @ self._accel_map
+        self.lambda_inv = 0.5 * (lam + lam.T)      # eq. 19 (with J^T)
+        self.projector = snap.constraints().projector()
+        self.constraint_count = snap.constraint_count
+        self.q = snap.q.copy()
+        self.dq = snap.dq.copy()
+        self.x_vt = snap.hand_pose.copy()
+        self.xd_vt = snap.hand_twist.copy()
+        self.snapshot = snap
+        self.consumed = snap.hand_input_seq
+        self._replay(None)
+
+    def record_input(self, seq: int, wrench: np.ndarray) -> None:
+        """Remember the VT wrench computed at device state ``seq`` (used from then on)."""
+        self._history.append(_Input(seq, np.array(wrench, dtype=float)))
+
+    def advance(self, seq: int, dt: float) -> None:
+        """Bring the VT to the time of device state ``seq``; ``dt`` (s) since the last state.
+
+        The newest recorded input gets duration ``dt``; every recorded input not yet
+        consumed is integrated in order.
+        """
+        if self._history and self._history[-1].dt is None and self._history[-1].seq < seq:
+            self._history[-1].dt = dt
+        self._replay(seq)
+
+    def _replay(self, seq: int | None) -> None:
+        if self.snapshot is None:
+            return
+        for rec in self._history:
+            if rec.seq <= self.consumed or rec.dt is None:
+                continue
+            if seq is not None and rec.seq >= seq:
+                break
+            self._step(rec.wrench, rec.dt)
+            self.consumed = rec.seq
+
+    def _step(self, wrench: np.ndarray, dt: float) -> None:
+        """Semi-implicit Euler step of eq. 17 / eq. 20 with the frozen matrices."""
+        qdd = self._accel_map @ wrench - self._accel_bias
+        self.dq = self.dq + qdd * dt
+        self.q = self.q + self.dq * dt
+        self.xd_vt = self._jacobian @ self.dq
+        self.x_vt = integrate_pose(self.x_vt, self.xd_vt, dt, self.task)

@@ -1,0 +1,117 @@
+"""Directions of topological constraint: the left null space of ``J_h`` (Section V, eq. 13).
+
+``J_h`` mixes units: translational rows are in m/s and rotational rows in rad/s per joint rate,
+and prismatic columns are per m/s instead of per rad/s. Its singular values therefore change when
+the unit of length changes, and with short links (the paper's are 3-4 cm) a relative threshold
+``sigma_i < tol * sigma_max`` marks the translational directions as constrained almost
+everywhere, because ``sigma_max`` comes from the unit rotation rows. We weight the Jacobian with
+a characteristic length ``L_c`` (m)::
+
+    J_w = W J_h S,   W = diag(1 for translation rows, L_c for rotation rows),
+                     S = diag(1 for revolute joints, L_c for prismatic joints)
+
+so that every entry of ``J_w`` is a length, and call the i-th direction constrained when
+``sigma_i(J_w) < rank_tolerance * L_c``. Scaling every length of the problem (including L_c)
+by the same factor scales every ``sigma_i`` by that factor: the decision is independent of the
+unit of length. ``S`` is invertible, so it does not change ``N(J_h^T)``; ``W`` maps it
+(``N(J_w^T) = W^-1 N(J_h^T)``), so an exactly singular ``J_h`` is detected exactly.
+
+The penalty of eq. 13, ``M_d sum_i (k_tc n_i^T e + b_tc n_i^T e_dot) n_i``, is applied in the
+weighted coordinates ``e_w = W e`` and mapped back, i.e. with the projector
+``P = W^-1 U_w diag(w) U_w^T W``. With ``L_c = 1`` and hard switching this is the paper's
+formula exactly.
+
+Switching: with ``blend = 0`` a direction is either fully penalised (w = 1) or free (w = 0), as
+in the paper, so the penalty switches on abruptly when the linkage enters the tolerance band.
+With ``blend > 0`` the weight falls smoothly (C1 smoothstep) from 1 at ``tol*L_c`` to 0 at
+``tol*(1+blend)*L_c``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from haptic_topology.model.linkage import ConstraintSettings, JointType, Linkage, TaskSpace
+
+
+@dataclass(frozen=True)
+class ConstraintDirections:
+    """SVD of the weighted hand Jacobian and the penalty weight of each left singular vector.
+
+    Attributes:
+        singular_values: ``sigma_i(J_w)`` in m, descending, ``min(m, d)`` entries (eq. 18).
+        left_vectors: ``U_w`` (m x m), columns are directions in the weighted task space.
+        weights: penalty weight in [0, 1] of each column of ``U_w``.
+        count: t = m - rank(J_h), the number of directions of topological constraint.
+        task_scale: diagonal of ``W`` (m entries).
+    """
+
+    singular_values: np.ndarray
+    left_vectors: np.ndarray
+    weights: np.ndarray
+    count: int
+    task_scale: np.ndarray
+
+    def projector(self) -> np.ndarray:
+        """``P = W^-1 U diag(w) U^T W`` (m x m): picks the constrained part of a task error."""
+        u = self.left_vectors
+        pw = (u * self.weights) @ u.T
+        return (pw * self.task_scale[None, :]) / self.task_scale[:, None]
+
+
+def task_scale(task: TaskSpace, characteristic_length: float) -> np.ndarray:
+    """Diagonal of ``W``: 1 for translation rows, L_c (m) for rotation rows."""
+    w = np.full(task.dim, characteristic_length)
+    w[task.translation_rows] = 1.0
+    return w
+
+
+def joint_scale(linkage: Linkage) -> np.ndarray:
+    """Diagonal of ``S``: 1 for revolute joints, L_c for prismatic joints."""
+    lc = linkage.constraints.characteristic_length
+    return np.array([lc if link.joint is JointType.PRISMATIC else 1.0
+                     for link in linkage.links])
+
+
+def penalty_weight(ratio: np.ndarray, tolerance: float, blend: float) -> np.ndarray:
+    """Weight in [0, 1] of a direction whose singular value is ``ratio * L_c``.
+
+    1 below ``tolerance``; 0 above ``tolerance * (1 + blend)``; a C1 smoothstep between.
+    """
+    if blend <= 0.0:
+        return (ratio < tolerance).astype(float)
+    s = np.clip((ratio - tolerance) / (tolerance * blend), 0.0, 1.0)
+    return 1.0 - s * s * (3.0 - 2.0 * s)
+
+
+def constraint_directions(jacobian: np.ndarray, task: TaskSpace, settings: ConstraintSettings,
+                          column_scale: np.ndarray | None = None) -> ConstraintDirections:
+    """Directions of topological constraint ``N(J_h^T)`` from the weighted SVD (eq. 13, 18).
+
+    Args:
+        jacobian: ``J_h`` (m x d), rows (vx, vy, wz) planar or (v, w) spatial.
+        task: planar or spatial.
+        settings: characteristic length, rank tolerance, blend.
+        column_scale: diagonal of ``S`` (d entries), default all ones (revolute joints).
+
+    Example: Table I grasped at the middle link's COM has a zero third column in eq. 8, so
+    ``count == 1`` at every configuration (the paper's Fig. 2).
+    """
+    m, d = jacobian.shape
+    if m != task.dim:
+        raise ValueError(f'hand_jacobian must have {task.dim} rows, got {m}')
+    lc = settings.characteristic_length
+    w = task_scale(task, lc)
+    jw = w[:, None] * jacobian
+    if column_scale is not None:
+        jw = jw * column_scale[None, :]
+    u, s, _ = np.linalg.svd(jw, full_matrices=True)
+    ratio = np.ones(m) * 0.0
+    ratio[: s.size] = s / lc
+    weights = penalty_weight(ratio, settings.rank_tolerance, settings.blend)
+    # Rows beyond min(m, d) have no singular value: structurally constrained.
+    weights[s.size:] = 1.0
+    count = int(np.count_nonzero(ratio < settings.rank_tolerance))
+    return ConstraintDirections(s, u, weights, count, w)
