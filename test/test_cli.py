@@ -11,8 +11,13 @@ import pytest
 from haptic_topology import cli
 
 
-def test_only_implemented_commands_are_registered() -> None:
-    assert [c.name for c in cli.COMMANDS] == ['info']
+def test_commands_are_registered_once_with_help() -> None:
+    names = [c.name for c in cli.COMMANDS]
+    assert 'info' in names
+    assert len(names) == len(set(names))
+    assert all(c.help for c in cli.COMMANDS)
+    help_text = cli.build_parser().format_help()
+    assert all(name in help_text for name in names)
 
 
 def test_info_lists_versions_share_and_messages(capsys: pytest.CaptureFixture[str]) -> None:
