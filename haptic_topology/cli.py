@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from haptic_topology import MSGS_PACKAGE_NAME, PACKAGE_NAME, __version__
 from haptic_topology.errors import HapticTopologyError
+from haptic_topology.sim import command as simulate_command
 
 
 @dataclass(frozen=True)
@@ -86,6 +87,8 @@ def _info(args: argparse.Namespace) -> int:
 COMMANDS: tuple[Command, ...] = (
     Command('info', 'print versions, share directories and message types', _info_arguments,
             _info),
+    Command('simulate', 'offline lock-step simulation of a scenario: trace, plot, summary',
+            simulate_command.add_arguments, simulate_command.run),
 )
 
 

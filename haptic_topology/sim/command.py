@@ -8,14 +8,8 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
-
-from haptic_topology.control.laws import ControlMode
-from haptic_topology.model.linkage import load_linkage
-from haptic_topology.sim.lockstep import simulate
-from haptic_topology.sim.plots import plot_trace
-from haptic_topology.sim.scenario import load_scenario
-from haptic_topology.sim.trace import format_summary
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,6 +25,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Simulate, write the outputs, print the table; errors surface as HapticTopologyError."""
+    # Imported here so that `haptic-topology --help` does not load Pinocchio and matplotlib.
+    from haptic_topology.control.laws import ControlMode
+    from haptic_topology.model.linkage import load_linkage
+    from haptic_topology.sim.lockstep import simulate
+    from haptic_topology.sim.plots import plot_trace
+    from haptic_topology.sim.scenario import load_scenario
+    from haptic_topology.sim.trace import format_summary
+
     scenario = load_scenario(args.scenario)
     if args.linkage:
         scenario = scenario.with_linkage(load_linkage(args.linkage))
@@ -38,7 +40,6 @@ def run(args: argparse.Namespace) -> int:
         if not args.duration > 0.0:
             raise SystemExit(f'--duration: expected a positive number of seconds, got '
                              f'{args.duration}')
-        from dataclasses import replace
         scenario = replace(scenario, duration=args.duration)
     mode = ControlMode.parse(args.mode) if args.mode else scenario.mode
     trace = simulate(scenario, mode)

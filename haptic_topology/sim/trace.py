@@ -130,7 +130,7 @@ class Trace:
             raise ConfigError(f'{p}: trace has no header row')
         header, body = rows[0], rows[1:]
         table = np.array(body, dtype=float) if body else np.zeros((0, len(header)))
-        m, dof = int(meta['task_dim']), int(meta['dof'])
+        m, dof = int(meta.pop('task_dim')), int(meta.pop('dof'))
         trace = cls.empty(len(body), m, dof, **meta)
         col = {name: i for i, name in enumerate(header)}
         trace.t = table[:, col['t']]
