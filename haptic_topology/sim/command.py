@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='output directory (created; trace.csv, plot.png, summary.json)')
     parser.add_argument('--linkage', help='replace the scenario linkage (YAML or URDF file)')
     parser.add_argument('--duration', type=float, help='override the duration (s)')
+    parser.add_argument('--blend', type=float,
+                        help='continuous penalty weight near the rank threshold: 0 = hard '
+                        'switching (the paper), e.g. 1 = ramp over [tol, 2 tol]')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,6 +44,12 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(f'--duration: expected a positive number of seconds, got '
                              f'{args.duration}')
         scenario = replace(scenario, duration=args.duration)
+    if args.blend is not None:
+        if not args.blend >= 0.0:
+            raise SystemExit(f'--blend: expected a number >= 0, got {args.blend}')
+        lk = scenario.linkage
+        scenario = replace(scenario, linkage=replace(
+            lk, constraints=replace(lk.constraints, blend=args.blend)))
     mode = ControlMode.parse(args.mode) if args.mode else scenario.mode
     trace = simulate(scenario, mode)
     out: Path = args.out

@@ -13,12 +13,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use('Agg')
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pinocchio as pin  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pinocchio as pin
 
-from haptic_topology.model.linkage import Linkage, build_model  # noqa: E402
-from haptic_topology.sim.trace import Trace  # noqa: E402
+from haptic_topology.model.linkage import Linkage, build_model
+from haptic_topology.sim.trace import Trace
 
 
 def _joint_points(linkage: Linkage, q: np.ndarray) -> np.ndarray:
