@@ -10,8 +10,10 @@ from haptic_topology.model.linkage import (
     build_model,
     linkage_from_dict,
     load_linkage,
+    serial_chain,
     to_dict,
 )
 
 __all__ = ['ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage', 'LinkageModel',
-           'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage', 'to_dict']
+           'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage', 'serial_chain',
+           'to_dict']

@@ -432,4 +432,29 @@ def to_dict(linkage: Linkage) -> dict[str, Any]:
 
 
 __all__ = ['ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage', 'LinkageModel',
-           'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage', 'to_dict']
+           'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage', 'serial_chain',
+           'to_dict']
+
+
+def serial_chain(n: int, task: TaskSpace = TaskSpace.PLANAR, length: float = 0.05,
+                 mass: float = 0.5) -> Linkage:
+    """A uniform n-link chain of revolute joints grasped at the distal COM (benchmarks, tests).
+
+    Planar: all joints about z. Spatial: joint axes alternate z, y, x so the chain moves in 3-D.
+    """
+    if n < 1:
+        raise LinkageError(f'serial_chain: n must be >= 1, got {n}')
+    inertia = mass * length * length / 12.0 + 1e-6
+    links = []
+    for i in range(n):
+        entry: dict[str, Any] = {'name': f'link{i + 1}', 'joint': 'revolute', 'length': length,
+                                 'mass': mass}
+        if task is TaskSpace.PLANAR:
+            entry['inertia'] = inertia
+        else:
+            entry['inertia'] = [1e-6 + mass * 1e-4, inertia, inertia]
+            entry['axis'] = [[0, 0, 1], [0, 1, 0], [1, 0, 0]][i % 3]
+        links.append(entry)
+    return linkage_from_dict({'linkage': {'name': f'chain{n}_{task.value}',
+                                          'task': task.value, 'links': links}},
+                             f'<serial_chain {n}>')
