@@ -75,7 +75,7 @@ def controller_step(mode: ControlMode, cycles: int = 20000) -> dict[str, float]:
     return result
 
 
-def ve_update(n: int, task: TaskSpace, updates: int = 60) -> dict[str, float]:
+def ve_update(n: int, task: TaskSpace, updates: int = 60) -> dict[str, Any]:
     """Cost per 100 Hz VE update for an n-link chain.
 
     ``snapshot``: D, B, G, J_h, its SVD and the constraint directions (one LmiUpdate).
