@@ -33,6 +33,24 @@ def _joint_points(linkage: Linkage, q: np.ndarray) -> np.ndarray:
     return np.array(pts)[:, :2]
 
 
+def _hand_paths(ax: plt.Axes, vt: np.ndarray, dev: np.ndarray, title: str,
+                mark_start: bool) -> None:
+    """VE and device (HD) hand paths in the x-y plane (mm) on ``ax``."""
+    ax.plot(vt[:, 0] * 1000.0, vt[:, 1] * 1000.0, '-', color='tab:blue', lw=2, label='VE',
+            zorder=2)
+    ax.plot(dev[:, 0] * 1000.0, dev[:, 1] * 1000.0, '--', color='tab:red', lw=2, label='HD',
+            zorder=3)
+    if mark_start:
+        ax.plot(vt[:1, 0] * 1000.0, vt[:1, 1] * 1000.0, 'o', color='tab:blue')
+        ax.plot(dev[:1, 0] * 1000.0, dev[:1, 1] * 1000.0, 'o', color='tab:red')
+    ax.set_xlabel('x [mm]')
+    ax.set_ylabel('y [mm]')
+    ax.set_aspect('equal', adjustable='datalim')
+    ax.legend(loc='best')
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+
+
 def plot_trace(trace: Trace, path: str | Path, linkage: Linkage | None = None,
                title: str | None = None) -> Path:
     """Write the three-panel figure of ``trace`` to ``path`` (PNG) and return the path."""
@@ -52,26 +70,10 @@ def plot_trace(trace: Trace, path: str | Path, linkage: Linkage | None = None,
             pts = _joint_points(linkage, q[k]) * 1000.0
             shade = 'black' if i == 0 else '0.65'
             ax.plot(pts[:, 0], pts[:, 1], '-o', color=shade, lw=1.5, ms=3, zorder=1)
-    ax.plot(vt[:, 0] * 1000.0, vt[:, 1] * 1000.0, '-', color='tab:blue', lw=2, label='VE',
-            zorder=2)
-    ax.plot(dev[:, 0] * 1000.0, dev[:, 1] * 1000.0, '--', color='tab:red', lw=2, label='HD',
-            zorder=3)
-    ax.set_xlabel('x [mm]')
-    ax.set_ylabel('y [mm]')
-    ax.set_aspect('equal', adjustable='datalim')
-    ax.legend(loc='best')
-    ax.set_title('(a) linkage (start black, later grey) and hand paths')
-    ax.grid(alpha=0.3)
-    zoom.plot(vt[:, 0] * 1000.0, vt[:, 1] * 1000.0, '-', color='tab:blue', lw=2, label='VE')
-    zoom.plot(dev[:, 0] * 1000.0, dev[:, 1] * 1000.0, '--', color='tab:red', lw=2, label='HD')
-    zoom.plot(vt[:1, 0] * 1000.0, vt[:1, 1] * 1000.0, 'o', color='tab:blue')
-    zoom.plot(dev[:1, 0] * 1000.0, dev[:1, 1] * 1000.0, 'o', color='tab:red')
-    zoom.set_xlabel('x [mm]')
-    zoom.set_ylabel('y [mm]')
-    zoom.set_aspect('equal', adjustable='datalim')
-    zoom.legend(loc='best')
-    zoom.set_title('(b) hand on the device (HD) and in the VE (o: start)')
-    zoom.grid(alpha=0.3)
+    _hand_paths(ax, vt, dev, '(a) linkage (start black, later grey) and hand paths',
+                mark_start=False)
+    _hand_paths(zoom, vt, dev, '(b) hand on the device (HD) and in the VE (o: start)',
+                mark_start=True)
 
     ax = axes[1]
     ax.plot(t, dist_mm, color='tab:purple')
