@@ -1,0 +1,44 @@
+"""All four nodes of the graph in one process, on one executor (``haptic-topology run
+--composed``): ``ve_sim``, ``lmi_controller``, ``device_driver`` and ``recorder``.
+
+Parameters come from the same params file as for separate processes (one section per node
+name). Messages between the nodes still go through the middleware (no intra-process
+shortcut in rclpy), but no process boundary or scheduler hop is crossed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from rclpy.node import Node
+
+from haptic_topology.nodes import common
+
+
+def build() -> list[Node]:
+    from haptic_topology.nodes.device_driver import DeviceDriver
+    from haptic_topology.nodes.lmi_controller import LmiController
+    from haptic_topology.nodes.recorder import Recorder
+    from haptic_topology.nodes.ve_sim import VeSim
+
+    nodes: list[Node] = []
+    try:
+        for cls in (Recorder, VeSim, LmiController, DeviceDriver):
+            nodes.append(cls())
+    except BaseException:
+        for n in nodes:
+            close = getattr(n, 'close', None)
+            if close is not None:
+                close()
+            n.destroy_node()
+        raise
+    # The device driver's executor parameter decides (it is the clock master).
+    return [nodes[-1], *nodes[:-1]]
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    return common.run_main('composed', build, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

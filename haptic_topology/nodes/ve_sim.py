@@ -1,0 +1,195 @@
+"""``ve_sim``: the full virtual-environment simulation (eq. 2) driven by the haptic loop.
+
+A thin adapter over :class:`~haptic_topology.sim.ve.VirtualEnvironment`:
+
+* each ``HandInput`` (state_seq k, stamped with device state k's time) -> ``push_input``
+  with ``F_vt = F_h - F_pc`` (``vt_coupling``) or ``F_h``: the held input is integrated up
+  to this stamp; every ``update_period`` inputs an ``LmiUpdate`` is published (10 inputs of
+  a 1 kHz loop: 100 Hz), carrying ``hand_input_seq`` so the controller replays what is newer;
+* until the first hand input, the initial state is published as an ``LmiUpdate`` at
+  ``1 / (update_period * dt)`` Hz so that a controller can sync and close the loop;
+* ``sensor_msgs/JointState`` and a ``visualization_msgs/MarkerArray`` (linkage, VT grasp
+  point, device point, directions of topological constraint) at ``viz_rate_hz``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+from geometry_msgs.msg import Point
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from visualization_msgs.msg import Marker, MarkerArray
+
+from haptic_topology.control.lmi import LmiSnapshot
+from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+from haptic_topology.nodes import common
+from haptic_topology.nodes.convert import MessageError, lmi_msg, vt_wrench_from_hand
+from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology_msgs.msg import HandInput, LmiUpdate
+
+
+class VeSim(Node):
+    """The VE node (full dynamics at ``internal_step``, LMI updates at ~100 Hz)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('ve_sim', **kwargs)
+        d = common.declare
+        scenario_name = d(self, 'scenario', 'fig8', 'scenario name (config/scenarios) or YAML '
+                          'path: linkage, initial state, internal step, VT coupling')
+        d(self, 'executor', 'events', 'executor of the process', choices=common.EXECUTORS)
+        self.update_period = d(self, 'update_period', 10, 'hand inputs per LMI update (10 at '
+                               '1 kHz = 100 Hz); the scenario value is for the offline '
+                               'lock-step simulation', lo=1, hi=10000)
+        viz_rate = d(self, 'viz_rate_hz', 30.0, 'rate of joint states and markers (Hz)',
+                     lo=0.1, hi=200.0)
+        d(self, 'frame_id', 'world', 'frame of the markers')
+        self.scenario = sc = load_scenario(scenario_name)
+        self.task = sc.linkage.task
+        self.dyn = LinkageDynamics(sc.linkage)
+        self.ve = VirtualEnvironment(self.dyn, sc.q0, sc.dq0, sc.internal_step)
+        self._viz_dyn = LinkageDynamics(sc.linkage)     # separate Pinocchio workspace
+
+        self.lmi_pub = self.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
+        self.joint_pub = self.create_publisher(JointState, common.TOPIC_JOINTS, common.QOS_VIZ)
+        self.marker_pub = self.create_publisher(MarkerArray, common.TOPIC_MARKERS,
+                                                common.QOS_VIZ)
+        self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
+                                              common.QOS_DIAGNOSTICS)
+        self.create_subscription(HandInput, common.TOPIC_HAND, self._on_hand, common.QOS_HAND)
+        self._lmi = LmiUpdate()
+        self._update_seq = 0
+        self._inputs = 0
+        self._last_hand_seq = 0
+        self.lost_inputs = 0
+        self.rejected = 0
+        self._t0: float | None = None
+        self._device_pose: np.ndarray | None = None
+        self._last_snap: LmiSnapshot = self.ve.snapshot(seq=0)
+        self.stats = common.LoopStats(sc.dt)
+        self.update_stats = common.LoopStats(sc.dt * self.update_period)
+        self._idle_timer = self.create_timer(sc.dt * self.update_period, self._publish_initial)
+        self.create_timer(1.0 / viz_rate, self._publish_viz)
+        self.create_timer(1.0, self._publish_diagnostics)
+
+    def _publish_update(self) -> None:
+        self._last_snap = self.ve.snapshot(seq=self._update_seq)
+        self._update_seq += 1
+        self.update_stats.tick(common.monotonic())
+        self.lmi_pub.publish(lmi_msg(self._lmi, self._last_snap,
+                                     self.get_clock().now().to_msg()))
+
+    def _publish_initial(self) -> None:
+        if self._inputs == 0:
+            self._publish_update()
+
+    def _on_hand(self, msg: HandInput) -> None:
+        try:
+            seq, stamp, f_vt = vt_wrench_from_hand(msg, self.task, self.scenario.vt_coupling)
+        except MessageError as exc:
+            self.rejected += 1
+            self.get_logger().warn(f'hand input rejected: {exc}', throttle_duration_sec=1.0)
+            return
+        if self._last_hand_seq and msg.seq > self._last_hand_seq + 1:
+            self.lost_inputs += int(msg.seq - self._last_hand_seq - 1)
+        self._last_hand_seq = max(self._last_hand_seq, int(msg.seq))
+        if self._t0 is None:
+            self._t0 = stamp
+            self._idle_timer.cancel()
+        self.stats.tick(common.monotonic())
+        self._device_pose = np.asarray(msg.pose, dtype=float)
+        self.ve.push_input(seq, stamp - self._t0, f_vt)
+        self._inputs += 1
+        if self._inputs % self.update_period == 0:
+            self._publish_update()
+
+    # -- visualisation ---------------------------------------------------------------------
+    def _joint_points(self, q: np.ndarray) -> list[Point]:
+        dyn = self._viz_dyn
+        pin.framesForwardKinematics(dyn.model, dyn.data, q)
+        pts = [np.array(dyn.data.oMi[j].translation) for j in range(1, dyn.model.njoints)]
+        last = self.scenario.linkage.links[-1]
+        pts.append(np.array(dyn.data.oMi[dyn.model.njoints - 1].act(
+            np.array([last.length, 0.0, 0.0]))))
+        return [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in pts]
+
+    def _publish_viz(self) -> None:
+        stamp = self.get_clock().now().to_msg()
+        q, dq = self.ve.q, self.ve.dq
+        js = JointState()
+        js.header.stamp = stamp
+        js.name = list(self.scenario.linkage.link_names)
+        js.position = q.tolist()
+        js.velocity = dq.tolist()
+        self.joint_pub.publish(js)
+        frame = str(self.get_parameter('frame_id').value)
+        hand = self._viz_dyn.hand_placement(q).translation
+        markers = MarkerArray()
+
+        def marker(mid: int, ns: str, kind: int, rgb: tuple[float, float, float],
+                   scale: float) -> Marker:
+            mk = Marker()
+            mk.header.stamp = stamp
+            mk.header.frame_id = frame
+            mk.ns, mk.id, mk.type, mk.action = ns, mid, kind, Marker.ADD
+            mk.pose.orientation.w = 1.0
+            mk.scale.x = mk.scale.y = mk.scale.z = scale
+            mk.color.r, mk.color.g, mk.color.b = rgb
+            mk.color.a = 1.0
+            return mk
+
+        link = marker(0, 'linkage', Marker.LINE_STRIP, (0.2, 0.4, 0.9), 0.004)
+        link.points = self._joint_points(q)
+        grasp = marker(1, 'grasp', Marker.SPHERE, (0.1, 0.8, 0.1), 0.006)
+        grasp.pose.position = Point(x=float(hand[0]), y=float(hand[1]), z=float(hand[2]))
+        markers.markers = [link, grasp]
+        if self._device_pose is not None:
+            dev = marker(2, 'device', Marker.SPHERE, (0.9, 0.2, 0.2), 0.006)
+            z = float(self._device_pose[2]) if self.task.dim == 6 else 0.0
+            dev.pose.position = Point(x=float(self._device_pose[0]),
+                                      y=float(self._device_pose[1]), z=z)
+            markers.markers.append(dev)
+        snap = self._last_snap
+        rows = self.task.translation_rows
+        for i in range(snap.left_vectors.shape[1]):
+            arrow = marker(10 + i, 'constraint', Marker.ARROW, (1.0, 0.6, 0.0), 0.002)
+            direction = snap.left_vectors[rows, i]
+            norm = float(np.linalg.norm(direction))
+            if snap.weights[i] <= 0.0 or norm < 1e-9:
+                arrow.action = Marker.DELETE
+            else:
+                tip = hand.copy()
+                tip[: direction.size] += 0.02 * float(snap.weights[i]) * direction / norm
+                arrow.points = [Point(x=float(hand[0]), y=float(hand[1]), z=float(hand[2])),
+                                Point(x=float(tip[0]), y=float(tip[1]), z=float(tip[2]))]
+                arrow.scale.y = arrow.scale.z = 0.004
+            markers.markers.append(arrow)
+        self.marker_pub.publish(markers)
+
+    def _publish_diagnostics(self) -> None:
+        values = self.stats.values('input_')
+        values.update(self.update_stats.values('update_'))
+        values.update({
+            'hand_inputs': str(self._inputs),
+            'lost_hand_inputs': str(self.lost_inputs),
+            'hand_input_seq': str(self.ve.hand_input_seq),
+            'lmi_updates': str(self._update_seq),
+            'rejected_messages': str(self.rejected),
+            'kinetic_energy_j': f'{self.ve.kinetic_energy():.6g}',
+        })
+        ok = all(math.isfinite(v) for v in self.ve.q)
+        self.diag_pub.publish(common.diagnostics(
+            self, 've_sim: loop', values, 0 if ok else 2, 'ok' if ok else 'VE state not finite'))
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    return common.run_main('ve_sim', lambda: [VeSim()], args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
