@@ -9,12 +9,11 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export HAPTIC_VENV := $(abspath $(VENV))
 
-# The demo command; later issues replace the smoke run with `haptic-topology run ...`.
-DEMO_MSGS := from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+# The demo: the ROS 2 node graph (simulated maglev, LMI controller, VE, recorder) on the
+# paper's Fig. 8 scenario, once with eq. 14 (penalty) and once with eq. 10
+# (acceleration_only); each run is recorded to bags/, plotted, and summarised.
 define DEMO_CMD
-$(BIN)/haptic-topology --help
-$(BIN)/haptic-topology info
-$(BIN)/python -c "$(DEMO_MSGS); print('messages import:', DeviceState.__name__, DeviceCommand.__name__, LmiUpdate.__name__, HandInput.__name__)"
+$(BIN)/haptic-topology run fig8 --mode penalty --mode acceleration_only
 endef
 export DEMO_CMD
 

@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from haptic_topology import MSGS_PACKAGE_NAME, PACKAGE_NAME, __version__
+from haptic_topology.bringup import run as run_command
 from haptic_topology.errors import HapticTopologyError
 from haptic_topology.sim import command as simulate_command
 
@@ -89,6 +90,8 @@ COMMANDS: tuple[Command, ...] = (
             _info),
     Command('simulate', 'offline lock-step simulation of a scenario: trace, plot, summary',
             simulate_command.add_arguments, simulate_command.run),
+    Command('run', 'start the ROS 2 node graph (device, controller, VE, recorder): bag, '
+            'summary, loop figures', run_command.add_arguments, run_command.run),
 )
 
 

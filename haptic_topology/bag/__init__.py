@@ -1,0 +1,1 @@
+"""Recorded runs: reading rosbag2 (MCAP) bags of the node graph into traces."""

@@ -1,0 +1,171 @@
+"""Reduce a bag recorded from the node graph to a :class:`~haptic_topology.sim.trace.Trace`.
+
+Rows are the device states of the run (from the first state not flagged STATUS_WATCHDOG,
+the state at which the controller engaged; ``t = 0`` there), in sequence order:
+
+* device pose/twist, hand wrench, applied wrench and status from ``DeviceState``;
+* command, LMI VT hand pose and LMI constraint count from the ``DeviceCommand`` with
+  ``state_seq`` equal to the row's seq (NaN / 0 when it was lost);
+* the VE's VT hand pose and joint positions from ``LmiUpdate``: an update with
+  ``hand_input_seq`` s is the VE after consuming input s, i.e. at the time of state s + 1
+  (``hand_input_seq`` 0: the initial state, at the first row); between updates (100 Hz)
+  they are interpolated linearly in time, after the last one they are NaN; the constraint
+  count is held from the last update.
+
+Loop figures: the device driver's own counts from its last ``/diagnostics`` status
+(answered fraction, round trip p50/p99), and an estimate from the bag alone: the fraction of
+states k whose command was computed (``DeviceCommand.header.stamp``) before state k+1 was
+stamped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rosbags.highlevel import AnyReader, AnyReaderError
+
+from haptic_topology.errors import BagError
+from haptic_topology.msgdefs import typestore_with_haptic_msgs
+from haptic_topology.sim.trace import Trace
+
+_WATCHDOG = 4
+_MODE_LABELS = {0: 'penalty', 1: 'acceleration_only', 2: 'zero'}
+
+
+@dataclass
+class GraphRun:
+    """A recorded run: its trace and loop figures (``loop`` keys are documented above)."""
+
+    trace: Trace
+    loop: dict[str, float] = field(default_factory=dict)
+    diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
+
+
+def _stamp(header: Any) -> float:
+    return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
+
+
+def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None) -> GraphRun:
+    """Read the bag directory ``path`` (see module doc)."""
+    p = Path(path)
+    states: dict[int, Any] = {}
+    commands: dict[int, Any] = {}
+    updates: list[Any] = []
+    diags: dict[str, dict[str, str]] = {}
+    try:
+        with AnyReader([p], default_typestore=typestore_with_haptic_msgs()) as reader:
+            for conn, _, raw in reader.messages():
+                topic = conn.topic
+                msg: Any
+                if topic.endswith('haptic/device/state'):
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    states[int(msg.seq)] = msg
+                elif topic.endswith('haptic/device/command'):
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    commands.setdefault(int(msg.state_seq), msg)
+                elif topic.endswith('haptic/lmi/update'):
+                    updates.append(reader.deserialize(raw, conn.msgtype))
+                elif topic == '/diagnostics':
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    for st in msg.status:
+                        diags[st.name] = {kv.key: kv.value for kv in st.values}
+    except (AnyReaderError, OSError) as exc:
+        raise BagError(f'{p}: cannot read bag ({exc})') from None
+    run_seqs = sorted(s for s, m in states.items() if not m.status & _WATCHDOG)
+    if not run_seqs:
+        raise BagError(f'{p}: no device state of a running loop (controller never engaged?)')
+    k0 = run_seqs[0]
+    seqs = np.array(sorted(s for s in states if s >= k0))
+    first = states[k0]
+    m = int(first.task_dim)
+    if dof is None:
+        dof = int(updates[0].dof) if updates else 0
+    modes = [int(c.mode) for s, c in commands.items() if s >= k0]
+    mode = max(set(modes), key=modes.count) if modes else 2
+    trace = Trace.empty(len(seqs), m, dof, mode=_MODE_LABELS.get(mode, str(mode)),
+                        scenario=scenario, dt=0.001, source='graph', bag=str(p))
+    t0 = _stamp(first.header)
+    row_of = {int(s): i for i, s in enumerate(seqs)}
+    for i, s in enumerate(seqs):
+        st = states[int(s)]
+        values: dict[str, Any] = dict(
+            device_pose=st.pose, device_twist=st.twist, hand_wrench=st.hand_wrench,
+            applied=st.applied_wrench, status=int(st.status))
+        cmd = commands.get(int(s))
+        if cmd is not None:
+            values.update(command=cmd.wrench, lmi_pose=cmd.vt_pose,
+                          lmi_constraint_count=int(cmd.constraint_count))
+        trace.record(i, t=_stamp(st.header) - t0, **values)
+        trace.seq[i] = int(s)
+    # VE samples at known rows, interpolated in time between them.
+    known: dict[int, Any] = {}
+    for u in updates:
+        s = int(u.hand_input_seq)
+        row = row_of.get(s + 1) if s > 0 else (0 if s == 0 else None)
+        if row is not None and (s > 0 or row not in known):
+            known[row] = u
+    if known:
+        rows = np.array(sorted(known))
+        t_known = trace.t[rows]
+        last = rows[-1]
+        poses = np.array([known[r].hand_pose for r in rows])
+        qs = np.array([known[r].q for r in rows]) if dof else np.zeros((len(rows), 0))
+        span = slice(0, last + 1)
+        for j in range(m):
+            trace.columns['vt_pose'][span, j] = np.interp(trace.t[span], t_known, poses[:, j])
+        for j in range(qs.shape[1]):
+            trace.columns['q'][span, j] = np.interp(trace.t[span], t_known, qs[:, j])
+        counts = np.array([int(known[r].constraint_count) for r in rows])
+        idx = np.searchsorted(rows, np.arange(len(seqs)), side='right') - 1
+        trace.columns['constraint_count'][:] = np.where(idx >= 0, counts[np.maximum(idx, 0)], 0)
+    return GraphRun(trace, loop_figures(states, commands, seqs, diags), diags)
+
+
+def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndarray,
+                 diags: dict[str, dict[str, str]]) -> dict[str, float]:
+    """Loop figures from the device driver's diagnostics and from the bag's stamps."""
+    out: dict[str, float] = {}
+    dev = diags.get('device_driver: loop', {})
+    for key in ('answered_fraction', 'round_trip_p50_ms', 'round_trip_p99_ms', 'rate_hz',
+                'period_p99_ms', 'overruns'):
+        try:
+            out[f'device_{key}'] = float(dev[key])
+        except (KeyError, ValueError):
+            out[f'device_{key}'] = math.nan
+    in_time = 0
+    total = 0
+    for a, b in zip(seqs[:-1], seqs[1:], strict=True):
+        if b != a + 1:
+            continue
+        total += 1
+        cmd = commands.get(int(a))
+        if cmd is not None and _stamp(cmd.header) < _stamp(states[int(b)].header):
+            in_time += 1
+    out['bag_answered_fraction'] = in_time / total if total else math.nan
+    out['bag_states'] = float(len(seqs))
+    out['bag_commands'] = float(sum(1 for s in seqs if int(s) in commands))
+    return out
+
+
+def format_loop(rows: list[tuple[str, dict[str, float]]]) -> str:
+    """A small table of loop figures, one row per run label."""
+    cols = [('device_answered_fraction', 'answered [%]', 100.0, '{:.2f}'),
+            ('bag_answered_fraction', 'answered, bag [%]', 100.0, '{:.2f}'),
+            ('device_round_trip_p50_ms', 'rtt p50 [ms]', 1.0, '{:.3f}'),
+            ('device_round_trip_p99_ms', 'rtt p99 [ms]', 1.0, '{:.3f}'),
+            ('device_period_p99_ms', 'period p99 [ms]', 1.0, '{:.3f}'),
+            ('bag_states', 'states', 1.0, '{:.0f}')]
+    head = ['run'] + [c[1] for c in cols]
+    cells = [head]
+    for label, fig in rows:
+        cells.append([label] + [fmt.format(fig.get(k, math.nan) * scale)
+                                for k, _, scale, fmt in cols])
+    widths = [max(len(r[i]) for r in cells) for i in range(len(head))]
+    lines = ['  '.join(c.ljust(widths[i]) if i == 0 else c.rjust(widths[i])
+                       for i, c in enumerate(r)) for r in cells]
+    lines.insert(1, '  '.join('-' * w for w in widths))
+    return '\n'.join(lines)

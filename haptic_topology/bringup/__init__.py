@@ -1,0 +1,1 @@
+"""Starting the node graph (``haptic-topology run``)."""

@@ -1,0 +1,225 @@
+"""``haptic-topology run SCENARIO --mode penalty|acceleration_only --duration S``: the bringup.
+
+Starts ``recorder``, ``ve_sim``, ``lmi_controller`` and ``device_driver`` as separate
+processes (default) or composed in one process on one executor (``--composed``), all with
+the params file (default ``config/haptic_topology.yaml``) plus ``scenario``, the controller's
+``mode``, the recorder's ``output`` and ``device_driver.min_subscribers = 2`` (controller and
+recorder must see the device before it engages, so the bag holds the whole run); the device
+driver is started last, once the recorder reports it is matched to the controller's and the
+VE's publishers. It waits
+for ``--duration`` seconds from the engagement of the controller (the run's first device
+state), stops the device, controller, VE and then the recorder with SIGINT (SIGTERM, then
+SIGKILL, after a timeout each), reads the bag back into a trace and writes ``trace.csv``,
+``plot.png`` and ``summary.json`` next to the bag's files, and prints the drift summary
+(as ``simulate``) and the loop figures. Several ``--mode`` options run one after the other.
+
+The processes inherit the environment (``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE``).
+Their logs are kept in ``<bag>/logs/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+from haptic_topology.errors import ConfigError, HapticTopologyError
+
+NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
+ENGAGED_MARK = 'controller engaged at state'
+RECORDING_MARK = 'recording to'
+CONNECTED_MARK = 'recorder connected'
+
+
+class BringupError(HapticTopologyError):
+    """A node of the graph failed to start, or the loop never closed."""
+
+
+@dataclass
+class _Proc:
+    name: str
+    popen: subprocess.Popen[bytes]
+    log: Path
+    handle: IO[bytes]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('scenario', help='scenario name (fig6, fig8) or a scenario YAML file')
+    parser.add_argument('--mode', action='append', choices=('penalty', 'acceleration_only'),
+                        help="control law (repeat to run several); default: the scenario's")
+    parser.add_argument('--duration', type=float,
+                        help="run length (s) from the loop's first state; default: the "
+                        "scenario's duration")
+    parser.add_argument('--composed', action='store_true',
+                        help='all nodes in one process on one executor')
+    parser.add_argument('--out', type=Path, help='bag directory (one --mode only); default '
+                        'bags/<scenario>_<mode>_<timestamp>')
+    parser.add_argument('--params', type=Path, help='ROS 2 params file; default '
+                        'config/haptic_topology.yaml')
+    parser.add_argument('--backend', help='device_driver backend (default: the params file)')
+    parser.add_argument('--startup-timeout', type=float, default=30.0,
+                        help='seconds to wait for the loop to close (default 30)')
+    parser.add_argument('--no-plot', action='store_true', help='skip plot.png')
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text(encoding='utf-8', errors='replace')
+    except OSError:
+        return ''
+
+
+def _tail(path: Path, lines: int = 8) -> str:
+    return '\n'.join(_read(path).strip().splitlines()[-lines:])
+
+
+def _start(name: str, argv: list[str], log_dir: Path) -> _Proc:
+    log = log_dir / f'{name}.log'
+    handle = log.open('wb')
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    popen = subprocess.Popen(argv, stdout=handle, stderr=subprocess.STDOUT, env=env,
+                             start_new_session=True)
+    return _Proc(name, popen, log, handle)
+
+
+def _wait_for(procs: list[_Proc], proc: _Proc, mark: str, timeout: float) -> float:
+    """Wait until ``mark`` appears in ``proc``'s log; return the monotonic time it was seen."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if mark in _read(proc.log):
+            return time.monotonic()
+        for p in procs:
+            if p.popen.poll() is not None:
+                raise BringupError(f'{p.name} exited with status {p.popen.returncode} during '
+                                   f'startup:\n{_tail(p.log)}')
+        time.sleep(0.02)
+    raise BringupError(f'{proc.name}: no "{mark}" within {timeout:.0f} s; logs in '
+                       f'{proc.log.parent}\n{_tail(proc.log)}')
+
+
+def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
+    """SIGINT each process in order, escalating to SIGTERM and SIGKILL; return exit codes."""
+    codes: dict[str, int] = {}
+    for p in procs:
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 2.0),
+                          (signal.SIGKILL, 2.0)):
+            if p.popen.poll() is not None:
+                break
+            p.popen.send_signal(sig)
+            try:
+                p.popen.wait(wait)
+            except subprocess.TimeoutExpired:
+                continue
+        codes[p.name] = p.popen.wait()
+        p.handle.close()
+    return codes
+
+
+def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path,
+              composed: bool = False, backend: str | None = None,
+              startup_timeout: float = 30.0) -> dict[str, int]:
+    """Run the graph once, recording to ``bag``; return the processes' exit codes."""
+    if bag.exists():
+        raise ConfigError(f'--out: {bag} already exists')
+    ros = ['--ros-args', '--params-file', str(params), '-p', f'scenario:={scenario}',
+           '-p', f'lmi_controller:mode:={mode}', '-p', f'recorder:output:={bag}',
+           '-p', 'device_driver:min_subscribers:=2']
+    if backend:
+        ros += ['-p', f'device_driver:backend:={backend}']
+    log_dir = Path(tempfile.mkdtemp(prefix='haptic_run_'))
+    procs: list[_Proc] = []
+    codes: dict[str, int] = {}
+    try:
+        py = [sys.executable, '-m']
+        if composed:
+            procs.append(_start('composed', py + ['haptic_topology.nodes.composed'] + ros,
+                                log_dir))
+            recorder = device = procs[0]
+        else:
+            for name in NODES:
+                if name == 'device_driver':
+                    # The loop starts with the device: only once the recorder is matched to
+                    # the controller's and the VE's publishers (discovery can take seconds).
+                    _wait_for(procs, procs[0], CONNECTED_MARK, startup_timeout)
+                procs.append(_start(name, py + [f'haptic_topology.nodes.{name}'] + ros,
+                                    log_dir))
+                if name == 'recorder':
+                    _wait_for(procs, procs[0], RECORDING_MARK, startup_timeout)
+            recorder, device = procs[0], procs[-1]
+        del recorder
+        started = _wait_for(procs, device, ENGAGED_MARK, startup_timeout)
+        while time.monotonic() < started + duration:
+            for p in procs:
+                if p.popen.poll() is not None:
+                    raise BringupError(f'{p.name} exited with status {p.popen.returncode} '
+                                       f'during the run:\n{_tail(p.log)}')
+            time.sleep(0.05)
+    finally:
+        # Device first (the loop stops), recorder last (it keeps every message until then).
+        codes = stop(list(reversed(procs)))
+        if bag.is_dir():
+            shutil.copytree(log_dir, bag / 'logs', dirs_exist_ok=True)
+        shutil.rmtree(log_dir, ignore_errors=True)
+    bad = {n: c for n, c in codes.items() if c != 0}
+    if bad:
+        logs = bag / 'logs' if bag.is_dir() else log_dir
+        raise BringupError(f'nodes exited with errors {bad}; logs in {logs}')
+    return codes
+
+
+def run(args: argparse.Namespace) -> int:
+    """The ``run`` subcommand (see module doc)."""
+    from haptic_topology.bag.graph_trace import format_loop, read_graph_bag
+    from haptic_topology.paths import config_dir
+    from haptic_topology.sim.scenario import load_scenario
+    from haptic_topology.sim.trace import format_summary
+
+    sc = load_scenario(args.scenario)  # validate before starting anything
+    modes: list[str] = args.mode or [sc.mode.label]
+    duration = sc.duration if args.duration is None else args.duration
+    if not duration > 0.0:
+        raise ConfigError(f'--duration: expected a positive number of seconds, got {duration}')
+    if args.out is not None and len(modes) > 1:
+        raise ConfigError('--out: give it with one --mode only')
+    params = args.params or config_dir() / 'haptic_topology.yaml'
+    if not params.is_file():
+        raise ConfigError(f'--params: {params}: no such file')
+    scenario_ref = args.scenario if Path(args.scenario).suffix == '' else str(
+        Path(args.scenario).resolve())
+    summaries = []
+    loops = []
+    for mode in modes:
+        bag = args.out or Path('bags') / f'{sc.name}_{mode}_{time.strftime("%Y%m%d-%H%M%S")}'
+        print(f'running {sc.name} ({mode}) for {duration:g} s'
+              f'{" composed" if args.composed else ""} ...', flush=True)
+        run_graph(scenario_ref, mode, duration, bag, params, args.composed, args.backend,
+                  args.startup_timeout)
+        result = read_graph_bag(bag, sc.name, sc.linkage.dof)
+        trace = result.trace
+        trace.to_csv(bag / 'trace.csv')
+        summary = dict(trace.summary(), **{k: v for k, v in result.loop.items()})
+        (bag / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n',
+                                          encoding='utf-8')
+        if not args.no_plot:
+            from haptic_topology.sim.plots import plot_trace
+
+            plot_trace(trace, bag / 'plot.png', sc.linkage,
+                       title=f'{sc.name} {mode} (ROS graph)')
+            print(f'plot: {bag / "plot.png"}')
+        print(f'bag: {bag}', flush=True)
+        summaries.append(summary)
+        loops.append((f'{sc.name} {mode}', result.loop))
+    print()
+    print(format_summary(summaries))
+    print()
+    print(format_loop(loops))
+    return 0
