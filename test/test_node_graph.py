@@ -59,16 +59,16 @@ def fig6_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, GraphRun]:
 @pytest.mark.parametrize('mode', ['penalty', 'acceleration_only'])
 def test_graph_agrees_with_offline_simulation(fig6_runs: dict[str, GraphRun],
                                               mode: str) -> None:
-    """Device and VT hand paths of the graph match ``simulate()`` within 1 mm over 3 s.
+    """Device and VT hand paths of the graph match ``simulate()`` within 2 mm over 3 s.
 
     The offline run uses the graph's LMI update period (10 cycles = 100 Hz) and the graph's
     duration. What remains are the graph's real-time effects: measured (jittery) periods
-    instead of exactly 1 ms, the odd cycle answered late (the device then applies the
-    previous command for one more period), and LMI updates arriving a cycle or two later
-    (the LMI replays the inputs it sent since, so only the frozen matrices change later).
-    Each is a sub-0.1 mm effect on this scenario (typical measured: < 0.1 mm); 1 mm keeps the
-    test robust on a loaded 2-core machine while staying well below the 5-39 mm drifts
-    being compared.
+    instead of exactly 1 ms, cycles answered late (the device then applies the previous
+    command for one more period: ~10 % of cycles on 2 cores), and LMI updates arriving a
+    cycle or two later (the LMI replays the inputs it sent since, so only the frozen matrices
+    change later). Measured on an idle 2-core machine: 0.15-0.35 mm (device) and
+    0.10-0.25 mm (VT hand). 2 mm leaves room for a loaded machine and is still small against
+    what the test is about: drifts of 5 mm (eq. 14) and 39 mm (eq. 10).
     """
     run = fig6_runs[mode]
     graph = run.trace
@@ -76,10 +76,10 @@ def test_graph_agrees_with_offline_simulation(fig6_runs: dict[str, GraphRun],
     sc = load_scenario('fig6')
     offline = simulate(replace(sc, duration=float(graph.t[-1]), update_period=10),
                        ControlMode.parse(mode))
-    assert _max_xy_difference(graph, offline, 'device_pose') < 1e-3
-    assert _max_xy_difference(graph, offline, 'vt_pose') < 1e-3
+    assert _max_xy_difference(graph, offline, 'device_pose') < 2e-3
+    assert _max_xy_difference(graph, offline, 'vt_pose') < 2e-3
     g, o = graph.summary(), offline.summary()
-    assert abs(g['final_distance_m'] - o['final_distance_m']) < 1e-3
+    assert abs(g['final_distance_m'] - o['final_distance_m']) < 2e-3
     assert run.loop['bag_answered_fraction'] > 0.5
     assert run.loop['device_answered_fraction'] > 0.5
 
