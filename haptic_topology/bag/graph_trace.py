@@ -26,13 +26,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.highlevel import AnyReader, AnyReaderError
 
+from haptic_topology.bag.reader import Progress, decoder, iter_messages, open_bag, require_types
 from haptic_topology.errors import BagError
-from haptic_topology.msgdefs import typestore_with_haptic_msgs
+from haptic_topology.msgdefs import type_name
 from haptic_topology.sim.trace import Trace
 
 _WATCHDOG = 4
+#: Topic suffix -> type the graph publishes on it (a bag without any of them is foreign).
+GRAPH_TYPES = {
+    'haptic/device/state': type_name('DeviceState'),
+    'haptic/device/command': type_name('DeviceCommand'),
+    'haptic/hand': type_name('HandInput'),
+    'haptic/lmi/update': type_name('LmiUpdate'),
+}
 _MODE_LABELS = {0: 'penalty', 1: 'acceleration_only', 2: 'zero'}
 
 
@@ -49,32 +56,36 @@ def _stamp(header: Any) -> float:
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
 
 
-def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None) -> GraphRun:
-    """Read the bag directory ``path`` (see module doc)."""
-    p = Path(path)
+def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
+                   progress: Progress | None = None) -> GraphRun:
+    """Read the bag ``path`` (see module doc); ``progress`` gets the fraction read.
+
+    A truncated bag (recorder killed) is read up to its last complete chunk; the trace's
+    ``meta['truncated']`` is then True.
+    """
+    bag = open_bag(path)
+    p = bag.path
+    require_types(bag, GRAPH_TYPES)
+    decode = decoder()
     states: dict[int, Any] = {}
     commands: dict[int, Any] = {}
     updates: list[Any] = []
     diags: dict[str, dict[str, str]] = {}
-    try:
-        with AnyReader([p], default_typestore=typestore_with_haptic_msgs()) as reader:
-            for conn, _, raw in reader.messages():
-                topic = conn.topic
-                msg: Any
-                if topic.endswith('haptic/device/state'):
-                    msg = reader.deserialize(raw, conn.msgtype)
-                    states[int(msg.seq)] = msg
-                elif topic.endswith('haptic/device/command'):
-                    msg = reader.deserialize(raw, conn.msgtype)
-                    commands.setdefault(int(msg.state_seq), msg)
-                elif topic.endswith('haptic/lmi/update'):
-                    updates.append(reader.deserialize(raw, conn.msgtype))
-                elif topic == '/diagnostics':
-                    msg = reader.deserialize(raw, conn.msgtype)
-                    for st in msg.status:
-                        diags[st.name] = {kv.key: kv.value for kv in st.values}
-    except (AnyReaderError, OSError) as exc:
-        raise BagError(f'{p}: cannot read bag ({exc})') from None
+    for raw in iter_messages(bag, progress=progress):
+        topic = raw.topic
+        msg: Any
+        if topic.endswith('haptic/device/state'):
+            msg = decode(raw)
+            states[int(msg.seq)] = msg
+        elif topic.endswith('haptic/device/command'):
+            msg = decode(raw)
+            commands.setdefault(int(msg.state_seq), msg)
+        elif topic.endswith('haptic/lmi/update'):
+            updates.append(decode(raw))
+        elif topic == '/diagnostics':
+            msg = decode(raw)
+            for st in msg.status:
+                diags[st.name] = {kv.key: kv.value for kv in st.values}
     run_seqs = sorted(s for s, m in states.items() if not m.status & _WATCHDOG)
     if not run_seqs:
         raise BagError(f'{p}: no device state of a running loop (controller never engaged?)')
@@ -87,7 +98,8 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None)
     modes = [int(c.mode) for s, c in commands.items() if s >= k0]
     mode = max(set(modes), key=modes.count) if modes else 2
     trace = Trace.empty(len(seqs), m, dof, mode=_MODE_LABELS.get(mode, str(mode)),
-                        scenario=scenario, dt=0.001, source='graph', bag=str(p))
+                        scenario=scenario, dt=0.001, source='graph', bag=str(p),
+                        truncated=bool(bag.truncated))
     t0 = _stamp(first.header)
     row_of = {int(s): i for i, s in enumerate(seqs)}
     for i, s in enumerate(seqs):

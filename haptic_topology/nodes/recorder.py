@@ -1,14 +1,27 @@
 """``recorder``: writes the graph's topics to a rosbag2 directory (MCAP storage).
 
 Subscribes with ``raw=True`` (the serialized CDR bytes are stored as received, nothing is
-deserialised) and writes them with ``rosbags`` under ``output`` (default
-``bags/<scenario>_<YYYYmmdd-HHMMSS>``), timestamped with the receive time. The bag is
-finalised (``metadata.yaml``) on a clean shutdown (SIGINT/SIGTERM). QoS mirrors each
-publisher's reliability with a deep queue (see :mod:`haptic_topology.nodes.common`).
+deserialised) to every topic of :data:`RECORDED`, or to those named in ``topics`` and/or
+matching ``topic_regex``, and writes them with :class:`~haptic_topology.bag.writer.BagWriter`
+under ``output`` (default ``bags/<scenario>_<YYYYmmdd-HHMMSS>``), timestamped with the
+receive time. The haptic_topology_msgs schemas embedded in the bag are the .msg texts plus
+their dependencies, so ``ros2 bag``, ``rosbags`` or any MCAP tool decodes them without our
+package.
+
+The subscription callbacks only append ``(topic, receive time, bytes)`` to a queue (about
+2 us); a writer thread empties it into the MCAP chunks, closes a chunk every
+``flush_period`` (0.2 s) and rewrites ``metadata.yaml`` with the running counts. So the
+1 kHz callbacks never wait for the disk, a clean stop (SIGINT/SIGTERM) finalises the bag,
+and a SIGKILL leaves a file that reads back up to the last flush (``haptic-topology bag
+repair`` completes it for other readers). QoS mirrors each publisher's reliability with a
+deep queue (see :mod:`haptic_topology.nodes.common`).
 """
 
 from __future__ import annotations
 
+import queue
+import re
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,13 +29,13 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.rosbag2.writer import WriterError
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
 
-from haptic_topology.errors import BagError
-from haptic_topology.msgdefs import typestore_with_haptic_msgs
+from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
+from haptic_topology.errors import ConfigError
+from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
 from haptic_topology.nodes import common
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
 
@@ -40,14 +53,41 @@ RECORDED: dict[str, tuple[Any, str]] = {
 #: Topics whose publishers must be matched before the loop starts (see _check_connected).
 CONNECT_TOPICS = (common.TOPIC_COMMAND, common.TOPIC_HAND, common.TOPIC_LMI)
 CONNECTED_MARK = 'recorder connected'
+_STOP = None
 
 
 def default_bag_dir(scenario: str, root: str | Path = 'bags') -> Path:
     return Path(root) / f'{scenario}_{time.strftime("%Y%m%d-%H%M%S")}'
 
 
+def select_topics(names: Sequence[str], regex: str) -> list[str]:
+    """Topics of :data:`RECORDED` to record: all if neither ``names`` nor ``regex`` is given,
+    else those in ``names`` (with or without the leading '/') or matching ``regex``."""
+    if not names and not regex:
+        return list(RECORDED)
+    wanted = {n.lstrip('/') for n in names}
+    unknown = wanted - {t.lstrip('/') for t in RECORDED}
+    if unknown:
+        raise ConfigError(f'recorder: parameter topics: unknown {", ".join(sorted(unknown))}; '
+                          f'known: {", ".join(RECORDED)}')
+    try:
+        pattern = re.compile(regex) if regex else None
+    except re.error as exc:
+        raise ConfigError(f'recorder: parameter topic_regex: {exc}') from None
+    out = [t for t in RECORDED if t.lstrip('/') in wanted
+           or (pattern is not None and pattern.search('/' + t.lstrip('/')))]
+    if not out:
+        raise ConfigError(f'recorder: topic_regex {regex!r} matches none of '
+                          f'{", ".join(RECORDED)}')
+    return out
+
+
+def _bag_qos(qos: QoSProfile) -> Any:
+    return make_qos(qos.reliability == ReliabilityPolicy.RELIABLE, int(qos.depth))
+
+
 class Recorder(Node):
-    """Records the haptic topics and /diagnostics into one MCAP bag."""
+    """Records the haptic topics and /diagnostics into one MCAP bag (see module doc)."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('recorder', **kwargs)
@@ -56,32 +96,74 @@ class Recorder(Node):
         d(self, 'executor', 'events', 'executor of the process', choices=common.EXECUTORS)
         out = d(self, 'output', '', 'bag directory to create (must not exist); empty: '
                 'bags/<scenario>_<timestamp>')
+        names = d(self, 'topics', [''], 'topics to record (empty: all of the graph)')
+        regex = d(self, 'topic_regex', '', 'also record the graph topics matching this '
+                  'regular expression (on the absolute name)')
+        self.flush_period = d(self, 'flush_period', 0.2, 'close the current chunk and hand '
+                              'it to the OS at least this often (s): what a SIGKILL can lose',
+                              lo=0.01, hi=10.0)
+        chunk_kib = d(self, 'chunk_kib', 64, 'MCAP chunk size (KiB)', lo=4, hi=65536)
+        compression = d(self, 'compression', 'zstd', 'MCAP chunk compression',
+                        choices=('zstd', 'lz4', 'none'))
+        topics = select_topics([n for n in names if n], str(regex))
         name = Path(str(scenario)).stem
         self.path = Path(out) if out else default_bag_dir(name)
-        if self.path.exists():
-            raise BagError(f'recorder: output {self.path} already exists')
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        store = typestore_with_haptic_msgs()
-        self.writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        try:
-            self.writer.open()
-        except WriterError as exc:
-            raise BagError(f'recorder: cannot open {self.path}: {exc}') from None
-        self.counts: dict[str, int] = {}
+        specs = [TopicSpec(self.resolve_topic_name(t), RECORDED[t][1],
+                           (_bag_qos(common.TOPIC_QOS[t]),)) for t in topics]
+        self.writer = BagWriter(self.path, specs, typestore_with_haptic_msgs(),
+                                sources=message_definitions(), chunk_size=chunk_kib * 1024,
+                                compression=str(compression),
+                                custom={'recorded_by': 'haptic_topology recorder',
+                                        'scenario': str(scenario)})
+        self.received = [0] * len(topics)
+        self._queue: queue.SimpleQueue[tuple[int, int, bytes] | None] = queue.SimpleQueue()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._write_loop, name='bag-writer',
+                                        daemon=True)
+        self._thread.start()
         self.subscriptions_by_topic: dict[str, Any] = {}
-        for topic, (msg_type, type_name) in RECORDED.items():
-            conn = self.writer.add_connection(self._resolve(topic), type_name, typestore=store)
+        for i, topic in enumerate(topics):
             qos = (common.QOS_RECORD_RELIABLE
-                   if common.TOPIC_QOS[topic].reliability == common.QOS_LMI.reliability
+                   if common.TOPIC_QOS[topic].reliability == ReliabilityPolicy.RELIABLE
                    else common.QOS_RECORD_BEST_EFFORT)
-            self.counts[topic] = 0
             self.subscriptions_by_topic[topic] = self.create_subscription(
-                msg_type, topic, self._writer_for(topic, conn), qos, raw=True)
+                RECORDED[topic][0], topic, self._callback(i), qos, raw=True)
         self._open = True
-        self._connected = False
+        self._connect = [t for t in CONNECT_TOPICS if t in self.subscriptions_by_topic]
         self._connect_timer = self.create_timer(0.05, self._check_connected)
         self.get_logger().info(f'recording to {self.path}')
         print(f'recording to {self.path}', flush=True)
+
+    def _callback(self, index: int) -> Any:
+        put = self._queue.put
+        received = self.received
+
+        def on_message(data: bytes) -> None:
+            put((index, time.time_ns(), data))
+            received[index] += 1
+        return on_message
+
+    def _write_loop(self) -> None:
+        """Writer thread: queue -> MCAP, flush every ``flush_period``, until the stop mark."""
+        get = self._queue.get
+        write = self.writer.write
+        next_flush = time.monotonic() + self.flush_period
+        try:
+            while True:
+                try:
+                    item = get(timeout=0.05)
+                except queue.Empty:
+                    pass
+                else:
+                    if item is _STOP:
+                        break
+                    write(*item)
+                now = time.monotonic()
+                if now >= next_flush:
+                    self.writer.flush()
+                    next_flush = now + self.flush_period
+        except OSError as exc:  # disk full, ...: reported by close(); flushed data stays
+            self._error = exc
 
     def _check_connected(self) -> None:
         """Print ``connected`` once the controller's and the VE's topics have a publisher.
@@ -90,28 +172,34 @@ class Recorder(Node):
         no message of the run is sent before this recorder is matched to its publisher.
         """
         subs = self.subscriptions_by_topic
-        if all(subs[t].get_publisher_count() > 0 for t in CONNECT_TOPICS):
+        if all(subs[t].get_publisher_count() > 0 for t in self._connect):
             self._connect_timer.cancel()
-            self._connected = True
-            print(f'{CONNECTED_MARK} to {", ".join(CONNECT_TOPICS)}', flush=True)
+            print(f'{CONNECTED_MARK} to {", ".join(self._connect) or "(no loop topic)"}',
+                  flush=True)
 
-    def _resolve(self, topic: str) -> str:
-        return self.resolve_topic_name(topic)
-
-    def _writer_for(self, topic: str, conn: Any) -> Any:
-        def write(data: bytes) -> None:
-            if self._open:
-                self.writer.write(conn, time.time_ns(), data)
-                self.counts[topic] += 1
-        return write
+    @property
+    def counts(self) -> dict[str, int]:
+        """Messages received so far, per topic."""
+        return dict(zip(self.subscriptions_by_topic, self.received, strict=True))
 
     def close(self) -> None:
-        """Finalise the bag (metadata.yaml); idempotent."""
-        if self._open:
-            self._open = False
-            self.writer.close()
-            summary = ', '.join(f'{t}: {n}' for t, n in self.counts.items())
-            print(f'bag written: {self.path} ({summary})', flush=True)
+        """Drain the queue, finalise the bag (summary, metadata.yaml); idempotent."""
+        if not self._open:
+            return
+        self._open = False
+        for sub in self.subscriptions_by_topic.values():
+            self.destroy_subscription(sub)
+        self._queue.put(_STOP)
+        self._thread.join(timeout=30.0)
+        if self._error is not None:
+            print(f'recorder: error: writing {self.path} failed: {self._error}', flush=True)
+            return
+        self.writer.close()
+        written = self.writer.counts
+        lost = sum(self.received) - sum(written.values())
+        summary = ', '.join(f'{t}: {n}' for t, n in written.items())
+        print(f'bag written: {self.path} ({summary}; received but not written: {lost})',
+              flush=True)
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -1,0 +1,259 @@
+"""Open and read rosbag2 (MCAP) bags, also truncated ones, with errors that name the file.
+
+:func:`open_bag` accepts a rosbag2 directory (``metadata.yaml`` + ``.mcap`` files), a
+directory holding ``.mcap`` files without metadata, or one ``.mcap`` file. It checks what can
+be checked without reading every message (the path exists, the storage is MCAP, each file
+starts with the MCAP magic) and raises :class:`~haptic_topology.errors.BagError` naming the
+file and the problem.
+
+:func:`iter_messages` reads the files front to back with ``mcap``'s non-seeking stream
+reader, so it needs neither the summary nor the footer: a bag whose recorder was killed
+reads up to the last complete chunk, and :attr:`Bag.truncated` tells that this happened
+(:func:`haptic_topology.bag.repair.repair_bag` makes such a file whole for other readers).
+Messages come in file order, which for our recorder is arrival order.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import yaml
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, Chunk, Footer, Message, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from rosbags.typesys.store import Typestore
+
+from haptic_topology.errors import BagError
+from haptic_topology.msgdefs import typestore_with_haptic_msgs
+
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+METADATA = 'metadata.yaml'
+
+#: Called with the fraction (0..1) of the bag's bytes read so far.
+Progress = Callable[[float], None]
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    """One message as stored: topic, full type name, receive time (ns), CDR bytes."""
+
+    topic: str
+    msgtype: str
+    log_time: int
+    data: bytes
+
+
+@dataclass
+class Bag:
+    """An opened bag: its directory, MCAP files, parsed ``metadata.yaml`` (if any)."""
+
+    path: Path
+    files: list[Path]
+    metadata: dict[str, Any] | None = None
+    #: Set by :func:`iter_messages` when a file ended before its footer.
+    truncated: list[Path] = field(default_factory=list)
+    #: Topic -> type seen while reading (channels of the files).
+    topics: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return sum(f.stat().st_size for f in self.files)
+
+    def metadata_topics(self) -> dict[str, str]:
+        """Topic -> type as listed in ``metadata.yaml`` (empty without one)."""
+        if not self.metadata:
+            return {}
+        out: dict[str, str] = {}
+        for entry in self.metadata.get('topics_with_message_count') or []:
+            meta = entry.get('topic_metadata', {}) if isinstance(entry, dict) else {}
+            if 'name' in meta and 'type' in meta:
+                out[str(meta['name'])] = str(meta['type'])
+        return out
+
+
+def _check_mcap(path: Path) -> None:
+    try:
+        with path.open('rb') as f:
+            head = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise BagError(f'{path}: cannot read ({exc.strerror})') from None
+    if not head:
+        raise BagError(f'{path}: empty file, not an MCAP bag')
+    if head != MCAP_MAGIC:
+        raise BagError(f'{path}: not an MCAP file (no MCAP magic at the start)')
+
+
+def _load_metadata(path: Path) -> dict[str, Any]:
+    try:
+        doc = yaml.safe_load(path.read_text(encoding='utf-8'))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise BagError(f'{path}: cannot read rosbag2 metadata ({exc})') from None
+    info = doc.get('rosbag2_bagfile_information') if isinstance(doc, dict) else None
+    if not isinstance(info, dict):
+        raise BagError(f'{path}: not rosbag2 metadata (no rosbag2_bagfile_information)')
+    return info
+
+
+def open_bag(path: str | Path) -> Bag:
+    """Locate and check the files of the bag at ``path`` (see module doc)."""
+    p = Path(path)
+    if not p.exists():
+        raise BagError(f'{p}: no such file or directory')
+    if p.is_file() and p.name == METADATA:
+        p = p.parent
+    if p.is_file():
+        _check_mcap(p)
+        return Bag(p, [p])
+    meta_path = p / METADATA
+    metadata = _load_metadata(meta_path) if meta_path.is_file() else None
+    if metadata is not None:
+        storage = metadata.get('storage_identifier')
+        if storage != 'mcap':
+            raise BagError(f'{meta_path}: storage {storage!r} is not supported (only mcap; '
+                           'convert with `rosbags-convert` or `ros2 bag convert`)')
+        names = metadata.get('relative_file_paths') or []
+        files = [p / str(n) for n in names]
+        if not files:
+            raise BagError(f'{meta_path}: lists no storage files (relative_file_paths)')
+        for f in files:
+            if not f.is_file():
+                raise BagError(f'{f}: listed in {meta_path} but missing')
+    else:
+        files = sorted(p.glob('*.mcap'))
+        if not files:
+            raise BagError(f'{p}: not a bag (no {METADATA} and no .mcap file)')
+    for f in files:
+        _check_mcap(f)
+    return Bag(p, files, metadata)
+
+
+def iter_records(path: Path, stream: IO[bytes]) -> Iterator[Any]:
+    """MCAP records of ``stream``, chunks broken up; stops at a truncation (EOF mid-record).
+
+    Yields the records; returns normally at the footer, or raises :class:`TruncatedError` when
+    the file ends early.
+    """
+    reader = StreamReader(stream, emit_chunks=True)
+    try:
+        for record in reader.records:
+            if isinstance(record, Chunk):
+                try:
+                    yield from breakup_chunk(record, validate_crc=True)
+                except (EndOfFile, struct.error) as exc:
+                    raise BagError(f'{path}: corrupt chunk at byte {stream.tell()} '
+                                   f'({exc or type(exc).__name__})') from None
+            else:
+                yield record
+            if isinstance(record, Footer):
+                return
+    except (EndOfFile, struct.error):
+        raise TruncatedError() from None
+    except (McapError, ValueError) as exc:  # CRCValidationError is a ValueError
+        raise BagError(f'{path}: corrupt MCAP data near byte {stream.tell()} '
+                       f'({exc or type(exc).__name__})') from None
+
+
+class TruncatedError(Exception):
+    """The MCAP stream ended before its footer."""
+
+
+def iter_messages(bag: Bag, topics: Iterable[str] | None = None,
+                  progress: Progress | None = None) -> Iterator[BagMessage]:
+    """Every message of ``bag`` (only ``topics`` if given), file by file (see module doc)."""
+    wanted = None if topics is None else set(topics)
+    total = max(bag.size, 1)
+    done = 0
+    bag.truncated.clear()
+    for path in bag.files:
+        schemas: dict[int, str] = {}
+        channels: dict[int, tuple[str, str]] = {}
+        try:
+            stream = path.open('rb')
+        except OSError as exc:
+            raise BagError(f'{path}: cannot read ({exc.strerror})') from None
+        with stream:
+            try:
+                for record in iter_records(path, stream):
+                    if isinstance(record, Message):
+                        ch = channels.get(record.channel_id)
+                        if ch is None:
+                            raise BagError(f'{path}: message on unknown channel '
+                                           f'{record.channel_id}')
+                        if wanted is None or ch[0] in wanted:
+                            yield BagMessage(ch[0], ch[1], record.log_time, record.data)
+                    elif isinstance(record, Schema):
+                        schemas[record.id] = record.name
+                    elif isinstance(record, Channel):
+                        msgtype = schemas.get(record.schema_id, '')
+                        channels[record.id] = (record.topic, msgtype)
+                        bag.topics[record.topic] = msgtype
+                    elif isinstance(record, Chunk) and progress is not None:
+                        progress((done + stream.tell()) / total)
+            except TruncatedError:
+                bag.truncated.append(path)
+            done += path.stat().st_size
+        if progress is not None:
+            progress(done / total)
+
+
+def read_channels(bag: Bag) -> dict[str, dict[str, Any]]:
+    """Topic -> {type, schema (text), encoding, metadata} for every channel of the bag."""
+    out: dict[str, dict[str, Any]] = {}
+    for path in bag.files:
+        schemas: dict[int, Schema] = {}
+        with path.open('rb') as stream:
+            try:
+                for record in iter_records(path, stream):
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        sch = schemas.get(record.schema_id)
+                        out[record.topic] = {
+                            'type': sch.name if sch else '',
+                            'schema': sch.data.decode(errors='replace') if sch else '',
+                            'schema_encoding': sch.encoding if sch else '',
+                            'encoding': record.message_encoding,
+                            'metadata': dict(record.metadata)}
+                    elif isinstance(record, (Message, Footer)):
+                        # Our writer puts every schema and channel before the first message.
+                        break
+            except TruncatedError:
+                pass
+    return out
+
+
+def decoder(typestore: Typestore | None = None) -> Callable[[BagMessage], Any]:
+    """A function decoding a :class:`BagMessage` with ``typestore`` (default: ours)."""
+    store = typestore or typestore_with_haptic_msgs()
+
+    def decode(msg: BagMessage) -> Any:
+        try:
+            return store.deserialize_cdr(msg.data, msg.msgtype)
+        except KeyError:
+            raise BagError(f'{msg.topic}: unknown message type {msg.msgtype!r}') from None
+        except (ValueError, IndexError, struct.error, AssertionError) as exc:
+            raise BagError(f'{msg.topic}: cannot decode {msg.msgtype} at t={msg.log_time} '
+                           f'({exc})') from None
+    return decode
+
+
+def require_types(bag: Bag, expected: dict[str, str]) -> None:
+    """Raise if a topic of ``expected`` (topic suffix -> type) has another type in the bag,
+    or if the bag has none of the expected topics."""
+    seen = bag.metadata_topics() or {t: d['type'] for t, d in read_channels(bag).items()}
+    found = 0
+    for topic, msgtype in seen.items():
+        for suffix, want in expected.items():
+            if topic.endswith(suffix):
+                if msgtype != want:
+                    raise BagError(f'{bag.path}: topic {topic} has type {msgtype}, '
+                                   f'expected {want}')
+                found += 1
+    if not found:
+        listing = ', '.join(f'{t} ({m})' for t, m in sorted(seen.items())) or 'no topics'
+        raise BagError(f'{bag.path}: not a bag of the haptic_topology graph: none of '
+                       f'{", ".join(sorted(expected))} (it has {listing})')
