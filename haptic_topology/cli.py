@@ -15,6 +15,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from haptic_topology import MSGS_PACKAGE_NAME, PACKAGE_NAME, __version__
+from haptic_topology.bag import repair as bag_command
+from haptic_topology.bag import replay as replay_command
 from haptic_topology.bringup import run as run_command
 from haptic_topology.errors import HapticTopologyError
 from haptic_topology.sim import command as simulate_command
@@ -92,6 +94,10 @@ COMMANDS: tuple[Command, ...] = (
             simulate_command.add_arguments, simulate_command.run),
     Command('run', 'start the ROS 2 node graph (device, controller, VE, recorder): bag, '
             'summary, loop figures', run_command.add_arguments, run_command.run),
+    Command('replay', "publish a bag's messages with their recorded timing; or check the "
+            'controller against a recording', replay_command.add_arguments, replay_command.run),
+    Command('bag', 'bag tools: info, repair (a bag whose recorder was killed)',
+            bag_command.add_arguments, bag_command.run),
 )
 
 
