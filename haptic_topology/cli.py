@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from haptic_topology import MSGS_PACKAGE_NAME, PACKAGE_NAME, __version__
+from haptic_topology.bag import analyze as analyze_command
 from haptic_topology.bag import repair as bag_command
 from haptic_topology.bag import replay as replay_command
 from haptic_topology.bringup import run as run_command
@@ -96,6 +97,8 @@ COMMANDS: tuple[Command, ...] = (
             'summary, loop figures', run_command.add_arguments, run_command.run),
     Command('replay', "publish a bag's messages with their recorded timing; or check the "
             'controller against a recording', replay_command.add_arguments, replay_command.run),
+    Command('analyze', 'drift and loop health of bags and simulate traces: table, plots, '
+            'summary.json', analyze_command.add_arguments, analyze_command.run),
     Command('bag', 'bag tools: info, repair (a bag whose recorder was killed)',
             bag_command.add_arguments, bag_command.run),
 )
