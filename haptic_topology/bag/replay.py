@@ -16,10 +16,15 @@ the recorded ones state by state. What the controller needs to reproduce a comma
 * the same states, in order, and only those it answered in the run: a state it skipped
   (late, overwritten in its depth-1 queue) changes the next cycle's ``dt``;
 * each LMI update applied between the same two states as in the run. The recorder's
-  receive order is not the controller's, so the plan uses what every command carries: the
-  time the controller received its newest update is ``header.stamp - update_age``; the
-  recorded update received nearest to that time (within half an update period) is applied
-  just before that command's state.
+  receive order is not the controller's (under load the recorder got updates up to 8 ms
+  after the controller), so the plan uses what every command carries: ``update_age``
+  grows from command to command while the controller uses the same update, and
+  ``header.stamp - update_age`` is when it received its newest one. Before the first state
+  of each such group, every update the VE had published (its header stamp) by then is
+  applied, at least the next one.
+
+Only commands whose state is in the bag are compared (the recorder may have joined after
+the device started).
 
 The check runs in lock-step, not in recorded time: each state is published once the live
 controller has answered the previous one (again if no answer comes within 0.3 s: the
@@ -151,7 +156,7 @@ def controller_plan(bag: Bag) -> ControllerPlan:
     decode = decoder()
     states: list[tuple[BagMessage, Any]] = []
     commands: dict[int, Any] = {}
-    updates: list[BagMessage] = []
+    updates: list[tuple[BagMessage, Any]] = []
     answered: set[int] = set()
     for m in iter_messages(bag):
         if m.topic.endswith(STATE):
@@ -160,7 +165,7 @@ def controller_plan(bag: Bag) -> ControllerPlan:
             c = decode(m)
             commands.setdefault(int(c.state_seq), c)
         elif m.topic.endswith(UPDATE):
-            updates.append(m)
+            updates.append((m, decode(m)))
         elif m.topic.endswith(HAND):
             answered.add(int(decode(m).state_seq))
     answered |= set(commands)
@@ -170,35 +175,58 @@ def controller_plan(bag: Bag) -> ControllerPlan:
     modes = [int(c.mode) for c in commands.values() if int(c.mode) != 2]
     mode = ('acceleration_only' if modes and max(set(modes), key=modes.count) == 1
             else 'penalty')
-    recv = np.array([u.log_time * 1e-9 for u in updates])
-    period = float(np.median(np.diff(recv))) if recv.size > 1 else 0.01
+    updates.sort(key=lambda u: int(u[1].seq))
+    published = np.array([_stamp(u[1].header) for u in updates])  # VE stamps at publish
+    answered_states = [(m, st) for m, st in states if int(st.seq) in answered]
+    # Group the commands by the update they used: the age grows from one command to the
+    # next while the update is the same, and the controller's receive time of its newest
+    # update (stamp - age, plus this cycle's compute time) jumps by ~1 update period.
+    groups: dict[int, float] = {}  # seq of a group's first state -> update receive time
+    prev_age = prev_got = math.inf
+    first = -1
+    for _, st in answered_states:
+        cmd = commands.get(int(st.seq))
+        if cmd is None or not math.isfinite(cmd.update_age):
+            continue
+        age = float(cmd.update_age)
+        got = _stamp(cmd.header) - age
+        # The age of one update only grows; it falls when a newer one was taken. A jump of
+        # the receive time by more than 5 ms also marks a new update (after a gap in the
+        # states the age may have grown anyway); compute times of up to 2 ms were seen.
+        if first < 0 or age < prev_age or got > prev_got + 5e-3:
+            first = int(st.seq)
+            groups[first] = got
+        groups[first] = min(groups[first], got)  # least compute time: closest to receipt
+        prev_age, prev_got = age, got
+    first_group = min(groups, default=-1)
     items: list[Item] = []
     applied = -1  # index of the last update placed so far
-    matched = 0
     t_first = states[0][0].log_time if states else 0
-    for m, st in states:
+    for m, st in answered_states:
         seq = int(st.seq)
-        if seq not in answered:
-            continue
         t = (m.log_time - t_first) * 1e-9
         cmd = commands.get(seq)
         target = applied
-        if cmd is not None and math.isfinite(cmd.update_age) and recv.size:
-            got = _stamp(cmd.header) - float(cmd.update_age)
-            j = int(np.argmin(np.abs(recv - got)))
-            if abs(recv[j] - got) < 0.5 * period and j > applied:
-                target = j
-                matched += 1
-        elif cmd is not None and int(cmd.mode) != 2 and recv.size:
-            # A watchdog state answered by a synced controller (no age is sent then): the
-            # updates the recorder had received before this state are applied before it.
-            target = max(applied, int(np.searchsorted(recv, m.log_time * 1e-9)) - 1)
+        if seq in groups and published.size:
+            # A new update was taken before this state (except for the first group, which
+            # may go on with the update of the watchdog phase): every update the VE had
+            # published by then (at least the next one), in order.
+            newer = applied + (0 if seq == first_group else 1)
+            target = max(newer, int(np.searchsorted(published, groups[seq], side='right')) - 1)
+        elif cmd is not None and int(cmd.mode) != 2 and published.size and not math.isfinite(
+                cmd.update_age) and applied < 0:
+            # Answered by a synced controller without an age (a watchdog state before the
+            # loop engaged): the updates published before the state was stamped.
+            target = int(np.searchsorted(published, _stamp(st.header), side='right')) - 1
+        target = min(target, len(updates) - 1)
         for j in range(applied + 1, target + 1):
-            items.append(Item(max(t - 2e-4, 0.0), updates[j].topic, updates[j].msgtype,
-                              updates[j].data))
+            u = updates[j][0]
+            items.append(Item(max(t - 2e-4, 0.0), u.topic, u.msgtype, u.data))
         applied = max(applied, target)
         items.append(Item(t, m.topic, m.msgtype, m.data, seq))
-    return ControllerPlan(items, commands, scenario, mode, matched, len(updates))
+    return ControllerPlan(items, {s: c for s, c in commands.items()
+                                  if s in {int(st.seq) for _, st in answered_states}},
+                          scenario, mode, len(groups), len(updates))
 
 
 def _qos_profile(metadata: dict[str, str], topic: str) -> Any:
