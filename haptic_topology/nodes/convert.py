@@ -1,7 +1,11 @@
 """Conversions between ``haptic_topology_msgs`` messages and the core's numpy objects.
 
-Incoming messages are checked where they enter: a wrong array size or a non-finite value
-raises :class:`MessageError` naming the field, and the node drops the message.
+Incoming messages are checked where they enter: a wrong ``task_dim`` or ``dof``, a wrong array
+size, a non-finite value or a value out of its range (a mass matrix that is not symmetric
+positive definite, constraint weights outside [0, 1], an unknown mode, ...) raises
+:class:`MessageError` naming the field, with a ``reason`` (one of :data:`REASONS`) that the
+nodes count per reason in their diagnostics (``rejected_<reason>``); the node drops the
+message, so nothing of it reaches the device.
 
 Sequence numbers: device states count from 1, so ``LmiUpdate.hand_input_seq == 0`` means
 "no hand input consumed yet" (the core's ``-1``).
@@ -9,6 +13,7 @@ Sequence numbers: device states count from 1, so ``LmiUpdate.hand_input_seq == 0
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -21,9 +26,33 @@ from haptic_topology.errors import HapticTopologyError
 from haptic_topology.model.linkage import TaskSpace
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
 
+#: Why a message was rejected (diagnostics keys ``rejected_<reason>``).
+REASONS = ('task_dim', 'dof', 'size', 'non_finite', 'range')
+
 
 class MessageError(HapticTopologyError):
     """An incoming message does not fit the graph (sizes, task_dim, non-finite values)."""
+
+    def __init__(self, reason: str, text: str) -> None:
+        super().__init__(text)
+        self.reason = reason
+
+
+class RejectCounter:
+    """Rejected messages per reason (for ``/diagnostics``)."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = dict.fromkeys(REASONS, 0)
+
+    def add(self, exc: MessageError) -> None:
+        self.counts[exc.reason] = self.counts.get(exc.reason, 0) + 1
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def values(self, prefix: str = 'rejected_') -> dict[str, str]:
+        return {f'{prefix}{k}': str(v) for k, v in self.counts.items()}
 
 
 def stamp_seconds(stamp: Time) -> float:
@@ -38,17 +67,34 @@ def seconds_to_stamp(t: float) -> Time:
 def _array(msg: Any, field: str, size: int, finite: bool = True) -> np.ndarray:
     a = np.asarray(getattr(msg, field), dtype=float)
     if a.shape != (size,):
-        raise MessageError(f'{type(msg).__name__}.{field} must have {size} entries, got '
-                           f'{a.size}')
+        raise MessageError('size', f'{type(msg).__name__}.{field} must have {size} entries, '
+                           f'got {a.size}')
     if finite and not np.all(np.isfinite(a)):
-        raise MessageError(f'{type(msg).__name__}.{field} has non-finite entries: {a.tolist()}')
+        raise MessageError('non_finite', f'{type(msg).__name__}.{field} has non-finite '
+                           f'entries: {a.tolist()}')
     return a
+
+
+def _finite_scalar(msg: Any, field: str) -> float:
+    v = float(getattr(msg, field))
+    if not np.isfinite(v):
+        raise MessageError('non_finite', f'{type(msg).__name__}.{field} is not finite: {v}')
+    return v
+
+
+def _range(ok: bool, msg: Any, text: str) -> None:
+    if not ok:
+        raise MessageError('range', f'{type(msg).__name__}.{text}')
 
 
 def _task_dim(msg: Any, task: TaskSpace) -> None:
     if int(msg.task_dim) != task.dim:
-        raise MessageError(f'{type(msg).__name__}.task_dim must be {task.dim}, got '
-                           f'{msg.task_dim}')
+        raise MessageError('task_dim', f'{type(msg).__name__}.task_dim must be {task.dim}, '
+                           f'got {msg.task_dim}')
+
+
+_MODES = frozenset((DeviceCommand.MODE_PENALTY, DeviceCommand.MODE_ACCELERATION_ONLY,
+                    DeviceCommand.MODE_ZERO))
 
 
 # -- DeviceState ------------------------------------------------------------------------------
@@ -67,8 +113,9 @@ def state_msg(msg: DeviceState, seq: int, stamp: Time, reading: DeviceReading,
 
 def state_from_msg(msg: DeviceState, task: TaskSpace
                    ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray]:
-    """``(seq, stamp_s, pose, twist, hand_wrench)``."""
+    """``(seq, stamp_s, pose, twist, hand_wrench)``; seq >= 1."""
     _task_dim(msg, task)
+    _range(int(msg.seq) >= 1, msg, f'seq must be >= 1, got {msg.seq}')
     m = task.dim
     return (int(msg.seq), stamp_seconds(msg.header.stamp), _array(msg, 'pose', m),
             _array(msg, 'twist', m), _array(msg, 'hand_wrench', m))
@@ -90,8 +137,15 @@ def command_msg(msg: DeviceCommand, state_seq: int, stamp: Time, out: CycleOutpu
 
 
 def command_from_msg(msg: DeviceCommand, task: TaskSpace) -> tuple[int, int, np.ndarray]:
-    """``(state_seq, mode, wrench)``; the wrench must be finite and task_dim long."""
+    """``(state_seq, mode, wrench)``; the wrench must be finite and task_dim long, the mode
+    one of the message's MODE_* constants.
+
+    A finite wrench beyond the device's limit is not an error: the device clamps it (status
+    SATURATED), as it does for the controller's own large outputs.
+    """
     _task_dim(msg, task)
+    _range(int(msg.mode) in _MODES, msg, f'mode must be one of {sorted(_MODES)}, got '
+           f'{msg.mode}')
     return int(msg.state_seq), int(msg.mode), _array(msg, 'wrench', task.dim)
 
 
@@ -109,12 +163,23 @@ def hand_msg(msg: HandInput, seq: int, state_seq: int, stamp: Time, pose: np.nda
     return msg
 
 
-def vt_wrench_from_hand(msg: HandInput, task: TaskSpace, vt_coupling: bool
-                        ) -> tuple[int, float, np.ndarray]:
-    """``(state_seq, stamp_s, F_vt)``: ``F_h - F_pc`` with VT coupling, else ``F_h``."""
+def vt_wrench_from_hand(msg: HandInput, task: TaskSpace, vt_coupling: bool,
+                        max_wrench: float = math.inf) -> tuple[int, float, np.ndarray]:
+    """``(state_seq, stamp_s, F_vt)``: ``F_h - F_pc`` with VT coupling, else ``F_h``.
+
+    Every entry of the hand and coupling wrenches must be finite and within ``max_wrench``
+    (N, N m): a hand input far beyond any device's force would only blow the VT up.
+    """
     _task_dim(msg, task)
+    _range(int(msg.seq) >= 1, msg, f'seq must be >= 1, got {msg.seq}')
     f_h = _array(msg, 'hand_wrench', task.dim)
-    f_vt = f_h - _array(msg, 'coupling_wrench', task.dim) if vt_coupling else f_h
+    f_pc = _array(msg, 'coupling_wrench', task.dim)
+    _array(msg, 'pose', task.dim)
+    _array(msg, 'twist', task.dim)
+    for name, w in (('hand_wrench', f_h), ('coupling_wrench', f_pc)):
+        _range(bool(np.all(np.abs(w) <= max_wrench)), msg,
+               f'{name} must be within +-{max_wrench:g}, got {w.tolist()}')
+    f_vt = f_h - f_pc if vt_coupling else f_h
     return int(msg.state_seq), stamp_seconds(msg.header.stamp), f_vt
 
 
@@ -141,22 +206,44 @@ def lmi_msg(msg: LmiUpdate, snap: LmiSnapshot, stamp: Time) -> LmiUpdate:
 
 
 def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int) -> LmiSnapshot:
-    """The snapshot carried by ``msg``; sizes checked against the linkage's ``dof``."""
+    """The snapshot carried by ``msg``; sizes checked against the linkage's ``dof``, values
+    against their ranges (the LMI factors the mass matrix: it must be symmetric positive
+    definite; weights in [0, 1]; U orthogonal; ``L_c > 0``)."""
     _task_dim(msg, task)
     if int(msg.dof) != dof:
-        raise MessageError(f'LmiUpdate.dof must be {dof}, got {msg.dof}')
+        raise MessageError('dof', f'LmiUpdate.dof must be {dof}, got {msg.dof}')
     m = task.dim
+    mass = _array(msg, 'mass_matrix', dof * dof).reshape(dof, dof)
+    _range(bool(np.allclose(mass, mass.T, rtol=1e-9, atol=1e-12)), msg,
+           'mass_matrix must be symmetric')
+    try:
+        np.linalg.cholesky(mass)
+    except np.linalg.LinAlgError:
+        raise MessageError('range', 'LmiUpdate.mass_matrix must be positive definite, got '
+                           f'{mass.tolist()}') from None
+    sv = _array(msg, 'singular_values', min(m, dof))
+    _range(bool(np.all(sv >= 0.0)), msg, f'singular_values must be >= 0, got {sv.tolist()}')
+    u = _array(msg, 'left_singular_vectors', m * m).reshape(m, m)
+    _range(bool(np.allclose(u.T @ u, np.eye(m), atol=1e-6)), msg,
+           'left_singular_vectors must be orthonormal')
+    weights = _array(msg, 'constraint_weights', m)
+    _range(bool(np.all((weights >= 0.0) & (weights <= 1.0))), msg,
+           f'constraint_weights must be in [0, 1], got {weights.tolist()}')
+    _range(int(msg.constraint_count) <= m, msg,
+           f'constraint_count must be <= {m}, got {msg.constraint_count}')
+    length = _finite_scalar(msg, 'characteristic_length')
+    _range(length > 0.0, msg, f'characteristic_length must be > 0, got {length}')
     return LmiSnapshot(
         seq=int(msg.seq),
         hand_input_seq=int(msg.hand_input_seq) if msg.hand_input_seq > 0 else -1,
         task=task,
         q=_array(msg, 'q', dof), dq=_array(msg, 'dq', dof),
-        mass_matrix=_array(msg, 'mass_matrix', dof * dof).reshape(dof, dof),
+        mass_matrix=mass,
         gravity=_array(msg, 'gravity', dof),
         hand_jacobian=_array(msg, 'hand_jacobian', m * dof).reshape(m, dof),
-        singular_values=_array(msg, 'singular_values', min(m, dof)),
-        left_vectors=_array(msg, 'left_singular_vectors', m * m).reshape(m, m),
-        weights=_array(msg, 'constraint_weights', m),
+        singular_values=sv,
+        left_vectors=u,
+        weights=weights,
         constraint_count=int(msg.constraint_count),
-        characteristic_length=float(msg.characteristic_length),
+        characteristic_length=length,
         hand_pose=_array(msg, 'hand_pose', m), hand_twist=_array(msg, 'hand_twist', m))
