@@ -110,7 +110,7 @@ def load_run(path: str | Path) -> Run:
         return Run(p.name if p.is_dir() else p.stem, p, result.trace, loop)
     csv_path = p / 'trace.csv' if p.is_dir() else p
     if not csv_path.is_file():
-        raise BagError(f'{p}: neither a bag (metadata.yaml / .mcap) nor a trace (trace.csv)')
+        raise BagError(f'{p}: not a bag (no {METADATA} and no .mcap file) and no trace.csv')
     trace = Trace.from_csv(csv_path)
     label = csv_path.parent.name if csv_path.name == 'trace.csv' else csv_path.stem
     return Run(label, p, trace, _period_figures(trace))

@@ -90,8 +90,13 @@ def _check_mcap(path: Path) -> None:
 def _load_metadata(path: Path) -> dict[str, Any]:
     try:
         doc = yaml.safe_load(path.read_text(encoding='utf-8'))
+    except yaml.MarkedYAMLError as exc:
+        where = f'line {exc.problem_mark.line + 1}: ' if exc.problem_mark else ''
+        raise BagError(f'{path}: cannot read rosbag2 metadata (YAML error at {where}'
+                       f'{exc.problem})') from None
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise BagError(f'{path}: cannot read rosbag2 metadata ({exc})') from None
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise BagError(f'{path}: cannot read rosbag2 metadata ({first})') from None
     info = doc.get('rosbag2_bagfile_information') if isinstance(doc, dict) else None
     if not isinstance(info, dict):
         raise BagError(f'{path}: not rosbag2 metadata (no rosbag2_bagfile_information)')

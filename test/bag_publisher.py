@@ -1,0 +1,62 @@
+"""Test helper (not collected): publish N messages of each haptic_topology_msgs type at 1 kHz.
+
+    python bag_publisher.py N TIMEOUT_S
+
+Publishes on the graph's topics with the graph's QoS (see haptic_topology.nodes.common):
+DeviceState.seq, DeviceCommand.state_seq, HandInput.seq and LmiUpdate.seq run 1..N, one of
+each per millisecond. Starts once every topic has a subscriber; prints ``sent N`` and exits.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import rclpy
+
+from haptic_topology.nodes import common
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+
+
+def main() -> int:
+    n, timeout = int(sys.argv[1]), float(sys.argv[2])
+    rclpy.init()
+    node = rclpy.create_node('bag_test_publisher')
+    topics = ((DeviceState, common.TOPIC_STATE), (DeviceCommand, common.TOPIC_COMMAND),
+              (HandInput, common.TOPIC_HAND), (LmiUpdate, common.TOPIC_LMI))
+    pubs = [node.create_publisher(t, name, common.TOPIC_QOS[name]) for t, name in topics]
+    deadline = time.monotonic() + timeout
+    while any(p.get_subscription_count() == 0 for p in pubs):
+        if time.monotonic() > deadline:
+            print('no subscriber', file=sys.stderr)
+            return 2
+        time.sleep(0.02)
+    time.sleep(0.5)  # both directions of discovery
+    state, cmd, hand, upd = DeviceState(), DeviceCommand(), HandInput(), LmiUpdate()
+    state.task_dim = cmd.task_dim = hand.task_dim = upd.task_dim = 3
+    state.pose = state.twist = state.hand_wrench = state.applied_wrench = [0.1, 0.2, 0.3]
+    cmd.wrench = cmd.vt_pose = cmd.vt_twist = [0.4, 0.5, 0.6]
+    upd.dof = 3
+    upd.q = upd.dq = upd.gravity = [0.0, 0.1, 0.2]
+    upd.mass_matrix = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]
+    start = time.perf_counter()
+    for i in range(1, n + 1):
+        while (rem := start + i * 1e-3 - time.perf_counter()) > 0:
+            time.sleep(rem)
+        stamp = node.get_clock().now().to_msg()
+        state.header.stamp = cmd.header.stamp = hand.header.stamp = upd.header.stamp = stamp
+        state.seq = i
+        cmd.state_seq = i
+        hand.seq = hand.state_seq = i
+        upd.seq = upd.hand_input_seq = i
+        for pub, msg in zip(pubs, (state, cmd, hand, upd), strict=True):
+            pub.publish(msg)
+    print(f'sent {n} in {time.perf_counter() - start:.2f} s', flush=True)
+    time.sleep(0.5)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

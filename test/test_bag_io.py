@@ -1,0 +1,182 @@
+"""Bags without ROS processes: writer/reader round trip, truncation and repair, analyze on
+the reference bag and on a simulate trace, and bad inputs with one-line errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
+
+from haptic_topology.bag.analyze import analyze
+from haptic_topology.bag.graph_trace import read_graph_bag
+from haptic_topology.bag.reader import decoder, iter_messages, open_bag
+from haptic_topology.bag.repair import repair_bag
+from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
+from haptic_topology.control.laws import ControlMode
+from haptic_topology.errors import BagError
+from haptic_topology.msgdefs import message_definitions, type_name, typestore_with_haptic_msgs
+from haptic_topology.sim.lockstep import simulate
+from haptic_topology.sim.scenario import load_scenario
+
+REPO = Path(__file__).resolve().parent.parent
+REFERENCE = REPO / 'bags' / 'reference_fig8'
+STATE = type_name('DeviceState')
+
+
+def _state_bytes(seq: int) -> bytes:
+    ts = typestore_with_haptic_msgs()
+    cls = ts.types[STATE]
+    header = ts.types['std_msgs/msg/Header'](ts.types['builtin_interfaces/msg/Time'](1, 2),
+                                             'base')
+    v = np.array([0.1, 0.2, 0.3])
+    return bytes(ts.serialize_cdr(cls(header, seq, 3, v, v, v, v, 0), STATE))
+
+
+def _write(path: Path, n: int, flush_at: int | None = None) -> BagWriter:
+    w = BagWriter(path, [TopicSpec('/haptic/device/state', STATE, (make_qos(False, 1),))],
+                  typestore_with_haptic_msgs(), sources=message_definitions())
+    for i in range(1, n + 1):
+        w.write(0, 1_000_000_000 + i * 1_000_000, _state_bytes(i))
+        if i == flush_at:
+            w.flush()
+    return w
+
+
+def test_writer_round_trip_rosbags_and_mcap(tmp_path: Path) -> None:
+    _write(tmp_path / 'a', 2000).close()
+    decode = decoder()
+    assert [decode(m).seq for m in iter_messages(open_bag(tmp_path / 'a'))] == list(
+        range(1, 2001))
+    with AnyReader([tmp_path / 'a']) as reader:  # types from the embedded schema only
+        seqs = [reader.deserialize(raw, c.msgtype).seq for c, _, raw in reader.messages()]
+        qos = reader.connections[0].ext.offered_qos_profiles
+    assert seqs == list(range(1, 2001))
+    assert qos[0].depth == 1 and qos[0].reliability.name == 'BEST_EFFORT'
+    with (tmp_path / 'a' / 'a_0.mcap').open('rb') as f:
+        summary = make_reader(f).get_summary()
+    assert summary.statistics.message_count == 2000
+    text = next(iter(summary.schemas.values())).data.decode()
+    assert text.startswith('# State of the haptic device')  # the .msg text, with comments
+    assert '=' * 80 + '\nMSG: std_msgs/Header\n' in text
+
+
+def test_unflushed_writer_reads_back_to_its_last_flush_and_repairs(tmp_path: Path) -> None:
+    w = _write(tmp_path / 'k', 3000, flush_at=2500)
+    # Simulated kill: the process dies, the file holds what was flushed (no close()).
+    w._file.flush()
+    bag = open_bag(tmp_path / 'k')
+    decode = decoder()
+    seqs = [decode(m).seq for m in iter_messages(bag)]
+    assert bag.truncated
+    assert seqs[:2500] == list(range(1, 2501))
+    meta = (tmp_path / 'k' / 'metadata.yaml').read_text()
+    assert 'message_count: 2500' in meta  # the flush's counts
+    res = repair_bag(tmp_path / 'k')
+    assert res.repaired and res.counts['/haptic/device/state'] == len(seqs)
+    with AnyReader([tmp_path / 'k']) as reader:
+        assert reader.message_count == len(seqs)
+
+
+def test_truncated_mid_chunk(tmp_path: Path) -> None:
+    _write(tmp_path / 'c', 3000).close()
+    mcap = tmp_path / 'c' / 'c_0.mcap'
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) // 2 + 13])
+    bag = open_bag(tmp_path / 'c')
+    seqs = [decoder()(m).seq for m in iter_messages(bag)]
+    assert bag.truncated and 0 < len(seqs) < 3000
+    assert seqs == list(range(1, len(seqs) + 1))
+
+
+def test_analyze_reference_bag_and_simulate_trace(tmp_path: Path) -> None:
+    run = read_graph_bag(REFERENCE, 'fig8', 3)
+    ref = json.loads((REFERENCE / 'summary.json').read_text())
+    assert run.trace.summary()['final_distance_m'] == pytest.approx(ref['final_distance_m'])
+
+
+    sc = load_scenario('fig8')
+    sim = simulate(replace(sc, duration=0.5, update_period=10), ControlMode.PENALTY)
+    (tmp_path / 'sim_fig8').mkdir()
+    sim.to_csv(tmp_path / 'sim_fig8' / 'trace.csv')
+    rows = analyze([REFERENCE, tmp_path / 'sim_fig8' / 'trace.csv'], tmp_path / 'out')
+    assert [r['source'] for r in rows] == ['graph', 'simulate']
+    for r in rows:
+        for key in ('final_distance_m', 'max_distance_m', 'rms_distance_m',
+                    'constrained_time_s'):
+            assert np.isfinite(r[key])
+    assert rows[0]['bag_missing_states'] == 0
+    out = {p.name for p in (tmp_path / 'out').iterdir()}
+    assert {'summary.json', 'comparison.png', 'reference_fig8.png', 'sim_fig8.png'} <= out
+
+
+def _foreign_bag(path: Path) -> None:
+    w = BagWriter(path, [TopicSpec('/chatter', 'std_msgs/msg/String')],
+                  typestore_with_haptic_msgs())
+    cls = typestore_with_haptic_msgs().types['std_msgs/msg/String']
+    w.write(0, time.time_ns(), bytes(typestore_with_haptic_msgs().serialize_cdr(
+        cls('hi'), 'std_msgs/msg/String')))
+    w.close()
+
+
+@pytest.mark.parametrize('case, expected', [
+    ('missing', 'no such file or directory'),
+    ('empty_dir', 'not a bag (no metadata.yaml and no .mcap file)'),
+    ('not_mcap', 'not an MCAP file'),
+    ('empty_file', 'empty file'),
+    ('foreign', 'not a bag of the haptic_topology graph'),
+    ('bad_metadata', 'cannot read rosbag2 metadata'),
+    ('sqlite', "storage 'sqlite3' is not supported"),
+    ('corrupt_chunk', 'corrupt'),
+])
+def test_bad_bags_name_the_file_and_the_problem(tmp_path: Path, case: str,
+                                               expected: str) -> None:
+    target = tmp_path / case
+    culprit = target
+    if case == 'empty_dir':
+        target.mkdir()
+    elif case == 'not_mcap':
+        target.mkdir()
+        culprit = target / 'x.mcap'
+        culprit.write_text('hello, this is not a bag\n')
+    elif case == 'empty_file':
+        culprit = target = tmp_path / 'empty.mcap'
+        target.write_bytes(b'')
+    elif case == 'foreign':
+        _foreign_bag(target)
+    elif case == 'bad_metadata':
+        target.mkdir()
+        culprit = target / 'metadata.yaml'
+        culprit.write_text('rosbag2_bagfile_information: [unclosed\n')
+    elif case == 'sqlite':
+        shutil.copytree(REFERENCE, target)
+        culprit = target / 'metadata.yaml'
+        culprit.write_text(culprit.read_text().replace('storage_identifier: mcap',
+                                                       'storage_identifier: sqlite3'))
+    elif case == 'corrupt_chunk':
+        _write(target, 3000).close()
+        culprit = target / f'{case}_0.mcap'
+        data = bytearray(culprit.read_bytes())
+        data[len(data) // 3: len(data) // 3 + 64] = b'\xff' * 64
+        culprit.write_bytes(bytes(data))
+    with pytest.raises(BagError) as err:
+        read_graph_bag(target)
+    assert expected in str(err.value)
+    assert str(culprit) in str(err.value)
+    # The command line: one line on stderr, exit status 1, no traceback.
+    for argv in (['analyze', str(target), '--out', str(tmp_path / 'o')],
+                 ['replay', str(target), '--check-controller']):
+        proc = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', *argv],
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 1, proc.stderr
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and expected in lines[0], proc.stderr
+        assert 'Traceback' not in proc.stderr
