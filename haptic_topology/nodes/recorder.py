@@ -9,7 +9,7 @@ their dependencies, so ``ros2 bag``, ``rosbags`` or any MCAP tool decodes them w
 package.
 
 The subscription callbacks only append ``(topic, receive time, bytes)`` to a queue (about
-2 us); a writer thread empties it into the MCAP chunks, closes a chunk every
+2 us); a writer thread empties it every 10 ms into the MCAP chunks, closes a chunk every
 ``flush_period`` (0.2 s) and rewrites ``metadata.yaml`` with the running counts. So the
 1 kHz callbacks never wait for the disk, a clean stop (SIGINT/SIGTERM) finalises the bag,
 and a SIGKILL leaves a file that reads back up to the last flush (``haptic-topology bag
@@ -144,20 +144,31 @@ class Recorder(Node):
         return on_message
 
     def _write_loop(self) -> None:
-        """Writer thread: queue -> MCAP, flush every ``flush_period``, until the stop mark."""
-        get = self._queue.get
+        """Writer thread: every 10 ms drain the queue into the MCAP, flush every
+        ``flush_period``, until the stop mark.
+
+        Draining in batches instead of waking per message keeps the thread off the GIL
+        between batches; with all nodes in one process (``--composed``) waking per message
+        cut the device's answered fraction from ~98 % to ~89 %.
+        """
+        get = self._queue.get_nowait
         write = self.writer.write
         next_flush = time.monotonic() + self.flush_period
         try:
             while True:
-                try:
-                    item = get(timeout=0.05)
-                except queue.Empty:
-                    pass
-                else:
+                time.sleep(0.01)
+                stop = False
+                while True:
+                    try:
+                        item = get()
+                    except queue.Empty:
+                        break
                     if item is _STOP:
+                        stop = True
                         break
                     write(*item)
+                if stop:
+                    break
                 now = time.monotonic()
                 if now >= next_flush:
                     self.writer.flush()
