@@ -1,10 +1,11 @@
 """Test helper (not collected): publish N messages of each haptic_topology_msgs type at 1 kHz.
 
-    python bag_publisher.py N TIMEOUT_S
+    python bag_publisher.py N TIMEOUT_S [NAMESPACE]
 
 Publishes on the graph's topics with the graph's QoS (see haptic_topology.nodes.common):
 DeviceState.seq, DeviceCommand.state_seq, HandInput.seq and LmiUpdate.seq run 1..N, one of
-each per millisecond. Starts once every topic has a subscriber; prints ``sent N`` and exits.
+each per millisecond. Starts once every topic has a subscriber (prints ``publishing``);
+prints ``sent N ...`` and exits.
 """
 
 from __future__ import annotations
@@ -20,8 +21,9 @@ from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiU
 
 def main() -> int:
     n, timeout = int(sys.argv[1]), float(sys.argv[2])
+    namespace = sys.argv[3] if len(sys.argv) > 3 else ''
     rclpy.init()
-    node = rclpy.create_node('bag_test_publisher')
+    node = rclpy.create_node('bag_test_publisher', namespace=namespace)
     topics = ((DeviceState, common.TOPIC_STATE), (DeviceCommand, common.TOPIC_COMMAND),
               (HandInput, common.TOPIC_HAND), (LmiUpdate, common.TOPIC_LMI))
     pubs = [node.create_publisher(t, name, common.TOPIC_QOS[name]) for t, name in topics]
@@ -39,6 +41,7 @@ def main() -> int:
     upd.dof = 3
     upd.q = upd.dq = upd.gravity = [0.0, 0.1, 0.2]
     upd.mass_matrix = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]
+    print('publishing', flush=True)
     start = time.perf_counter()
     for i in range(1, n + 1):
         while (rem := start + i * 1e-3 - time.perf_counter()) > 0:

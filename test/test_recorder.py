@@ -29,7 +29,8 @@ SEQ_FIELD = {'/haptic/device/state': 'seq', '/haptic/device/command': 'state_seq
              '/haptic/hand': 'seq', '/haptic/lmi/update': 'seq'}
 
 
-def _wait_for_line(proc: subprocess.Popen[str], mark: str, timeout: float) -> None:
+def _wait_for_line(proc: subprocess.Popen[str], mark: str, timeout: float,
+                   name: str = 'recorder') -> None:
     deadline = time.monotonic() + timeout
     assert proc.stdout is not None
     while time.monotonic() < deadline:
@@ -37,41 +38,45 @@ def _wait_for_line(proc: subprocess.Popen[str], mark: str, timeout: float) -> No
         if mark in line:
             return
         if not line and proc.poll() is not None:
-            raise AssertionError(f'recorder exited with {proc.returncode} before "{mark}"')
+            raise AssertionError(f'{name} exited with {proc.returncode} before "{mark}"')
     raise AssertionError(f'no "{mark}" within {timeout} s')
 
 
-def _start_recorder(bag: Path) -> subprocess.Popen[str]:
+def _start_recorder(bag: Path, namespace: str) -> subprocess.Popen[str]:
     proc = subprocess.Popen(
         [sys.executable, '-m', 'haptic_topology.nodes.recorder', '--ros-args', '-p',
-         f'output:={bag}'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+         f'output:={bag}', '-r', f'__ns:={namespace}'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
     _wait_for_line(proc, 'recording to', 40.0)
     return proc
 
 
-def _start_publisher(n: int) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, str(TEST_DIR / 'bag_publisher.py'), str(n), '40'],
+def _start_publisher(n: int, namespace: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, str(TEST_DIR / 'bag_publisher.py'), str(n), '40',
+                             namespace],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED='1'))
 
 
-def _seqs_by_topic(bag_path: Path) -> tuple[dict[str, list[int]], bool]:
+def _seqs_by_topic(bag_path: Path, ns: str) -> tuple[dict[str, list[int]], bool]:
     bag = open_bag(bag_path)
     decode = decoder()
     out: dict[str, list[int]] = {t: [] for t in SEQ_FIELD}
     for msg in iter_messages(bag):
-        if msg.topic in SEQ_FIELD:
-            out[msg.topic].append(int(getattr(decode(msg), SEQ_FIELD[msg.topic])))
+        topic = msg.topic.removeprefix(ns)
+        if topic in SEQ_FIELD:
+            out[topic].append(int(getattr(decode(msg), SEQ_FIELD[topic])))
     return out, bool(bag.truncated)
 
 
-def test_recorder_loses_nothing_and_any_reader_decodes(tmp_path: Path) -> None:
+def test_recorder_loses_nothing_and_any_reader_decodes(tmp_path: Path,
+                                                      topic_prefix: str) -> None:
     n = 3000
     bag = tmp_path / 'roundtrip'
-    rec = _start_recorder(bag)
+    rec = _start_recorder(bag, topic_prefix)
     try:
-        pub = _start_publisher(n)
+        pub = _start_publisher(n, topic_prefix)
         out, _ = pub.communicate(timeout=60)
         assert pub.returncode == 0, out
         time.sleep(1.0)
@@ -82,7 +87,7 @@ def test_recorder_loses_nothing_and_any_reader_decodes(tmp_path: Path) -> None:
     assert 'received but not written: 0' in log
 
     # Our reader: every sequence number 1..N once, in order, on each topic.
-    seqs, truncated = _seqs_by_topic(bag)
+    seqs, truncated = _seqs_by_topic(bag, topic_prefix)
     assert not truncated
     for topic, got in seqs.items():
         assert got == list(range(1, n + 1)), f'{topic}: {len(got)} of {n}'
@@ -90,7 +95,7 @@ def test_recorder_loses_nothing_and_any_reader_decodes(tmp_path: Path) -> None:
     # rosbags: opens the rosbag2 directory, decodes every message with the schemas.
     store = typestore_with_haptic_msgs()
     with AnyReader([bag], default_typestore=store) as reader:
-        counts = {c.topic: c.msgcount for c in reader.connections}
+        counts = {c.topic.removeprefix(topic_prefix): c.msgcount for c in reader.connections}
         decoded = sum(1 for c, _, raw in reader.messages()
                       if reader.deserialize(raw, c.msgtype) is not None)
     for topic in SEQ_FIELD:
@@ -116,21 +121,22 @@ def test_recorder_loses_nothing_and_any_reader_decodes(tmp_path: Path) -> None:
     assert plain == decoded
 
 
-def test_sigkill_leaves_a_readable_bag(tmp_path: Path) -> None:
+def test_sigkill_leaves_a_readable_bag(tmp_path: Path, topic_prefix: str) -> None:
     """Killed mid-run, the bag holds 1..K of every sequence (K: what was flushed, at most
     one flush period before the kill) and, after `bag repair`, opens in rosbags."""
     n = 4000
     bag = tmp_path / 'killed'
-    rec = _start_recorder(bag)
-    pub = _start_publisher(n)
+    rec = _start_recorder(bag, topic_prefix)
+    pub = _start_publisher(n, topic_prefix)
     try:
-        time.sleep(3.0)  # discovery + ~1.5-2.5 s of publishing
+        _wait_for_line(pub, 'publishing', 60.0, 'publisher')
+        time.sleep(1.5)  # ~1500 of each sent, at least 7 flush periods
         os.killpg(rec.pid, signal.SIGKILL)
         rec.wait(timeout=10)
     finally:
         pub.kill()
         pub.wait(timeout=10)
-    seqs, truncated = _seqs_by_topic(bag)
+    seqs, truncated = _seqs_by_topic(bag, topic_prefix)
     assert truncated
     k = len(seqs['/haptic/device/state'])
     assert k > 100, 'nothing flushed before the kill'
@@ -143,8 +149,8 @@ def test_sigkill_leaves_a_readable_bag(tmp_path: Path) -> None:
             list(reader.messages())
     result = repair_bag(bag)
     assert result.repaired
-    assert result.counts['/haptic/device/state'] == k
+    assert result.counts[f'{topic_prefix}/haptic/device/state'] == k
     with AnyReader([bag], default_typestore=typestore_with_haptic_msgs()) as reader:
         states = [reader.deserialize(raw, c.msgtype).seq for c, _, raw in reader.messages()
-                  if c.topic == '/haptic/device/state']
+                  if c.topic == f'{topic_prefix}/haptic/device/state']
     assert states == list(range(1, k + 1))

@@ -40,18 +40,19 @@ def test_replayed_states_reproduce_the_recorded_commands(tmp_path: Path) -> None
     assert res.max_abs_diff <= DEFAULT_TOLERANCE, res.line()
 
 
-def test_plain_replay_is_recorded_again_in_full(tmp_path: Path) -> None:
+def test_plain_replay_is_recorded_again_in_full(tmp_path: Path, topic_prefix: str) -> None:
     """`replay` of the LMI updates (reliable) with recorded timing into a recorder: the new
     bag holds every update of the reference, same bytes, same order."""
     bag = tmp_path / 'again'
     rec = subprocess.Popen(
         [sys.executable, '-m', 'haptic_topology.nodes.recorder', '--ros-args', '-p',
-         f'output:={bag}', '-p', 'topics:=[haptic/lmi/update]'],
+         f'output:={bag}', '-p', 'topics:=[haptic/lmi/update]', '-r',
+         f'__ns:={topic_prefix}'],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
     try:
         stats = replay(REFERENCE, rate=2.0, topics=['/haptic/lmi/update'],
-                       wait_subscribers=40.0)
+                       wait_subscribers=40.0, namespace=topic_prefix)
         time.sleep(1.0)
     finally:
         rec.send_signal(signal.SIGINT)

@@ -278,6 +278,9 @@ class Publishers:
             time.sleep(0.02)
         if pending:
             raise ReplayError(f'no subscriber on {", ".join(pending)} within {timeout:g} s')
+        # The publisher sees the subscriber first; a reliable message sent before the
+        # subscriber has matched this publisher in turn would be lost.
+        time.sleep(0.5)
 
     def publish(self, items: Sequence[Item], rate: float, loop: bool = False,
                 stop: threading.Event | None = None) -> ReplayStats:
@@ -367,13 +370,14 @@ class _Spinner:
 
 def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None = None,
            loop: bool = False, start_offset: float = 0.0, wait_subscribers: float = 0.0,
-           stop: threading.Event | None = None) -> ReplayStats:
-    """Plain replay (see module doc); returns what was published."""
+           stop: threading.Event | None = None, namespace: str = '') -> ReplayStats:
+    """Plain replay (see module doc), topics under ``namespace`` (except /diagnostics);
+    returns what was published."""
     bag = open_bag(bag_path)
     items = plan(bag, topics, start_offset)
     spinner = _Spinner('haptic_replay')
     try:
-        pubs = Publishers(spinner.node, bag, items)
+        pubs = Publishers(spinner.node, bag, items, namespace)
         if wait_subscribers > 0:
             pubs.wait_for_subscribers(pubs.pubs, wait_subscribers)
         return pubs.publish(items, rate, loop, stop)
@@ -456,7 +460,6 @@ def check_controller(bag_path: str | Path, params: Path,
                                       f'{log.read_text(errors="replace")[-800:]}')
                 time.sleep(0.05)
             pubs.wait_for_subscribers(pubs.pubs, max(deadline - time.monotonic(), 0.1))
-            time.sleep(0.5)  # let both directions' discovery settle
             stats = pubs.publish_lockstep(cp.items, answered, live)
             time.sleep(0.5)
         finally:
@@ -495,6 +498,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'Ctrl-C')
     parser.add_argument('--start-offset', type=float, default=0.0, metavar='S',
                         help='skip the first S seconds of the bag')
+    parser.add_argument('--namespace', default='', help='publish under this namespace '
+                        '(e.g. /replay; /diagnostics stays)')
     parser.add_argument('--wait-subscribers', type=float, default=0.0, metavar='S',
                         help='wait up to S seconds for a subscriber on every topic')
     parser.add_argument('--check-controller', action='store_true',
@@ -527,6 +532,6 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     stats = replay(args.bag, rate, args.topics, args.loop, args.start_offset,
-                   args.wait_subscribers, stop)
+                   args.wait_subscribers, stop, args.namespace)
     print(stats.line())
     return 0
