@@ -174,3 +174,19 @@ def test_guard_config_checked() -> None:
         SyncGuardConfig(stale_after=0.3, degrade_after=0.1)
     with pytest.raises(ConfigError, match='ramp_time'):
         SyncGuardConfig(ramp_time=-1.0)
+
+
+def test_guard_counts_an_update_by_the_time_it_describes() -> None:
+    """A VE catching up on a backlog sends updates that arrive now but describe the loop
+    long ago: they do not make the model fresh, and are held."""
+    g = SyncGuard(CFG, DT)
+    g.update_arrived(0.0)
+    _cycles(g, 0.0, 500)                            # degraded, force zero
+    assert not g.update_arrived(0.5, lag=0.45)      # describes t = 0.05: still degraded
+    assert g.health(0.5) is ModelHealth.PENDING
+    _, applies, _ = _cycles(g, 0.5, 1)
+    assert applies == [True]                        # scale already 0: applied at once
+    assert g.health(0.502) is ModelHealth.DEGRADED  # ... but the force stays off
+    assert not g.update_arrived(0.51, lag=0.01)     # caught up: fresh, held once more
+    scales, applies, _ = _cycles(g, 0.51, 10, update_every=5)
+    assert applies[0] and scales[-1] > 0.0

@@ -2,7 +2,9 @@
 
 The LMI keeps the haptic loop alive between updates of the full simulation. When updates stop
 (``ve_sim`` slow, stopped or killed), the controller goes through three stages, by the age of
-the newest update (time since it arrived):
+the newest update: the time since the device state it describes (its arrival time minus its
+lag behind the loop, so a VE that catches up on a backlog of old inputs does not count as
+fresh):
 
 * ``FRESH`` (age <= ``stale_after``): normal operation.
 * ``STALE`` (``stale_after`` < age <= ``degrade_after``): still the local model, with the last
@@ -20,7 +22,9 @@ cycle by at most::
     L * cycle_time / ramp_time   (fade)   +   s * |delta clip(u_law)|   (the law's own change)
 
 The fade term is the stated bound (20 N * 1 ms / 0.2 s = 0.1 N for the scenarios' x axis);
-the second term is what an undisturbed loop does anyway. ``s`` moves by ``cycle_time /
+the second term is what an undisturbed loop does anyway. Keep ``degrade_after`` below the
+LMI's input history (256 cycles = 256 ms at 1 kHz): then every update applied under a
+non-zero force can be replayed completely. ``s`` moves by ``cycle_time /
 ramp_time`` per answered cycle (counted, not timed, so the bound holds for any jitter).
 
 Example: ``stale_after = 0.05``, ``degrade_after = 0.25``, ``ramp_time = 0.2``, 1 ms cycles,
@@ -86,15 +90,18 @@ class SyncGuard:
         """Seconds since the newest update arrived (inf before the first)."""
         return math.inf if self.last_arrival is None else max(0.0, now - self.last_arrival)
 
-    def update_arrived(self, now: float, restart: bool = False) -> bool:
-        """An update arrived at ``now``; ``restart``: it comes from a restarted simulation.
+    def update_arrived(self, now: float, restart: bool = False, lag: float = 0.0) -> bool:
+        """An update arrived at ``now``, describing the loop ``lag`` seconds ago; ``restart``:
+        it comes from a restarted simulation.
 
         Returns True if the caller should apply it now, False if it must hold it (the newest
         held one is applied when :meth:`cycle` says so).
         """
         first = self.last_arrival is None
         degraded = self.age(now) > self.config.degrade_after
-        self.last_arrival = now
+        when = now - max(lag, 0.0)
+        self.last_arrival = when if self.last_arrival is None else max(self.last_arrival, when)
+        degraded = degraded or self.age(now) > self.config.degrade_after
         if first:
             return True
         if restart or degraded or self._fading_out or self.pending:
