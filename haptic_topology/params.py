@@ -15,7 +15,8 @@ one :class:`ConfigError` naming the file, the node section, the key and what was
 The file layout is the one of ``ros2 run ... --params-file``: ``<node name>: {ros__parameters:
 {...}}``, where the node name may carry a namespace (``/ns/device_driver``) or be a wildcard
 (``/**``, ``/**/device_driver``, ``device_*``); a wildcard's parameters must be known to at
-least one node it matches.
+least one node it matches, unless it also matches a node whose parameters this process does
+not know (the recorder declares its own): then unknown names pass.
 """
 
 from __future__ import annotations

@@ -32,10 +32,11 @@ and ignore SIGINT. ``executor: single_threaded`` is the fallback. The
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -53,6 +54,13 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from haptic_topology.errors import ConfigError, HapticTopologyError
+from haptic_topology.params import (
+    NodeParams,
+    ParamSpec,
+    check_overrides,
+    check_params_file,
+    params_files,
+)
 
 # -- topics ------------------------------------------------------------------------------------
 TOPIC_STATE = 'haptic/device/state'
@@ -86,6 +94,14 @@ TOPIC_QOS: dict[str, QoSProfile] = {
 }
 
 EXECUTORS = ('events', 'single_threaded')
+
+#: The nodes of the graph (params-file sections).
+NODE_NAMES = ('device_driver', 'lmi_controller', 've_sim', 'recorder')
+
+#: Parameters every node declares.
+COMMON_PARAMS = (
+    ParamSpec('executor', 'events', 'executor of the process', choices=EXECUTORS),
+)
 
 
 # -- parameters --------------------------------------------------------------------------------
@@ -122,6 +138,14 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
     if isinstance(value, float) and not math.isfinite(value):
         raise ConfigError(f'{where}: expected a finite number, got {value}')
     return value
+
+
+def declare_spec(node: Node, spec: ParamSpec, default: Any = None) -> Any:
+    """:func:`declare` from a :class:`ParamSpec` (``default`` overrides the spec's, e.g. a
+    value taken from the scenario; it must have the spec's type)."""
+    return declare(node, spec.name, spec.default if default is None else default,
+                   spec.description, read_only=spec.read_only, lo=spec.lo, hi=spec.hi,
+                   choices=spec.choices)
 
 
 # -- loop health -------------------------------------------------------------------------------
@@ -196,14 +220,66 @@ def spin(nodes: Sequence[Node], kind: str) -> None:
         executor.shutdown(timeout_sec=1.0)
 
 
+DISCOVERY_ENV = 'ROS_AUTOMATIC_DISCOVERY_RANGE'
+
+
+def localhost_discovery_default(env: dict[str, str] | os._Environ[str]) -> str:
+    """Keep DDS discovery on this host unless the user chose otherwise; return the range.
+
+    Sets ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` in ``env`` when neither it nor the
+    deprecated ``ROS_LOCALHOST_ONLY`` is set. To run nodes on several machines set
+    ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` (or keep LOCALHOST and list the other hosts in
+    ``ROS_STATIC_PEERS``) and the same ``ROS_DOMAIN_ID`` on every machine.
+    """
+    if DISCOVERY_ENV not in env and 'ROS_LOCALHOST_ONLY' not in env:
+        env[DISCOVERY_ENV] = 'LOCALHOST'
+    return env.get(DISCOVERY_ENV, 'LOCALHOST' if env.get('ROS_LOCALHOST_ONLY') == '1'
+                   else 'SUBNET')
+
+
+def check_config_args(argv: Sequence[str], known: Mapping[str, NodeParams | None],
+                      node: str | None) -> None:
+    """Check every ``--params-file`` and ``-p`` name of ``argv`` before rclpy parses them."""
+    ros_args = _ros_args(argv)
+    for path in params_files(ros_args):
+        check_params_file(path, known, node)
+    check_overrides(ros_args, known, node)
+
+
+def _ros_args(argv: Sequence[str]) -> list[str]:
+    out: list[str] = []
+    inside = False
+    for a in argv:
+        if a == '--ros-args':
+            inside = True
+        elif a == '--':
+            inside = False
+        elif inside:
+            out.append(a)
+    return out
+
+
 def run_main(prog: str, build: Callable[[], Sequence[Node]],
-             args: Sequence[str] | None = None) -> int:
+             args: Sequence[str] | None = None,
+             params: Mapping[str, NodeParams | None] | None = None) -> int:
     """Init rclpy, build the node(s), spin, shut down cleanly; return the exit status.
+
+    ``params``: node name -> its declared parameters (None: unknown here), used to check the
+    params files and ``-p`` overrides before rclpy reads them; ``prog`` is the node checked
+    (all of ``params`` for ``composed``). DDS discovery defaults to this host
+    (:func:`localhost_discovery_default`).
 
     A configuration problem (params file, parameter, scenario) prints one line
     ``<prog>: error: ...`` and returns 2 without a traceback.
     """
     argv = list(sys.argv if args is None else args)
+    localhost_discovery_default(os.environ)
+    if params is not None:
+        try:
+            check_config_args(argv, params, prog if prog in params else None)
+        except ConfigError as exc:
+            print(f'{prog}: error: {exc}', file=sys.stderr)
+            return 2
     try:
         rclpy.init(args=argv)
     except (RuntimeError, ValueError) as exc:  # rclpy's RCLError is a RuntimeError

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 from rclpy.node import Node
 
-from haptic_topology.nodes import common
+from haptic_topology.nodes import common, node_params
 
 
 def build() -> list[Node]:
@@ -37,7 +37,7 @@ def build() -> list[Node]:
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('composed', build, args)
+    return common.run_main('composed', build, args, node_params.KNOWN)
 
 
 if __name__ == '__main__':

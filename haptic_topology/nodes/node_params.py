@@ -59,6 +59,10 @@ LMI_CONTROLLER: NodeParams = specs(
               '(warning; the last constraint set is kept)', lo=1e-3, hi=60.0),
     ParamSpec('degrade_after', 0.25, 'LMI update age (s) from which the force fades to zero',
               lo=1e-3, hi=60.0),
+    ParamSpec('resync_max_jump', 1.0, 'largest estimated force step (N, N m) a re-sync '
+              'may cause at once: |K_pc dx| + |B_pc dv| + |M_d P (k_tc dx + b_tc dv)| '
+              "(eq. 13-16), the update's VT hand against ours at the same time; beyond it "
+              'the re-sync is held until the force has faded out', lo=0.0, hi=1e6),
     ParamSpec('resync_ramp', 0.2, 'time (s) of a full force fade out before / in after a '
               're-sync that may jump (stale model, restarted ve_sim or device)',
               lo=1e-3, hi=10.0),
