@@ -23,8 +23,9 @@ class DeviceStatus(enum.IntFlag):
     OK = 0
     WORKSPACE_LIMIT = 1
     SATURATED = 2
-    WATCHDOG = 4
+    WATCHDOG = 4    # output is not the plain command: none yet, stale, or fading in/out
     FAULT = 8
+    IDLE = 16       # not engaged yet (always with WATCHDOG): controllers integrate nothing
 
 
 @dataclass(frozen=True)

@@ -3,21 +3,32 @@
 Each tick (a wall timer at ``rate_hz``; ``dt`` is the measured time since the previous tick,
 because rclpy timers catch up after a late tick):
 
-1. take the newest valid ``DeviceCommand`` (finite, ``task_dim`` entries); if it answers a
-   state older than ``watchdog_cycles`` ticks, apply zero instead (status WATCHDOG);
-2. clamp it to ``wrench_limit`` (status SATURATED), ``write`` it to the backend and ``read``
-   the device ``dt`` later (before the first engaged command: ``idle``);
-3. publish ``DeviceState`` with the next sequence number, stamped with the tick time.
+1. take the newest valid ``DeviceCommand`` (finite, ``task_dim`` entries, known mode;
+   anything else is dropped and counted per reason) and clamp it to ``wrench_limit``;
+2. watchdog (:class:`~haptic_topology.device.watchdog.CommandWatchdog`): when the oldest
+   unanswered state is older than ``watchdog_timeout`` the output fades to the fallback
+   (zero, or damping) over ``watchdog_ramp`` and back when commands return (status WATCHDOG
+   while not the plain command);
+3. clamp again (status SATURATED), ``write`` it to the backend and ``read`` the device ``dt``
+   later (before the first engaged command: ``idle``);
+4. publish ``DeviceState`` with the next sequence number, stamped with the tick time; its
+   ``applied_wrench`` is what was written, finite and within ``wrench_limit`` by
+   construction.
 
 Engagement: until a command with a mode other than MODE_ZERO arrives (and ``min_subscribers``
-see the state topic) the device idles with zero output and publishes STATUS_WATCHDOG; the
+see the state topic) the device idles with zero output and publishes STATUS_WATCHDOG |
+STATUS_IDLE; the
 first tick after engagement publishes the resting state with status OK (the run's first
 state, t = 0 of the offline simulation), and from then on every tick steps the backend.
 
 Loop health on ``/diagnostics`` (1 Hz): tick rate and period percentiles, overruns, the
 fraction of cycles answered in time (the command for state k arrived before tick k+1),
 round trip (command arrival - publication of the state it answers) p50/p99 over the run,
-command age, rejected commands.
+command age, watchdog trips and fade scale, rejected commands per reason, saturated cycles,
+largest applied wrench per axis against the limit.
+
+A restarted driver starts again at seq 1 (idle until the controller re-engages it); the
+controller notices the seq going backwards (see ``lmi_controller``).
 """
 
 from __future__ import annotations
@@ -34,10 +45,16 @@ from rclpy.node import Node
 from haptic_topology.control.laws import ControlMode
 from haptic_topology.device.backend import BackendConfig, DeviceBackend, create_backend
 from haptic_topology.device.maglev import DeviceStatus, saturate
+from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig, WatchdogFallback
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.errors import ConfigError, DeviceError
-from haptic_topology.nodes import common
-from haptic_topology.nodes.convert import MessageError, command_from_msg, state_msg
+from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes.convert import (
+    MessageError,
+    RejectCounter,
+    command_from_msg,
+    state_msg,
+)
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 
@@ -50,23 +67,22 @@ class DeviceDriver(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('device_driver', **kwargs)
-        d = common.declare
-        scenario_name = d(self, 'scenario', 'fig8', 'scenario name (config/scenarios) or YAML '
-                          'path: device model, limits, initial pose and simulated user')
-        d(self, 'executor', 'events', 'executor of the process', choices=common.EXECUTORS)
-        backend_name = d(self, 'backend', 'sim_maglev', 'device backend: sim_maglev, hardware,'
-                         ' module:Class, or an entry point of haptic_topology.device_backends')
-        options_text = d(self, 'backend_options', '', 'backend settings as a YAML/JSON mapping'
-                         " (e.g. '{port: /dev/ttyUSB0}'); empty for none")
-        self.rate_hz = d(self, 'rate_hz', 1000.0, 'device cycle rate (Hz)', lo=10.0, hi=10000.0)
-        self.watchdog_cycles = d(self, 'watchdog_cycles', 50, 'zero the wrench when the '
-                                 'newest command answers a state older than this many cycles',
-                                 lo=1, hi=100000)
-        self.min_subscribers = d(self, 'min_subscribers', 1, 'ignore commands (device idle) '
-                                 'until this many subscribers see the state topic (e.g. 2 '
-                                 'with a recorder)', lo=0, hi=100)
-        limit = d(self, 'wrench_limit', [0.0], 'per-axis |u| limit (N, N m); [0.0] = the '
-                  "scenario's device.wrench_limit")
+        spec = node_params.DEVICE_DRIVER
+
+        def d(name: str) -> Any:
+            return common.declare_spec(self, spec[name])
+
+        scenario_name = d('scenario')
+        d('executor')
+        backend_name = d('backend')
+        options_text = d('backend_options')
+        self.rate_hz = d('rate_hz')
+        wd_timeout = d('watchdog_timeout')
+        wd_ramp = d('watchdog_ramp')
+        wd_fallback = WatchdogFallback.parse(d('watchdog_fallback'))
+        wd_damping = d('watchdog_damping')
+        self.min_subscribers = d('min_subscribers')
+        limit = d('wrench_limit')
         self.scenario = load_scenario(scenario_name)
         sc = self.scenario
         self.task = sc.linkage.task
@@ -75,10 +91,19 @@ class DeviceDriver(Node):
             self.limit = sc.device.wrench_limit.copy()
         else:
             arr = np.asarray(limit, dtype=float)
-            if arr.shape != (m,) or not np.all(arr > 0.0):
+            if arr.shape != (m,) or not np.all(arr > 0.0) or not np.all(np.isfinite(arr)):
                 raise ConfigError(f'device_driver: parameter wrench_limit: expected {m} '
                                   f'positive numbers, got {list(limit)}')
             self.limit = arr
+        damping = np.asarray(wd_damping, dtype=float)
+        if damping.size == 1:
+            damping = np.full(m, float(damping[0]))
+        if (damping.shape != (m,) or not np.all(np.isfinite(damping))
+                or np.any(damping < 0.0)):
+            raise ConfigError(f'device_driver: parameter watchdog_damping: expected one or {m}'
+                              f' numbers >= 0, got {list(wd_damping)}')
+        self.watchdog = CommandWatchdog(WatchdogConfig(wd_timeout, wd_ramp, wd_fallback,
+                                                       damping), m)
         try:
             options = yaml.safe_load(options_text) if options_text.strip() else {}
         except yaml.YAMLError as exc:
@@ -109,19 +134,24 @@ class DeviceDriver(Node):
         self._started = False
         self._cmd: np.ndarray = np.zeros(m)
         self._cmd_seq = 0
+        self._twist = np.zeros(m)
         self._publish_times = np.zeros(4096)        # monotonic publish time by seq % 4096
         self._rtt = np.zeros(_RTT_KEEP)
         self._rtt_n = 0
         self.answered = 0
         self.expected = 0
-        self.rejected = 0
-        self.watchdog_trips = 0
+        self.rejected = RejectCounter()
+        self.rejected_seq = 0
+        self.saturated_cycles = 0
+        self.max_applied = np.zeros(m)
         self._last_tick: float | None = None
         self.stats = common.LoopStats(1.0 / self.rate_hz)
         self.create_timer(1.0 / self.rate_hz, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f'backend {backend_name}, scenario {sc.name}, '
-                               f'{self.rate_hz:.0f} Hz')
+                               f'{self.rate_hz:.0f} Hz, limit {self.limit.tolist()}, '
+                               f'watchdog {wd_timeout * 1e3:g} ms -> {wd_fallback.value} over '
+                               f'{wd_ramp * 1e3:g} ms')
 
     # -- callbacks (thin: checks, bookkeeping, one backend call) -----------------------------
     def _on_command(self, msg: DeviceCommand) -> None:
@@ -129,11 +159,13 @@ class DeviceDriver(Node):
         try:
             state_seq, mode, wrench = command_from_msg(msg, self.task)
         except MessageError as exc:
-            self.rejected += 1
+            self.rejected.add(exc)
             self.get_logger().warn(f'command rejected: {exc}', throttle_duration_sec=1.0)
             return
         if state_seq > self.seq or state_seq == 0:
-            self.rejected += 1
+            # Answers a state this driver never published (a controller of an earlier run of
+            # this driver, or a bogus publisher): not an answer to anything.
+            self.rejected_seq += 1
             return
         if state_seq >= self.seq - 4095:
             rtt = now - self._publish_times[state_seq % 4096]
@@ -157,9 +189,9 @@ class DeviceDriver(Node):
         status = DeviceStatus.OK
         u = np.zeros(self.task.dim)
         if not self.engaged_seq:
-            # No controller yet: output held at zero by the watchdog; a simulation parks.
+            # No controller yet: output held at zero; a simulation parks.
             reading = self.backend.idle(dt)
-            status |= DeviceStatus.WATCHDOG
+            status |= DeviceStatus.WATCHDOG | DeviceStatus.IDLE
         elif not self._started:
             # First state of the run: where the device rests when the controller engages.
             self._started = True
@@ -168,20 +200,38 @@ class DeviceDriver(Node):
             self.expected += 1
             if self._cmd_seq == self.seq:
                 self.answered += 1
-            u = self._cmd
-            if self.seq - self._cmd_seq > self.watchdog_cycles:
-                u = np.zeros_like(u)
+            # Clamp, fade towards the fallback if stale, clamp again (a damping fallback
+            # could exceed the limit): nothing else reaches the backend.
+            cmd, saturated = saturate(self._cmd, self.limit)
+            # The fade advances by at most two nominal periods per tick, so one late tick
+            # cannot step the output by more than 2 * limit * period / watchdog_ramp.
+            u = self.watchdog.step(cmd, self.command_age(now), self._twist,
+                                   min(dt, 2.0 * nominal))
+            u, saturated_out = saturate(u, self.limit)
+            if self.watchdog.active:
                 status |= DeviceStatus.WATCHDOG
-                self.watchdog_trips += 1
-            u, saturated = saturate(u, self.limit)
-            if saturated:
+            if saturated or saturated_out:
                 status |= DeviceStatus.SATURATED
+                self.saturated_cycles += 1
+            np.maximum(self.max_applied, np.abs(u), out=self.max_applied)
             self.backend.write(u)
             reading = self.backend.read(dt)
+        self._twist = reading.twist
         self.seq += 1
         self._publish_times[self.seq % 4096] = now
         self.state_pub.publish(state_msg(self._msg, self.seq, now_ros.to_msg(), reading, u,
                                          int(status | reading.status)))
+
+    def command_age(self, now: float) -> float:
+        """Seconds since the oldest state without an answer was published (0 when the newest
+        state is answered): how long the controller has been silent, not counting the
+        driver's own late ticks."""
+        if self._cmd_seq >= self.seq:
+            return 0.0
+        oldest = self._cmd_seq + 1
+        if self.seq - oldest >= 4096:
+            return math.inf
+        return max(0.0, now - float(self._publish_times[oldest % 4096]))
 
     def loop_figures(self) -> dict[str, float]:
         """Answered fraction and round-trip percentiles (ms) over the run so far."""
@@ -206,11 +256,26 @@ class DeviceDriver(Node):
             'round_trip_p50_ms': f'{figures["round_trip_p50_ms"]:.3f}',
             'round_trip_p99_ms': f'{figures["round_trip_p99_ms"]:.3f}',
             'command_age_cycles': str(self.seq - self._cmd_seq if self._cmd_seq else -1),
-            'rejected_commands': str(self.rejected),
-            'watchdog_cycles': str(self.watchdog_trips),
+            'command_age_ms': f'{1e3 * self.command_age(common.monotonic()):.2f}',
+            'rejected_commands': str(self.rejected.total + self.rejected_seq),
+            **self.rejected.values(),
+            'rejected_seq': str(self.rejected_seq),
+            'watchdog_trips': str(self.watchdog.trips),
+            'watchdog_cycles': str(self.watchdog.stale_cycles),
+            'watchdog_scale': f'{self.watchdog.scale:.3f}',
+            'saturated_cycles': str(self.saturated_cycles),
+            'max_abs_applied': ' '.join(f'{v:.4g}' for v in self.max_applied),
+            'wrench_limit': ' '.join(f'{v:.4g}' for v in self.limit),
         })
-        late = self.engaged_seq and self.seq - self._cmd_seq > self.watchdog_cycles
-        level, message = (1, 'watchdog: commands stale') if late else (0, 'ok')
+        if not self.engaged_seq:
+            level, message = 1, 'idle: no controller engaged yet'
+        elif self.watchdog.stale:
+            level, message = 1, 'watchdog: commands stale, output faded to the fallback'
+        elif self.watchdog.active:
+            level, message = 1, 'watchdog: fading back in'
+        else:
+            level, message = 0, 'ok'
+
         self.diag_pub.publish(common.diagnostics(self, 'device_driver: loop', values, level,
                                                  message))
 
@@ -229,7 +294,8 @@ class DeviceDriver(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('device_driver', lambda: [DeviceDriver()], args)
+    return common.run_main('device_driver', lambda: [DeviceDriver()], args,
+                           node_params.KNOWN)
 
 
 if __name__ == '__main__':

@@ -6,8 +6,17 @@ A thin adapter over :class:`~haptic_topology.sim.ve.VirtualEnvironment`:
   with ``F_vt = F_h - F_pc`` (``vt_coupling``) or ``F_h``: the held input is integrated up
   to this stamp; every ``update_period`` inputs an ``LmiUpdate`` is published (10 inputs of
   a 1 kHz loop: 100 Hz), carrying ``hand_input_seq`` so the controller replays what is newer;
-* until the first hand input, the initial state is published as an ``LmiUpdate`` at
-  ``1 / (update_period * dt)`` Hz so that a controller can sync and close the loop;
+* while no hand input comes (before the first one, or while the controller is stopped or
+  restarting) the current state is published as an ``LmiUpdate`` at ``idle_update_rate_hz``
+  so that a (new) controller can sync and close the loop;
+* hand inputs are checked where they enter (sizes, finite, ``|wrench| <= max_hand_wrench``)
+  and counted per rejection reason; a ``HandInput.seq`` going backwards is a restarted
+  controller: the VE forgets the held input (its numbering starts afresh);
+* a restarted ``ve_sim`` (its first hand input is not the controller's first) places the
+  VT's grasp point at the device pose (damped least squares from ``q0``, zero velocity
+  relative to the device): nothing in the graph holds the old VE's joint state, and starting
+  at ``q0`` would let the coordination spring yank the VT across the workspace. The
+  controller re-syncs to it at zero force (see ``lmi_controller``);
 * ``sensor_msgs/JointState`` and a ``visualization_msgs/MarkerArray`` (linkage, VT grasp
   point, device point, directions of topological constraint) at ``viz_rate_hz``.
 """
@@ -27,11 +36,20 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
-from haptic_topology.nodes import common
-from haptic_topology.nodes.convert import MessageError, lmi_msg, vt_wrench_from_hand
+from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes.convert import (
+    MessageError,
+    RejectCounter,
+    lmi_msg,
+    vt_wrench_from_hand,
+)
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology_msgs.msg import HandInput, LmiUpdate
+
+
+def _array3(values: Sequence[float]) -> np.ndarray:
+    return np.asarray(values, dtype=float)
 
 
 class VeSim(Node):
@@ -39,16 +57,18 @@ class VeSim(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('ve_sim', **kwargs)
-        d = common.declare
-        scenario_name = d(self, 'scenario', 'fig8', 'scenario name (config/scenarios) or YAML '
-                          'path: linkage, initial state, internal step, VT coupling')
-        d(self, 'executor', 'events', 'executor of the process', choices=common.EXECUTORS)
-        self.update_period = d(self, 'update_period', 10, 'hand inputs per LMI update (10 at '
-                               '1 kHz = 100 Hz); the scenario value is for the offline '
-                               'lock-step simulation', lo=1, hi=10000)
-        viz_rate = d(self, 'viz_rate_hz', 30.0, 'rate of joint states and markers (Hz)',
-                     lo=0.1, hi=200.0)
-        d(self, 'frame_id', 'world', 'frame of the markers')
+        spec = node_params.VE_SIM
+
+        def d(name: str) -> Any:
+            return common.declare_spec(self, spec[name])
+
+        scenario_name = d('scenario')
+        d('executor')
+        self.update_period = d('update_period')
+        idle_rate = d('idle_update_rate_hz')
+        self.max_hand_wrench = d('max_hand_wrench')
+        viz_rate = d('viz_rate_hz')
+        d('frame_id')
         self.scenario = sc = load_scenario(scenario_name)
         self.task = sc.linkage.task
         self.dyn = LinkageDynamics(sc.linkage)
@@ -67,41 +87,67 @@ class VeSim(Node):
         self._inputs = 0
         self._last_hand_seq = 0
         self.lost_inputs = 0
-        self.rejected = 0
+        self.controller_restarts = 0
+        self.rejected = RejectCounter()
+        self._last_publish = -math.inf
+        self._last_input = -math.inf
+        self._idle_period = 1.0 / idle_rate
         self._t0: float | None = None
         self._device_pose: np.ndarray | None = None
         self._last_snap: LmiSnapshot = self.ve.snapshot(seq=0)
         self.stats = common.LoopStats(sc.dt)
         self.update_stats = common.LoopStats(sc.dt * self.update_period)
-        self._idle_timer = self.create_timer(sc.dt * self.update_period, self._publish_initial)
+        self.create_timer(min(self._idle_period, sc.dt * self.update_period),
+                          self._publish_idle)
         self.create_timer(1.0 / viz_rate, self._publish_viz)
         self.create_timer(1.0, self._publish_diagnostics)
 
     def _publish_update(self) -> None:
         self._last_snap = self.ve.snapshot(seq=self._update_seq)
         self._update_seq += 1
-        self.update_stats.tick(common.monotonic())
+        now = common.monotonic()
+        self._last_publish = now
+        self.update_stats.tick(now)
         self.lmi_pub.publish(lmi_msg(self._lmi, self._last_snap,
                                      self.get_clock().now().to_msg()))
 
-    def _publish_initial(self) -> None:
-        if self._inputs == 0:
+    def _publish_idle(self) -> None:
+        """Keep-alive: the current state when no hand input (and no update) came for an idle
+        period. While inputs flow, updates go out every ``update_period`` inputs only, as in
+        the offline simulation."""
+        now = common.monotonic()
+        if (now - self._last_input >= self._idle_period
+                and now - self._last_publish >= self._idle_period):
             self._publish_update()
 
     def _on_hand(self, msg: HandInput) -> None:
         try:
-            seq, stamp, f_vt = vt_wrench_from_hand(msg, self.task, self.scenario.vt_coupling)
+            seq, stamp, f_vt = vt_wrench_from_hand(msg, self.task, self.scenario.vt_coupling,
+                                                   self.max_hand_wrench)
         except MessageError as exc:
-            self.rejected += 1
+            self.rejected.add(exc)
             self.get_logger().warn(f'hand input rejected: {exc}', throttle_duration_sec=1.0)
             return
+        if self._last_hand_seq and msg.seq <= self._last_hand_seq:
+            # The controller's input counter went backwards: a restarted controller.
+            self.controller_restarts += 1
+            self.get_logger().warn(f'hand input seq {msg.seq} after {self._last_hand_seq}: '
+                                   'a new controller; the held input is dropped')
+            self.ve.reset_inputs()
+            self._last_hand_seq = 0
         if self._last_hand_seq and msg.seq > self._last_hand_seq + 1:
             self.lost_inputs += int(msg.seq - self._last_hand_seq - 1)
-        self._last_hand_seq = max(self._last_hand_seq, int(msg.seq))
+        self._last_hand_seq = int(msg.seq)
         if self._t0 is None:
             self._t0 = stamp
-            self._idle_timer.cancel()
-        self.stats.tick(common.monotonic())
+            if msg.seq > 1:
+                # Our first input is not the controller's first: this VE joins a running
+                # loop (it was restarted). Start the VT where the hand is, not at q0.
+                err = self.ve.place_hand(_array3(msg.pose), _array3(msg.twist))
+                self.get_logger().warn(f'joined a running loop (hand input {msg.seq}): VT '
+                                       f'placed at the device pose (residual {err:.2e} m)')
+        self._last_input = common.monotonic()
+        self.stats.tick(self._last_input)
         self._device_pose = np.asarray(msg.pose, dtype=float)
         self.ve.push_input(seq, stamp - self._t0, f_vt)
         self._inputs += 1
@@ -179,7 +225,9 @@ class VeSim(Node):
             'lost_hand_inputs': str(self.lost_inputs),
             'hand_input_seq': str(self.ve.hand_input_seq),
             'lmi_updates': str(self._update_seq),
-            'rejected_messages': str(self.rejected),
+            'controller_restarts': str(self.controller_restarts),
+            'rejected_messages': str(self.rejected.total),
+            **self.rejected.values(),
             'kinetic_energy_j': f'{self.ve.kinetic_energy():.6g}',
         })
         ok = all(math.isfinite(v) for v in self.ve.q)
@@ -188,7 +236,7 @@ class VeSim(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('ve_sim', lambda: [VeSim()], args)
+    return common.run_main('ve_sim', lambda: [VeSim()], args, node_params.KNOWN)
 
 
 if __name__ == '__main__':

@@ -15,7 +15,9 @@ import math
 import numpy as np
 
 from haptic_topology.control.lmi import LmiSnapshot
+from haptic_topology.dynamics.constraints import task_scale
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+from haptic_topology.dynamics.taskspace import pose_difference
 
 
 class VirtualEnvironment:
@@ -72,6 +74,39 @@ class VirtualEnvironment:
             self.integrate(held_wrench, min(stamp - held_stamp, self.max_gap))
             self.hand_input_seq = held_seq
         self._held = (seq, stamp, np.array(wrench, dtype=float))
+
+    def place_hand(self, pose: np.ndarray, twist: np.ndarray, iterations: int = 100,
+                   damping: float = 1e-3) -> float:
+        """Move the VT so that its grasp point is at ``pose`` moving with ``twist`` (damped
+        least squares from the current ``q``, rotations weighted by ``L_c``); return the
+        remaining weighted pose error (m).
+
+        Used by a ``ve_sim`` that joins a running loop (restarted): the hand is where the
+        device is, so starting the VT there (instead of at the scenario's ``q0``) does not
+        make the coordination spring yank it across the workspace.
+        """
+        task = self.dyn.task
+        scale = task_scale(task, self.dyn.linkage.constraints.characteristic_length)
+        q = self.q.copy()
+        err = np.inf
+        for _ in range(iterations):
+            e = scale * pose_difference(pose, self.dyn.hand_pose(q), task)
+            err = float(np.linalg.norm(e))
+            if err < 1e-9:
+                break
+            j = scale[:, None] * self.dyn.hand_jacobian(q)
+            step = j.T @ np.linalg.solve(j @ j.T + damping ** 2 * np.eye(j.shape[0]), e)
+            q = q + step * min(1.0, 0.2 / max(float(np.abs(step).max()), 1e-12))
+        j = scale[:, None] * self.dyn.hand_jacobian(q)
+        dq = j.T @ np.linalg.solve(j @ j.T + 1e-6 * np.eye(j.shape[0]), scale * twist)
+        self.q, self.dq = q, dq
+        return err
+
+    def reset_inputs(self) -> None:
+        """Forget the held input and the consumed seq (a new controller numbers its inputs
+        afresh): the next input is held without integrating the gap before it."""
+        self._held = None
+        self.hand_input_seq = -1
 
     def snapshot(self, seq: int) -> LmiSnapshot:
         """The LMI update for the current state (eqs. 17-19)."""
