@@ -1,0 +1,535 @@
+"""Fault injection on the real node graph: one run, several faults one after the other.
+
+Starts recorder, ve_sim, lmi_controller and device_driver as processes (scenario ``circle``:
+the hand drags the device around a circle, so the loop is busy the whole time), then, each
+at a logged wall-clock time (the header stamps are wall-clock ROS time too):
+
+1. ``watchdog``: SIGSTOP lmi_controller for 100 ms (commands stop), SIGCONT;
+2. ``bad_messages``: 0.5 s of malformed messages from this process on every input topic
+   (NaN, wrong sizes, wrong task_dim / dof, non-SPD mass matrix, unknown mode, huge hand
+   wrench) plus finite commands of 1e9 N answering real device states;
+3. ``ve_stop``: SIGSTOP ve_sim for 1 s, SIGCONT (stale LMI, degrade, re-sync);
+4. ``kill_ve``, ``kill_controller``, ``kill_device``, ``kill_recorder``: SIGKILL the node and
+   start it again (the recorder into a second bag).
+
+Then stops everything and reads both bags. Used by ``test_fault_injection.py``;
+``python test/fault_harness.py`` runs it and prints the README table.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from haptic_topology.bag.reader import decoder, iter_messages, open_bag
+from haptic_topology.paths import config_dir
+
+PARAMS = config_dir() / 'haptic_topology.yaml'
+SCENARIO = 'circle'
+ENGAGED = 'controller engaged at state'
+CONNECTED = 'recorder connected'
+RECORDING = 'recording to'
+WATCHDOG, IDLE = 4, 16
+#: seq / state_seq of every message the injector publishes (so the analysis can tell them apart).
+INJECTED_SEQ = 10 ** 9
+
+
+@dataclass
+class Proc:
+    name: str
+    popen: subprocess.Popen[bytes]
+    log: Path
+    handle: IO[bytes]
+
+    def text(self) -> str:
+        try:
+            return self.log.read_text(encoding='utf-8', errors='replace')
+        except OSError:
+            return ''
+
+
+@dataclass
+class FaultRun:
+    """What happened (wall-clock event times) and what the bags hold."""
+
+    out: Path
+    events: dict[str, tuple[float, float]] = field(default_factory=dict)  # name: (t0, t1)
+    bags: list[Path] = field(default_factory=list)
+    logs: dict[str, str] = field(default_factory=dict)
+    exit_codes: dict[str, int] = field(default_factory=dict)
+    injected: dict[str, int] = field(default_factory=dict)
+    # From the bags:
+    states: list[list[Any]] = field(default_factory=list)  # per bag, in arrival order
+    commands: list[Any] = field(default_factory=list)
+    hands: list[list[Any]] = field(default_factory=list)    # per bag
+    updates: list[Any] = field(default_factory=list)
+    diagnostics: dict[str, dict[str, float]] = field(default_factory=dict)  # max per key
+    truncated: list[Path] = field(default_factory=list)
+
+
+class Graph:
+    """The node processes, restartable one by one."""
+
+    def __init__(self, out: Path, mode: str = 'penalty') -> None:
+        self.out = out
+        self.logs = out / 'logs'
+        self.logs.mkdir(parents=True, exist_ok=True)
+        self.procs: dict[str, Proc] = {}
+        self.starts: dict[str, int] = {}
+        self.mode = mode
+        self.bags: list[Path] = []
+
+    def start(self, name: str) -> Proc:
+        n = self.starts.get(name, 0) + 1
+        self.starts[name] = n
+        args = ['--ros-args', '--params-file', str(PARAMS), '-p', f'scenario:={SCENARIO}',
+                '-p', f'lmi_controller:mode:={self.mode}', '-p',
+                # controller, recorder and this process's injector must see the device
+                # before it engages, so the bag holds the loop from its first state
+                'device_driver:min_subscribers:=3']
+        if name == 'recorder':
+            bag = self.out / f'bag{n}'
+            self.bags.append(bag)
+            args += ['-p', f'recorder:output:={bag}']
+        log = self.logs / f'{name}.{n}.log'
+        handle = log.open('wb')
+        popen = subprocess.Popen(
+            [sys.executable, '-m', f'haptic_topology.nodes.{name}', *args], stdout=handle,
+            stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED='1'),
+            start_new_session=True)
+        proc = Proc(name, popen, log, handle)
+        self.procs[name] = proc
+        return proc
+
+    def wait_for(self, name: str, mark: str, timeout: float = 60.0) -> float:
+        proc = self.procs[name]
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if mark in proc.text():
+                return time.time()
+            for p in self.procs.values():
+                if p.popen.poll() is not None:
+                    raise RuntimeError(f'{p.name} exited ({p.popen.returncode}):\n'
+                                       f'{p.text()[-2000:]}')
+            time.sleep(0.02)
+        raise RuntimeError(f'{name}: no "{mark}" within {timeout} s:\n{proc.text()[-2000:]}')
+
+    def signal(self, name: str, sig: int) -> None:
+        self.procs[name].popen.send_signal(sig)
+
+    def kill(self, name: str) -> int:
+        p = self.procs[name]
+        p.popen.send_signal(signal.SIGKILL)
+        code = p.popen.wait(10)
+        p.handle.close()
+        return code
+
+    def stop_all(self) -> dict[str, int]:
+        codes: dict[str, int] = {}
+        for name in ('device_driver', 'lmi_controller', 've_sim', 'recorder'):
+            p = self.procs.get(name)
+            if p is None:
+                continue
+            if p.popen.poll() is None:
+                p.popen.send_signal(signal.SIGCONT)
+            for sig, wait in ((signal.SIGINT, 10.0), (signal.SIGTERM, 3.0),
+                              (signal.SIGKILL, 3.0)):
+                if p.popen.poll() is not None:
+                    break
+                p.popen.send_signal(sig)
+                try:
+                    p.popen.wait(wait)
+                except subprocess.TimeoutExpired:
+                    continue
+            codes[name] = p.popen.wait(5)
+            p.handle.close()
+        return codes
+
+
+class Injector:
+    """Publishes malformed messages from this process (its own rclpy context)."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from haptic_topology.nodes import common
+        from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('fault_injector', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        n = self.node
+        self.cmd_pub = n.create_publisher(DeviceCommand, common.TOPIC_COMMAND, common.QOS_LOOP)
+        self.state_pub = n.create_publisher(DeviceState, common.TOPIC_STATE, common.QOS_LOOP)
+        self.lmi_pub = n.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
+        self.hand_pub = n.create_publisher(HandInput, common.TOPIC_HAND, common.QOS_HAND)
+        self.types = (DeviceCommand, DeviceState, HandInput, LmiUpdate)
+        self.counts: dict[str, int] = {}
+        self._huge = False
+        self._n_state = 0
+        self._bad_commands: dict[str, dict[str, Any]] = {}
+        self._bad_keys: list[str] = []
+        n.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state, common.QOS_LOOP)
+
+    def _count(self, key: str) -> None:
+        self.counts[key] = self.counts.get(key, 0) + 1
+
+    def _on_state(self, msg: Any) -> None:
+        if self._huge and not msg.status & IDLE:
+            cmd_t = self.types[0]
+            self.cmd_pub.publish(cmd_t(state_seq=msg.seq, task_dim=3, mode=0,
+                                       wrench=[1e9, -1e9, 1e3]))
+            self._count('command_huge_finite')
+            # One malformed command per state too (the driver's queue is 1 deep: a message
+            # sent only every 10 ms may be overwritten before it is taken).
+            key = self._bad_keys[self._n_state % len(self._bad_keys)]
+            self._n_state += 1
+            self.cmd_pub.publish(cmd_t(state_seq=msg.seq, **self._bad_commands[key]))
+            self._count(key)
+
+    def spin(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.005)
+
+    def burst(self, seconds: float) -> None:
+        """Every 10 ms one of each malformed message; huge finite commands on every state."""
+        cmd_t, state_t, hand_t, lmi_t = self.types
+        nan = math.nan
+        good_u = [1.0, 0.0, 0.0]
+        bad_commands = {
+            'command_nan': dict(task_dim=3, wrench=[nan, 0.0, 0.0]),
+            'command_inf': dict(task_dim=3, wrench=[0.0, math.inf, 0.0]),
+            'command_size': dict(task_dim=3, wrench=[1.0, 2.0]),
+            'command_task_dim': dict(task_dim=6, wrench=good_u * 2),
+            'command_mode': dict(task_dim=3, wrench=good_u, mode=9),
+        }
+        eye = np.eye(3)
+        lmi_base = dict(dof=3, task_dim=3, q=[0.0] * 3, dq=[0.0] * 3,
+                        mass_matrix=eye.ravel().tolist(), gravity=[0.0] * 3,
+                        hand_jacobian=eye.ravel().tolist(), singular_values=[1.0] * 3,
+                        left_singular_vectors=eye.ravel().tolist(), constraint_count=0,
+                        constraint_weights=[0.0] * 3, characteristic_length=0.1,
+                        hand_pose=[0.0] * 3, hand_twist=[0.0] * 3, seq=INJECTED_SEQ,
+                        hand_input_seq=INJECTED_SEQ)
+        bad_updates = {
+            'update_dof': dict(lmi_base, dof=4),
+            'update_nan': dict(lmi_base, q=[nan, 0.0, 0.0]),
+            'update_size': dict(lmi_base, gravity=[0.0] * 2),
+            'update_not_spd': dict(lmi_base, mass_matrix=(-eye).ravel().tolist()),
+            'update_task_dim': dict(lmi_base, task_dim=6),
+        }
+        hand_base = dict(seq=INJECTED_SEQ, state_seq=INJECTED_SEQ, task_dim=3, pose=[0.0] * 3,
+                         twist=[0.0] * 3, hand_wrench=[0.0] * 3, coupling_wrench=[0.0] * 3)
+        bad_hands = {
+            'hand_nan': dict(hand_base, hand_wrench=[nan, 0.0, 0.0]),
+            'hand_huge': dict(hand_base, coupling_wrench=[1e7, 0.0, 0.0]),
+            'hand_size': dict(hand_base, pose=[0.0]),
+        }
+        bad_states = {
+            'state_nan': dict(seq=INJECTED_SEQ, task_dim=3, pose=[nan, 0.0, 0.0], twist=[0.0] * 3,
+                              hand_wrench=[0.0] * 3, applied_wrench=[0.0] * 3),
+            'state_task_dim': dict(seq=INJECTED_SEQ, task_dim=2, pose=[0.0] * 2, twist=[0.0] * 2,
+                                   hand_wrench=[0.0] * 2, applied_wrench=[0.0] * 2),
+        }
+        self._bad_commands = bad_commands
+        self._bad_keys = list(bad_commands)
+        self._huge = True
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            for key, kw in bad_commands.items():
+                self.cmd_pub.publish(cmd_t(state_seq=1, **kw))
+                self._count(key)
+            for key, kw in bad_updates.items():
+                self.lmi_pub.publish(lmi_t(**kw))
+                self._count(key)
+            for key, kw in bad_hands.items():
+                self.hand_pub.publish(hand_t(**kw))
+                self._count(key)
+            for key, kw in bad_states.items():
+                self.state_pub.publish(state_t(**kw))
+                self._count(key)
+            self.spin(0.01)
+        self._huge = False
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+
+
+def run_faults(out: Path) -> FaultRun:
+    """The fault sequence of the module doc; every wait bounded."""
+    run = FaultRun(out)
+    g = Graph(out)
+    injector: Injector | None = None
+    try:
+        injector = Injector()
+        for name in ('recorder', 've_sim', 'lmi_controller'):
+            g.start(name)
+            if name == 'recorder':
+                g.wait_for('recorder', RECORDING)
+        g.wait_for('recorder', CONNECTED)
+        g.start('device_driver')
+        g.wait_for('device_driver', ENGAGED)
+        injector.spin(1.5)
+
+        t0 = time.time()
+        g.signal('lmi_controller', signal.SIGSTOP)
+        time.sleep(0.1)
+        g.signal('lmi_controller', signal.SIGCONT)
+        run.events['watchdog'] = (t0, time.time())
+        injector.spin(1.0)
+
+        t0 = time.time()
+        injector.burst(0.5)
+        run.events['bad_messages'] = (t0, time.time())
+        injector.spin(1.0)
+
+        t0 = time.time()
+        g.signal('ve_sim', signal.SIGSTOP)
+        time.sleep(1.0)
+        g.signal('ve_sim', signal.SIGCONT)
+        run.events['ve_stop'] = (t0, time.time())
+        injector.spin(2.0)
+
+        for name in ('ve_sim', 'lmi_controller', 'device_driver'):
+            t0 = time.time()
+            g.kill(name)
+            g.start(name)
+            if name == 'device_driver':
+                g.wait_for('device_driver', ENGAGED)
+            run.events[f'kill_{name}'] = (t0, time.time())
+            injector.spin(5.0)
+
+        t0 = time.time()
+        g.kill('recorder')
+        g.start('recorder')
+        g.wait_for('recorder', RECORDING)
+        run.events['kill_recorder'] = (t0, time.time())
+        injector.spin(2.0)
+    finally:
+        if injector is not None:
+            run.injected = dict(injector.counts)
+            injector.close()
+        run.exit_codes = g.stop_all()
+        run.logs = {p.log.name: p.text() for p in g.procs.values()}
+        for log in sorted(g.logs.glob('*.log')):
+            run.logs[log.name] = log.read_text(encoding='utf-8', errors='replace')
+    run.bags = list(g.bags)
+    _read_bags(run)
+    return run
+
+
+def _read_bags(run: FaultRun) -> None:
+    decode = decoder()
+    for path in run.bags:
+        bag = open_bag(path)
+        run.states.append([])
+        run.hands.append([])
+        for m in iter_messages(bag):
+            if m.topic.endswith('haptic/device/state'):
+                run.states[-1].append(decode(m))
+            elif m.topic.endswith('haptic/device/command'):
+                run.commands.append(decode(m))
+            elif m.topic.endswith('haptic/hand'):
+                run.hands[-1].append(decode(m))
+            elif m.topic.endswith('haptic/lmi/update'):
+                u = decode(m)
+                if int(u.seq) != INJECTED_SEQ:
+                    run.updates.append(u)
+            elif m.topic == '/diagnostics':
+                for st in decode(m).status:
+                    d = run.diagnostics.setdefault(st.name, {})
+                    for kv in st.values:
+                        try:
+                            v = float(kv.value)
+                        except ValueError:
+                            continue
+                        if math.isfinite(v):
+                            d[kv.key] = max(d.get(kv.key, -math.inf), v)
+        run.truncated += bag.truncated
+
+
+# -- analysis ---------------------------------------------------------------------------------
+def stamp(msg: Any) -> float:
+    return float(msg.header.stamp.sec) + 1e-9 * float(msg.header.stamp.nanosec)
+
+
+@dataclass
+class Session:
+    """The states of one device_driver process (seq restarts at 1), in seq order."""
+
+    seqs: np.ndarray
+    t: np.ndarray
+    applied: np.ndarray
+    status: np.ndarray
+    twist: np.ndarray
+
+
+def sessions(states: list[Any]) -> list[Session]:
+    """Split the arrival-ordered states of one bag into device sessions (a new one where the
+    seq goes backwards: a restarted device_driver), each sorted by seq."""
+    groups: list[dict[int, Any]] = []
+    last = math.inf
+    for s in states:
+        seq = int(s.seq)
+        if seq == INJECTED_SEQ:
+            continue           # the injector's malformed states, not the device's
+        if seq < last:
+            groups.append({})
+        groups[-1][seq] = s
+        last = seq
+    out = []
+    for g in groups:
+        ks = sorted(g)
+        out.append(Session(np.array(ks), np.array([stamp(g[k]) for k in ks]),
+                           np.array([list(g[k].applied_wrench) for k in ks], dtype=float),
+                           np.array([int(g[k].status) for k in ks]),
+                           np.array([list(g[k].twist) for k in ks], dtype=float)))
+    return out
+
+
+def window(sess: list[Session], t0: float, t1: float) -> tuple[np.ndarray, np.ndarray,
+                                                               np.ndarray]:
+    """(t, applied, status) of the running (non-idle) states in [t0, t1], all sessions."""
+    ts, us, st = [], [], []
+    for s in sess:
+        m = (s.t >= t0) & (s.t <= t1) & ((s.status & IDLE) == 0)
+        ts.append(s.t[m])
+        us.append(s.applied[m])
+        st.append(s.status[m])
+    return np.concatenate(ts), np.concatenate(us), np.concatenate(st)
+
+
+def max_step(sess: list[Session], t0: float, t1: float) -> np.ndarray:
+    """Largest per-cycle change of the applied wrench per axis between consecutive running
+    states of one session in [t0, t1]."""
+    best = np.zeros(3)
+    for s in sess:
+        m = np.flatnonzero((s.t >= t0) & (s.t <= t1) & ((s.status & IDLE) == 0))
+        if m.size < 2:
+            continue
+        consecutive = np.diff(s.seqs[m]) == 1
+        d = np.abs(np.diff(s.applied[m], axis=0))[consecutive]
+        if d.size:
+            best = np.maximum(best, d.max(axis=0))
+    return best
+
+
+RESYNC_RAMP = 0.2      # lmi_controller resync_ramp (config/haptic_topology.yaml)
+STALE_AFTER = 0.05
+
+
+def figures(run: FaultRun, name: str) -> dict[str, float]:
+    """For fault ``name``, from its start to the next fault's (or the end of the run):
+
+    * ``max_ratio``: largest |applied wrench| / limit over the axes (must stay <= 1);
+    * ``recovery_s``: from the end of the fault (SIGCONT sent / process restarted) until the
+      loop is back: ``watchdog``: the device applies the plain command again (fade-in done);
+      ``ve_stop``, ``kill_ve_sim``: commands come from a fresh model again (the force then
+      fades in over ``RESYNC_RAMP``); ``kill_lmi_controller``: the new controller answers
+      from a fresh model; ``kill_device_driver``: the new driver runs the loop;
+      ``kill_recorder``: from the kill to the second bag's first state (recording gap);
+      the kills are measured from the kill (the process is started again at once), so
+      they include the ~2-3 s a Python node needs to start on a loaded 2-core machine;
+    * ``step_x``/``step_y``: largest per-cycle change of the applied wrench (N) after the
+      fault's end, against ``base_x``/``base_y``: the same over the run's first second;
+    * ``tail_s`` (kill_recorder): the kill time minus the first bag's last state.
+    """
+    names = list(run.events)
+    t0, t1 = run.events[name]
+    k = names.index(name)
+    sess = [s for b in run.states for s in sessions(b)]
+    end = (run.events[names[k + 1]][0] if k + 1 < len(names)
+           else max(s.t[-1] for s in sess)) - 0.01
+    t, u, st = window(sess, t0 - 0.01, end)
+    cmds = [(stamp(c), float(c.update_age), int(c.mode)) for c in run.commands
+            if int(c.state_seq) != INJECTED_SEQ]
+    fresh = np.array(sorted(c[0] for c in cmds if c[1] < STALE_AFTER and c[2] != 2))
+    fresh = fresh[fresh > t1]
+    rec = math.nan
+    out: dict[str, float] = {}
+    if name == 'watchdog':
+        ok = t[((st & WATCHDOG) == 0) & (t > t1)]
+        rec = float(ok[0]) - t1 if ok.size else math.inf
+    elif name in ('ve_stop', 'kill_ve_sim'):
+        # The VE is current again: an update describing the loop less than STALE_AFTER ago
+        # (its hand_input_seq + 1 was stamped less than that before the update); the
+        # controller then fades the force in over RESYNC_RAMP.
+        seq_t = {int(q): tt for s in sessions(run.states[0])[:1]
+                 for q, tt in zip(s.seqs, s.t, strict=True)}
+        start = t1 if name == 've_stop' else t0        # a kill restarts at once
+        back = [stamp(u) for u in run.updates
+                if start < stamp(u) < end and int(u.hand_input_seq) + 1 in seq_t
+                and stamp(u) - seq_t[int(u.hand_input_seq) + 1] < STALE_AFTER]
+        rec = min(back) - start if back else math.inf
+    elif name == 'kill_lmi_controller':
+        new_cmds = [c[0] for c in cmds if t0 + 0.5 < c[0] < end and c[2] != 2
+                    and c[1] < STALE_AFTER]
+        rec = min(new_cmds) - t0 if new_cmds else math.inf
+    elif name == 'kill_device_driver':
+        new = sessions(run.states[0])[-1]
+        running = new.t[(new.status & IDLE) == 0]
+        rec = float(running[0]) - t0 if running.size else math.inf
+    elif name == 'kill_recorder':
+        second = [stamp(s) for s in run.states[1]] if len(run.states) > 1 else []
+        rec = (min(second) - t0) if second else math.inf
+        first = [stamp(s) for s in run.states[0] if int(s.seq) != INJECTED_SEQ]
+        out['tail_s'] = t0 - max(first)
+    first_t = min(float(s.t[(s.status & IDLE) == 0][0]) for s in sess[:1])
+    base = max_step(sess, first_t + 0.05, min(first_t + 1.0, run.events[names[0]][0] - 0.01))
+    step = max_step(sess, t1, end)
+    out.update({'max_ratio': float(np.max(np.abs(u) / LIMIT)) if u.size else math.nan,
+                'recovery_s': rec, 'step_x': float(step[0]), 'step_y': float(step[1]),
+                'base_x': float(base[0]), 'base_y': float(base[1]),
+                'finite': float(np.all(np.isfinite(u)))})
+    return out
+
+
+def table(run: FaultRun) -> str:
+    """The README's table of faults and measured results."""
+    rows = ['| fault | max abs(applied) / limit | recovery [s] | max step per cycle x / y '
+            '[N] (undisturbed: x / y) |', '|---|---|---|---|']
+    for name in run.events:
+        f = figures(run, name)
+        rec = '-' if math.isnan(f['recovery_s']) else f'{f["recovery_s"]:.2f}'
+        rows.append(f'| {name} | {f["max_ratio"]:.3f} | {rec} | {f["step_x"]:.3f} / '
+                    f'{f["step_y"]:.3f} ({f["base_x"]:.3f} / {f["base_y"]:.3f}) |')
+    return '\n'.join(rows)
+
+
+
+def main() -> None:
+    import tempfile
+
+    out = Path(tempfile.mkdtemp(prefix='faults_'))
+    os.environ.setdefault('ROS_DOMAIN_ID', str(np.random.default_rng().integers(1, 100)))
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    run = run_faults(out)
+    print(f'bags: {run.bags}; exit codes {run.exit_codes}; truncated {run.truncated}')
+    print(f'states {len(run.states)} commands {len(run.commands)} hands {len(run.hands)}')
+    for name, (a, b) in run.events.items():
+        print(f'{name}: {a:.3f} .. {b:.3f} ({b - a:.3f} s)')
+
+
+
+# -- per-fault figures ------------------------------------------------------------------------
+LIMIT = np.array([20.0, 20.0, 2.0])     # circle.yaml device.wrench_limit
+
+
+if __name__ == '__main__':
+    main()
