@@ -145,8 +145,15 @@ class LocalModel:
     def _replay(self, seq: int | None) -> None:
         if self.snapshot is None:
             return
-        for rec in self._history:
-            if rec.seq <= self.consumed or rec.dt is None:
+        # Inputs are recorded in seq order: walk back from the newest to the first one not
+        # consumed yet (usually one step), not through the whole history each cycle.
+        pending: list[_Input] = []
+        for rec in reversed(self._history):
+            if rec.seq <= self.consumed:
+                break
+            pending.append(rec)
+        for rec in reversed(pending):
+            if rec.dt is None:
                 continue
             if seq is not None and rec.seq >= seq:
                 break

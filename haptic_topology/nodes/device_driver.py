@@ -74,6 +74,7 @@ class DeviceDriver(Node):
 
         scenario_name = d('scenario')
         d('executor')
+        d('sched_priority')
         backend_name = d('backend')
         options_text = d('backend_options')
         self.rate_hz = d('rate_hz')

@@ -95,6 +95,7 @@ class LmiController(Node):
 
         scenario_name = d('scenario')
         d('executor')
+        d('sched_priority')
         self.scenario = sc = load_scenario(scenario_name)
         mode = d('mode', sc.mode.label)
         k_tc = d('k_tc', float(sc.gains.k_tc))

@@ -19,11 +19,17 @@ GAIN_MAX = 1.0e5
 
 _SCENARIO = 'scenario name (config/scenarios) or YAML path'
 _EXECUTOR = ParamSpec('executor', 'events', 'executor of the process', choices=EXECUTORS)
+#: Real-time scheduling of the whole process (every thread, DDS's included).
+SCHED_PRIORITY = ParamSpec(
+    'sched_priority', 0, 'SCHED_FIFO priority 1-99 of the process (all its threads); 0 = '
+    'normal scheduling. Needs CAP_SYS_NICE (root or an rtprio limit): without it a warning '
+    'and normal scheduling', lo=0, hi=99)
 
 DEVICE_DRIVER: NodeParams = specs(
     ParamSpec('scenario', 'fig8', f'{_SCENARIO}: device model, limits, initial pose and '
               'simulated user'),
     _EXECUTOR,
+    SCHED_PRIORITY,
     ParamSpec('backend', 'sim_maglev', 'device backend: sim_maglev, hardware, module:Class, '
               'or an entry point of haptic_topology.device_backends'),
     ParamSpec('backend_options', '', "backend settings as a YAML/JSON mapping (e.g. '{port: "
@@ -47,6 +53,7 @@ DEVICE_DRIVER: NodeParams = specs(
 LMI_CONTROLLER: NodeParams = specs(
     ParamSpec('scenario', 'fig8', f'{_SCENARIO}: linkage, gains, device inertia, LMI model'),
     _EXECUTOR,
+    SCHED_PRIORITY,
     ParamSpec('mode', 'penalty', "control law: penalty (eq. 14) or acceleration_only "
               "(eq. 10); live; default: the scenario's", read_only=False, choices=MODES),
     ParamSpec('k_tc', 0.0, "penalty stiffness k_tc of eq. 13 (N/(m kg)); live; default: the "
@@ -72,6 +79,7 @@ VE_SIM: NodeParams = specs(
     ParamSpec('scenario', 'fig8', f'{_SCENARIO}: linkage, initial state, internal step, VT '
               'coupling'),
     _EXECUTOR,
+    SCHED_PRIORITY,
     ParamSpec('update_period', 10, 'hand inputs per LMI update (10 at 1 kHz = 100 Hz); the '
               'scenario value is for the offline lock-step simulation', lo=1, hi=10000),
     ParamSpec('idle_update_rate_hz', 50.0, 'LMI updates per second while no hand input '

@@ -94,6 +94,7 @@ class Recorder(Node):
         d = common.declare
         scenario = d(self, 'scenario', 'fig8', 'scenario name, used in the default bag name')
         d(self, 'executor', 'events', 'executor of the process', choices=common.EXECUTORS)
+        common.declare_spec(self, common.SCHED_PRIORITY)
         out = d(self, 'output', '', 'bag directory to create (must not exist); empty: '
                 'bags/<scenario>_<timestamp>')
         names = d(self, 'topics', [''], 'topics to record (empty: all of the graph)')

@@ -64,6 +64,7 @@ class VeSim(Node):
 
         scenario_name = d('scenario')
         d('executor')
+        d('sched_priority')
         self.update_period = d('update_period')
         idle_rate = d('idle_update_rate_hz')
         self.max_hand_wrench = d('max_hand_wrench')
