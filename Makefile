@@ -19,13 +19,14 @@ export DEMO_CMD
 
 PYTEST_ARGS ?=
 
-.PHONY: help setup test lint typecheck pytest demo clean
+.PHONY: help setup test lint typecheck pytest demo bench clean
 
 help:
 	@echo 'make demo       set up the venv and run the demo'
 	@echo 'make test       set up, then lint + typecheck + pytest'
 	@echo 'make setup      create/update .venv (idempotent, seconds when nothing changed)'
 	@echo 'make lint | typecheck | pytest   one check (assumes setup)'
+	@echo 'make bench      loop, compute and recorder benchmarks -> bench/latest.json'
 	@echo 'make clean      remove .venv and build output'
 
 setup:
@@ -46,6 +47,10 @@ pytest:
 
 demo: setup
 	@eval "$$DEMO_CMD"
+
+# Benchmarks (about 6 min): prints a table, writes bench/latest.json, appends bench/RESULTS.md.
+bench: setup
+	$(BIN)/python bench/run.py
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache *.egg-info

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 
-def _device(duration: float, rate_hz: float) -> dict[str, Any]:
+def _device(duration: float, rate_hz: float, priority: int) -> dict[str, Any]:
     import rclpy
     from rclpy.node import Node
 
@@ -72,6 +72,10 @@ def _device(duration: float, rate_hz: float) -> dict[str, Any]:
 
     node.create_subscription(DeviceCommand, common.TOPIC_COMMAND, on_command, common.QOS_LOOP)
     node.create_timer(1.0 / rate_hz, tick)
+    if priority:
+        problem = common.set_realtime_priority(priority)
+        if problem:
+            print(problem, file=sys.stderr)
     executor = common.make_executor('events')
     executor.add_node(node)
     cpu0 = os.times()
@@ -104,7 +108,7 @@ def _device(duration: float, rate_hz: float) -> dict[str, Any]:
     }
 
 
-def _echo(duration: float) -> None:
+def _echo(duration: float, priority: int) -> None:
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
@@ -125,6 +129,10 @@ def _echo(duration: float) -> None:
         pub.publish(cmd)
 
     node.create_subscription(DeviceState, common.TOPIC_STATE, on_state, common.QOS_LOOP)
+    if priority:
+        problem = common.set_realtime_priority(priority)
+        if problem:
+            print(problem, file=sys.stderr)
     executor = common.make_executor('events')
     executor.add_node(node)
     cpu0 = os.times()
@@ -143,14 +151,20 @@ def _echo(duration: float) -> None:
     rclpy.try_shutdown()
 
 
-def run(duration: float = 30.0, rate_hz: float = 1000.0) -> dict[str, Any]:
-    """Start the echo process, run the device side here, return the figures."""
+def run(duration: float = 30.0, rate_hz: float = 1000.0, priority: int = 0,
+        echo_priority: int = 0) -> dict[str, Any]:
+    """Start the echo process, run the device side here, return the figures.
+
+    ``priority``/``echo_priority``: SCHED_FIFO priorities as the graph's device_driver and
+    lmi_controller get them (0: normal scheduling).
+    """
     env = dict(os.environ)
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     echo = subprocess.Popen([sys.executable, __file__, '--role', 'echo', '--duration',
-                             str(duration + 8.0)], env=env, stdout=subprocess.PIPE, text=True)
+                             str(duration + 8.0), '--sched-priority', str(echo_priority)],
+                            env=env, stdout=subprocess.PIPE, text=True)
     try:
-        figures = _device(duration, rate_hz)
+        figures = _device(duration, rate_hz, priority)
     finally:
         echo.send_signal(signal.SIGINT)
         out, _ = echo.communicate(timeout=20)
@@ -165,11 +179,15 @@ def main() -> None:
     ap.add_argument('--role', choices=('device', 'echo'), default='device')
     ap.add_argument('--duration', type=float, default=30.0)
     ap.add_argument('--rate', type=float, default=1000.0)
+    ap.add_argument('--sched-priority', type=int, default=0,
+                    help='SCHED_FIFO priority of this process (echo: its own)')
+    ap.add_argument('--echo-sched-priority', type=int, default=0)
     a = ap.parse_args()
     if a.role == 'echo':
-        _echo(a.duration)
+        _echo(a.duration, a.sched_priority)
     else:
-        print(json.dumps(run(a.duration, a.rate), indent=2))
+        print(json.dumps(run(a.duration, a.rate, a.sched_priority, a.echo_sched_priority),
+                         indent=2))
 
 
 if __name__ == '__main__':

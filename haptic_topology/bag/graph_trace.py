@@ -142,8 +142,9 @@ def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndar
     """Loop figures from the device driver's diagnostics and from the bag's stamps."""
     out: dict[str, float] = {}
     dev = diags.get('device_driver: loop', {})
-    for key in ('answered_fraction', 'round_trip_p50_ms', 'round_trip_p99_ms', 'rate_hz',
-                'period_p99_ms', 'overruns'):
+    for key in ('answered_fraction', 'answered_or_previous_fraction', 'round_trip_p50_ms',
+                'round_trip_p99_ms', 'round_trip_max_ms', 'rate_hz', 'period_p99_ms',
+                'overruns'):
         try:
             out[f'device_{key}'] = float(dev[key])
         except (KeyError, ValueError):

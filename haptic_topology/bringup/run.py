@@ -106,6 +106,15 @@ def _wait_for(procs: list[_Proc], proc: _Proc, mark: str, timeout: float) -> flo
                        f'{proc.log.parent}\n{_tail(proc.log)}')
 
 
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time (s) of a process and its threads, from /proc (None if gone)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
 def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
     """SIGINT each process in order, escalating to SIGTERM and SIGKILL; return exit codes."""
     codes: dict[str, int] = {}
@@ -138,6 +147,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     log_dir = Path(tempfile.mkdtemp(prefix='haptic_run_'))
     procs: list[_Proc] = []
     codes: dict[str, int] = {}
+    cpu: dict[str, float] = {}
     try:
         py = [sys.executable, '-m']
         if composed:
@@ -157,17 +167,25 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             recorder, device = procs[0], procs[-1]
         del recorder
         started = _wait_for(procs, device, ENGAGED_MARK, startup_timeout)
+        cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
         while time.monotonic() < started + duration:
             for p in procs:
                 if p.popen.poll() is not None:
                     raise BringupError(f'{p.name} exited with status {p.popen.returncode} '
                                        f'during the run:\n{_tail(p.log)}')
             time.sleep(0.05)
+        # CPU of each process over the loop's run (fraction of one core).
+        wall = time.monotonic() - started
+        for p in procs:
+            c0, c1 = cpu0[p.name], _cpu_seconds(p.popen.pid)
+            if c0 is not None and c1 is not None and wall > 0.0:
+                cpu[p.name] = round((c1 - c0) / wall, 4)
     finally:
         # Device first (the loop stops), recorder last (it keeps every message until then).
         codes = stop(list(reversed(procs)))
         if bag.is_dir():
             shutil.copytree(log_dir, bag / 'logs', dirs_exist_ok=True)
+            (bag / 'logs' / 'cpu.json').write_text(json.dumps(cpu) + '\n', encoding='utf-8')
         shutil.rmtree(log_dir, ignore_errors=True)
     bad = {n: c for n, c in codes.items() if c != 0}
     if bad:
@@ -207,6 +225,10 @@ def run(args: argparse.Namespace) -> int:
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')
         summary = dict(trace.summary(), **{k: v for k, v in result.loop.items()})
+        cpu_file = bag / 'logs' / 'cpu.json'
+        if cpu_file.is_file():
+            summary.update({f'cpu_{name}': v for name, v in
+                            json.loads(cpu_file.read_text(encoding='utf-8')).items()})
         (bag / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n',
                                           encoding='utf-8')
         if not args.no_plot:

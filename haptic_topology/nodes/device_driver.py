@@ -140,6 +140,7 @@ class DeviceDriver(Node):
         self._rtt = np.zeros(_RTT_KEEP)
         self._rtt_n = 0
         self.answered = 0
+        self.answered_previous = 0   # by a command from this cycle's or the previous state
         self.expected = 0
         self.rejected = RejectCounter()
         self.rejected_seq = 0
@@ -201,6 +202,8 @@ class DeviceDriver(Node):
             self.expected += 1
             if self._cmd_seq == self.seq:
                 self.answered += 1
+            if self._cmd_seq >= self.seq - 1:
+                self.answered_previous += 1
             # Clamp, fade towards the fallback if stale, clamp again (a damping fallback
             # could exceed the limit): nothing else reaches the backend.
             cmd, saturated = saturate(self._cmd, self.limit)
@@ -240,8 +243,11 @@ class DeviceDriver(Node):
         rtt = self._rtt[:n]
         return {
             'answered_fraction': self.answered / self.expected if self.expected else math.nan,
+            'answered_or_previous_fraction': (self.answered_previous / self.expected
+                                              if self.expected else math.nan),
             'round_trip_p50_ms': 1e3 * float(np.percentile(rtt, 50)) if n else math.nan,
             'round_trip_p99_ms': 1e3 * float(np.percentile(rtt, 99)) if n else math.nan,
+            'round_trip_max_ms': 1e3 * float(rtt.max()) if n else math.nan,
         }
 
     def _publish_diagnostics(self) -> None:
@@ -254,6 +260,9 @@ class DeviceDriver(Node):
             'answered_in_time': str(self.answered),
             'answer_expected': str(self.expected),
             'answered_fraction': f'{figures["answered_fraction"]:.5f}',
+            'answered_or_previous_fraction':
+                f'{figures["answered_or_previous_fraction"]:.5f}',
+            'round_trip_max_ms': f'{figures["round_trip_max_ms"]:.3f}',
             'round_trip_p50_ms': f'{figures["round_trip_p50_ms"]:.3f}',
             'round_trip_p99_ms': f'{figures["round_trip_p99_ms"]:.3f}',
             'command_age_cycles': str(self.seq - self._cmd_seq if self._cmd_seq else -1),
