@@ -19,7 +19,7 @@ Layout (``config/scenarios/fig6.yaml``)::
       user: {type: constant_wrench, wrench: [0.4, 0, 0]}
       control: {k_pc: [...], b_pc: [...], k_tc: 10, b_tc: 7}
       lmi: {model: eq17, update_period: 1}       # device cycles per LMI update
-      ve: {internal_step: 0.00025, vt_coupling: true}
+      ve: {internal_step: 0.001, vt_coupling: true}      # RK4 step (s)
 """
 
 from __future__ import annotations
