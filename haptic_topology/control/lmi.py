@@ -84,7 +84,7 @@ class LocalModel:
     """The LMI: frozen-matrix VT dynamics stepped once per device cycle (eqs. 17-20)."""
 
     def __init__(self, task: TaskSpace, model: LmiModel = LmiModel.EQ17,
-                 history: int = 256) -> None:
+                 history: int = 1024) -> None:
         self.task = task
         self.model = model
         self.snapshot: LmiSnapshot | None = None

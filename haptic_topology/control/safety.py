@@ -23,12 +23,12 @@ cycle by at most::
 
 The fade term is the stated bound (20 N * 1 ms / 0.2 s = 0.1 N for the scenarios' x axis);
 the second term is what an undisturbed loop does anyway. Keep ``degrade_after`` below the
-LMI's input history (256 cycles = 256 ms at 1 kHz): then every update applied under a
+LMI's input history (1024 cycles = 1.02 s at 1 kHz): then every update applied under a
 non-zero force can be replayed completely. ``s`` moves by ``cycle_time /
 ramp_time`` per answered cycle (counted, not timed, so the bound holds for any jitter).
 
-Example: ``stale_after = 0.05``, ``degrade_after = 0.25``, ``ramp_time = 0.2``, 1 ms cycles,
-updates stop at t = 0: stale from 50 ms, the force falls from 250 ms and is zero at 450 ms.
+Example: ``stale_after = 0.05``, ``degrade_after = 0.6``, ``ramp_time = 0.2``, 1 ms cycles,
+updates stop at t = 0: stale from 50 ms, the force falls from 600 ms and is zero at 800 ms.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ class SyncGuardConfig:
     """Times in seconds (see module doc)."""
 
     stale_after: float = 0.05
-    degrade_after: float = 0.25
+    degrade_after: float = 0.6
     ramp_time: float = 0.2
 
     def __post_init__(self) -> None:

@@ -64,7 +64,7 @@ LMI_CONTROLLER: NodeParams = specs(
               'gaps (a paused device) are clipped', lo=1e-4, hi=1.0),
     ParamSpec('stale_after', 0.05, 'LMI update age (s) from which the model counts as stale '
               '(warning; the last constraint set is kept)', lo=1e-3, hi=60.0),
-    ParamSpec('degrade_after', 0.25, 'LMI update age (s) from which the force fades to zero',
+    ParamSpec('degrade_after', 0.6, 'LMI update age (s) from which the force fades to zero',
               lo=1e-3, hi=60.0),
     ParamSpec('resync_max_jump', 1.0, 'largest estimated force step (N, N m) a re-sync '
               'may cause at once: |K_pc dx| + |B_pc dv| + |M_d P (k_tc dx + b_tc dv)| '
