@@ -27,6 +27,20 @@ from typing import Any
 import numpy as np
 
 
+def _executor(node: Any, priority: int) -> Any:
+    """The graph's executor for ``node``, after putting this process under SCHED_FIFO at
+    ``priority`` (0: normal scheduling) as the graph's nodes do."""
+    from haptic_topology.nodes import common
+
+    if priority:
+        problem = common.set_realtime_priority(priority)
+        if problem:
+            print(problem, file=sys.stderr)
+    executor = common.make_executor('events')
+    executor.add_node(node)
+    return executor
+
+
 def _device(duration: float, rate_hz: float, priority: int) -> dict[str, Any]:
     import rclpy
     from rclpy.node import Node
@@ -72,12 +86,7 @@ def _device(duration: float, rate_hz: float, priority: int) -> dict[str, Any]:
 
     node.create_subscription(DeviceCommand, common.TOPIC_COMMAND, on_command, common.QOS_LOOP)
     node.create_timer(1.0 / rate_hz, tick)
-    if priority:
-        problem = common.set_realtime_priority(priority)
-        if problem:
-            print(problem, file=sys.stderr)
-    executor = common.make_executor('events')
-    executor.add_node(node)
+    executor = _executor(node, priority)
     cpu0 = os.times()
     wall0 = time.monotonic()
     deadline = None
@@ -129,12 +138,7 @@ def _echo(duration: float, priority: int) -> None:
         pub.publish(cmd)
 
     node.create_subscription(DeviceState, common.TOPIC_STATE, on_state, common.QOS_LOOP)
-    if priority:
-        problem = common.set_realtime_priority(priority)
-        if problem:
-            print(problem, file=sys.stderr)
-    executor = common.make_executor('events')
-    executor.add_node(node)
+    executor = _executor(node, priority)
     cpu0 = os.times()
     wall0 = time.monotonic()
     end = wall0 + duration

@@ -31,6 +31,7 @@ from typing import IO, Any
 import numpy as np
 
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
+from haptic_topology.bringup.run import terminate
 from haptic_topology.paths import config_dir
 
 PARAMS = config_dir() / 'haptic_topology.yaml'
@@ -141,16 +142,7 @@ class Graph:
                 continue
             if p.popen.poll() is None:
                 p.popen.send_signal(signal.SIGCONT)
-            for sig, wait in ((signal.SIGINT, 10.0), (signal.SIGTERM, 3.0),
-                              (signal.SIGKILL, 3.0)):
-                if p.popen.poll() is not None:
-                    break
-                p.popen.send_signal(sig)
-                try:
-                    p.popen.wait(wait)
-                except subprocess.TimeoutExpired:
-                    continue
-            codes[name] = p.popen.wait(5)
+            codes[name] = terminate(p.popen, 10.0, 3.0)
             p.handle.close()
         return codes
 

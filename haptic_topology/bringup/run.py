@@ -115,20 +115,27 @@ def _cpu_seconds(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
+def terminate(popen: subprocess.Popen[bytes], timeout: float = 5.0,
+              escalate: float = 2.0) -> int:
+    """SIGINT ``popen``, then SIGTERM and SIGKILL if it has not exited after ``timeout`` /
+    ``escalate`` seconds; return its exit code."""
+    for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, escalate),
+                      (signal.SIGKILL, escalate)):
+        if popen.poll() is not None:
+            break
+        popen.send_signal(sig)
+        try:
+            popen.wait(wait)
+        except subprocess.TimeoutExpired:
+            continue
+    return popen.wait()
+
+
 def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
     """SIGINT each process in order, escalating to SIGTERM and SIGKILL; return exit codes."""
     codes: dict[str, int] = {}
     for p in procs:
-        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 2.0),
-                          (signal.SIGKILL, 2.0)):
-            if p.popen.poll() is not None:
-                break
-            p.popen.send_signal(sig)
-            try:
-                p.popen.wait(wait)
-            except subprocess.TimeoutExpired:
-                continue
-        codes[p.name] = p.popen.wait()
+        codes[p.name] = terminate(p.popen, timeout)
         p.handle.close()
     return codes
 
