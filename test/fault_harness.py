@@ -127,6 +127,14 @@ class Graph:
     def signal(self, name: str, sig: int) -> None:
         self.procs[name].popen.send_signal(sig)
 
+    def pause(self, name: str, seconds: float) -> tuple[float, float]:
+        """SIGSTOP ``name`` for ``seconds``; return the (stop, continue) wall times."""
+        t0 = time.time()
+        self.signal(name, signal.SIGSTOP)
+        time.sleep(seconds)
+        self.signal(name, signal.SIGCONT)
+        return t0, time.time()
+
     def kill(self, name: str) -> int:
         p = self.procs[name]
         p.popen.send_signal(signal.SIGKILL)
@@ -279,11 +287,7 @@ def run_faults(out: Path) -> FaultRun:
         g.wait_for('device_driver', ENGAGED)
         injector.spin(1.5)
 
-        t0 = time.time()
-        g.signal('lmi_controller', signal.SIGSTOP)
-        time.sleep(0.1)
-        g.signal('lmi_controller', signal.SIGCONT)
-        run.events['watchdog'] = (t0, time.time())
+        run.events['watchdog'] = g.pause('lmi_controller', 0.1)
         injector.spin(1.0)
 
         t0 = time.time()
@@ -291,11 +295,7 @@ def run_faults(out: Path) -> FaultRun:
         run.events['bad_messages'] = (t0, time.time())
         injector.spin(1.0)
 
-        t0 = time.time()
-        g.signal('ve_sim', signal.SIGSTOP)
-        time.sleep(1.0)
-        g.signal('ve_sim', signal.SIGCONT)
-        run.events['ve_stop'] = (t0, time.time())
+        run.events['ve_stop'] = g.pause('ve_sim', 1.0)
         injector.spin(2.0)
 
         for name in ('ve_sim', 'lmi_controller', 'device_driver'):

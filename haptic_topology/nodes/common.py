@@ -142,6 +142,13 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
     return value
 
 
+def declare_process_params(node: Node, spec: NodeParams) -> None:
+    """Declare the process-level parameters that :func:`run_main` reads after the nodes are
+    built: ``executor`` and ``sched_priority``."""
+    for name in ('executor', 'sched_priority'):
+        declare_spec(node, spec[name])
+
+
 def declare_spec(node: Node, spec: ParamSpec, default: Any = None) -> Any:
     """:func:`declare` from a :class:`ParamSpec` (``default`` overrides the spec's, e.g. a
     value taken from the scenario; it must have the spec's type)."""

@@ -73,8 +73,7 @@ class DeviceDriver(Node):
             return common.declare_spec(self, spec[name])
 
         scenario_name = d('scenario')
-        d('executor')
-        d('sched_priority')
+        common.declare_process_params(self, spec)
         backend_name = d('backend')
         options_text = d('backend_options')
         self.rate_hz = d('rate_hz')

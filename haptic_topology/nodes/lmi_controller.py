@@ -94,8 +94,7 @@ class LmiController(Node):
             return common.declare_spec(self, spec[name], default)
 
         scenario_name = d('scenario')
-        d('executor')
-        d('sched_priority')
+        common.declare_process_params(self, spec)
         self.scenario = sc = load_scenario(scenario_name)
         mode = d('mode', sc.mode.label)
         k_tc = d('k_tc', float(sc.gains.k_tc))

@@ -63,8 +63,7 @@ class VeSim(Node):
             return common.declare_spec(self, spec[name])
 
         scenario_name = d('scenario')
-        d('executor')
-        d('sched_priority')
+        common.declare_process_params(self, spec)
         self.update_period = d('update_period')
         idle_rate = d('idle_update_rate_hz')
         self.max_hand_wrench = d('max_hand_wrench')
