@@ -1,6 +1,7 @@
 # Developer entry points. Everything runs from the venv that scripts/setup.sh maintains.
 #   make demo   set up (first time ~1-2 min), then run the demo
 #   make test   set up, then lint + typecheck + pytest; fails if any of them fails
+#   make test-quick   set up, then pytest without the node-graph tests (-m 'not graph')
 SHELL := /bin/bash
 .SHELLFLAGS := -euo pipefail -c
 .DEFAULT_GOAL := help
@@ -19,21 +20,27 @@ export DEMO_CMD
 
 PYTEST_ARGS ?=
 
-.PHONY: help setup test lint typecheck pytest demo bench clean
+.PHONY: help setup test test-quick lint typecheck pytest demo bench clean
 
 help:
 	@echo 'make demo       set up the venv and run the demo'
 	@echo 'make test       set up, then lint + typecheck + pytest'
+	@echo 'make test-quick set up, then pytest -m "not graph" (no ROS 2 node processes, no lint)'
 	@echo 'make setup      create/update .venv (idempotent, seconds when nothing changed)'
 	@echo 'make lint | typecheck | pytest   one check (assumes setup)'
 	@echo 'make bench      loop, compute and recorder benchmarks -> bench/latest.json'
 	@echo 'make clean      remove .venv and build output'
+	@echo 'scripts/stress_tests.sh N [--busy K] [-- PYTEST_ARGS]   pytest N times, K beside a busy core'
 
 setup:
 	@bash scripts/setup.sh
 
 test: setup
 	@$(MAKE) --no-print-directory lint typecheck pytest
+
+# The quick loop: every test except those marked `graph` (they start ROS 2 node processes).
+test-quick: setup
+	$(BIN)/python -m pytest -m 'not graph' $(PYTEST_ARGS)
 
 lint:
 	$(BIN)/ruff check .

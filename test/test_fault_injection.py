@@ -18,6 +18,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import fault_harness as fh
 
+pytestmark = pytest.mark.graph
+
 #: Stated bound on the per-cycle change of the applied wrench after a fault (N, x and y): a
 #: re-sync steps the force by at most resync_max_jump (1 N, estimated from the VT state; the
 #: frozen matrices' change comes on top: ordinary re-syncs on a loaded 2-core machine were

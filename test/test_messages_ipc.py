@@ -11,9 +11,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from rosmsg_util import sample_values
 
 from haptic_topology.msgdefs import MESSAGE_NAMES, type_name, typestore_with_haptic_msgs
+
+pytestmark = pytest.mark.graph
 
 PEER = Path(__file__).with_name('ipc_peer.py')
 TIMEOUT_S = 30.0

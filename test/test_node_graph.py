@@ -25,6 +25,8 @@ from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.trace import Trace
 
+pytestmark = pytest.mark.graph
+
 TEST_DIR = Path(__file__).resolve().parent
 PARAMS = config_dir() / 'haptic_topology.yaml'
 DURATION = 3.0

@@ -24,6 +24,8 @@ from haptic_topology.bag.reader import decoder, iter_messages, open_bag
 from haptic_topology.bag.repair import repair_bag
 from haptic_topology.msgdefs import typestore_with_haptic_msgs
 
+pytestmark = pytest.mark.graph
+
 TEST_DIR = Path(__file__).resolve().parent
 SEQ_FIELD = {'/haptic/device/state': 'seq', '/haptic/device/command': 'state_seq',
              '/haptic/hand': 'seq', '/haptic/lmi/update': 'seq'}

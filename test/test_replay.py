@@ -14,9 +14,13 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
 from haptic_topology.bag.replay import DEFAULT_TOLERANCE, check_controller, replay
 from haptic_topology.paths import config_dir
+
+pytestmark = pytest.mark.graph
 
 REPO = Path(__file__).resolve().parent.parent
 REFERENCE = REPO / 'bags' / 'reference_fig8'
