@@ -7,6 +7,7 @@ message tells the user which file, which key and what was expected.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -128,3 +129,31 @@ def as_vector(
         raise error(f'{where}: expected {size} numbers, got {len(value)}')
     return np.array([as_float(v, f'{where}[{i}]', lo=lo, lo_open=lo_open, error=error)
                      for i, v in enumerate(value)], dtype=float)
+
+
+_PI_EXPR = re.compile(r'^\s*([+-])?\s*(\d+(?:\.\d*)?)?\s*\*?\s*pi\s*(?:/\s*(\d+(?:\.\d*)?))?\s*$')
+
+
+def as_angles(value: Any, where: str, size: int,
+              error: type[ConfigError] = ConfigError) -> np.ndarray:
+    """A list of ``size`` numbers or strings like ``-pi/4``, ``2*pi/3`` as a float64 vector."""
+    if not isinstance(value, list):
+        raise error(f'{where}: expected a list of {size} numbers, got {value!r}')
+    out = []
+    for i, v in enumerate(value):
+        if isinstance(v, str):
+            m = _PI_EXPR.match(v)
+            if m is None:
+                raise error(f'{where}[{i}]: expected a number or an expression like '
+                            f'-pi/4, got {v!r}')
+            sign = -1.0 if m.group(1) == '-' else 1.0
+            factor = float(m.group(2)) if m.group(2) else 1.0
+            div = float(m.group(3)) if m.group(3) else 1.0
+            if div == 0.0:
+                raise error(f'{where}[{i}]: division by zero in {v!r}')
+            out.append(sign * factor * math.pi / div)
+        else:
+            out.append(as_float(v, f'{where}[{i}]', error=error))
+    if len(out) != size:
+        raise error(f'{where}: expected {size} numbers, got {len(out)}')
+    return np.array(out)

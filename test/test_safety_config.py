@@ -63,11 +63,11 @@ def test_bad_params_file_names_file_key_and_expectation(tmp_path: Path, text: st
     assert expected in msg, msg
 
 
-def test_params_file_wildcards_namespaces_and_unknown_recorder_keys(tmp_path: Path) -> None:
+def test_params_file_wildcards_namespaces_and_recorder_keys(tmp_path: Path) -> None:
     ok = tmp_path / 'ok.yaml'
     ok.write_text('/**:\n  ros__parameters:\n    scenario: fig6\n'
                   '/ns/device_driver:\n  ros__parameters:\n    rate_hz: 500.0\n'
-                  'recorder:\n  ros__parameters:\n    anything_the_recorder_has: 1\n',
+                  'recorder:\n  ros__parameters:\n    chunk_kib: 128\n',
                   encoding='utf-8')
     check_params_file(ok, KNOWN)
     check_params_file(ok, KNOWN, 'device_driver')
@@ -131,8 +131,9 @@ def test_nodes_refuse_a_bad_params_file_before_rclpy(tmp_path: Path) -> None:
     assert 'Traceback' not in out
     assert out.strip().splitlines() == [
         f'lmi_controller: error: {bad}: lmi_controller.ros__parameters.resync_rmp: unknown '
-        'parameter of lmi_controller (expected one of: b_tc, degrade_after, executor, k_tc, '
-        'max_dt, mode, resync_max_jump, resync_ramp, scenario, sched_priority, stale_after)']
+        'parameter of lmi_controller (expected one of: b_tc, clock, degrade_after, executor, '
+        'k_tc, lockstep_wait, max_dt, mode, resync_max_jump, resync_ramp, scenario, '
+        'sched_priority, stale_after)']
     code, out = _node('device_driver', '--ros-args', '--params-file', str(tmp_path / 'no.yaml'))
     assert code == 2 and f'device_driver: error: {tmp_path / "no.yaml"}: file not found' in out
 

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.validate import as_float, as_vector, check_keys
 
 
 class ControlMode(enum.IntEnum):
@@ -56,6 +58,16 @@ class ControlGains:
 
     def with_penalty(self, k_tc: float, b_tc: float) -> ControlGains:
         return ControlGains(self.k_pc, self.b_pc, k_tc, b_tc, self.b_d, self.k_d)
+
+    @classmethod
+    def from_config(cls, raw: Any, where: str, m: int) -> ControlGains:
+        """The ``control:`` block of a scenario: ``k_pc``, ``b_pc`` (m values >= 0, required),
+        ``k_tc``, ``b_tc`` (>= 0, default 0). ``where``: the block's path."""
+        ctl = check_keys(raw, where, required=('k_pc', 'b_pc'), optional=('k_tc', 'b_tc'))
+        return cls(k_pc=as_vector(ctl['k_pc'], f'{where}.k_pc', m, lo=0.0),
+                   b_pc=as_vector(ctl['b_pc'], f'{where}.b_pc', m, lo=0.0),
+                   k_tc=as_float(ctl.get('k_tc', 0.0), f'{where}.k_tc', lo=0.0),
+                   b_tc=as_float(ctl.get('b_tc', 0.0), f'{where}.b_tc', lo=0.0))
 
 
 def coordination_wrench(x_vt: np.ndarray, xd_vt: np.ndarray, x_h: np.ndarray,

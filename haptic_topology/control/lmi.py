@@ -167,3 +167,21 @@ class LocalModel:
         self.q = self.q + self.dq * dt
         self.xd_vt = self._jacobian @ self.dq
         self.x_vt = integrate_pose(self.x_vt, self.xd_vt, dt, self.task)
+
+
+@dataclass(frozen=True)
+class LmiSettings:
+    """The ``lmi:`` block of a scenario: the reduced ``model`` and ``update_period``, the device
+    cycles per LMI update in the offline simulation (1-10000)."""
+
+    model: LmiModel = LmiModel.EQ17
+    update_period: int = 10
+
+    @classmethod
+    def from_config(cls, raw: object, where: str) -> LmiSettings:
+        """Parse the block (``where``: its path, e.g. ``file: scenario.lmi``)."""
+        from haptic_topology.validate import as_int, as_str, check_keys
+        lmi = check_keys(raw, where, optional=('model', 'update_period'))
+        model = LmiModel(as_str(lmi.get('model', 'eq17'), f'{where}.model', ('eq17', 'eq20')))
+        period = as_int(lmi.get('update_period', 10), f'{where}.update_period', lo=1, hi=10000)
+        return cls(model, period)

@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from haptic_topology.dynamics.taskspace import integrate_pose
+from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.validate import as_angles, as_vector, check_keys
 
 
 class DeviceStatus(enum.IntFlag):
@@ -48,6 +51,37 @@ class DeviceParams:
         m = task.dim
         inf = np.full(m, np.inf)
         return cls(task, np.eye(m) * mass, np.zeros((m, m)), -inf, inf, inf.copy())
+
+
+def device_from_config(raw: Any, where: str, task: TaskSpace) -> tuple[DeviceParams, np.ndarray]:
+    """The ``device:`` block of a scenario: its :class:`DeviceParams` and the initial offset
+    (device pose - VT hand pose, m / rad). ``where``: the block's path (``file: scenario.device``).
+
+    Keys (all optional): ``offset`` (m values, default 0), ``mass`` and ``christoffel``
+    (diagonals of M_d > 0 and C_d >= 0; default 1 and 0), ``workspace: {lo, hi}`` (absolute hard
+    stops, m / rad, ``pi`` expressions accepted; default none), ``wrench_limit`` (> 0 per axis,
+    N / N m; default 1e9).
+    """
+    m = task.dim
+    dev = check_keys(raw, where, optional=(
+        'offset', 'mass', 'christoffel', 'workspace', 'wrench_limit'))
+    offset = as_vector(dev.get('offset', [0.0] * m), f'{where}.offset', m)
+    mass = np.diag(as_vector(dev.get('mass', [1.0] * m), f'{where}.mass', m, lo=0.0,
+                             lo_open=True))
+    chris = np.diag(as_vector(dev.get('christoffel', [0.0] * m), f'{where}.christoffel', m,
+                              lo=0.0))
+    lo = np.full(m, -np.inf)
+    hi = np.full(m, np.inf)
+    if 'workspace' in dev:
+        ws = check_keys(dev['workspace'], f'{where}.workspace', required=('lo', 'hi'))
+        lo = as_angles(ws['lo'], f'{where}.workspace.lo', m)
+        hi = as_angles(ws['hi'], f'{where}.workspace.hi', m)
+        if np.any(lo >= hi):
+            raise ConfigError(f'{where}.workspace: expected lo < hi on every axis, got lo='
+                              f'{lo.tolist()} hi={hi.tolist()}')
+    limit = as_vector(dev.get('wrench_limit', [1e9] * m), f'{where}.wrench_limit', m,
+                      lo=0.0, lo_open=True)
+    return DeviceParams(task, mass, chris, lo, hi, limit), offset
 
 
 def saturate(wrench: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, bool]:

@@ -1,0 +1,254 @@
+"""Settings + scenario -> each node's final configuration, resolved once (no rclpy).
+
+A node declares its parameters (:func:`haptic_topology.nodes.common.declare_settings`), loads
+its scenario, and calls the ``resolve_*`` function of this module once; everything it needs
+afterwards is in the returned frozen config, in final form (enums, arrays of the task's size,
+periods in s and ns, "0 = the scenario's" replaced). Checks that need the scenario (array
+sizes, lock-step rate) raise :class:`~haptic_topology.errors.ConfigError` naming the node,
+the parameter and what was expected.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from haptic_topology.control.laws import ControlGains, ControlMode
+from haptic_topology.control.safety import SyncGuardConfig
+from haptic_topology.device.backend import BackendConfig
+from haptic_topology.device.watchdog import WatchdogConfig, WatchdogFallback
+from haptic_topology.errors import ConfigError
+from haptic_topology.settings import (
+    RATE_MAX,
+    RATE_MIN,
+    Clock,
+    DeviceDriverSettings,
+    LmiControllerSettings,
+    RecorderSettings,
+    VeSimSettings,
+    check_gain,
+    parse_backend_options,
+)
+
+if TYPE_CHECKING:
+    from haptic_topology.sim.scenario import Scenario
+
+
+# -- device_driver -----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DeviceDriverConfig:
+    """What ``device_driver`` runs with. ``rate_hz`` (Hz), ``period`` (s) and ``period_ns``
+    (ns) describe the same device cycle; ``wrench_limit`` (N, N m, task_dim values);
+    ``watchdog`` with the damping expanded to task_dim values; ``run_duration`` (s, 0 = until
+    stopped)."""
+
+    settings: DeviceDriverSettings
+    scenario: Scenario
+    backend: str
+    backend_options: dict[str, Any]
+    clock: Clock
+    rate_hz: float
+    period: float
+    period_ns: int
+    wrench_limit: np.ndarray
+    watchdog: WatchdogConfig
+    min_subscribers: int
+    lockstep_warn_after: float
+    run_duration: float
+    executor: str
+    sched_priority: int
+
+    @property
+    def task_dim(self) -> int:
+        return self.scenario.linkage.task.dim
+
+    def backend_config(self) -> BackendConfig:
+        """The backend's configuration: the scenario's device, user and source, the device
+        starting at the VT hand pose at ``q0`` plus the scenario's offset."""
+        from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+        sc = self.scenario
+        x0 = LinkageDynamics(sc.linkage).hand_pose(sc.q0) + sc.device_offset
+        return BackendConfig(sc.device, x0, dict(sc.user), dict(self.backend_options),
+                             sc.source)
+
+
+def _device_rate(s: DeviceDriverSettings, sc: Scenario, clock: Clock) -> tuple[float, float,
+                                                                                  int]:
+    """(rate_hz, period s, period ns) of the device cycle."""
+    if s.rate_hz == 0.0 or clock is Clock.LOCKSTEP:
+        rate = 1.0 / sc.dt
+        if clock is Clock.LOCKSTEP and s.rate_hz != 0.0 and abs(s.rate_hz * sc.dt - 1.0) > 1e-9:
+            raise ConfigError(f'device_driver: parameter rate_hz: clock lockstep needs 0.0 or '
+                              f'1/dt = {rate:g} Hz (scenario {sc.name}, dt {sc.dt:g} s), got '
+                              f'{s.rate_hz!r}')
+        if not RATE_MIN <= rate <= RATE_MAX:
+            raise ConfigError(f'device_driver: parameter rate_hz: 0.0 means 1/dt = {rate:g} Hz '
+                              f'(scenario {sc.name}), outside [{RATE_MIN:g}, {RATE_MAX:g}]; '
+                              'set rate_hz')
+        return rate, sc.dt, round(sc.dt * 1e9)
+    return s.rate_hz, 1.0 / s.rate_hz, round(1e9 / s.rate_hz)
+
+
+def resolve_device_driver(s: DeviceDriverSettings, sc: Scenario) -> DeviceDriverConfig:
+    """``device_driver``'s configuration: ``rate_hz`` 0.0 -> 1/dt (with ``clock: lockstep``
+    any other value than 1/dt is refused), ``wrench_limit`` [0.0] -> the scenario's,
+    ``watchdog_damping`` of one value -> every axis, ``backend_options`` parsed."""
+    m = sc.linkage.task.dim
+    clock = Clock.parse(s.clock)
+    rate, period, period_ns = _device_rate(s, sc, clock)
+    if list(s.wrench_limit) == [0.0]:
+        limit = sc.device.wrench_limit.copy()
+    else:
+        limit = np.asarray(s.wrench_limit, dtype=float)
+        if limit.shape != (m,) or not np.all(limit > 0.0) or not np.all(np.isfinite(limit)):
+            raise ConfigError(f'device_driver: parameter wrench_limit: expected {m} '
+                              f'positive numbers, got {list(s.wrench_limit)}')
+    damping = np.asarray(s.watchdog_damping, dtype=float)
+    if damping.size == 1:
+        damping = np.full(m, float(damping[0]))
+    if damping.shape != (m,) or not np.all(np.isfinite(damping)) or np.any(damping < 0.0):
+        raise ConfigError(f'device_driver: parameter watchdog_damping: expected one or {m}'
+                          f' numbers >= 0, got {list(s.watchdog_damping)}')
+    watchdog = WatchdogConfig(s.watchdog_timeout, s.watchdog_ramp,
+                              WatchdogFallback.parse(s.watchdog_fallback), damping)
+    return DeviceDriverConfig(
+        settings=s, scenario=sc, backend=s.backend,
+        backend_options=parse_backend_options(s.backend_options), clock=clock, rate_hz=rate,
+        period=period, period_ns=period_ns, wrench_limit=limit, watchdog=watchdog,
+        min_subscribers=s.min_subscribers, lockstep_warn_after=s.lockstep_warn_after,
+        run_duration=s.run_duration, executor=s.executor, sched_priority=s.sched_priority)
+
+
+# -- lmi_controller ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ControllerConfig:
+    """What ``lmi_controller`` runs with. ``gains``: the scenario's with ``k_tc``/``b_tc``
+    applied; ``cycle_time``: the scenario's dt (s); times in s; ``wrench_limit`` the
+    scenario's device limit (N, N m)."""
+
+    settings: LmiControllerSettings
+    scenario: Scenario
+    mode: ControlMode
+    gains: ControlGains
+    guard: SyncGuardConfig
+    clock: Clock
+    cycle_time: float
+    max_dt: float
+    resync_max_jump: float
+    lockstep_wait: float
+    wrench_limit: np.ndarray
+    executor: str
+    sched_priority: int
+
+
+def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> ControllerConfig:
+    """``lmi_controller``'s configuration: ``mode``/``k_tc``/``b_tc`` None -> the scenario's."""
+    mode = sc.mode if s.mode is None else ControlMode.parse(s.mode)
+    k_tc = float(sc.gains.k_tc) if s.k_tc is None else s.k_tc
+    b_tc = float(sc.gains.b_tc) if s.b_tc is None else s.b_tc
+    for name, value in (('k_tc', k_tc), ('b_tc', b_tc)):
+        reason = check_gain(name, value)
+        if reason:
+            raise ConfigError(f'lmi_controller: parameter {reason}')
+    try:
+        guard = SyncGuardConfig(s.stale_after, s.degrade_after, s.resync_ramp)
+    except ConfigError as exc:
+        raise ConfigError(f'lmi_controller: parameters: {exc}') from None
+    return ControllerConfig(
+        settings=s, scenario=sc, mode=mode, gains=sc.gains.with_penalty(k_tc, b_tc),
+        guard=guard, clock=Clock.parse(s.clock), cycle_time=sc.dt, max_dt=s.max_dt,
+        resync_max_jump=s.resync_max_jump, lockstep_wait=s.lockstep_wait,
+        wrench_limit=sc.device.wrench_limit.copy(), executor=s.executor,
+        sched_priority=s.sched_priority)
+
+
+# -- ve_sim ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class VeSimConfig:
+    """What ``ve_sim`` runs with: ``update_period`` (hand inputs per LMI update) resolved;
+    ``idle_period`` = 1/idle_update_rate_hz and ``viz_period`` = 1/viz_rate_hz (s)."""
+
+    settings: VeSimSettings
+    scenario: Scenario
+    clock: Clock
+    update_period: int
+    idle_period: float
+    max_hand_wrench: float
+    viz_period: float
+    frame_id: str
+    executor: str
+    sched_priority: int
+
+
+def resolve_ve_sim(s: VeSimSettings, sc: Scenario) -> VeSimConfig:
+    """``ve_sim``'s configuration: ``update_period`` 0 -> the scenario's lmi.update_period."""
+    return VeSimConfig(
+        settings=s, scenario=sc, clock=Clock.parse(s.clock),
+        update_period=s.update_period if s.update_period else sc.update_period,
+        idle_period=1.0 / s.idle_update_rate_hz, max_hand_wrench=s.max_hand_wrench,
+        viz_period=1.0 / s.viz_rate_hz, frame_id=s.frame_id, executor=s.executor,
+        sched_priority=s.sched_priority)
+
+
+# -- recorder ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RecorderConfig:
+    """What ``recorder`` runs with: the bag directory, the topics (of those it can record),
+    chunk size (bytes), flush period (s)."""
+
+    settings: RecorderSettings
+    scenario_name: str
+    path: Path
+    topics: tuple[str, ...]
+    flush_period: float
+    chunk_size: int
+    compression: str
+    clock: Clock
+    executor: str
+    sched_priority: int
+
+
+def default_bag_dir(scenario: str, root: str | Path = 'bags') -> Path:
+    """``<root>/<scenario>_<YYYYmmdd-HHMMSS>`` (local time now)."""
+    return Path(root) / f'{scenario}_{time.strftime("%Y%m%d-%H%M%S")}'
+
+
+def select_topics(names: Sequence[str], regex: str, recorded: Sequence[str]) -> list[str]:
+    """Topics of ``recorded`` to record: all if neither ``names`` nor ``regex`` is given,
+    else those in ``names`` (with or without the leading '/') or matching ``regex``."""
+    if not names and not regex:
+        return list(recorded)
+    wanted = {n.lstrip('/') for n in names}
+    unknown = wanted - {t.lstrip('/') for t in recorded}
+    if unknown:
+        raise ConfigError(f'recorder: parameter topics: unknown {", ".join(sorted(unknown))}; '
+                          f'known: {", ".join(recorded)}')
+    try:
+        pattern = re.compile(regex) if regex else None
+    except re.error as exc:
+        raise ConfigError(f'recorder: parameter topic_regex: {exc}') from None
+    out = [t for t in recorded if t.lstrip('/') in wanted
+           or (pattern is not None and pattern.search('/' + t.lstrip('/')))]
+    if not out:
+        raise ConfigError(f'recorder: topic_regex {regex!r} matches none of '
+                          f'{", ".join(recorded)}')
+    return out
+
+
+def resolve_recorder(s: RecorderSettings, recorded: Sequence[str]) -> RecorderConfig:
+    """``recorder``'s configuration; ``recorded``: the topics it knows how to record. The
+    scenario is only a name here (its file stem names the default bag directory)."""
+    name = Path(s.scenario).stem
+    topics = select_topics([n for n in s.topics if n], s.topic_regex, recorded)
+    return RecorderConfig(
+        settings=s, scenario_name=name,
+        path=Path(s.output) if s.output else default_bag_dir(name), topics=tuple(topics),
+        flush_period=s.flush_period, chunk_size=s.chunk_kib * 1024,
+        compression=s.compression, clock=Clock.parse(s.clock), executor=s.executor,
+        sched_priority=s.sched_priority)
