@@ -31,7 +31,8 @@ from haptic_topology import MSGS_PACKAGE_NAME
 from haptic_topology.errors import HapticTopologyError
 
 #: Message names of haptic_topology_msgs, in the order they appear in the node graph.
-MESSAGE_NAMES: tuple[str, ...] = ('DeviceState', 'DeviceCommand', 'LmiUpdate', 'HandInput')
+MESSAGE_NAMES: tuple[str, ...] = ('DeviceState', 'DeviceCommand', 'LmiUpdate', 'HandInput',
+                                   'VtPath')
 
 _SOURCE_MSG_DIR = Path(__file__).resolve().parent.parent / 'msg_schemas' / 'msg'
 

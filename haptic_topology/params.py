@@ -16,7 +16,8 @@ The file layout is the one of ``ros2 run ... --params-file``: ``<node name>: {ro
 {...}}``, where the node name may carry a namespace (``/ns/device_driver``) or be a wildcard
 (``/**``, ``/**/device_driver``, ``device_*``); a wildcard's parameters must be known to at
 least one node it matches, unless it also matches a node whose parameters this process does
-not know (the recorder declares its own): then unknown names pass.
+not know (``known`` maps it to None): then unknown names pass. The tables of this package's
+nodes are generated from their settings dataclasses (:mod:`haptic_topology.settings`).
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ class ParamSpec:
     def kind(self) -> str:
         return ros_type(self.default)
 
+
+#: Parameters every rclpy node declares itself (not in our tables, never refused).
+ROS_BUILTIN = frozenset({'use_sim_time'})
 
 #: Parameters of a node, by name.
 NodeParams = Mapping[str, ParamSpec]
@@ -162,6 +166,8 @@ def _check_section(where: str, params: Mapping[str, Any],
         if isinstance(value, dict):
             raise ConfigError(f'{at}: nested parameter groups are not used by these nodes')
         owners = [(n, s[key]) for n, s in known_nodes if key in s]
+        if not owners and key in ROS_BUILTIN:
+            continue
         if not owners:
             if wildcard and len(known_nodes) < len(nodes):
                 continue  # may belong to a node whose parameters this process does not know
@@ -190,7 +196,7 @@ def check_overrides(args: Sequence[str], known: Mapping[str, NodeParams | None],
             spec = known.get(n)
             if spec is None or (target and not _matches(target, n)):
                 continue
-            if name not in spec:
+            if name not in spec and name not in ROS_BUILTIN:
                 raise ConfigError(f'-p {item}: unknown parameter of {n} (expected one of: '
                                   f'{", ".join(sorted(spec))})')
 

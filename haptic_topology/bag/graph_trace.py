@@ -6,11 +6,12 @@ the state at which the controller engaged; ``t = 0`` there), in sequence order:
 * device pose/twist, hand wrench, applied wrench and status from ``DeviceState``;
 * command, LMI VT hand pose and LMI constraint count from the ``DeviceCommand`` with
   ``state_seq`` equal to the row's seq (NaN / 0 when it was lost);
-* the VE's VT hand pose and joint positions from ``LmiUpdate``: an update with
-  ``hand_input_seq`` s is the VE after consuming input s, i.e. at the time of state s + 1
-  (``hand_input_seq`` 0: the initial state, at the first row); between updates (100 Hz)
-  they are interpolated linearly in time, after the last one they are NaN; the constraint
-  count is held from the last update.
+* the VE's VT hand pose from ``VtPath`` (the VT after every consumed input s, i.e. at the
+  time of state s + 1) where the bag has it, the initial one from the first ``LmiUpdate``
+  (``hand_input_seq`` 0); bags without ``VtPath`` (older recordings): from ``LmiUpdate``
+  (the VE after consuming input s), interpolated linearly in time between updates (100 Hz);
+  joint positions from ``LmiUpdate``, interpolated the same way; after the last sample they
+  are NaN; the constraint count is held from the last update.
 
 Loop figures: the device driver's own counts from its last ``/diagnostics`` status
 (answered fraction, round trip p50/p99), and an estimate from the bag alone: the fraction of
@@ -40,6 +41,8 @@ GRAPH_TYPES = {
     'haptic/hand': type_name('HandInput'),
     'haptic/lmi/update': type_name('LmiUpdate'),
 }
+#: Topics the graph also publishes that newer bags have (not required to read a bag).
+PATH_TOPIC = 'haptic/ve/path'
 _MODE_LABELS = {0: 'penalty', 1: 'acceleration_only', 2: 'zero'}
 
 
@@ -70,6 +73,7 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
     states: dict[int, Any] = {}
     commands: dict[int, Any] = {}
     updates: list[Any] = []
+    vt_path: dict[int, Any] = {}
     diags: dict[str, dict[str, str]] = {}
     for raw in iter_messages(bag, progress=progress):
         topic = raw.topic
@@ -82,6 +86,12 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
             commands.setdefault(int(msg.state_seq), msg)
         elif topic.endswith('haptic/lmi/update'):
             updates.append(decode(raw))
+        elif topic.endswith(PATH_TOPIC):
+            msg = decode(raw)
+            m_path = int(msg.task_dim)
+            poses = np.asarray(msg.hand_pose, dtype=float).reshape(-1, max(m_path, 1))
+            for s_in, pose in zip(msg.hand_input_seqs, poses, strict=True):
+                vt_path[int(s_in)] = pose
         elif topic == '/diagnostics':
             msg = decode(raw)
             for st in msg.status:
@@ -131,6 +141,13 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
             trace.columns['vt_pose'][span, j] = np.interp(trace.t[span], t_known, poses[:, j])
         for j in range(qs.shape[1]):
             trace.columns['q'][span, j] = np.interp(trace.t[span], t_known, qs[:, j])
+        if vt_path:
+            # The VE's own VT hand at every cycle it reported (exact, no interpolation).
+            vt = trace.columns['vt_pose']
+            vt[1:] = np.nan
+            for i, s in enumerate(seqs[1:], start=1):
+                if int(s) - 1 in vt_path:
+                    vt[i] = vt_path[int(s) - 1]
         counts = np.array([int(known[r].constraint_count) for r in rows])
         idx = np.searchsorted(rows, np.arange(len(seqs)), side='right') - 1
         trace.columns['constraint_count'][:] = np.where(idx >= 0, counts[np.maximum(idx, 0)], 0)

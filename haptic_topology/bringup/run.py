@@ -35,9 +35,7 @@ from typing import IO
 from haptic_topology.errors import ConfigError, HapticTopologyError
 
 NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
-ENGAGED_MARK = 'controller engaged at state'
-RECORDING_MARK = 'recording to'
-CONNECTED_MARK = 'recorder connected'
+CLOCKS = ('wall', 'lockstep')
 
 
 class BringupError(HapticTopologyError):
@@ -59,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--duration', type=float,
                         help="run length (s) from the loop's first state; default: the "
                         "scenario's duration")
+    parser.add_argument('--clock', choices=CLOCKS, default='wall',
+                        help='wall: real time (default); lockstep: simulated time advancing '
+                        'only when each state is answered, the result equals `simulate`')
     parser.add_argument('--composed', action='store_true',
                         help='all nodes in one process on one executor')
     parser.add_argument('--out', type=Path, help='bag directory (one --mode only); default '
@@ -89,21 +90,6 @@ def _start(name: str, argv: list[str], log_dir: Path) -> _Proc:
     popen = subprocess.Popen(argv, stdout=handle, stderr=subprocess.STDOUT, env=env,
                              start_new_session=True)
     return _Proc(name, popen, log, handle)
-
-
-def _wait_for(procs: list[_Proc], proc: _Proc, mark: str, timeout: float) -> float:
-    """Wait until ``mark`` appears in ``proc``'s log; return the monotonic time it was seen."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if mark in _read(proc.log):
-            return time.monotonic()
-        for p in procs:
-            if p.popen.poll() is not None:
-                raise BringupError(f'{p.name} exited with status {p.popen.returncode} during '
-                                   f'startup:\n{_tail(p.log)}')
-        time.sleep(0.02)
-    raise BringupError(f'{proc.name}: no "{mark}" within {timeout:.0f} s; logs in '
-                       f'{proc.log.parent}\n{_tail(proc.log)}')
 
 
 def _cpu_seconds(pid: int) -> float | None:
@@ -142,51 +128,59 @@ def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
 
 def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path,
               composed: bool = False, backend: str | None = None,
-              startup_timeout: float = 30.0) -> dict[str, int]:
-    """Run the graph once, recording to ``bag``; return the processes' exit codes."""
+              startup_timeout: float = 30.0, clock: str = 'wall') -> dict[str, int]:
+    """Run the graph once, recording to ``bag``; return the processes' exit codes.
+
+    ``device_driver`` runs the loop for ``duration`` s from engagement (simulated seconds with
+    ``clock='lockstep'``) and then deactivates itself; the run is over when its lifecycle
+    state is ``inactive``.
+    """
+    from haptic_topology.bringup.watch import GraphWatcher
+
     if bag.exists():
         raise ConfigError(f'--out: {bag} already exists')
     ros = ['--ros-args', '--params-file', str(params), '-p', f'scenario:={scenario}',
-           '-p', f'lmi_controller:mode:={mode}', '-p', f'recorder:output:={bag}',
-           '-p', 'device_driver:min_subscribers:=2']
+           '-p', f'clock:={clock}', '-p', f'lmi_controller:mode:={mode}',
+           '-p', f'recorder:output:={bag}', '-p', 'device_driver:min_subscribers:=2',
+           '-p', f'device_driver:run_duration:={float(duration)!r}']
+    if clock == 'lockstep':
+        ros += ['-p', 'lmi_controller:use_sim_time:=true', '-p', 've_sim:use_sim_time:=true']
     if backend:
         ros += ['-p', f'device_driver:backend:={backend}']
     log_dir = Path(tempfile.mkdtemp(prefix='haptic_run_'))
     procs: list[_Proc] = []
     codes: dict[str, int] = {}
     cpu: dict[str, float] = {}
+
+    def alive() -> None:
+        for p in procs:
+            if p.popen.poll() is not None:
+                raise BringupError(f'{p.name} exited with status {p.popen.returncode}:\n'
+                                   f'{_tail(p.log)}')
+
     try:
-        py = [sys.executable, '-m']
-        if composed:
-            procs.append(_start('composed', py + ['haptic_topology.nodes.composed'] + ros,
-                                log_dir))
-            recorder = device = procs[0]
-        else:
-            for name in NODES:
+        with GraphWatcher('haptic_bringup', alive) as watch:
+            py = [sys.executable, '-m']
+            names = ['composed'] if composed else list(NODES)
+            for name in names:
                 if name == 'device_driver':
                     # The loop starts with the device: only once the recorder is matched to
                     # the controller's and the VE's publishers (discovery can take seconds).
-                    _wait_for(procs, procs[0], CONNECTED_MARK, startup_timeout)
+                    watch.wait(watch.recorder_connected, startup_timeout,
+                               'recorder connected to the loop topics')
                 procs.append(_start(name, py + [f'haptic_topology.nodes.{name}'] + ros,
                                     log_dir))
-                if name == 'recorder':
-                    _wait_for(procs, procs[0], RECORDING_MARK, startup_timeout)
-            recorder, device = procs[0], procs[-1]
-        del recorder
-        started = _wait_for(procs, device, ENGAGED_MARK, startup_timeout)
-        cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
-        while time.monotonic() < started + duration:
+            started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
+                                           startup_timeout)
+            cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
+            limit = startup_timeout + (duration + 10.0 if clock == 'wall'
+                                       else max(60.0, 30.0 * duration))
+            ended = watch.wait_lifecycle('device_driver', ('inactive',), limit)
+            wall = ended - started
             for p in procs:
-                if p.popen.poll() is not None:
-                    raise BringupError(f'{p.name} exited with status {p.popen.returncode} '
-                                       f'during the run:\n{_tail(p.log)}')
-            time.sleep(0.05)
-        # CPU of each process over the loop's run (fraction of one core).
-        wall = time.monotonic() - started
-        for p in procs:
-            c0, c1 = cpu0[p.name], _cpu_seconds(p.popen.pid)
-            if c0 is not None and c1 is not None and wall > 0.0:
-                cpu[p.name] = round((c1 - c0) / wall, 4)
+                c0, c1 = cpu0[p.name], _cpu_seconds(p.popen.pid)
+                if c0 is not None and c1 is not None and wall > 0.0:
+                    cpu[p.name] = round((c1 - c0) / wall, 4)
     finally:
         # Device first (the loop stops), recorder last (it keeps every message until then).
         codes = stop(list(reversed(procs)))
@@ -227,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
         print(f'running {sc.name} ({mode}) for {duration:g} s'
               f'{" composed" if args.composed else ""} ...', flush=True)
         run_graph(scenario_ref, mode, duration, bag, params, args.composed, args.backend,
-                  args.startup_timeout)
+                  args.startup_timeout, args.clock)
         result = read_graph_bag(bag, sc.name, sc.linkage.dof)
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')

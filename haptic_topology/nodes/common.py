@@ -13,14 +13,18 @@ topic                         QoS                               why
                                                                 a lost one would bend the VT path.
                                                                 Not on the device's critical path,
                                                                 so a retransmission costs nothing
-``haptic/lmi/update``         reliable, keep last 10            ~100 Hz; each update re-syncs
+``haptic/lmi/update``,        reliable, keep last 10            ~100 Hz; each update re-syncs;
+``haptic/ve/path``                                              the VT hand at every cycle
+``/clock``                    best effort, keep last 1          lock-step only: simulated time
 ``haptic/joint_states``,      reliable, keep last 5             visualisation, ~30 Hz
 ``haptic/markers``
 ``/diagnostics``              reliable, keep last 10            1 Hz loop health
 ============================  ================================  ===================================
 
-The recorder subscribes best effort with a deep queue (1000) to the best-effort topics and
-reliable to the others, so it never slows a publisher down.
+With ``clock: lockstep`` the state and command topics are reliable (keep last 100): the
+device steps only when the answer has come, so a lost message would stall the loop, and a bag
+of the run must hold every state. The recorder subscribes best effort with a deep queue (1000)
+to the best-effort topics and reliable to the others, so it never slows a publisher down.
 
 Executors: :class:`rclpy.experimental.EventsExecutor` by default (about 6 us per callback
 against 130 us for the ``SingleThreadedExecutor``), spun with ``spin_once(timeout_sec=0.1)``
@@ -37,7 +41,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import rclpy
@@ -62,6 +66,7 @@ from haptic_topology.params import (
     check_params_file,
     params_files,
 )
+from haptic_topology.settings import Clock, NodeSettings, param_specs
 
 # -- topics ------------------------------------------------------------------------------------
 TOPIC_STATE = 'haptic/device/state'
@@ -71,6 +76,8 @@ TOPIC_HAND = 'haptic/hand'
 TOPIC_JOINTS = 'haptic/joint_states'
 TOPIC_MARKERS = 'haptic/markers'
 TOPIC_DIAGNOSTICS = '/diagnostics'
+TOPIC_VT_PATH = 'haptic/ve/path'
+TOPIC_CLOCK = '/clock'
 
 
 def _qos(reliable: bool, depth: int) -> QoSProfile:
@@ -81,6 +88,9 @@ def _qos(reliable: bool, depth: int) -> QoSProfile:
 
 
 QOS_LOOP = _qos(False, 1)         # state, command
+#: Lock-step: the device steps only on the answer, so nothing may be lost (and nothing waits).
+QOS_LOOP_LOCKSTEP = _qos(True, 100)
+QOS_CLOCK = _qos(False, 1)
 QOS_HAND = _qos(True, 200)
 QOS_LMI = _qos(True, 10)
 QOS_VIZ = _qos(True, 5)
@@ -91,10 +101,16 @@ QOS_RECORD_RELIABLE = _qos(True, 1000)
 #: Topic -> QoS of its publisher (the recorder mirrors the reliability).
 TOPIC_QOS: dict[str, QoSProfile] = {
     TOPIC_STATE: QOS_LOOP, TOPIC_COMMAND: QOS_LOOP, TOPIC_HAND: QOS_HAND, TOPIC_LMI: QOS_LMI,
+    TOPIC_VT_PATH: QOS_LMI,
     TOPIC_JOINTS: QOS_VIZ, TOPIC_MARKERS: QOS_VIZ, TOPIC_DIAGNOSTICS: QOS_DIAGNOSTICS,
 }
 
 EXECUTORS = ('events', 'single_threaded')
+
+
+def loop_qos(clock: Clock) -> QoSProfile:
+    """QoS of the 1 kHz state/command topics under ``clock`` (see the table above)."""
+    return QOS_LOOP_LOCKSTEP if clock is Clock.LOCKSTEP else QOS_LOOP
 
 #: The nodes of the graph (params-file sections).
 NODE_NAMES = ('device_driver', 'lmi_controller', 've_sim', 'recorder')
@@ -155,6 +171,36 @@ def declare_spec(node: Node, spec: ParamSpec, default: Any = None) -> Any:
     return declare(node, spec.name, spec.default if default is None else default,
                    spec.description, read_only=spec.read_only, lo=spec.lo, hi=spec.hi,
                    choices=spec.choices)
+
+
+S = TypeVar('S', bound=NodeSettings)
+
+
+def declare_settings(node: Node, cls: type[S],
+                     scenario_defaults: Mapping[str, Any] | None = None) -> S:
+    """Declare every parameter of the settings class ``cls`` on ``node`` (description, range,
+    read-only flag from its fields) and return the frozen settings.
+
+    ``scenario_defaults``: defaults to declare instead of the table's (see
+    :func:`haptic_topology.settings.scenario_defaults`). Parameters the node has declared
+    already (e.g. ``scenario``, read first to load the scenario the defaults come from) keep
+    their value. A bad value raises :class:`ConfigError` naming the node and the parameter.
+    """
+    defaults = scenario_defaults or {}
+    values: dict[str, Any] = {}
+    for name, spec in param_specs(cls).items():
+        if node.has_parameter(name):
+            values[name] = node.get_parameter(name).value
+        else:
+            values[name] = declare_spec(node, spec, defaults.get(name))
+    try:
+        return cls.from_values(values)
+    except ConfigError as exc:
+        node_name = node.get_name()
+        text = str(exc)
+        if node_name != cls.NODE and text.startswith(f'{cls.NODE}: '):
+            text = f'{node_name}: {text[len(cls.NODE) + 2:]}'
+        raise ConfigError(text) from None
 
 
 # -- loop health -------------------------------------------------------------------------------

@@ -56,7 +56,15 @@ class RejectCounter:
 
 
 def stamp_seconds(stamp: Time) -> float:
+    """Seconds of a stamp, as :func:`haptic_topology.device.loop.ns_to_seconds` computes them
+    (the offline simulation and the lock-step graph use the same numbers)."""
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int) -> Time:
+    """A stamp of ``ns`` nanoseconds (>= 0)."""
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 def seconds_to_stamp(t: float) -> Time:

@@ -20,11 +20,9 @@ deep queue (see :mod:`haptic_topology.nodes.common`).
 from __future__ import annotations
 
 import queue
-import re
 import threading
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -33,11 +31,12 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
 
+from haptic_topology import resolve
 from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
-from haptic_topology.errors import ConfigError
 from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
-from haptic_topology.nodes import common
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+from haptic_topology.nodes import common, node_params
+from haptic_topology.settings import RecorderSettings
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate, VtPath
 
 #: Topic -> (rclpy type, type name in the bag).
 RECORDED: dict[str, tuple[Any, str]] = {
@@ -45,6 +44,7 @@ RECORDED: dict[str, tuple[Any, str]] = {
     common.TOPIC_COMMAND: (DeviceCommand, 'haptic_topology_msgs/msg/DeviceCommand'),
     common.TOPIC_HAND: (HandInput, 'haptic_topology_msgs/msg/HandInput'),
     common.TOPIC_LMI: (LmiUpdate, 'haptic_topology_msgs/msg/LmiUpdate'),
+    common.TOPIC_VT_PATH: (VtPath, 'haptic_topology_msgs/msg/VtPath'),
     common.TOPIC_JOINTS: (JointState, 'sensor_msgs/msg/JointState'),
     common.TOPIC_MARKERS: (MarkerArray, 'visualization_msgs/msg/MarkerArray'),
     common.TOPIC_DIAGNOSTICS: (DiagnosticArray, 'diagnostic_msgs/msg/DiagnosticArray'),
@@ -52,34 +52,13 @@ RECORDED: dict[str, tuple[Any, str]] = {
 
 #: Topics whose publishers must be matched before the loop starts (see _check_connected).
 CONNECT_TOPICS = (common.TOPIC_COMMAND, common.TOPIC_HAND, common.TOPIC_LMI)
-CONNECTED_MARK = 'recorder connected'
+LOOP_TOPICS = (common.TOPIC_STATE, common.TOPIC_COMMAND)
 _STOP = None
 
 
-def default_bag_dir(scenario: str, root: str | Path = 'bags') -> Path:
-    return Path(root) / f'{scenario}_{time.strftime("%Y%m%d-%H%M%S")}'
-
-
 def select_topics(names: Sequence[str], regex: str) -> list[str]:
-    """Topics of :data:`RECORDED` to record: all if neither ``names`` nor ``regex`` is given,
-    else those in ``names`` (with or without the leading '/') or matching ``regex``."""
-    if not names and not regex:
-        return list(RECORDED)
-    wanted = {n.lstrip('/') for n in names}
-    unknown = wanted - {t.lstrip('/') for t in RECORDED}
-    if unknown:
-        raise ConfigError(f'recorder: parameter topics: unknown {", ".join(sorted(unknown))}; '
-                          f'known: {", ".join(RECORDED)}')
-    try:
-        pattern = re.compile(regex) if regex else None
-    except re.error as exc:
-        raise ConfigError(f'recorder: parameter topic_regex: {exc}') from None
-    out = [t for t in RECORDED if t.lstrip('/') in wanted
-           or (pattern is not None and pattern.search('/' + t.lstrip('/')))]
-    if not out:
-        raise ConfigError(f'recorder: topic_regex {regex!r} matches none of '
-                          f'{", ".join(RECORDED)}')
-    return out
+    """Topics of :data:`RECORDED` to record (see :func:`haptic_topology.resolve.select_topics`)."""
+    return resolve.select_topics(names, regex, list(RECORDED))
 
 
 def _bag_qos(qos: QoSProfile) -> Any:
@@ -91,31 +70,18 @@ class Recorder(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('recorder', **kwargs)
-        d = common.declare
-        scenario = d(self, 'scenario', 'fig8', 'scenario name, used in the default bag name')
-        d(self, 'executor', 'events', 'executor of the process', choices=common.EXECUTORS)
-        common.declare_spec(self, common.SCHED_PRIORITY)
-        out = d(self, 'output', '', 'bag directory to create (must not exist); empty: '
-                'bags/<scenario>_<timestamp>')
-        names = d(self, 'topics', [''], 'topics to record (empty: all of the graph)')
-        regex = d(self, 'topic_regex', '', 'also record the graph topics matching this '
-                  'regular expression (on the absolute name)')
-        self.flush_period = d(self, 'flush_period', 0.2, 'close the current chunk and hand '
-                              'it to the OS at least this often (s): what a SIGKILL can lose',
-                              lo=0.01, hi=10.0)
-        chunk_kib = d(self, 'chunk_kib', 64, 'MCAP chunk size (KiB)', lo=4, hi=65536)
-        compression = d(self, 'compression', 'zstd', 'MCAP chunk compression',
-                        choices=('zstd', 'lz4', 'none'))
-        topics = select_topics([n for n in names if n], str(regex))
-        name = Path(str(scenario)).stem
-        self.path = Path(out) if out else default_bag_dir(name)
+        settings = common.declare_settings(self, RecorderSettings)
+        self.config = config = resolve.resolve_recorder(settings, list(RECORDED))
+        topics = list(config.topics)
+        self.flush_period = config.flush_period
+        self.path = config.path
         specs = [TopicSpec(self.resolve_topic_name(t), RECORDED[t][1],
                            (_bag_qos(common.TOPIC_QOS[t]),)) for t in topics]
         self.writer = BagWriter(self.path, specs, typestore_with_haptic_msgs(),
-                                sources=message_definitions(), chunk_size=chunk_kib * 1024,
-                                compression=str(compression),
+                                sources=message_definitions(), chunk_size=config.chunk_size,
+                                compression=config.compression,
                                 custom={'recorded_by': 'haptic_topology recorder',
-                                        'scenario': str(scenario)})
+                                        'scenario': settings.scenario})
         self.received = [0] * len(topics)
         self._queue: queue.SimpleQueue[tuple[int, int, bytes] | None] = queue.SimpleQueue()
         self._error: BaseException | None = None
@@ -124,14 +90,20 @@ class Recorder(Node):
         self._thread.start()
         self.subscriptions_by_topic: dict[str, Any] = {}
         for i, topic in enumerate(topics):
+            pub_qos = (common.loop_qos(config.clock) if topic in LOOP_TOPICS
+                       else common.TOPIC_QOS[topic])
             qos = (common.QOS_RECORD_RELIABLE
-                   if common.TOPIC_QOS[topic].reliability == ReliabilityPolicy.RELIABLE
+                   if pub_qos.reliability == ReliabilityPolicy.RELIABLE
                    else common.QOS_RECORD_BEST_EFFORT)
             self.subscriptions_by_topic[topic] = self.create_subscription(
                 RECORDED[topic][0], topic, self._callback(i), qos, raw=True)
         self._open = True
         self._connect = [t for t in CONNECT_TOPICS if t in self.subscriptions_by_topic]
+        self.connected = False
+        self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
+                                              common.QOS_DIAGNOSTICS)
         self._connect_timer = self.create_timer(0.05, self._check_connected)
+        self.create_timer(1.0, self._publish_status)
         self.get_logger().info(f'recording to {self.path}')
         print(f'recording to {self.path}', flush=True)
 
@@ -178,16 +150,25 @@ class Recorder(Node):
             self._error = exc
 
     def _check_connected(self) -> None:
-        """Print ``connected`` once the controller's and the VE's topics have a publisher.
+        """Report ``connected`` once the controller's and the VE's topics have a publisher
+        matched to this recorder.
 
-        The bringup starts the device driver (which starts the loop) only after this line, so
-        no message of the run is sent before this recorder is matched to its publisher.
+        The bringup starts the device driver (which starts the loop) only after that status,
+        so no message of the run is sent before this recorder is matched to its publisher.
         """
         subs = self.subscriptions_by_topic
         if all(subs[t].get_publisher_count() > 0 for t in self._connect):
             self._connect_timer.cancel()
-            print(f'{CONNECTED_MARK} to {", ".join(self._connect) or "(no loop topic)"}',
-                  flush=True)
+            self.connected = True
+            self.get_logger().info(f'connected to {", ".join(self._connect) or "(none)"}')
+        self._publish_status()
+
+    def _publish_status(self) -> None:
+        """``/diagnostics`` status ``recorder: bag``: path, counts, ``connected``."""
+        values = {'path': str(self.path), 'connected': str(self.connected).lower(),
+                  **{f'received {t}': str(n) for t, n in self.counts.items()}}
+        self.diag_pub.publish(common.diagnostics(self, 'recorder: bag', values, 0,
+                                                 'recording'))
 
     @property
     def counts(self) -> dict[str, int]:
@@ -215,7 +196,7 @@ class Recorder(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('recorder', lambda: [Recorder()], args)
+    return common.run_main('recorder', lambda: [Recorder()], args, node_params.KNOWN)
 
 
 if __name__ == '__main__':

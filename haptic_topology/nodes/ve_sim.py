@@ -17,6 +17,11 @@ A thin adapter over :class:`~haptic_topology.sim.ve.VirtualEnvironment`:
   relative to the device): nothing in the graph holds the old VE's joint state, and starting
   at ``q0`` would let the coordination spring yank the VT across the workspace. The
   controller re-syncs to it at zero force (see ``lmi_controller``);
+* after each update driven by inputs, ``VtPath``: the VT hand after every input consumed
+  since the previous one, so a recorded run has the VT at every device cycle;
+* lock-step (``clock: lockstep``): no keep-alive updates once inputs flow (an update at
+  another step than the offline simulation's would change the run); timers run on the steady
+  clock, stamps are simulated time;
 * ``sensor_msgs/JointState`` and a ``visualization_msgs/MarkerArray`` (linkage, VT grasp
   point, device point, directions of topological constraint) at ``viz_rate_hz``.
 """
@@ -30,6 +35,8 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 from geometry_msgs.msg import Point
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker, MarkerArray
@@ -43,9 +50,11 @@ from haptic_topology.nodes.convert import (
     lmi_msg,
     vt_wrench_from_hand,
 )
-from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.resolve import resolve_ve_sim
+from haptic_topology.settings import Clock, VeSimSettings
+from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
-from haptic_topology_msgs.msg import HandInput, LmiUpdate
+from haptic_topology_msgs.msg import HandInput, LmiUpdate, VtPath
 
 
 def _array3(values: Sequence[float]) -> np.ndarray:
@@ -55,27 +64,21 @@ def _array3(values: Sequence[float]) -> np.ndarray:
 class VeSim(Node):
     """The VE node (full dynamics at ``internal_step``, LMI updates at ~100 Hz)."""
 
-    def __init__(self, **kwargs: Any) -> None:
+    def __init__(self, scenario: Scenario | None = None, **kwargs: Any) -> None:
         super().__init__('ve_sim', **kwargs)
-        spec = node_params.VE_SIM
-
-        def d(name: str) -> Any:
-            return common.declare_spec(self, spec[name])
-
-        scenario_name = d('scenario')
-        common.declare_process_params(self, spec)
-        self.update_period = d('update_period')
-        idle_rate = d('idle_update_rate_hz')
-        self.max_hand_wrench = d('max_hand_wrench')
-        viz_rate = d('viz_rate_hz')
-        d('frame_id')
-        self.scenario = sc = load_scenario(scenario_name)
+        s = common.declare_settings(self, VeSimSettings)
+        self.cfg = c = resolve_ve_sim(s, scenario or load_scenario(s.scenario))
+        self.scenario = sc = c.scenario
+        self.lockstep = c.clock is Clock.LOCKSTEP
+        self.update_period = c.update_period
+        self.max_hand_wrench = c.max_hand_wrench
         self.task = sc.linkage.task
         self.dyn = LinkageDynamics(sc.linkage)
         self.ve = VirtualEnvironment(self.dyn, sc.q0, sc.dq0, sc.internal_step)
         self._viz_dyn = LinkageDynamics(sc.linkage)     # separate Pinocchio workspace
 
         self.lmi_pub = self.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
+        self.path_pub = self.create_publisher(VtPath, common.TOPIC_VT_PATH, common.QOS_LMI)
         self.joint_pub = self.create_publisher(JointState, common.TOPIC_JOINTS, common.QOS_VIZ)
         self.marker_pub = self.create_publisher(MarkerArray, common.TOPIC_MARKERS,
                                                 common.QOS_VIZ)
@@ -83,6 +86,7 @@ class VeSim(Node):
                                               common.QOS_DIAGNOSTICS)
         self.create_subscription(HandInput, common.TOPIC_HAND, self._on_hand, common.QOS_HAND)
         self._lmi = LmiUpdate()
+        self._path = VtPath()
         self._update_seq = 0
         self._inputs = 0
         self._last_hand_seq = 0
@@ -91,16 +95,17 @@ class VeSim(Node):
         self.rejected = RejectCounter()
         self._last_publish = -math.inf
         self._last_input = -math.inf
-        self._idle_period = 1.0 / idle_rate
+        self._idle_period = c.idle_period
         self._t0: float | None = None
         self._device_pose: np.ndarray | None = None
         self._last_snap: LmiSnapshot = self.ve.snapshot(seq=0)
         self.stats = common.LoopStats(sc.dt)
         self.update_stats = common.LoopStats(sc.dt * self.update_period)
+        steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(min(self._idle_period, sc.dt * self.update_period),
-                          self._publish_idle)
-        self.create_timer(1.0 / viz_rate, self._publish_viz)
-        self.create_timer(1.0, self._publish_diagnostics)
+                          self._publish_idle, clock=steady)
+        self.create_timer(c.viz_period, self._publish_viz, clock=steady)
+        self.create_timer(1.0, self._publish_diagnostics, clock=steady)
 
     def _publish_update(self) -> None:
         self._last_snap = self.ve.snapshot(seq=self._update_seq)
@@ -116,6 +121,10 @@ class VeSim(Node):
         period. While inputs flow, updates go out every ``update_period`` inputs only, as in
         the offline simulation."""
         now = common.monotonic()
+        if now - self._last_input >= self._idle_period:
+            self._publish_path()    # the inputs since the last update, once they stop
+        if self.lockstep and self._t0 is not None:
+            return
         if (now - self._last_input >= self._idle_period
                 and now - self._last_publish >= self._idle_period):
             self._publish_update()
@@ -153,6 +162,19 @@ class VeSim(Node):
         self._inputs += 1
         if self._inputs % self.update_period == 0:
             self._publish_update()
+            self._publish_path()
+
+    def _publish_path(self) -> None:
+        path = self.ve.take_path()
+        if not path:
+            return
+        msg = self._path
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.update_seq = self._update_seq - 1
+        msg.task_dim = self.task.dim
+        msg.hand_input_seqs = [int(s) for s, _ in path]
+        msg.hand_pose = np.concatenate([x for _, x in path]).tolist()
+        self.path_pub.publish(msg)
 
     # -- visualisation ---------------------------------------------------------------------
     def _joint_points(self, q: np.ndarray) -> list[Point]:
@@ -173,7 +195,7 @@ class VeSim(Node):
         js.position = q.tolist()
         js.velocity = dq.tolist()
         self.joint_pub.publish(js)
-        frame = str(self.get_parameter('frame_id').value)
+        frame = self.cfg.frame_id
         hand = self._viz_dyn.hand_placement(q).translation
         markers = MarkerArray()
 

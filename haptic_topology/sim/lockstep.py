@@ -1,15 +1,22 @@
 """Offline lock-step simulation of the whole haptic loop (the paper's Fig. 5 diagram).
 
-One device period per step, in the order the ROS graph runs it:
+The same loop objects as the node graph, wired without messages, in the order the lock-step
+graph runs them (``device_driver`` with ``clock: lockstep``):
 
-1. the device integrates eq. 9 over the last period with the newest command and the user's
-   wrench (``device_driver``), and the user's wrench at the new state is measured;
-2. the controller answers the state: LMI step, ``F_pc``, eq. 14 or eq. 10 (``lmi_controller``);
-3. the VE consumes the hand input (eq. 2) and, every ``update_period`` cycles, sends an LMI
-   update (eqs. 17-19) that re-syncs the controller (``ve_sim``).
+1. :class:`~haptic_topology.device.loop.DeviceLoop` ticks the simulated maglev
+   (:class:`~haptic_topology.device.backend.SimMaglevBackend`: eq. 9 over the last period with
+   the newest command and the user's wrench) and publishes state k at ``t_k = k * dt``;
+2. :class:`~haptic_topology.control.loop.ControllerLoop` answers it: LMI step, ``F_pc``,
+   eq. 14 or eq. 10, sync guard (``lmi_controller``); the device takes the command;
+3. the VE (:class:`~haptic_topology.sim.ve.VirtualEnvironment`) consumes the hand input
+   (eq. 2) and, after every ``update_period``-th input, sends an LMI update (eqs. 17-19)
+   that the controller takes before the next state (``ve_sim``).
 
-The same core objects (:class:`MaglevModel`, :class:`HapticController`,
-:class:`VirtualEnvironment`) are used by the nodes. Deterministic: no clocks, no threads.
+Before the run the device idles once (state flagged IDLE, answered in the controller's mode
+once it has synced to the VE's initial state), which engages it, exactly as in the graph.
+Times are integer nanoseconds turned into seconds as a ROS stamp is
+(:func:`~haptic_topology.device.loop.ns_to_seconds`), so the lock-step graph, whose messages
+carry those stamps, computes with the same numbers. Deterministic: no clocks, no threads.
 """
 
 from __future__ import annotations
@@ -18,52 +25,94 @@ import numpy as np
 
 from haptic_topology.control.controller import HapticController
 from haptic_topology.control.laws import ControlMode
-from haptic_topology.device.maglev import MaglevModel
-from haptic_topology.device.users import user_from_config
+from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
+from haptic_topology.control.safety import SyncGuard, SyncGuardConfig
+from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
+from haptic_topology.device.loop import DeviceLoop, DeviceTick, ns_to_seconds, period_ns
+from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.sim.scenario import Scenario
 from haptic_topology.sim.trace import Trace
 from haptic_topology.sim.ve import VirtualEnvironment
 
+#: Defaults of the nodes' safety parameters (config/haptic_topology.yaml).
+MAX_DT = 0.05
+RESYNC_MAX_JUMP = 1.0
+
+
+def build_controller_loop(sc: Scenario, mode: ControlMode,
+                          guard: SyncGuardConfig | None = None, max_dt: float = MAX_DT,
+                          max_jump: float = RESYNC_MAX_JUMP,
+                          update_period: int | None = None) -> ControllerLoop:
+    """The controller-side loop of scenario ``sc`` (what ``lmi_controller`` builds)."""
+    ctrl = HapticController(sc.linkage.task, mode, sc.gains, sc.device.mass,
+                            sc.device.christoffel, sc.lmi_model, sc.vt_coupling)
+    return ControllerLoop(ctrl, SyncGuard(guard or SyncGuardConfig(), sc.dt), sc.dt, max_dt,
+                          max_jump, sc.device.wrench_limit, update_period)
+
+
+def initial_device_pose(sc: Scenario) -> np.ndarray:
+    """Where the device starts: the VT hand at ``q0`` plus the scenario's offset."""
+    return LinkageDynamics(sc.linkage).hand_pose(sc.q0) + sc.device_offset
+
+
+def state_sample(tick: DeviceTick, stamp: float) -> StateSample:
+    r = tick.reading
+    return StateSample(tick.seq, stamp, r.pose, r.twist, r.hand_wrench, int(tick.status))
+
 
 def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace."""
-    mode = scenario.mode if mode is None else mode
     sc = scenario
+    mode = sc.mode if mode is None else mode
     task = sc.linkage.task
-    m = task.dim
     dyn = LinkageDynamics(sc.linkage)
     ve = VirtualEnvironment(dyn, sc.q0, sc.dq0, sc.internal_step)
     ve_check = LinkageDynamics(sc.linkage)  # separate workspace for the trace's truth
-    x0 = dyn.hand_pose(sc.q0)
-    device = MaglevModel(sc.device, x0 + sc.device_offset)
-    user = user_from_config(sc.user, task, f'{sc.source}: scenario.user', device.pose)
-    ctrl = HapticController(task, mode, sc.gains, sc.device.mass, sc.device.christoffel,
-                            sc.lmi_model, sc.vt_coupling)
-    ctrl.update(ve.snapshot(seq=0))
+    backend = SimMaglevBackend()
+    backend.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},
+                                    sc.source))
+    backend.activate()
+    device = DeviceLoop(backend, sc.device.wrench_limit,
+                        CommandWatchdog(WatchdogConfig(), task.dim), sc.dt)
+    loop = build_controller_loop(sc, mode, update_period=sc.update_period)
+    loop.on_update(ve.snapshot(seq=0))
+    step_ns = period_ns(sc.dt)
 
+    def answer(tick: DeviceTick, stamp: float) -> Answer:
+        ans = loop.on_state(state_sample(tick, stamp))
+        if ans is None:
+            raise RuntimeError(f'controller did not answer state {tick.seq}')
+        device.on_command(ans.state_seq, int(ans.out.mode), ans.out.wrench, stamp)
+        return ans
+
+    # Engagement: one idle state, answered in the controller's mode.
+    answer(device.tick(0.0, sc.dt), 0.0)
     n = int(round(sc.duration / sc.dt)) + 1
-    trace = Trace.empty(n, m, dyn.dof, mode=mode.label, scenario=sc.name, dt=sc.dt)
-    u = np.zeros(m)
-    f_h = np.zeros(m)
+    trace = Trace.empty(n, task.dim, dyn.dof, mode=mode.label, scenario=sc.name, dt=sc.dt)
+    vt_pose = dyn.hand_pose(ve.q)
+    inputs = 0
     update_seq = 1
     for k in range(n):
-        t = k * sc.dt
-        status = 0
-        if k > 0:
-            status = int(device.step(u, f_h, sc.dt))
-        f_h = user.wrench(t, device.pose, device.twist)
-        out = ctrl.cycle(k, sc.dt, device.pose, device.twist, f_h)
-        u = out.wrench
-        # Consuming input k integrates input k-1 over the last period: the VE is at time t.
-        ve.push_input(k, t, out.vt_wrench)
-        cons = ve_check.constraints(ve.q)
-        trace.record(k, t=t, device_pose=device.pose, device_twist=device.twist,
-                     hand_wrench=f_h, command=u, applied=device.applied,
-                     vt_pose=dyn.hand_pose(ve.q), lmi_pose=out.vt_pose, q=ve.q,
-                     constraint_count=cons.count, lmi_constraint_count=out.constraint_count,
-                     status=status)
-        if (k + 1) % sc.update_period == 0:
-            ctrl.update(ve.snapshot(seq=update_seq))
+        t = ns_to_seconds(k * step_ns)
+        if loop.waiting_for_update():
+            raise RuntimeError(f'state {k}: the VE update was not taken')
+        tick = device.tick(t, sc.dt)
+        ans = answer(tick, t)
+        hand = ans.hand
+        if hand is not None:
+            ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
+            inputs += 1
+        path = ve.take_path()
+        if path:
+            vt_pose = path[-1][1]
+        r = tick.reading
+        trace.record(k, t=t, device_pose=r.pose, device_twist=r.twist,
+                     hand_wrench=r.hand_wrench, command=ans.out.wrench, applied=tick.applied,
+                     vt_pose=vt_pose, lmi_pose=ans.out.vt_pose, q=ve.q,
+                     constraint_count=ve_check.constraints(ve.q).count,
+                     lmi_constraint_count=ans.out.constraint_count, status=int(tick.status))
+        if hand is not None and inputs % sc.update_period == 0:
+            loop.on_update(ve.snapshot(seq=update_seq))
             update_seq += 1
     return trace

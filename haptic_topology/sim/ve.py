@@ -11,6 +11,8 @@ state k+1, the same convention as the LMI (:mod:`haptic_topology.control.lmi`).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -18,6 +20,24 @@ from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.constraints import task_scale
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.dynamics.taskspace import pose_difference
+from haptic_topology.validate import as_bool, as_float, check_keys
+
+
+@dataclass(frozen=True)
+class VeSettings:
+    """The ``ve:`` block of a scenario: RK4 ``internal_step`` (s, in (0, dt]) and whether the
+    coordination wrench acts on the VT (``vt_coupling``: ``F_vt = F_h - F_pc``, else ``F_h``)."""
+
+    internal_step: float = 2.5e-4
+    vt_coupling: bool = True
+
+    @classmethod
+    def from_config(cls, raw: Any, where: str, dt: float) -> VeSettings:
+        """Parse the block (``where``: its path); ``dt``: the scenario's device period (s)."""
+        ve = check_keys(raw, where, optional=('internal_step', 'vt_coupling'))
+        step = as_float(ve.get('internal_step', 2.5e-4), f'{where}.internal_step', lo=0.0,
+                        lo_open=True, hi=dt)
+        return cls(step, as_bool(ve.get('vt_coupling', True), f'{where}.vt_coupling'))
 
 
 class VirtualEnvironment:
@@ -37,6 +57,8 @@ class VirtualEnvironment:
         self.time = 0.0
         self.hand_input_seq = -1
         self._held: tuple[int, float, np.ndarray] | None = None
+        #: ``(input seq, VT hand pose)`` after each consumed input, until :meth:`take_path`.
+        self.path: list[tuple[int, np.ndarray]] = []
 
     def _accel(self, q: np.ndarray, dq: np.ndarray, wrench: np.ndarray) -> np.ndarray:
         return self.dyn.acceleration(q, dq, wrench)
@@ -73,6 +95,7 @@ class VirtualEnvironment:
                 return  # duplicate or out-of-order input: ignore
             self.integrate(held_wrench, min(stamp - held_stamp, self.max_gap))
             self.hand_input_seq = held_seq
+            self.path.append((held_seq, self.dyn.hand_pose(self.q)))
         self._held = (seq, stamp, np.array(wrench, dtype=float))
 
     def place_hand(self, pose: np.ndarray, twist: np.ndarray, iterations: int = 100,
@@ -101,6 +124,12 @@ class VirtualEnvironment:
         dq = j.T @ np.linalg.solve(j @ j.T + 1e-6 * np.eye(j.shape[0]), scale * twist)
         self.q, self.dq = q, dq
         return err
+
+    def take_path(self) -> list[tuple[int, np.ndarray]]:
+        """The VT hand poses after the inputs consumed since the last call (oldest first):
+        entry ``(s, x)`` is the grasp frame pose at the time of device state ``s + 1``."""
+        path, self.path = self.path, []
+        return path
 
     def reset_inputs(self) -> None:
         """Forget the held input and the consumed seq (a new controller numbers its inputs

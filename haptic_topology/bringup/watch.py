@@ -1,0 +1,118 @@
+"""See the node graph the way ROS tools do: lifecycle states, diagnostics and graph counts.
+
+The bringup (``haptic-topology run``), replay and the test harness wait on these, never on log
+lines or sleeps: the recorder's ``/diagnostics`` status (``connected``: matched to the loop's
+publishers), ``device_driver``'s lifecycle state (``/device_driver/get_state``: ``active``
+while the loop runs, ``inactive`` after ``run_duration``) and publisher/subscriber counts.
+Every wait has a deadline and raises :class:`WaitTimeout` naming what did not happen.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+from haptic_topology.errors import HapticTopologyError
+
+#: ``/diagnostics`` status names of the graph's nodes.
+RECORDER_STATUS = 'recorder: bag'
+DEVICE_STATUS = 'device_driver: loop'
+
+
+class WaitTimeout(HapticTopologyError):
+    """Something the graph should have done within a deadline did not happen."""
+
+
+class GraphWatcher:
+    """An rclpy node of its own (own context) that watches the graph; use as a context
+    manager. ``alive``: called while waiting, raises if a process of the graph has died."""
+
+    def __init__(self, name: str = 'haptic_watch', alive: Callable[[], None] | None = None,
+                 args: list[str] | None = None) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from lifecycle_msgs.srv import GetState
+        from rclpy.executors import SingleThreadedExecutor
+
+        from haptic_topology.nodes import common
+
+        self._rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, args=args)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.alive = alive or (lambda: None)
+        self.status: dict[str, dict[str, str]] = {}
+        self.node.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS,
+                                      self._on_diagnostics, common.QOS_DIAGNOSTICS)
+        self._get_state = GetState
+        self._clients: dict[str, Any] = {}
+
+    def __enter__(self) -> GraphWatcher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        for st in msg.status:
+            self.status[st.name] = {kv.key: kv.value for kv in st.values}
+
+    def spin(self, seconds: float) -> None:
+        self.executor.spin_once(timeout_sec=seconds)
+
+    def wait(self, cond: Callable[[], bool], timeout: float, what: str) -> float:
+        """Spin until ``cond()``; return the monotonic time it held."""
+        deadline = time.monotonic() + timeout
+        while not cond():
+            self.alive()
+            if time.monotonic() > deadline:
+                raise WaitTimeout(f'{what}: not within {timeout:g} s')
+            self.spin(0.02)
+        return time.monotonic()
+
+    # -- what to wait for --------------------------------------------------------------------
+    def recorder_connected(self) -> bool:
+        return self.status.get(RECORDER_STATUS, {}).get('connected') == 'true'
+
+    def lifecycle_state(self, node: str, timeout: float = 2.0) -> str:
+        """The label of ``node``'s lifecycle state ('' when its service does not answer)."""
+        client = self._clients.get(node)
+        if client is None:
+            client = self.node.create_client(self._get_state, f'/{node}/get_state')
+            self._clients[node] = client
+        if not client.service_is_ready():
+            return ''
+        future = client.call_async(self._get_state.Request())
+        deadline = time.monotonic() + timeout
+        while not future.done() and time.monotonic() < deadline:
+            self.spin(0.01)
+        if not future.done():
+            return ''
+        return str(future.result().current_state.label)
+
+    def wait_lifecycle(self, node: str, labels: tuple[str, ...], timeout: float) -> float:
+        """Wait until ``node`` is in one of the lifecycle states ``labels``."""
+        deadline = time.monotonic() + timeout
+        while True:
+            label = self.lifecycle_state(node)
+            if label in labels:
+                return time.monotonic()
+            self.alive()
+            if time.monotonic() > deadline:
+                raise WaitTimeout(f'{node}: lifecycle state {label or "(no answer)"}, not '
+                                  f'{" or ".join(labels)} within {timeout:g} s')
+            self.spin(0.05)
+
+    def subscribers(self, topic: str) -> int:
+        return int(self.node.count_subscribers(topic))
+
+    def publishers(self, topic: str) -> int:
+        return int(self.node.count_publishers(topic))

@@ -1,0 +1,230 @@
+"""Device side of the haptic loop: engagement, clamp -> watchdog -> clamp, loop statistics.
+
+One :class:`DeviceLoop` per device. The offline simulation, the lock-step graph and the
+real-time graph drive the same object (``device_driver`` only converts messages and keeps the
+clock); nothing here knows about ROS or reads a clock itself: every time is passed in (s).
+
+Per device cycle (:meth:`DeviceLoop.tick`):
+
+1. before engagement (no command with a mode other than ZERO yet): the backend idles (zero
+   output; a simulation parks) and the state is flagged ``WATCHDOG | IDLE``;
+2. the first tick after engagement publishes the resting state (status OK): the run's first
+   state, ``t = 0`` of the offline simulation;
+3. from then on: clamp the newest command to ``limit``, fade it towards the fallback when it is
+   stale (:class:`~haptic_topology.device.watchdog.CommandWatchdog`, by the *command age*: the
+   time since the oldest unanswered state was published), clamp again (a damping fallback could
+   exceed the limit), ``write`` it to the backend and ``read`` the device ``dt`` later.
+
+So the applied wrench is finite and within ``limit`` by construction, whatever the commands
+were. Commands enter through :meth:`DeviceLoop.on_command`, already checked for size and
+finiteness by the caller (``nodes.convert``); a command that answers a state this loop never
+published, or an older one than the command held, is not applied.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from haptic_topology.control.laws import ControlMode
+from haptic_topology.device.backend import DeviceBackend, DeviceReading
+from haptic_topology.device.maglev import DeviceStatus, saturate
+from haptic_topology.device.watchdog import CommandWatchdog
+
+#: Publish times kept for the command age and the round trip (states).
+_KEEP = 4096
+#: Round-trip samples kept for the run's percentiles (10 min at 1 kHz).
+_RTT_KEEP = 600_000
+
+
+def period_ns(period: float) -> int:
+    """A device period (s) in integer nanoseconds (the clock's unit)."""
+    return int(round(period * 1e9))
+
+
+def ns_to_seconds(ns: int) -> float:
+    """Integer nanoseconds as seconds, computed exactly as from a ROS stamp
+    (``sec + 1e-9 * nanosec``), so the offline simulation and the lock-step graph, whose
+    messages carry such stamps, integrate over the same floating-point intervals."""
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return float(sec) + 1e-9 * float(nanosec)
+
+
+class CommandVerdict:
+    """What :meth:`DeviceLoop.on_command` did with a command (diagnostics count them)."""
+
+    APPLIED = 'applied'
+    OLD = 'old'                  # older than (or the same as) the command held
+    UNKNOWN_STATE = 'unknown'    # answers a state this loop never published
+
+
+@dataclass(frozen=True)
+class DeviceTick:
+    """One published device state: ``seq`` (from 1), ``run_index`` (0 at the first engaged
+    state, -1 while idle), the backend's reading, the wrench written (N, N m) and status."""
+
+    seq: int
+    run_index: int
+    reading: DeviceReading
+    applied: np.ndarray
+    status: DeviceStatus
+
+
+class DeviceLoop:
+    """Engagement, the clamp/watchdog/clamp pipeline and loop statistics of one device."""
+
+    def __init__(self, backend: DeviceBackend, limit: np.ndarray, watchdog: CommandWatchdog,
+                 period: float) -> None:
+        limit = np.asarray(limit, dtype=float)
+        if not (math.isfinite(period) and period > 0.0):
+            raise ValueError(f'period must be > 0 s, got {period}')
+        self.backend = backend
+        self.limit = limit
+        self.watchdog = watchdog
+        self.period = period
+        m = limit.size
+        self.seq = 0
+        self.engaged_seq = 0          # the idle state whose answer engaged the device
+        self.run_index = -1
+        self._cmd = np.zeros(m)
+        self._cmd_seq = 0
+        self._twist = np.zeros(m)
+        self._publish_times = np.zeros(_KEEP)
+        self._rtt = np.zeros(_RTT_KEEP)
+        self._rtt_n = 0
+        self.answered = 0             # the command for state k arrived before tick k+1
+        self.answered_previous = 0    # ... or the one for state k-1
+        self.expected = 0
+        self.rejected_seq = 0
+        self.saturated_cycles = 0
+        self.max_applied = np.zeros(m)
+
+    @property
+    def engaged(self) -> bool:
+        return self.engaged_seq > 0
+
+    # -- commands ----------------------------------------------------------------------------
+    def on_command(self, state_seq: int, mode: int, wrench: np.ndarray, now: float,
+                   may_engage: bool = True) -> str:
+        """Take a controller command answering state ``state_seq`` that arrived at ``now``
+        (s, the clock of :meth:`tick`); ``may_engage``: whether a non-ZERO mode may engage
+        the device now (e.g. enough subscribers see the state). Returns a
+        :class:`CommandVerdict` value."""
+        if state_seq > self.seq or state_seq < 1:
+            self.rejected_seq += 1
+            return CommandVerdict.UNKNOWN_STATE
+        if state_seq > self.seq - _KEEP:
+            self._rtt[self._rtt_n % _RTT_KEEP] = now - self._publish_times[state_seq % _KEEP]
+            self._rtt_n += 1
+        if state_seq <= self._cmd_seq:
+            return CommandVerdict.OLD
+        if not self.engaged and mode != ControlMode.ZERO and may_engage:
+            self.engaged_seq = state_seq
+        self._cmd = wrench
+        self._cmd_seq = state_seq
+        return CommandVerdict.APPLIED
+
+    @property
+    def answered_current(self) -> bool:
+        """Whether the newest published state has its answer (lock-step steps on this)."""
+        return self.seq > 0 and self._cmd_seq >= self.seq
+
+    def command_age(self, now: float) -> float:
+        """Seconds since the oldest state without an answer was published (0 when the newest
+        state is answered): how long the controller has been silent, not counting the
+        device's own late ticks."""
+        if self._cmd_seq >= self.seq:
+            return 0.0
+        oldest = self._cmd_seq + 1
+        if self.seq - oldest >= _KEEP:
+            return math.inf
+        return max(0.0, now - float(self._publish_times[oldest % _KEEP]))
+
+    # -- cycle -------------------------------------------------------------------------------
+    def tick(self, now: float, dt: float) -> DeviceTick:
+        """One device cycle at ``now`` (s), ``dt`` (s) after the previous one; returns the
+        state to publish (see module doc)."""
+        status = DeviceStatus.OK
+        u = np.zeros(self.limit.size)
+        if not self.engaged:
+            reading = self.backend.idle(dt)
+            status |= DeviceStatus.WATCHDOG | DeviceStatus.IDLE
+        elif self.run_index < 0:
+            self.run_index = 0
+            reading = self.backend.idle(dt)
+        else:
+            self.run_index += 1
+            self.expected += 1
+            if self._cmd_seq == self.seq:
+                self.answered += 1
+            if self._cmd_seq >= self.seq - 1:
+                self.answered_previous += 1
+            cmd, saturated = saturate(self._cmd, self.limit)
+            # The fade advances by at most two nominal periods per tick, so one late tick
+            # cannot step the output by more than 2 * limit * period / ramp_time.
+            u = self.watchdog.step(cmd, self.command_age(now), self._twist,
+                                   min(dt, 2.0 * self.period))
+            u, saturated_out = saturate(u, self.limit)
+            if self.watchdog.active:
+                status |= DeviceStatus.WATCHDOG
+            if saturated or saturated_out:
+                status |= DeviceStatus.SATURATED
+                self.saturated_cycles += 1
+            np.maximum(self.max_applied, np.abs(u), out=self.max_applied)
+            self.backend.write(u)
+            reading = self.backend.read(dt)
+        self._twist = reading.twist
+        self.seq += 1
+        self._publish_times[self.seq % _KEEP] = now
+        return DeviceTick(self.seq, self.run_index if self.engaged else -1, reading, u,
+                          DeviceStatus(status | reading.status))
+
+    # -- statistics --------------------------------------------------------------------------
+    def figures(self) -> dict[str, float]:
+        """Answered fractions and round-trip percentiles (ms) over the run so far."""
+        n = min(self._rtt_n, _RTT_KEEP)
+        rtt = self._rtt[:n]
+        exp = self.expected
+        return {
+            'answered_fraction': self.answered / exp if exp else math.nan,
+            'answered_or_previous_fraction': self.answered_previous / exp if exp else math.nan,
+            'round_trip_p50_ms': 1e3 * float(np.percentile(rtt, 50)) if n else math.nan,
+            'round_trip_p99_ms': 1e3 * float(np.percentile(rtt, 99)) if n else math.nan,
+            'round_trip_max_ms': 1e3 * float(rtt.max()) if n else math.nan,
+        }
+
+    def values(self, now: float) -> dict[str, str]:
+        """Loop figures as diagnostics key/values."""
+        f = self.figures()
+        return {
+            'seq': str(self.seq),
+            'engaged_seq': str(self.engaged_seq),
+            'answered_in_time': str(self.answered),
+            'answer_expected': str(self.expected),
+            'answered_fraction': f'{f["answered_fraction"]:.5f}',
+            'answered_or_previous_fraction': f'{f["answered_or_previous_fraction"]:.5f}',
+            'round_trip_max_ms': f'{f["round_trip_max_ms"]:.3f}',
+            'round_trip_p50_ms': f'{f["round_trip_p50_ms"]:.3f}',
+            'round_trip_p99_ms': f'{f["round_trip_p99_ms"]:.3f}',
+            'command_age_cycles': str(self.seq - self._cmd_seq if self._cmd_seq else -1),
+            'command_age_ms': f'{1e3 * self.command_age(now):.2f}',
+            'rejected_seq': str(self.rejected_seq),
+            'watchdog_trips': str(self.watchdog.trips),
+            'watchdog_cycles': str(self.watchdog.stale_cycles),
+            'watchdog_scale': f'{self.watchdog.scale:.3f}',
+            'saturated_cycles': str(self.saturated_cycles),
+            'max_abs_applied': ' '.join(f'{v:.4g}' for v in self.max_applied),
+            'wrench_limit': ' '.join(f'{v:.4g}' for v in self.limit),
+        }
+
+    def health(self) -> tuple[int, str]:
+        """``(level, message)`` for diagnostics (0 OK, 1 WARN)."""
+        if not self.engaged:
+            return 1, 'idle: no controller engaged yet'
+        if self.watchdog.stale:
+            return 1, 'watchdog: commands stale, output faded to the fallback'
+        if self.watchdog.active:
+            return 1, 'watchdog: fading back in'
+        return 0, 'ok'
