@@ -187,7 +187,13 @@ class VeSimConfig:
 
 
 def resolve_ve_sim(s: VeSimSettings, sc: Scenario) -> VeSimConfig:
-    """``ve_sim``'s configuration: ``update_period`` 0 -> the scenario's lmi.update_period."""
+    """``ve_sim``'s configuration: ``update_period`` 0 -> the scenario's lmi.update_period
+    (with ``clock: lockstep`` no other value: the controller expects the scenario's)."""
+    if (Clock.parse(s.clock) is Clock.LOCKSTEP and s.update_period
+            and s.update_period != sc.update_period):
+        raise ConfigError(f've_sim: parameter update_period: clock lockstep needs 0 or the '
+                          f"scenario's lmi.update_period {sc.update_period}, got "
+                          f'{s.update_period}')
     return VeSimConfig(
         settings=s, scenario=sc, clock=Clock.parse(s.clock),
         update_period=s.update_period if s.update_period else sc.update_period,

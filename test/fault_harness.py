@@ -36,9 +36,9 @@ from haptic_topology.paths import config_dir
 
 PARAMS = config_dir() / 'haptic_topology.yaml'
 SCENARIO = 'circle'
-ENGAGED = 'controller engaged at state'
-CONNECTED = 'recorder connected'
-RECORDING = 'recording to'
+#: Longest wait (s) for the graph to do what it should (start, engage, recover): generous, so
+#: a slow or loaded machine runs the sequence slower, never differently.
+WAIT = 90.0
 WATCHDOG, IDLE = 4, 16
 #: seq / state_seq of every message the injector publishes (so the analysis can tell them apart).
 INJECTED_SEQ = 10 ** 9
@@ -111,18 +111,11 @@ class Graph:
         self.procs[name] = proc
         return proc
 
-    def wait_for(self, name: str, mark: str, timeout: float = 60.0) -> float:
-        proc = self.procs[name]
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if mark in proc.text():
-                return time.time()
-            for p in self.procs.values():
-                if p.popen.poll() is not None:
-                    raise RuntimeError(f'{p.name} exited ({p.popen.returncode}):\n'
-                                       f'{p.text()[-2000:]}')
-            time.sleep(0.02)
-        raise RuntimeError(f'{name}: no "{mark}" within {timeout} s:\n{proc.text()[-2000:]}')
+    def check_alive(self) -> None:
+        for p in self.procs.values():
+            if p.popen.poll() is not None and p.popen.returncode not in (-9,):
+                raise RuntimeError(f'{p.name} exited ({p.popen.returncode}):\n'
+                                   f'{p.text()[-2000:]}')
 
     def signal(self, name: str, sig: int) -> None:
         self.procs[name].popen.send_signal(sig)
@@ -183,11 +176,35 @@ class Injector:
         self._bad_commands: dict[str, dict[str, Any]] = {}
         self._bad_keys: list[str] = []
         n.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state, common.QOS_LOOP)
+        from diagnostic_msgs.msg import DiagnosticArray
+        n.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS, self._on_diagnostics,
+                              common.QOS_DIAGNOSTICS)
+        self.status: dict[str, dict[str, str]] = {}
+        self.last_running_state = -math.inf      # monotonic time of the newest running state
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        for st in msg.status:
+            self.status[st.name] = {kv.key: kv.value for kv in st.values}
+
+    def value(self, status: str, key: str, default: str = '') -> str:
+        return self.status.get(status, {}).get(key, default)
+
+    def wait(self, cond: Any, what: str, alive: Any, timeout: float = WAIT) -> float:
+        """Spin until ``cond()`` (checking ``alive()``); return the wall time it held."""
+        deadline = time.monotonic() + timeout
+        while not cond():
+            alive()
+            if time.monotonic() > deadline:
+                raise RuntimeError(f'{what}: not within {timeout:g} s; status {self.status}')
+            self.executor.spin_once(timeout_sec=0.02)
+        return time.time()
 
     def _count(self, key: str) -> None:
         self.counts[key] = self.counts.get(key, 0) + 1
 
     def _on_state(self, msg: Any) -> None:
+        if not msg.status & IDLE and int(msg.seq) != INJECTED_SEQ:
+            self.last_running_state = time.monotonic()
         if self._huge and not msg.status & IDLE:
             cmd_t = self.types[0]
             self.cmd_pub.publish(cmd_t(state_seq=msg.seq, task_dim=3, mode=0,
@@ -272,22 +289,41 @@ class Injector:
 
 
 def run_faults(out: Path) -> FaultRun:
-    """The fault sequence of the module doc; every wait bounded."""
+    """The fault sequence of the module doc. Each step waits for the graph to be back (the
+    nodes' ``/diagnostics`` and the device's running states), with a generous deadline, so a
+    slow machine runs the sequence slower, never differently."""
     run = FaultRun(out)
     g = Graph(out)
     injector: Injector | None = None
+    ctl, dev, rec = 'lmi_controller: loop', 'device_driver: loop', 'recorder: bag'
     try:
         injector = Injector()
-        for name in ('recorder', 've_sim', 'lmi_controller'):
-            g.start(name)
-            if name == 'recorder':
-                g.wait_for('recorder', RECORDING)
-        g.wait_for('recorder', CONNECTED)
+        inj = injector
+
+        def wait(cond: Any, what: str) -> float:
+            return inj.wait(cond, what, g.check_alive)
+
+        def controller_back(key: str = '', least: int = 0) -> bool:
+            return (inj.value(ctl, 'model') == 'fresh'
+                    and inj.value(ctl, 'force_scale') == '1.000'
+                    and (not key or int(inj.value(ctl, key, '0')) >= least))
+
+        def engaged_since(t: float) -> bool:
+            return inj.last_running_state > t
+
+        g.start('recorder')
+        wait(lambda: rec in inj.status, 'recorder reporting')
+        g.start('ve_sim')
+        g.start('lmi_controller')
+        wait(lambda: inj.value(rec, 'connected') == 'true', 'recorder connected')
+        t = time.monotonic()
         g.start('device_driver')
-        g.wait_for('device_driver', ENGAGED)
+        wait(lambda: engaged_since(t), 'device engaged')
         injector.spin(1.5)
 
         run.events['watchdog'] = g.pause('lmi_controller', 0.1)
+        inj.status.pop(dev, None)
+        wait(lambda: inj.value(dev, 'watchdog_scale') == '1.000', 'device faded back in')
         injector.spin(1.0)
 
         t0 = time.time()
@@ -296,21 +332,30 @@ def run_faults(out: Path) -> FaultRun:
         injector.spin(1.0)
 
         run.events['ve_stop'] = g.pause('ve_sim', 1.0)
-        injector.spin(2.0)
+        inj.status.pop(ctl, None)
+        wait(lambda: controller_back('degradations', 1), 'controller re-synced after ve_stop')
+        injector.spin(1.0)
 
-        for name in ('ve_sim', 'lmi_controller', 'device_driver'):
+        for name, back in (
+                ('ve_sim', lambda: controller_back('ve_restarts', 1)),
+                ('lmi_controller', controller_back),
+                ('device_driver', lambda: controller_back('device_sessions', 2))):
             t0 = time.time()
             g.kill(name)
+            inj.status.pop(ctl, None)
+            t = time.monotonic()
             g.start(name)
             if name == 'device_driver':
-                g.wait_for('device_driver', ENGAGED)
+                wait(lambda t=t: engaged_since(t), 'restarted device engaged')
+            wait(back, f'loop back after restarting {name}')
             run.events[f'kill_{name}'] = (t0, time.time())
-            injector.spin(5.0)
+            injector.spin(2.0)
 
         t0 = time.time()
         g.kill('recorder')
+        inj.status.pop(rec, None)
         g.start('recorder')
-        g.wait_for('recorder', RECORDING)
+        wait(lambda: inj.value(rec, 'connected') == 'true', 'restarted recorder connected')
         run.events['kill_recorder'] = (t0, time.time())
         injector.spin(2.0)
     finally:

@@ -121,7 +121,8 @@ def test_recorder_parameters_are_checked_in_params_files(tmp_path: Path) -> None
     bad = tmp_path / 'bad.yaml'
     bad.write_text('recorder:\n  ros__parameters:\n    chunk_kb: 128\n', encoding='utf-8')
     with pytest.raises(ConfigError, match=r'recorder\.ros__parameters\.chunk_kb: unknown '
-                       r'parameter of recorder \(expected one of: chunk_kib, clock, compression, '):
+                       r'parameter of recorder \(expected one of: chunk_kib, clock, '
+                       r'compression, '):
         check_params_file(bad, KNOWN)
     bad.write_text('recorder:\n  ros__parameters:\n    flush_period: 1\n', encoding='utf-8')
     with pytest.raises(ConfigError, match=r'flush_period: expected a double \(write 1\.0\)'):

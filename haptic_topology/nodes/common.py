@@ -8,12 +8,12 @@ topic                         QoS                               why
 ``haptic/device/state``       best effort, keep last 1          1 kHz; the newest state counts
 ``haptic/device/command``     best effort, keep last 1          1 kHz; a late command is useless,
                                                                 the device applies the newest
-``haptic/hand``               reliable, keep last 200           the VE integrates every input
+``haptic/hand``               reliable, keep last 1000          the VE integrates every input
                                                                 (zero-order hold between them);
                                                                 a lost one would bend the VT path.
                                                                 Not on the device's critical path,
                                                                 so a retransmission costs nothing
-``haptic/lmi/update``,        reliable, keep last 10            ~100 Hz; each update re-syncs;
+``haptic/lmi/update``,        reliable, keep last 1000          ~100 Hz; each update re-syncs;
 ``haptic/ve/path``                                              the VT hand at every cycle
 ``/clock``                    best effort, keep last 1          lock-step only: simulated time
 ``haptic/joint_states``,      reliable, keep last 5             visualisation, ~30 Hz
@@ -91,8 +91,10 @@ QOS_LOOP = _qos(False, 1)         # state, command
 #: Lock-step: the device steps only on the answer, so nothing may be lost (and nothing waits).
 QOS_LOOP_LOCKSTEP = _qos(True, 100)
 QOS_CLOCK = _qos(False, 1)
-QOS_HAND = _qos(True, 200)
-QOS_LMI = _qos(True, 10)
+#: Reliable topics keep 1 s of 1 kHz messages: a reader (the recorder) that falls behind by
+#: less than that loses nothing (a keep-last writer overwrites what is not acknowledged).
+QOS_HAND = _qos(True, 1000)
+QOS_LMI = _qos(True, 1000)
 QOS_VIZ = _qos(True, 5)
 QOS_DIAGNOSTICS = _qos(True, 10)
 QOS_RECORD_BEST_EFFORT = _qos(False, 1000)

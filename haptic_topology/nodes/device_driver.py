@@ -64,7 +64,7 @@ class DeviceDriver(LifecycleNode):
         self.loop: DeviceLoop | None = None
         self.fault = ''
         self.rejected = RejectCounter()
-        self._timers: list[Any] = []
+        self._loop_timers: list[Any] = []
         self._msg = DeviceState()
         self._clock_msg = ClockMsg()
         self._last: float | None = None
@@ -103,9 +103,9 @@ class DeviceDriver(LifecycleNode):
             self.backend.deactivate()
             return self._fail(str(exc))
         tick = self._tick_idle if self.lockstep else self._tick_wall
-        self._timers = [self.create_timer(self.cfg.period, tick, clock=self.steady)]
+        self._loop_timers = [self.create_timer(self.cfg.period, tick, clock=self.steady)]
         if self.lockstep:
-            self._timers.append(self.create_timer(self.cfg.lockstep_warn_after,
+            self._loop_timers.append(self.create_timer(self.cfg.lockstep_warn_after,
                                                   self._warn_stalled, clock=self.steady))
             self._publish_clock(0)
         c = self.cfg
@@ -133,9 +133,9 @@ class DeviceDriver(LifecycleNode):
         return FAILURE
 
     def _stop_output(self) -> None:
-        for t in self._timers:
+        for t in self._loop_timers:
             self.destroy_timer(t)
-        self._timers = []
+        self._loop_timers = []
         if self.backend is not None:
             try:
                 self.backend.write(np.zeros(self.cfg.task_dim))
@@ -149,7 +149,7 @@ class DeviceDriver(LifecycleNode):
     # -- loop --------------------------------------------------------------------------------
     def _on_command(self, msg: DeviceCommand) -> None:
         loop = self.loop
-        if loop is None or not self._timers:
+        if loop is None or not self._loop_timers:
             return
         try:
             state_seq, mode, wrench = command_from_msg(msg, self.cfg.scenario.linkage.task)
@@ -229,7 +229,7 @@ class DeviceDriver(LifecycleNode):
 
     def close(self) -> None:
         """Zero and release the device (called on shutdown)."""
-        if self._timers:
+        if self._loop_timers:
             self._stop_output()
 
 
