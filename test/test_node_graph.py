@@ -28,7 +28,7 @@ pytestmark = pytest.mark.graph
 
 TEST_DIR = Path(__file__).resolve().parent
 PARAMS = config_dir() / 'haptic_topology.yaml'
-DURATION = 3.0
+DURATION = 2.0
 
 
 def _graph_run(tmp_path: Path, scenario: str, mode: str, duration: float,

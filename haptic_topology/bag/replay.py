@@ -461,7 +461,6 @@ def check_controller(bag_path: str | Path, params: Path,
                 time.sleep(0.05)
             pubs.wait_for_subscribers(pubs.pubs, max(deadline - time.monotonic(), 0.1))
             stats = pubs.publish_lockstep(cp.items, answered, live)
-            time.sleep(0.5)
         finally:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)

@@ -65,18 +65,15 @@ class DeviceDriver(LifecycleNode):
         self.fault = ''
         self.rejected = RejectCounter()
         self._loop_timers: list[Any] = []
-        self._msg = DeviceState()
-        self._clock_msg = ClockMsg()
-        self._last: float | None = None
+        self._msg, self._clock_msg = DeviceState(), ClockMsg()
         self._state_wall = 0.0
         self.stats = common.LoopStats(self.cfg.period)
-        self.state_pub = self.create_publisher(DeviceState, common.TOPIC_STATE,
-                                               common.loop_qos(self.cfg.clock))
+        qos = common.loop_qos(self.cfg.clock)
+        self.state_pub = self.create_publisher(DeviceState, common.TOPIC_STATE, qos)
         self.clock_pub = self.create_publisher(ClockMsg, common.TOPIC_CLOCK, common.QOS_CLOCK)
         self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                               common.QOS_DIAGNOSTICS)
-        self.create_subscription(DeviceCommand, common.TOPIC_COMMAND, self._on_command,
-                                 common.loop_qos(self.cfg.clock))
+        self.create_subscription(DeviceCommand, common.TOPIC_COMMAND, self._on_command, qos)
         self.create_timer(1.0, self._publish_diagnostics, clock=self.steady)
         if s.autostart:
             for step in (self.trigger_configure, self.trigger_activate):
@@ -90,9 +87,9 @@ class DeviceDriver(LifecycleNode):
             self.backend.configure(self.cfg.backend_config())
         except HapticTopologyError as exc:
             return self._fail(str(exc))
-        m = self.cfg.task_dim
         self.loop = DeviceLoop(self.backend, self.cfg.wrench_limit,
-                               CommandWatchdog(self.cfg.watchdog, m), self.cfg.period)
+                               CommandWatchdog(self.cfg.watchdog, self.cfg.task_dim),
+                               self.cfg.period)
         return SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -102,29 +99,23 @@ class DeviceDriver(LifecycleNode):
         except DeviceError as exc:
             self.backend.deactivate()
             return self._fail(str(exc))
-        tick = self._tick_idle if self.lockstep else self._tick_wall
-        self._loop_timers = [self.create_timer(self.cfg.period, tick, clock=self.steady)]
-        if self.lockstep:
-            self._loop_timers.append(self.create_timer(self.cfg.lockstep_warn_after,
-                                                  self._warn_stalled, clock=self.steady))
-            self._publish_clock(0)
         c = self.cfg
-        self.get_logger().info(
-            f'active: backend {c.backend}, scenario {c.scenario.name}, {c.rate_hz:g} Hz '
-            f'{c.clock.value}, limit {c.wrench_limit.tolist()}, watchdog '
-            f'{c.watchdog.timeout * 1e3:g} ms -> {c.watchdog.fallback.value}')
+        timers = [(c.period, self._tick_idle if self.lockstep else self._tick_wall)]
+        if self.lockstep:
+            timers.append((c.lockstep_warn_after, self._warn_stalled))
+            self._publish_clock(0)
+        self._loop_timers = [self.create_timer(p, cb, clock=self.steady) for p, cb in timers]
+        self.get_logger().info(f'active: backend {c.backend}, {c.rate_hz:g} Hz {c.clock.value}')
         return SUCCESS
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stop_output()
         return SUCCESS
 
+    on_shutdown = on_deactivate
+
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.loop = self.backend = None
-        return SUCCESS
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._stop_output()
         return SUCCESS
 
     def _fail(self, text: str) -> TransitionCallbackReturn:

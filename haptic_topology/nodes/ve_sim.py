@@ -33,17 +33,15 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
-from geometry_msgs.msg import Point
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import MarkerArray
 
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
-from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes import common, node_params, viz
 from haptic_topology.nodes.convert import (
     MessageError,
     RejectCounter,
@@ -176,68 +174,12 @@ class VeSim(Node):
         msg.hand_pose = np.concatenate([x for _, x in path]).tolist()
         self.path_pub.publish(msg)
 
-    # -- visualisation ---------------------------------------------------------------------
-    def _joint_points(self, q: np.ndarray) -> list[Point]:
-        dyn = self._viz_dyn
-        pin.framesForwardKinematics(dyn.model, dyn.data, q)
-        pts = [np.array(dyn.data.oMi[j].translation) for j in range(1, dyn.model.njoints)]
-        last = self.scenario.linkage.links[-1]
-        pts.append(np.array(dyn.data.oMi[dyn.model.njoints - 1].act(
-            np.array([last.length, 0.0, 0.0]))))
-        return [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in pts]
-
     def _publish_viz(self) -> None:
         stamp = self.get_clock().now().to_msg()
-        q, dq = self.ve.q, self.ve.dq
-        js = JointState()
-        js.header.stamp = stamp
-        js.name = list(self.scenario.linkage.link_names)
-        js.position = q.tolist()
-        js.velocity = dq.tolist()
-        self.joint_pub.publish(js)
-        frame = self.cfg.frame_id
-        hand = self._viz_dyn.hand_placement(q).translation
-        markers = MarkerArray()
-
-        def marker(mid: int, ns: str, kind: int, rgb: tuple[float, float, float],
-                   scale: float) -> Marker:
-            mk = Marker()
-            mk.header.stamp = stamp
-            mk.header.frame_id = frame
-            mk.ns, mk.id, mk.type, mk.action = ns, mid, kind, Marker.ADD
-            mk.pose.orientation.w = 1.0
-            mk.scale.x = mk.scale.y = mk.scale.z = scale
-            mk.color.r, mk.color.g, mk.color.b = rgb
-            mk.color.a = 1.0
-            return mk
-
-        link = marker(0, 'linkage', Marker.LINE_STRIP, (0.2, 0.4, 0.9), 0.004)
-        link.points = self._joint_points(q)
-        grasp = marker(1, 'grasp', Marker.SPHERE, (0.1, 0.8, 0.1), 0.006)
-        grasp.pose.position = Point(x=float(hand[0]), y=float(hand[1]), z=float(hand[2]))
-        markers.markers = [link, grasp]
-        if self._device_pose is not None:
-            dev = marker(2, 'device', Marker.SPHERE, (0.9, 0.2, 0.2), 0.006)
-            z = float(self._device_pose[2]) if self.task.dim == 6 else 0.0
-            dev.pose.position = Point(x=float(self._device_pose[0]),
-                                      y=float(self._device_pose[1]), z=z)
-            markers.markers.append(dev)
-        snap = self._last_snap
-        rows = self.task.translation_rows
-        for i in range(snap.left_vectors.shape[1]):
-            arrow = marker(10 + i, 'constraint', Marker.ARROW, (1.0, 0.6, 0.0), 0.002)
-            direction = snap.left_vectors[rows, i]
-            norm = float(np.linalg.norm(direction))
-            if snap.weights[i] <= 0.0 or norm < 1e-9:
-                arrow.action = Marker.DELETE
-            else:
-                tip = hand.copy()
-                tip[: direction.size] += 0.02 * float(snap.weights[i]) * direction / norm
-                arrow.points = [Point(x=float(hand[0]), y=float(hand[1]), z=float(hand[2])),
-                                Point(x=float(tip[0]), y=float(tip[1]), z=float(tip[2]))]
-                arrow.scale.y = arrow.scale.z = 0.004
-            markers.markers.append(arrow)
-        self.marker_pub.publish(markers)
+        q = self.ve.q
+        self.joint_pub.publish(viz.joint_state(self.scenario.linkage, q, self.ve.dq, stamp))
+        self.marker_pub.publish(viz.linkage_markers(
+            self._viz_dyn, q, self._device_pose, self._last_snap, self.cfg.frame_id, stamp))
 
     def _publish_diagnostics(self) -> None:
         values = self.stats.values('input_')
