@@ -63,9 +63,9 @@ def test_eq14_adds_penalties_only_along_the_constraint_directions() -> None:
     extra = u14 - u10
     assert np.linalg.norm(extra) > 0.0
     # the extra wrench, seen through J_h^T (what the linkage can feel), is zero:
-    # it lies along N(J_h^T) only
-    np.testing.assert_allclose(dyn.hand_jacobian(q).T @ (extra * cons.task_scale ** 2), 0.0,
-                               atol=1e-12)
+    # it lies along N(J_h^T) only (plain Euclidean: it does no work on allowed motion; before
+    # issue 12 this held only with the rotation row weighted by L_c^2)
+    np.testing.assert_allclose(dyn.hand_jacobian(q).T @ extra, 0.0, atol=1e-12)
     # and it is k_tc times the error's constrained component
     np.testing.assert_allclose(extra, 200.0 * proj @ err, atol=1e-12)
 

@@ -29,7 +29,7 @@ from scipy.linalg import cho_factor, cho_solve
 from haptic_topology.dynamics.constraints import ConstraintDirections, task_scale
 from haptic_topology.dynamics.linkage_dynamics import DynamicsSnapshot
 from haptic_topology.dynamics.taskspace import integrate_pose
-from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.model.linkage import PenaltyDirection, TaskSpace
 
 
 class LmiModel(enum.Enum):
@@ -58,6 +58,8 @@ class LmiSnapshot:
     characteristic_length: float
     hand_pose: np.ndarray           # m
     hand_twist: np.ndarray          # m
+    # Not in LmiUpdate (yet): the receiver's linkage setting decides it (see sync).
+    penalty_direction: PenaltyDirection = PenaltyDirection.NULLSPACE
 
     @classmethod
     def from_dynamics(cls, snap: DynamicsSnapshot, task: TaskSpace, characteristic_length: float,
@@ -65,12 +67,15 @@ class LmiSnapshot:
         c = snap.constraints
         return cls(seq, hand_input_seq, task, snap.q, snap.dq, snap.mass_matrix, snap.gravity,
                    snap.hand_jacobian, c.singular_values, c.left_vectors, c.weights, c.count,
-                   characteristic_length, snap.hand_pose, snap.hand_twist)
+                   characteristic_length, snap.hand_pose, snap.hand_twist, c.direction)
 
     def constraints(self) -> ConstraintDirections:
+        """The VE's directions of topological constraint (eq. 18) with this update's
+        ``penalty_direction``: the LMI's projector of eq. 13 is built from them."""
         return ConstraintDirections(self.singular_values, self.left_vectors, self.weights,
                                     self.constraint_count,
-                                    task_scale(self.task, self.characteristic_length))
+                                    task_scale(self.task, self.characteristic_length),
+                                    self.penalty_direction)
 
 
 @dataclass

@@ -16,10 +16,22 @@ by the same factor scales every ``sigma_i`` by that factor: the decision is inde
 unit of length. ``S`` is invertible, so it does not change ``N(J_h^T)``; ``W`` maps it
 (``N(J_w^T) = W^-1 N(J_h^T)``), so an exactly singular ``J_h`` is detected exactly.
 
-The penalty of eq. 13, ``M_d sum_i (k_tc n_i^T e + b_tc n_i^T e_dot) n_i``, is applied in the
-weighted coordinates ``e_w = W e`` and mapped back, i.e. with the projector
-``P = W^-1 U_w diag(w) U_w^T W``. With ``L_c = 1`` and hard switching this is the paper's
-formula exactly.
+The penalty of eq. 13, ``M_d sum_i (k_tc n_i^T e + b_tc n_i^T e_dot) n_i``, acts along an
+orthonormal basis ``n_i`` of ``N(J_h^T)`` (``penalty_direction: nullspace``, the default): the
+weighting decides only the rank, i.e. how many directions are constrained. The directions are
+``W u_i`` for the constrained columns ``u_i`` of ``U_w`` (``N(J_w^T) = W^-1 N(J_h^T)``),
+orthonormalised in the plain Euclidean sense, so the penalty force ``f`` satisfies
+``f . (J_h qd) = 0`` for every joint rate ``qd``: it does no work on any motion the linkage
+allows (force x velocity is power, whatever the units; N m/rad . rad/s = W). Inside the
+tolerance band (``J_h`` nearly but not exactly singular) the ``n_i`` span the left null space
+of the rank-r truncation of ``J_h`` that the weighted SVD chose. The projector is
+``P = sum_i w_i n_i n_i^T`` (symmetric, 0 <= P <= I).
+
+``penalty_direction: weighted`` keeps the projector used before issue 12,
+``P = W^-1 U_w diag(w) U_w^T W``: the penalty in the weighted coordinates ``e_w = W e``
+mapped back. Its force lies along ``W^-1 m`` instead of ``W m`` (m in ``N(J_w^T)``): tilted off
+``N(J_h^T)`` by up to ~48 deg with Table I's L_c = 0.114 m, so it does work on allowed motion.
+With ``L_c = 1`` both settings are the paper's formula.
 
 Switching: with ``blend = 0`` a direction is either fully penalised (w = 1) or free (w = 0), as
 in the paper, so the penalty switches on abruptly when the linkage enters the tolerance band.
@@ -33,7 +45,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from haptic_topology.model.linkage import ConstraintSettings, JointType, Linkage, TaskSpace
+from haptic_topology.model.linkage import (
+    ConstraintSettings,
+    JointType,
+    Linkage,
+    PenaltyDirection,
+    TaskSpace,
+)
 
 
 @dataclass(frozen=True)
@@ -46,6 +64,7 @@ class ConstraintDirections:
         weights: penalty weight in [0, 1] of each column of ``U_w``.
         count: t = m - rank(J_h), the number of directions of topological constraint.
         task_scale: diagonal of ``W`` (m entries).
+        direction: the directions the penalty of eq. 13 acts along (see module docstring).
     """
 
     singular_values: np.ndarray
@@ -53,12 +72,24 @@ class ConstraintDirections:
     weights: np.ndarray
     count: int
     task_scale: np.ndarray
+    direction: PenaltyDirection = PenaltyDirection.NULLSPACE
 
     def projector(self) -> np.ndarray:
-        """``P = W^-1 U diag(w) U^T W`` (m x m): picks the constrained part of a task error."""
+        """Penalty projector of eq. 13 (m x m, task coordinates): ``sum_i w_i n_i n_i^T``.
+
+        ``nullspace``: ``n_i`` an orthonormal basis of ``N(J_h^T)`` (Euclidean), the most
+        constrained direction first; ``weighted``: ``W^-1 U diag(w) U^T W``.
+        """
         u = self.left_vectors
-        pw = (u * self.weights) @ u.T
-        return (pw * self.task_scale[None, :]) / self.task_scale[:, None]
+        if self.direction is PenaltyDirection.WEIGHTED:
+            pw = (u * self.weights) @ u.T
+            return (pw * self.task_scale[None, :]) / self.task_scale[:, None]
+        # Columns of U_w are in descending singular value: the most constrained is last.
+        order = [i for i in range(u.shape[1] - 1, -1, -1) if self.weights[i] > 0.0]
+        if not order:
+            return np.zeros((u.shape[0], u.shape[0]))
+        basis, _ = np.linalg.qr(self.task_scale[:, None] * u[:, order])   # W u_i -> n_i
+        return (basis * self.weights[order]) @ basis.T
 
 
 def task_scale(task: TaskSpace, characteristic_length: float) -> np.ndarray:
@@ -90,6 +121,9 @@ def constraint_directions(jacobian: np.ndarray, task: TaskSpace, settings: Const
                           column_scale: np.ndarray | None = None) -> ConstraintDirections:
     """Directions of topological constraint ``N(J_h^T)`` from the weighted SVD (eq. 13, 18).
 
+    The rank decision uses ``J_w = W J_h S`` (L_c in m); the penalty directions follow
+    ``settings.penalty_direction`` (see :meth:`ConstraintDirections.projector`).
+
     Args:
         jacobian: ``J_h`` (m x d), rows (vx, vy, wz) planar or (v, w) spatial.
         task: planar or spatial.
@@ -114,4 +148,4 @@ def constraint_directions(jacobian: np.ndarray, task: TaskSpace, settings: Const
     # Rows beyond min(m, d) have no singular value: structurally constrained.
     weights[s.size:] = 1.0
     count = int(np.count_nonzero(ratio < settings.rank_tolerance))
-    return ConstraintDirections(s, u, weights, count, w)
+    return ConstraintDirections(s, u, weights, count, w, settings.penalty_direction)

@@ -100,7 +100,8 @@ class LinkageDynamics:
         Planar rows (vx, vy, wz); spatial rows (vx, vy, vz, wx, wy, wz).
         """
         j = pin.computeFrameJacobian(self.model, self.data, q, self.hand_frame, _LWA)
-        return np.array(j[self._rows, :])
+        # Pinocchio hands a 6x1 Jacobian (one joint) back as a flat vector of 6.
+        return np.asarray(j, dtype=float).reshape(6, self.dof)[self._rows, :]
 
     def hand_twist(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
         """Hand twist ``J_h dq`` (m entries)."""

@@ -6,14 +6,16 @@ from haptic_topology.model.linkage import (
     Linkage,
     LinkageModel,
     LinkSpec,
+    PenaltyDirection,
     TaskSpace,
     build_model,
     linkage_from_dict,
     load_linkage,
+    reach,
     serial_chain,
     to_dict,
 )
 
 __all__ = ['ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage', 'LinkageModel',
-           'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage', 'serial_chain',
-           'to_dict']
+           'PenaltyDirection', 'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage',
+           'reach', 'serial_chain', 'to_dict']

@@ -6,9 +6,11 @@ mass, COM); that grasp frame is where the hand Jacobian ``J_h`` of eq. 1 and eq.
 
 Frames and units: SI throughout (m, kg, kg m^2, rad). Link ``i``'s frame sits at joint ``i``.
 In a *planar* linkage every revolute joint turns about the world z axis, every prismatic joint
-slides along its link's x axis, and the task space is (x, y, theta) of the grasp frame; a link's
-next joint sits ``length`` along its x axis. In a *spatial* linkage joint axes and placements
-are given explicitly and the task space is the 6-D twist (v, w) of the grasp frame.
+slides in the xy plane (default: along its link's x axis), and the task space is (x, y, theta)
+of the grasp frame; a link's next joint sits ``length`` along its x axis unless an ``origin``
+places it (rotations about z only). In a *spatial* linkage joint axes and placements are given
+explicitly and the task space is the 6-D twist (v, w) of the grasp frame. A planar linkage
+read from a URDF is checked joint by joint (axis, origin rpy) and refused if it is not planar.
 
 YAML layout (``config/linkages/table1_planar3.yaml`` is the paper's Table I)::
 
@@ -20,18 +22,36 @@ YAML layout (``config/linkages/table1_planar3.yaml`` is the paper's Table I)::
         - {name: link1, joint: revolute, length: 0.042, mass: 3.0, inertia: 0.015}
         ...
       grasp: {link: link3}      # point: [x, y, z] in the link frame, default the COM
-      constraints: {rank_tolerance: 0.05, blend: 0.0}   # see dynamics.constraints
+      constraints: {rank_tolerance: 0.05, blend: 0.0, penalty_direction: nullspace}
 
 Per link: ``com`` (default ``[length/2, 0, 0]``), ``inertia`` about the COM (planar: the scalar
 Izz; spatial: ``[ixx, iyy, izz]``, ``[ixx, iyy, izz, ixy, ixz, iyz]`` or a 3x3 list),
-spatial only: ``axis`` (joint axis in the link frame, default z) and ``origin``
+``axis`` (joint axis in the link frame; default z, planar prismatic x) and ``origin``
 (``{xyz: [...], rpy: [...]}``: placement of this joint in the previous link's frame, default
 ``xyz = [previous length, 0, 0]``).
+
+Instead of ``links``, ``urdf: file.urdf`` reads the chain from a URDF (``revolute``,
+``continuous``, ``prismatic`` and ``fixed`` joints; fixed links are merged into their parent).
+A URDF tree is reduced to the serial chain from the root through the grasped link, continued
+beyond it until the tree first branches; every other joint is locked at ``locked_joints:
+{name: position}`` (rad or m, default 0) with its mass kept (Pinocchio ``buildReducedModel``),
+and :attr:`Linkage.notes` says in one line what was locked. A bare ``.urdf`` file loads as
+spatial unless it holds ``<haptic_topology task="planar"/>`` under ``<robot>``.
+
+The default characteristic length (``constraints.characteristic_length``, m) is the reach: the
+sum of the distances between successive joints plus the extent of the last link (the largest
+of its ``length``, the distance of the farthest frame fixed to it in a URDF, and the grasp
+point's distance from the last joint when the last link is grasped). An explicit value 100
+times larger or smaller than the reach is warned about (a unit mismatch, e.g. mm vs m).
 """
 
 from __future__ import annotations
 
 import enum
+import logging
+import math
+import warnings
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,6 +67,8 @@ from haptic_topology.validate import (
     check_keys,
     load_yaml,
 )
+
+_LOG = logging.getLogger(__name__)
 
 
 class TaskSpace(enum.Enum):
@@ -86,6 +108,19 @@ class LinkSpec:
     axis: np.ndarray                    # (3,) unit joint axis, link frame
     origin_xyz: np.ndarray | None = None  # (3,) m in the previous link frame; None = default
     origin_rpy: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    joint_name: str = ''                # '' = joint_<name>; URDF joints keep their own names
+
+    @property
+    def joint_label(self) -> str:
+        """Name of the joint that moves this link (Pinocchio model, error messages)."""
+        return self.joint_name or f'joint_{self.name}'
+
+
+class PenaltyDirection(enum.Enum):
+    """Along which directions the penalty of eq. 13 acts (see dynamics.constraints)."""
+
+    NULLSPACE = 'nullspace'   # an orthonormal basis of N(J_h^T), as the paper writes eq. 13
+    WEIGHTED = 'weighted'     # W^-1 U_w diag(w) U_w^T W: the L_c-weighted projector (before #12)
 
 
 @dataclass(frozen=True)
@@ -95,12 +130,15 @@ class ConstraintSettings:
     ``characteristic_length`` L_c (m) weights the rotational rows of ``J_h`` so that its
     singular values are all lengths; ``rank_tolerance`` is the fraction of L_c below which a
     weighted singular value counts as zero; ``blend`` > 0 ramps the penalty weight of a
-    direction continuously from 1 at ``rank_tolerance`` to 0 at ``rank_tolerance*(1+blend)``.
+    direction continuously from 1 at ``rank_tolerance`` to 0 at ``rank_tolerance*(1+blend)``;
+    ``penalty_direction`` chooses the directions the penalty of eq. 13 acts along (L_c only
+    decides the rank with ``nullspace``, the default).
     """
 
     characteristic_length: float
     rank_tolerance: float = 0.05
     blend: float = 0.0
+    penalty_direction: PenaltyDirection = PenaltyDirection.NULLSPACE
 
 
 @dataclass(frozen=True)
@@ -116,6 +154,7 @@ class Linkage:
     constraints: ConstraintSettings
     urdf_path: Path | None = None
     source: str = '<memory>'
+    notes: tuple[str, ...] = ()         # one line each: what loading did (URDF joints locked)
 
     @property
     def dof(self) -> int:
@@ -136,7 +175,7 @@ class Linkage:
         spec = self.links[names.index(link)]
         p = spec.com.copy() if point is None else np.asarray(point, dtype=float).reshape(3)
         return Linkage(self.name, self.task, self.links, self.gravity, link, p,
-                       self.constraints, self.urdf_path, self.source)
+                       self.constraints, self.urdf_path, self.source, self.notes)
 
 
 _LINK_KEYS = ('name', 'joint', 'length', 'mass', 'com', 'inertia', 'axis', 'origin')
@@ -184,17 +223,11 @@ def _parse_link(raw: Any, i: int, task: TaskSpace, where: str) -> LinkSpec:
     com = (as_vector(raw['com'], f'{w}.com', 3, error=LinkageError) if 'com' in raw
            else np.array([length / 2.0, 0.0, 0.0]))
     inertia = _inertia_matrix(raw['inertia'], task, f'{w}.inertia')
-    if task is TaskSpace.PLANAR:
-        for key in ('axis', 'origin'):
-            if key in raw:
-                raise LinkageError(f'{w}.{key}: not allowed for a planar linkage (revolute '
-                                   'joints turn about z, prismatic ones slide along x)')
-        if com[2] != 0.0:
-            raise LinkageError(f'{w}.com: z must be 0 for a planar linkage, got {com[2]}')
-        axis = np.array([0.0, 0.0, 1.0]) if joint is JointType.REVOLUTE else np.array(
-            [1.0, 0.0, 0.0])
-        return LinkSpec(name, joint, length, mass, com, inertia, axis)
-    axis = as_vector(raw.get('axis', [0.0, 0.0, 1.0]), f'{w}.axis', 3, error=LinkageError)
+    if task is TaskSpace.PLANAR and com[2] != 0.0:
+        raise LinkageError(f'{w}.com: z must be 0 for a planar linkage, got {com[2]}')
+    default_axis = [1.0, 0.0, 0.0] if (task is TaskSpace.PLANAR
+                                       and joint is JointType.PRISMATIC) else [0.0, 0.0, 1.0]
+    axis = as_vector(raw.get('axis', default_axis), f'{w}.axis', 3, error=LinkageError)
     norm = float(np.linalg.norm(axis))
     if norm < 1e-9:
         raise LinkageError(f'{w}.axis: expected a non-zero vector, got {axis.tolist()}')
@@ -211,17 +244,82 @@ def _parse_link(raw: Any, i: int, task: TaskSpace, where: str) -> LinkSpec:
                     origin_rpy)
 
 
-def _parse_constraints(raw: Any, where: str, default_length: float) -> ConstraintSettings:
-    check_keys(raw, where, optional=('characteristic_length', 'rank_tolerance', 'blend'),
-               error=LinkageError)
-    length = as_float(raw.get('characteristic_length', default_length),
+_PLANAR_TOL = 1e-9
+
+
+def _check_planar(links: tuple[LinkSpec, ...], where: str) -> None:
+    """Refuse a linkage that does not move in the xy plane, naming the joint and field.
+
+    Planar (eq. 8's 3-DOF task): every joint placement rotates about z only (so every link
+    frame keeps the world z axis), revolute axes are parallel to z and prismatic axes lie in
+    the xy plane. Offsets along z are allowed: they move nothing out of the plane.
+    """
+    for i, link in enumerate(links):
+        name = f'{where}: joint {link.joint_label!r} (links[{i}] {link.name!r})'
+        rot = pin.rpy.rpyToMatrix(*link.origin_rpy)
+        if rot[2, 2] < 1.0 - _PLANAR_TOL:
+            raise LinkageError(
+                f'{name}: origin rpy {np.round(link.origin_rpy, 6).tolist()} tilts the joint '
+                'off the world z axis; a planar linkage needs rpy = [0, 0, yaw]')
+        axis = link.axis
+        if link.joint is JointType.REVOLUTE and abs(axis[2]) < 1.0 - _PLANAR_TOL:
+            raise LinkageError(
+                f'{name}: axis {np.round(axis, 6).tolist()} must be parallel to z for a planar '
+                'linkage (revolute joints turn in the xy plane: axis [0, 0, +-1])')
+        if link.joint is JointType.PRISMATIC and abs(axis[2]) > _PLANAR_TOL:
+            raise LinkageError(
+                f'{name}: axis {np.round(axis, 6).tolist()} must lie in the xy plane for a '
+                'planar linkage (prismatic joints slide in the plane: axis [x, y, 0])')
+
+
+_UNIT_RATIO = 100.0
+
+
+def _parse_constraints(raw: Any, where: str, reach: float) -> ConstraintSettings:
+    """``constraints:`` block; ``reach`` (m) is the default characteristic length.
+
+    Warns (``UserWarning``) when an explicit characteristic length is 100 times larger or
+    smaller than the reach: the lengths and L_c are then almost surely in different units.
+    """
+    check_keys(raw, where, optional=('characteristic_length', 'rank_tolerance', 'blend',
+                                     'penalty_direction'), error=LinkageError)
+    length = as_float(raw.get('characteristic_length', reach if reach > 0.0 else 1.0),
                       f'{where}.characteristic_length', lo=0.0, lo_open=True,
                       error=LinkageError)
+    if 'characteristic_length' in raw and reach > 0.0:
+        ratio = max(length / reach, reach / length)
+        if ratio >= _UNIT_RATIO:
+            warnings.warn(
+                f'{where}.characteristic_length = {length:g} m is {ratio:.0f}x '
+                f'{"larger" if length > reach else "smaller"} than the linkage\'s reach '
+                f'{reach:g} m: are the link lengths and characteristic_length in the same '
+                'unit (m)? The rank decision of eq. 13 depends on it', UserWarning,
+                stacklevel=4)
     tol = as_float(raw.get('rank_tolerance', 0.05), f'{where}.rank_tolerance', lo=0.0,
                    lo_open=True, hi=1.0, error=LinkageError)
     blend = as_float(raw.get('blend', 0.0), f'{where}.blend', lo=0.0, hi=100.0,
                      error=LinkageError)
-    return ConstraintSettings(length, tol, blend)
+    direction = PenaltyDirection(as_str(
+        raw.get('penalty_direction', PenaltyDirection.NULLSPACE.value),
+        f'{where}.penalty_direction', tuple(d.value for d in PenaltyDirection),
+        error=LinkageError))
+    return ConstraintSettings(length, tol, blend, direction)
+
+
+def reach(links: tuple[LinkSpec, ...], grasp_link: str | None = None,
+          grasp_point: np.ndarray | None = None) -> float:
+    """Reach of the chain (m): the default characteristic length L_c.
+
+    Sum of the distances between successive joints (constant: joint i sits at
+    ``origin_xyz`` in the frame of link i-1, whose origin is joint i-1) plus the extent of the
+    last link: the larger of its ``length`` and, when the last link is grasped, the grasp
+    point's distance from the last joint. Table I: 0.042 + 0.042 + 0.030 = 0.114 m.
+    """
+    total = sum(_placement_offset(links, i) for i in range(1, len(links)))
+    last = links[-1].length
+    if grasp_point is not None and grasp_link == links[-1].name:
+        last = max(last, float(np.linalg.norm(grasp_point)))
+    return float(total + last)
 
 
 def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
@@ -234,21 +332,36 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     where = f'{source}: linkage'
     raw = check_keys(top['linkage'], where,
                      optional=('name', 'task', 'gravity', 'links', 'grasp', 'constraints',
-                               'urdf'), error=LinkageError)
+                               'urdf', 'locked_joints'), error=LinkageError)
     name = as_str(raw.get('name', Path(source).stem), f'{where}.name', error=LinkageError)
     task = TaskSpace(as_str(raw.get('task', 'planar'), f'{where}.task',
                             ('planar', 'spatial'), error=LinkageError))
     gravity = as_vector(raw.get('gravity', [0.0, 0.0, 0.0]), f'{where}.gravity', 3,
                         error=LinkageError)
+    grasp = check_keys(raw.get('grasp', {}), f'{where}.grasp', optional=('link', 'point'),
+                       error=LinkageError)
+    wanted_grasp = (as_str(grasp['link'], f'{where}.grasp.link', error=LinkageError)
+                    if 'link' in grasp else None)
     urdf_path: Path | None = None
+    notes: tuple[str, ...] = ()
     if 'urdf' in raw:
         if 'links' in raw:
             raise LinkageError(f'{where}: give either links or urdf, not both')
         urdf_path = Path(as_str(raw['urdf'], f'{where}.urdf', error=LinkageError))
         if not urdf_path.is_absolute() and source != '<memory>':
             urdf_path = Path(source).parent / urdf_path
-        links = _links_from_urdf(urdf_path, task)
+        locks = raw.get('locked_joints', {})
+        if not isinstance(locks, dict):
+            raise LinkageError(f'{where}.locked_joints: expected a mapping joint name -> '
+                               f'position (rad or m), got {locks!r}')
+        locked = {str(k): as_float(v, f'{where}.locked_joints.{k}', error=LinkageError)
+                  for k, v in locks.items()}
+        links, notes = _links_from_urdf(urdf_path, wanted_grasp, locked,
+                                        f'{where}.locked_joints')
     else:
+        if 'locked_joints' in raw:
+            raise LinkageError(f'{where}.locked_joints: only allowed with urdf (a YAML chain '
+                               'has no side branches)')
         if 'links' not in raw:
             raise LinkageError(f'{where}.links: missing required key (or give urdf)')
         raw_links = raw['links']
@@ -260,36 +373,38 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise LinkageError(f'{where}.links: duplicate link names {sorted(dup)}')
-    default_lc = sum(_placement_offset(links, i) for i in range(1, len(links))) + \
-        links[-1].length
-    if default_lc <= 0.0:
-        default_lc = 1.0
-    constraints = _parse_constraints(raw.get('constraints', {}), f'{where}.constraints',
-                                     default_lc)
-    grasp = check_keys(raw.get('grasp', {}), f'{where}.grasp', optional=('link', 'point'),
-                       error=LinkageError)
-    grasp_link = as_str(grasp.get('link', names[-1]), f'{where}.grasp.link',
-                        error=LinkageError)
+    if task is TaskSpace.PLANAR:
+        _check_planar(links, str(urdf_path) if urdf_path is not None else f'{where}.links')
+    grasp_link = wanted_grasp if wanted_grasp is not None else names[-1]
     if grasp_link not in names:
         raise LinkageError(f'{where}.grasp.link: unknown link {grasp_link!r} (expected one '
                            f'of: {", ".join(names)})')
     point = (as_vector(grasp['point'], f'{where}.grasp.point', 3, error=LinkageError)
              if 'point' in grasp else links[names.index(grasp_link)].com.copy())
-    if task is TaskSpace.PLANAR and point[2] != 0.0:
+    if task is TaskSpace.PLANAR and urdf_path is None and point[2] != 0.0:
         raise LinkageError(f'{where}.grasp.point: z must be 0 for a planar linkage')
+    constraints = _parse_constraints(raw.get('constraints', {}), f'{where}.constraints',
+                                     reach(links, grasp_link, point))
+    for note in notes:
+        _LOG.info(note)
     linkage = Linkage(name, task, links, gravity, grasp_link, point, constraints, urdf_path,
-                      source)
+                      source, notes)
     build_model(linkage)  # fail now, not later, on anything Pinocchio rejects
     return linkage
 
 
 def load_linkage(path: str | Path) -> Linkage:
-    """Load a linkage from a YAML description or a bare URDF file (spatial, distal grasp)."""
+    """Load a linkage from a YAML description or a bare URDF file.
+
+    A bare URDF is spatial unless ``<robot>`` holds ``<haptic_topology task="planar"/>``;
+    the grasp is the COM of the last link of its serial chain.
+    """
     p = Path(path)
     if p.suffix.lower() == '.urdf':
         if not p.is_file():
             raise LinkageError(f'{p}: file not found')
-        return linkage_from_dict({'linkage': {'task': 'spatial', 'urdf': str(p.resolve()),
+        task = _urdf_declared_task(p) or TaskSpace.SPATIAL
+        return linkage_from_dict({'linkage': {'task': task.value, 'urdf': str(p.resolve()),
                                               'name': p.stem}}, str(p))
     try:
         doc = load_yaml(p, error=LinkageError)
@@ -308,33 +423,147 @@ def _placement_offset(links: tuple[LinkSpec, ...], i: int) -> float:
     return links[i - 1].length
 
 
-def _links_from_urdf(path: Path, task: TaskSpace) -> tuple[LinkSpec, ...]:
-    """Read a serial chain of 1-DOF joints from a URDF file into LinkSpecs."""
+def _urdf_declared_task(path: Path) -> TaskSpace | None:
+    """The task of ``<haptic_topology task="planar|spatial"/>`` under ``<robot>``, if any."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise LinkageError(f'{path}: not a valid URDF ({exc})') from None
+    tag = root.find('haptic_topology')
+    if tag is None:
+        return None
+    value = tag.get('task', '')
+    if value not in ('planar', 'spatial'):
+        raise LinkageError(f'{path}: <haptic_topology task=...>: expected planar or spatial, '
+                           f'got {value!r}')
+    return TaskSpace(value)
+
+
+def _joint_child_link(model: pin.Model, j: int) -> str:
+    """Name of the URDF link a joint moves (the body frame right after the joint frame)."""
+    for f in model.frames:
+        if (f.type == pin.FrameType.BODY and f.parentJoint == j
+                and model.frames[f.parentFrame].type == pin.FrameType.JOINT):
+            return str(f.name)
+    return str(model.names[j])
+
+
+def _urdf_joint_kind(model: pin.Model, j: int, path: Path) -> tuple[JointType, np.ndarray]:
+    """Kind and unit axis (joint frame) of a 1-DOF Pinocchio joint read from a URDF.
+
+    URDF ``revolute`` and ``continuous`` joints are revolute here (joint limits are not part
+    of eq. 1); ``continuous`` is Pinocchio's unbounded revolute (RUBx, q = (cos, sin)).
+    """
+    joint = model.joints[j]
+    shortname = joint.shortname()  # JointModelRZ, JointModelRUBZ, JointModelPrismaticUnaligned
+    if joint.nv != 1 or not shortname.startswith(('JointModelR', 'JointModelP')):
+        raise LinkageError(f'{path}: joint {model.names[j]!r} is {shortname} with {joint.nv} '
+                           'DOF; only revolute, continuous, prismatic and fixed joints are '
+                           'supported')
+    kind = JointType.PRISMATIC if shortname.startswith('JointModelP') else JointType.REVOLUTE
+    # The motion subspace S (6 x 1, [v; w] in the joint frame) holds the axis for every
+    # 1-DOF joint class (RX..RZ, RUBX..RUBZ, the unaligned ones, PX..PZ).
+    data = joint.createData()
+    joint.calc(data, pin.neutral(model))
+    s = np.asarray(data.S, dtype=float).reshape(6)
+    axis = s[0:3] if kind is JointType.PRISMATIC else s[3:6]
+    return kind, axis / np.linalg.norm(axis)
+
+
+def _serial_chain_ids(model: pin.Model, grasp_link: str | None, path: Path) -> list[int]:
+    """Joint ids of the chain: root -> grasped link, then on until the tree first branches.
+
+    Without a grasp link, the chain is the main branch from the root (see below); its last
+    link becomes the default grasp.
+    """
+    children: dict[int, list[int]] = {j: [] for j in range(model.njoints)}
+    for j in range(1, model.njoints):
+        children[model.parents[j]].append(j)
+    movable = {_joint_child_link(model, j): j for j in range(1, model.njoints)}
+    if grasp_link is not None:
+        if grasp_link not in movable:
+            raise LinkageError(
+                f'{path}: grasp.link: {grasp_link!r} is not a link moved by a joint (expected '
+                f'one of: {", ".join(movable)})')
+        chain = [j for j in model.supports[movable[grasp_link]] if j != 0]
+        tip = chain[-1]
+        while len(children[tip]) == 1:
+            tip = children[tip][0]
+            chain.append(tip)
+        return chain
+    # No grasp given: the main chain follows, from the root, the child with the unique
+    # deepest subtree (a camera on link 1 is a side branch of the arm) and ends where two
+    # subtrees are equally deep (the two fingers of a gripper) or at a leaf.
+    depth: dict[int, int] = {}
+    for j in range(model.njoints - 1, -1, -1):  # children have larger ids than parents
+        depth[j] = 1 + max((depth[c] for c in children[j]), default=0)
+    chain = []
+    tip = 0
+    while children[tip]:
+        ranked = sorted(children[tip], key=lambda c: depth[c], reverse=True)
+        if len(ranked) > 1 and depth[ranked[0]] == depth[ranked[1]]:
+            break
+        tip = ranked[0]
+        chain.append(tip)
+    if not chain:
+        if not children[0]:
+            raise LinkageError(f'{path}: no movable joints')
+        names = ', '.join(repr(model.names[j]) for j in children[0])
+        raise LinkageError(f'{path}: the tree branches at its root into equally long chains '
+                           f'(joints {names}); give grasp.link to choose one')
+    return chain
+
+
+def _links_from_urdf(path: Path, grasp_link: str | None, locked: dict[str, float],
+                     locked_where: str) -> tuple[tuple[LinkSpec, ...], tuple[str, ...]]:
+    """Read the serial chain of a URDF into LinkSpecs (plus a one-line note of what was locked).
+
+    Fixed joints are merged by Pinocchio (``buildModelFromUrdf``). Joints off the chain
+    (:func:`_serial_chain_ids`) are locked at ``locked`` (default 0) with
+    ``buildReducedModel``, which keeps their bodies' mass and inertia on the chain link that
+    carries them.
+    """
     if not path.is_file():
         raise LinkageError(f'{path}: file not found')
     try:
-        model = pin.buildModelFromUrdf(str(path))
+        full = pin.buildModelFromUrdf(str(path))
     except (RuntimeError, ValueError) as exc:
         raise LinkageError(f'{path}: not a valid URDF ({exc})') from None
+    for j in range(1, full.njoints):
+        _urdf_joint_kind(full, j, path)
+    chain = _serial_chain_ids(full, grasp_link, path)
+    off = [j for j in range(1, full.njoints) if j not in chain]
+    off_names = {str(full.names[j]): j for j in off}
+    for name in locked:
+        if name in off_names:
+            continue
+        if full.existJointName(name):
+            raise LinkageError(f'{locked_where}.{name}: joint {name!r} is on the chain; only '
+                               f'side-branch joints can be locked (expected one of: '
+                               f'{", ".join(off_names) or "none"})')
+        raise LinkageError(f'{locked_where}.{name}: unknown side-branch joint (expected one '
+                           f'of: {", ".join(off_names) or "none"})')
+    notes: tuple[str, ...] = ()
+    model = full
+    if off:
+        q_ref = pin.neutral(full)
+        for name, j in off_names.items():
+            value = locked.get(name, 0.0)
+            jm = full.joints[j]
+            if jm.nq == 2:   # continuous: q = (cos, sin)
+                q_ref[jm.idx_q:jm.idx_q + 2] = [math.cos(value), math.sin(value)]
+            else:
+                q_ref[jm.idx_q] = value
+        model = pin.buildReducedModel(full, off, q_ref)
+        chain_names = ' -> '.join(str(full.names[j]) for j in chain)
+        locks = ', '.join(f'{n}={locked.get(n, 0.0):g}' for n in off_names)
+        notes = (f'{path}: kept the serial chain {chain_names}; locked {len(off)} side-branch '
+                 f'joint(s) at {locks} (rad or m), their mass kept',)
     links: list[LinkSpec] = []
     for j in range(1, model.njoints):
-        joint = model.joints[j]
-        if joint.nq != 1 or joint.nv != 1:
-            raise LinkageError(f'{path}: joint {model.names[j]!r} has {joint.nv} DOF; only '
-                               'revolute, continuous and prismatic joints are supported')
-        if model.parents[j] != j - 1:
-            raise LinkageError(f'{path}: joint {model.names[j]!r} does not continue the '
-                               'chain (the linkage must be serial)')
-        shortname = joint.shortname()  # e.g. JointModelRZ, JointModelPX, JointModelRUBZ
-        if not shortname.startswith(('JointModelR', 'JointModelP')):
-            raise LinkageError(f'{path}: joint {model.names[j]!r} is {shortname}; only '
-                               'revolute, continuous and prismatic joints are supported')
-        kind = JointType.PRISMATIC if shortname.startswith('JointModelP') \
-            else JointType.REVOLUTE
-        if shortname.endswith('Unaligned'):
-            axis = np.asarray(joint.extract().axis, dtype=float).reshape(3)
-        else:
-            axis = np.eye(3)['XYZ'.index(shortname[-1])]
+        if model.parents[j] != j - 1:  # pragma: no cover - the reduced model is a chain
+            raise LinkageError(f'{path}: joint {model.names[j]!r} does not continue the chain')
+        kind, axis = _urdf_joint_kind(model, j, path)
         inertia = model.inertias[j]
         mass = float(inertia.mass)
         where = f'{path}: link of joint {model.names[j]!r}'
@@ -344,17 +573,18 @@ def _links_from_urdf(path: Path, task: TaskSpace) -> tuple[LinkSpec, ...]:
         if np.linalg.eigvalsh(inertia_c).min() <= 0.0:
             raise LinkageError(f'{where}: inertia must be positive definite')
         placement = model.jointPlacements[j]
-        child = [f.name for f in model.frames
-                 if f.parentJoint == j and f.type == pin.FrameType.BODY]
+        if j + 1 < model.njoints:
+            length = float(np.linalg.norm(model.jointPlacements[j + 1].translation))
+        else:  # the farthest frame fixed to the last link (a tip, a gripper), or 0
+            length = max([float(np.linalg.norm(f.placement.translation))
+                          for f in model.frames if f.parentJoint == j] + [0.0])
         links.append(LinkSpec(
-            name=child[0] if child else model.names[j], joint=kind, length=0.0, mass=mass,
+            name=_joint_child_link(model, j), joint=kind, length=length, mass=mass,
             com=np.array(inertia.lever).reshape(3), inertia=inertia_c, axis=axis,
             origin_xyz=np.array(placement.translation).reshape(3),
-            origin_rpy=np.array(pin.rpy.matrixToRpy(placement.rotation)).reshape(3)))
-    if not links:
-        raise LinkageError(f'{path}: no movable joints')
-    del task
-    return tuple(links)
+            origin_rpy=np.array(pin.rpy.matrixToRpy(placement.rotation)).reshape(3),
+            joint_name=str(model.names[j])))
+    return tuple(links), notes
 
 
 @dataclass(frozen=True)
@@ -366,33 +596,36 @@ class LinkageModel:
     hand_frame: int
 
 
+def _joint_model(link: LinkSpec, task: TaskSpace) -> Any:
+    """Pinocchio joint for ``link``: RZ / PX for the default planar axes, else unaligned."""
+    if task is TaskSpace.PLANAR:
+        if link.joint is JointType.REVOLUTE and np.array_equal(link.axis, [0.0, 0.0, 1.0]):
+            return pin.JointModelRZ()
+        if link.joint is JointType.PRISMATIC and np.array_equal(link.axis, [1.0, 0.0, 0.0]):
+            return pin.JointModelPX()
+    return (pin.JointModelRevoluteUnaligned(link.axis) if link.joint is JointType.REVOLUTE
+            else pin.JointModelPrismaticUnaligned(link.axis))
+
+
 def build_model(linkage: Linkage) -> LinkageModel:
     """Build the Pinocchio model of ``linkage`` and add the operational frame ``hand``.
 
     Gravity is ``linkage.gravity`` (m/s^2, world frame); the base of joint 1 is the world
-    origin (or its ``origin`` placement).
+    origin (or its ``origin`` placement). Joint i sits at ``origin`` in link i-1's frame
+    (default ``[length of link i-1, 0, 0]``) and moves about / along its ``axis``.
     """
     model = pin.Model()
     model.name = linkage.name
     parent = 0
     for i, link in enumerate(linkage.links):
-        if linkage.task is TaskSpace.PLANAR:
-            joint_model: Any = (pin.JointModelRZ() if link.joint is JointType.REVOLUTE
-                                else pin.JointModelPX())
-            xyz = np.array([linkage.links[i - 1].length, 0.0, 0.0]) if i > 0 else np.zeros(3)
-            rot = np.eye(3)
+        if link.origin_xyz is not None:
+            xyz = link.origin_xyz
         else:
-            joint_model = (pin.JointModelRevoluteUnaligned(link.axis)
-                           if link.joint is JointType.REVOLUTE
-                           else pin.JointModelPrismaticUnaligned(link.axis))
-            if link.origin_xyz is not None:
-                xyz = link.origin_xyz
-            else:
-                xyz = (np.array([linkage.links[i - 1].length, 0.0, 0.0]) if i > 0
-                       else np.zeros(3))
-            rot = pin.rpy.rpyToMatrix(*link.origin_rpy)
+            xyz = np.array([linkage.links[i - 1].length, 0.0, 0.0]) if i > 0 else np.zeros(3)
+        rot = pin.rpy.rpyToMatrix(*link.origin_rpy)
         placement = pin.SE3(rot, xyz)
-        jid = model.addJoint(parent, joint_model, placement, f'joint_{link.name}')
+        jid = model.addJoint(parent, _joint_model(link, linkage.task), placement,
+                             link.joint_label)
         model.appendBodyToJoint(jid, pin.Inertia(link.mass, link.com, link.inertia),
                                 pin.SE3.Identity())
         joint_frame = model.addJointFrame(jid, -1)
@@ -412,11 +645,16 @@ def to_dict(linkage: Linkage) -> dict[str, Any]:
         entry: dict[str, Any] = {
             'name': link.name, 'joint': link.joint.value, 'length': link.length,
             'mass': link.mass, 'com': link.com.tolist()}
-        if linkage.task is TaskSpace.PLANAR:
+        planar = linkage.task is TaskSpace.PLANAR
+        if planar and np.array_equal(link.inertia, np.eye(3) * link.inertia[2, 2]):
             entry['inertia'] = float(link.inertia[2, 2])
         else:
             entry['inertia'] = link.inertia.tolist()
+        default_axis = [1.0, 0.0, 0.0] if (planar and link.joint is JointType.PRISMATIC) \
+            else [0.0, 0.0, 1.0]
+        if not planar or not np.array_equal(link.axis, default_axis):
             entry['axis'] = link.axis.tolist()
+        if not planar or link.origin_xyz is not None or np.any(link.origin_rpy):
             origin: dict[str, Any] = {'rpy': link.origin_rpy.tolist()}
             if link.origin_xyz is not None:
                 origin['xyz'] = link.origin_xyz.tolist()
@@ -428,12 +666,13 @@ def to_dict(linkage: Linkage) -> dict[str, Any]:
         'links': links,
         'grasp': {'link': linkage.grasp_link, 'point': linkage.grasp_point.tolist()},
         'constraints': {'characteristic_length': c.characteristic_length,
-                        'rank_tolerance': c.rank_tolerance, 'blend': c.blend}}}
+                        'rank_tolerance': c.rank_tolerance, 'blend': c.blend,
+                        'penalty_direction': c.penalty_direction.value}}}
 
 
 __all__ = ['ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage', 'LinkageModel',
-           'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage', 'serial_chain',
-           'to_dict']
+           'PenaltyDirection', 'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage',
+           'reach', 'serial_chain', 'to_dict']
 
 
 def serial_chain(n: int, task: TaskSpace = TaskSpace.PLANAR, length: float = 0.05,
