@@ -22,6 +22,7 @@ from builtin_interfaces.msg import Time
 from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
+from haptic_topology.dynamics.constraints import PenaltyDirection
 from haptic_topology.errors import HapticTopologyError
 from haptic_topology.model.linkage import TaskSpace
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
@@ -213,9 +214,12 @@ def lmi_msg(msg: LmiUpdate, snap: LmiSnapshot, stamp: Time) -> LmiUpdate:
     return msg
 
 
-def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int) -> LmiSnapshot:
+def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
+                 penalty_direction: PenaltyDirection = PenaltyDirection.NULLSPACE
+                 ) -> LmiSnapshot:
     """The snapshot carried by ``msg``; sizes checked against the linkage's ``dof``, values
-    against their ranges (the LMI factors the mass matrix: it must be symmetric positive
+    against their ranges; ``penalty_direction``: the controller's own linkage setting (the
+    message does not carry it) (the LMI factors the mass matrix: it must be symmetric positive
     definite; weights in [0, 1]; U orthogonal; ``L_c > 0``)."""
     _task_dim(msg, task)
     if int(msg.dof) != dof:
@@ -254,4 +258,5 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int) -> LmiSnapshot:
         weights=weights,
         constraint_count=int(msg.constraint_count),
         characteristic_length=length,
-        hand_pose=_array(msg, 'hand_pose', m), hand_twist=_array(msg, 'hand_twist', m))
+        hand_pose=_array(msg, 'hand_pose', m), hand_twist=_array(msg, 'hand_twist', m),
+        penalty_direction=penalty_direction)

@@ -61,6 +61,7 @@ class LmiController(Node):
             sc.update_period if self.lockstep else None)
         self.loop.ctrl.gains = c.gains
         self.task, self.dof = sc.linkage.task, sc.linkage.dof
+        self.penalty_direction = sc.linkage.constraints.penalty_direction
         self.add_on_set_parameters_callback(self._on_set_parameters)
         qos = common.loop_qos(c.clock)
         self.cmd_pub = self.create_publisher(DeviceCommand, common.TOPIC_COMMAND, qos)
@@ -128,7 +129,7 @@ class LmiController(Node):
 
     def _on_update(self, msg: LmiUpdate) -> None:
         try:
-            snap = lmi_from_msg(msg, self.task, self.dof)
+            snap = lmi_from_msg(msg, self.task, self.dof, self.penalty_direction)
         except MessageError as exc:
             return self._reject('LMI update', exc)
         self.loop.on_update(snap)
