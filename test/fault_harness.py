@@ -561,6 +561,24 @@ def main() -> None:
     print(f'states {len(run.states)} commands {len(run.commands)} hands {len(run.hands)}')
     for name, (a, b) in run.events.items():
         print(f'{name}: {a:.3f} .. {b:.3f} ({b - a:.3f} s)')
+    print('| fault | max abs(applied) / limit | recovery [s] | max step per cycle x / y [N] '
+          '(first second: x / y) |')
+    print('|---|---|---|---|')
+    for name in run.events:
+        f = figures(run, name)
+        print(f"| {name} | {f['max_ratio']:.3f} | {f['recovery_s']:.2f} | "
+              f"{f['step_x']:.3f} / {f['step_y']:.3f} ({f['base_x']:.3f} / {f['base_y']:.3f}) |")
+    missing = total = 0
+    for bag in run.states:
+        for sess in sessions(bag):
+            d = np.diff(sess.seqs)
+            missing += int(np.sum(d - 1))
+            total += int(sess.seqs[-1] - sess.seqs[0] + 1)
+    print(f'device states missing in the bags (best effort): {missing} of {total}')
+    for key in ('device_driver: loop', 'lmi_controller: loop', 've_sim: loop'):
+        rej = {k: int(v) for k, v in run.diagnostics.get(key, {}).items()
+               if k.startswith('rejected_') and v}
+        print(f'{key} rejected: {rej}')
 
 
 
