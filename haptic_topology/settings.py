@@ -311,6 +311,9 @@ class LmiControllerSettings(NodeSettings):
     lockstep_wait: float = param(5.0, 'lock-step: longest wait (wall s) for the LMI update the '
                                  'offline simulation applies at this step; then warn and '
                                  'answer with the local model', lo=0.01, hi=600.0)
+    ack_updates: bool = param(False, 'publish the seq of every LMI update taken on '
+                              'haptic/lmi/ack (std_msgs/UInt64), after it was taken: replay '
+                              '--check-controller sends the next state only then')
 
     def check(self) -> None:
         for name in ('k_tc', 'b_tc'):

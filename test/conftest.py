@@ -7,9 +7,11 @@ never see each other's messages.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import random
 import secrets
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,14 +20,36 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 
 
+def _lock_domain() -> tuple[int, int]:
+    """A ROS domain id no other test session on this machine holds, and the descriptor of its
+    lock file (flock, released when closed or when the process dies)."""
+    ids = list(range(1, 101))
+    random.SystemRandom().shuffle(ids)
+    lock_dir = Path(tempfile.gettempdir()) / 'haptic_topology_domains'
+    lock_dir.mkdir(exist_ok=True)
+    for domain in ids:
+        fd = os.open(lock_dir / f'{domain}.lock', os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        return domain, fd
+    raise RuntimeError(f'every ROS domain id 1-100 is held by a test session ({lock_dir})')
+
+
 @pytest.fixture(scope='session', autouse=True)
 def ros_domain_env() -> Iterator[dict[str, str]]:
     """Environment for ROS processes of this session; also applied to ``os.environ``.
 
-    Domain ids 1-100 keep Fast DDS's ports below Linux's ephemeral range.
+    Domain ids 1-100 keep Fast DDS's ports below Linux's ephemeral range. The session holds
+    an exclusive lock on its domain id for its lifetime, so two test sessions on one machine
+    (CI and a developer, or parallel jobs) never share a domain and never see each other's
+    nodes.
     """
+    lock = _lock_domain()
     overrides = {
-        'ROS_DOMAIN_ID': str(random.SystemRandom().randint(1, 100)),
+        'ROS_DOMAIN_ID': str(lock[0]),
         'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
         'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp',
     }
@@ -35,6 +59,7 @@ def ros_domain_env() -> Iterator[dict[str, str]]:
     try:
         yield dict(os.environ)
     finally:
+        os.close(lock[1])
         for key, value in saved.items():
             if value is None:
                 os.environ.pop(key, None)

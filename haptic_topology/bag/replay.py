@@ -308,21 +308,33 @@ class Publishers:
 
 
     def publish_lockstep(self, items: Sequence[Item], answered: threading.Condition,
-                         done: dict[int, Any], timeout: float = 0.3,
+                         done: dict[int, Any], acked: dict[int, int], timeout: float = 0.3,
                          retries: int = 3) -> ReplayStats:
-        """Publish ``items`` in order, each state only once the previous one was answered.
+        """Publish ``items`` in order, each only once the previous one was taken: a state
+        once it was answered (``done``), an update once the controller acknowledged it
+        (``acked``: update seq -> count, on ``haptic/lmi/ack``), so the controller sees the
+        recorded order whatever the machine's load.
 
-        A state whose answer does not come within ``timeout`` is published again (the
-        controller ignores a state it has already answered), up to ``retries`` times. An
-        update is followed by a 2 ms pause so that it is taken before the next state.
+        A message whose answer or acknowledgement does not come within ``timeout`` is
+        published again (the controller ignores a state it has already answered; an update
+        taken twice is the same re-sync), up to ``retries`` times.
         """
         stats = ReplayStats()
         start = time.perf_counter()
         for it in items:
             pub = self.pubs[it.topic]
             if it.seq < 0:
-                pub.publish(it.data)
-                time.sleep(2e-3)
+                useq = _update_seq(it.data)
+                before = acked.get(useq, 0)
+
+                def taken(useq: int = useq, before: int = before) -> bool:
+                    return acked.get(useq, 0) > before
+
+                with answered:
+                    for _ in range(retries):
+                        pub.publish(it.data)
+                        if answered.wait_for(taken, timeout):
+                            break
             else:
                 seq = it.seq
 
@@ -337,6 +349,17 @@ class Publishers:
             stats.published[it.topic] = stats.published.get(it.topic, 0) + 1
         stats.wall_s = time.perf_counter() - start
         return stats
+
+
+def _update_seq(data: Any) -> int:
+    """``LmiUpdate.seq`` of a message as published (a message object or raw CDR)."""
+    seq = getattr(data, 'seq', None)
+    if seq is None:
+        from rclpy.serialization import deserialize_message
+
+        from haptic_topology_msgs.msg import LmiUpdate
+        seq = deserialize_message(data, LmiUpdate).seq
+    return int(seq)
 
 
 class _Spinner:
@@ -429,7 +452,7 @@ def check_controller(bag_path: str | Path, params: Path,
     log = logs / 'lmi_controller.log'
     argv = [sys.executable, '-m', 'haptic_topology.nodes.lmi_controller', '--ros-args',
             '--params-file', str(params), '-p', f'scenario:={scenario}', '-p',
-            f'mode:={cp.mode}', '-r', f'__ns:={ns}']
+            f'mode:={cp.mode}', '-p', 'ack_updates:=true', '-r', f'__ns:={ns}']
     live: dict[int, Any] = {}
     spinner = _Spinner('haptic_replay_check')
     with log.open('wb') as handle:
@@ -452,6 +475,17 @@ def check_controller(bag_path: str | Path, params: Path,
                              reliability=ReliabilityPolicy.BEST_EFFORT)
             sub = spinner.node.create_subscription(DeviceCommand, f'{ns}/{COMMAND}', keep,
                                                    qos)
+            acked: dict[int, int] = {}
+
+            def ack(msg: Any) -> None:
+                with answered:
+                    acked[int(msg.data)] = acked.get(int(msg.data), 0) + 1
+                    answered.notify_all()
+
+            from std_msgs.msg import UInt64
+
+            from haptic_topology.nodes.common import QOS_LMI, TOPIC_LMI_ACK
+            spinner.node.create_subscription(UInt64, f'{ns}/{TOPIC_LMI_ACK}', ack, QOS_LMI)
             pubs = Publishers(spinner.node, bag, cp.items, ns)
             deadline = time.monotonic() + startup_timeout
             while sub.get_publisher_count() == 0 and time.monotonic() < deadline:
@@ -460,7 +494,7 @@ def check_controller(bag_path: str | Path, params: Path,
                                       f'{log.read_text(errors="replace")[-800:]}')
                 time.sleep(0.05)
             pubs.wait_for_subscribers(pubs.pubs, max(deadline - time.monotonic(), 0.1))
-            stats = pubs.publish_lockstep(cp.items, answered, live)
+            stats = pubs.publish_lockstep(cp.items, answered, live, acked)
         finally:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)

@@ -77,6 +77,7 @@ TOPIC_JOINTS = 'haptic/joint_states'
 TOPIC_MARKERS = 'haptic/markers'
 TOPIC_DIAGNOSTICS = '/diagnostics'
 TOPIC_VT_PATH = 'haptic/ve/path'
+TOPIC_LMI_ACK = 'haptic/lmi/ack'
 TOPIC_CLOCK = '/clock'
 
 

@@ -7,8 +7,9 @@ diagnostics. Lifecycle, as a ros2_control hardware component: configure ->
 controller engages); deactivate -> zero output, ``backend.deactivate``. With ``autostart``
 (default) the node configures and activates itself; a failing transition ends the process
 with one line naming the cause. After ``run_duration`` seconds of engaged loop (simulated
-seconds in lock-step) the node deactivates itself: tools see the run end as the lifecycle
-state ``inactive``.
+seconds in lock-step) the node deactivates itself (measured on the states' stamps: wall
+time since the first engaged state, or simulated time in lock-step): tools see the run end as
+the lifecycle state ``inactive``.
 
 Clocks (parameter ``clock``):
 
@@ -67,6 +68,7 @@ class DeviceDriver(LifecycleNode):
         self._loop_timers: list[Any] = []
         self._msg, self._clock_msg = DeviceState(), ClockMsg()
         self._state_wall = 0.0
+        self._run_start_ns = 0       # stamp of the run's first state (ns)
         self.stats = common.LoopStats(self.cfg.period)
         qos = common.loop_qos(self.cfg.clock)
         self.state_pub = self.create_publisher(DeviceState, common.TOPIC_STATE, qos)
@@ -186,8 +188,11 @@ class DeviceDriver(LifecycleNode):
         self._state_wall = common.monotonic()
         self.state_pub.publish(state_msg(self._msg, tick.seq, ns_to_stamp(ns), tick.reading,
                                          tick.applied, int(tick.status)))
+        if tick.run_index == 0:
+            self._run_start_ns = ns
         duration = self.cfg.run_duration
-        if duration > 0.0 and tick.run_index * self.cfg.period >= duration - 1e-12:
+        if (duration > 0.0 and tick.run_index >= 0
+                and ns - self._run_start_ns >= round(duration * 1e9)):
             self.get_logger().info(f'run_duration {duration:g} s reached: deactivating')
             self.trigger_deactivate()
 

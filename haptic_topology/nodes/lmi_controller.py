@@ -25,6 +25,7 @@ from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from std_msgs.msg import UInt64
 
 from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
@@ -70,6 +71,8 @@ class LmiController(Node):
                                               common.QOS_DIAGNOSTICS)
         self.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state, qos)
         self.create_subscription(LmiUpdate, common.TOPIC_LMI, self._on_update, common.QOS_LMI)
+        self.ack_pub = (self.create_publisher(UInt64, common.TOPIC_LMI_ACK, common.QOS_LMI)
+                        if s.ack_updates else None)
         self._cmd, self._hand = DeviceCommand(), HandInput()
         self._held: tuple[StateSample, Any, float] | None = None   # lock-step wait
         self._update_wall: float | None = None
@@ -131,10 +134,16 @@ class LmiController(Node):
         try:
             snap = lmi_from_msg(msg, self.task, self.dof, self.penalty_direction)
         except MessageError as exc:
-            return self._reject('LMI update', exc)
-        self.loop.on_update(snap)
-        self._update_wall = common.monotonic()
-        self._log_notices()
+            self._reject('LMI update', exc)
+            snap = None
+        if snap is not None:
+            self.loop.on_update(snap)
+            self._update_wall = common.monotonic()
+            self._log_notices()
+        if self.ack_pub is not None:
+            self.ack_pub.publish(UInt64(data=int(msg.seq)))
+        if snap is None:
+            return None
         if self._held is not None and not self.loop.waiting_for_update():
             sample, stamp, _ = self._held
             self._held = None
