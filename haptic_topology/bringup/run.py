@@ -2,16 +2,18 @@
 
 Starts ``recorder``, ``ve_sim``, ``lmi_controller`` and ``device_driver`` as separate
 processes (default) or composed in one process on one executor (``--composed``), all with
-the params file (default ``config/haptic_topology.yaml``) plus ``scenario``, the controller's
-``mode``, the recorder's ``output`` and ``device_driver.min_subscribers = 2`` (controller and
-recorder must see the device before it engages, so the bag holds the whole run); the device
-driver is started last, once the recorder reports it is matched to the controller's and the
-VE's publishers. It waits
-for ``--duration`` seconds from the engagement of the controller (the run's first device
-state), stops the device, controller, VE and then the recorder with SIGINT (SIGTERM, then
-SIGKILL, after a timeout each), reads the bag back into a trace and writes ``trace.csv``,
-``plot.png`` and ``summary.json`` next to the bag's files, and prints the drift summary
-(as ``simulate``) and the loop figures. Several ``--mode`` options run one after the other.
+the params file (default ``config/haptic_topology.yaml``) plus ``scenario``, ``clock``
+(``wall`` or ``lockstep``), the controller's ``mode``, the recorder's ``output``,
+``device_driver.min_subscribers = 2`` (controller and recorder must see the device before it
+engages, so the bag holds the whole run) and ``device_driver.run_duration``. It waits on what
+ROS tools see (:mod:`haptic_topology.bringup.watch`), never on log lines: the device driver
+is started once the recorder's ``/diagnostics`` status says it is matched to the
+controller's and the VE's publishers; the run is over when the driver's lifecycle state is
+``inactive`` (it deactivates itself after ``run_duration`` from engagement). Then it stops
+the device, controller, VE and the recorder with SIGINT (SIGTERM, then SIGKILL, after a
+timeout each), reads the bag back into a trace and writes ``trace.csv``, ``plot.png`` and
+``summary.json`` next to the bag's files, and prints the drift summary (as ``simulate``) and
+the loop figures. Several ``--mode`` options run one after the other.
 
 The processes inherit the environment (``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE``).
 Their logs are kept in ``<bag>/logs/``.
