@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+from haptic_topology.msgcheck import MAX_SEQ, check_vt_path
 from haptic_topology.nodes.convert import (
     MessageError,
     RejectCounter,
@@ -22,7 +24,7 @@ from haptic_topology.nodes.convert import (
     vt_wrench_from_hand,
 )
 from haptic_topology.sim.scenario import load_scenario
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate, VtPath
 
 SC = load_scenario('fig8')
 TASK = SC.linkage.task
@@ -51,7 +53,8 @@ def _state(**fields: Any) -> DeviceState:
 
 
 def _command(**fields: Any) -> DeviceCommand:
-    msg = DeviceCommand(state_seq=5, task_dim=3, wrench=[1.0, 0.0, 0.0], mode=0)
+    msg = DeviceCommand(state_seq=5, task_dim=3, wrench=[1.0, 0.0, 0.0], mode=0,
+                        vt_pose=[0.0] * 3, vt_twist=[0.0] * 3)
     for k, v in fields.items():
         setattr(msg, k, v)
     return msg
@@ -92,11 +95,12 @@ CASES: list[tuple[str, Callable[[], Any], str, str]] = [
      'characteristic_length is not finite'),
     ('lmi', lambda: _update(mass_matrix=_spd_broken()), 'range', 'mass_matrix must be'),
     ('lmi', lambda: _update(constraint_weights=_weights_out()), 'range', 'in [0, 1]'),
-    ('lmi', lambda: _update(constraint_count=4), 'range', 'constraint_count must be <= 3'),
+    ('lmi', lambda: _update(constraint_count=4), 'range',
+     'constraint_count must be in [0, 3], got 4'),
     ('state', lambda: _state(pose=[math.inf, 0.0, 0.0]), 'non_finite', 'DeviceState.pose'),
     ('state', lambda: _state(twist=[0.0] * 6), 'size', 'DeviceState.twist must have 3'),
     ('state', lambda: _state(task_dim=6), 'task_dim', 'DeviceState.task_dim must be 3'),
-    ('state', lambda: _state(seq=0), 'range', 'DeviceState.seq must be >= 1'),
+    ('state', lambda: _state(seq=0), 'range', 'DeviceState.seq must be in [1, '),
     ('command', lambda: _command(wrench=[math.nan, 0.0, 0.0]), 'non_finite',
      'DeviceCommand.wrench has non-finite'),
     ('command', lambda: _command(wrench=[1.0]), 'size', 'DeviceCommand.wrench must have 3'),
@@ -129,3 +133,97 @@ def test_bad_message_rejected_with_reason(kind: str, make: Callable[[], Any], re
 def test_finite_command_beyond_the_limit_is_clamped_not_rejected() -> None:
     """A large finite wrench is the device's job (saturate, status SATURATED)."""
     assert command_from_msg(_command(wrench=[1e9, -1e9, 0.0]), TASK)[2][0] == 1e9
+
+
+# -- integers: every integer field of every incoming message has a range ---------------------
+BIG = 2 ** 63 - 1
+MAX = MAX_SEQ
+INT_CASES: list[tuple[str, Callable[[], Any], str, str]] = [
+    ('state', lambda: _state(seq=BIG), 'range', f'DeviceState.seq must be in [1, {MAX}]'),
+    ('state', lambda: _state(seq=2 ** 64 - 1), 'range', 'DeviceState.seq must be in'),
+    ('state', lambda: _state(seq=MAX + 1), 'range', f'got {MAX + 1}'),
+    ('state', lambda: _state(status=32), 'range', 'DeviceState.status must be in [0, 31]'),
+    ('state', lambda: _state(status=255), 'range', 'got 255'),
+    ('state', lambda: _state(task_dim=255), 'task_dim', 'DeviceState.task_dim must be 3'),
+    ('state', lambda: _stamped(_state(), 0, 10 ** 9), 'range',
+     'DeviceState.header.stamp.nanosec must be < 1000000000'),
+    ('state', lambda: _stamped(_state(), -1, 0), 'range',
+     'DeviceState.header.stamp.sec must be >= 0'),
+    ('command', lambda: _command(state_seq=BIG), 'range',
+     f'DeviceCommand.state_seq must be in [1, {MAX}]'),
+    ('command', lambda: _command(state_seq=0), 'range', 'DeviceCommand.state_seq must be in'),
+    ('command', lambda: _command(mode=255), 'range', 'DeviceCommand.mode must be one of'),
+    ('command', lambda: _command(task_dim=0), 'task_dim', 'DeviceCommand.task_dim must be 3'),
+    ('command', lambda: _command(constraint_count=4), 'range',
+     'DeviceCommand.constraint_count must be in [0, 3], got 4'),
+    ('command', lambda: _command(update_age=math.nan), 'range',
+     'DeviceCommand.update_age must be >= 0'),
+    ('command', lambda: _command(vt_pose=[0.0] * 6), 'size',
+     'DeviceCommand.vt_pose must have 3 entries'),
+    ('hand', lambda: _hand(seq=BIG), 'range', f'HandInput.seq must be in [1, {MAX}]'),
+    ('hand', lambda: _hand(state_seq=BIG), 'range', 'HandInput.state_seq must be in [1, '),
+    ('hand', lambda: _hand(state_seq=0), 'range', 'HandInput.state_seq must be in [1, '),
+    ('hand', lambda: _hand(task_dim=6), 'task_dim', 'HandInput.task_dim must be 3'),
+    ('lmi', lambda: _update(seq=BIG), 'range', f'LmiUpdate.seq must be in [0, {MAX}]'),
+    ('lmi', lambda: _update(hand_input_seq=2 ** 64 - 1), 'range',
+     'LmiUpdate.hand_input_seq must be in [0, '),
+    ('lmi', lambda: _update(dof=2 ** 32 - 1), 'dof', 'LmiUpdate.dof must be 3, got 4294967295'),
+    ('lmi', lambda: _update(task_dim=255), 'task_dim', 'LmiUpdate.task_dim must be 3'),
+    ('lmi', lambda: _update(constraint_count=255), 'range',
+     'LmiUpdate.constraint_count must be in [0, 3], got 255'),
+    ('path', lambda: _path(update_seq=BIG), 'range', f'VtPath.update_seq must be in [0, {MAX}]'),
+    ('path', lambda: _path(hand_input_seqs=[1, BIG]), 'range',
+     f'VtPath.hand_input_seqs must be in [1, {MAX}], got [{BIG}]'),
+    ('path', lambda: _path(hand_input_seqs=[0, 1]), 'range', 'got [0]'),
+    ('path', lambda: _path(task_dim=6), 'task_dim', 'VtPath.task_dim must be 3'),
+    ('path', lambda: _path(hand_pose=[0.0] * 5), 'size', 'VtPath.hand_pose must have 6'),
+]
+
+
+def _stamped(msg: Any, sec: int, nanosec: int) -> Any:
+    # rclpy's Time refuses such values; a message decoded from a bag (rosbags) carries them.
+    msg.header = SimpleNamespace(stamp=SimpleNamespace(sec=sec, nanosec=nanosec))
+    return msg
+
+
+def _path(**fields: Any) -> VtPath:
+    msg = VtPath(update_seq=3, task_dim=3, hand_input_seqs=[4, 5], hand_pose=[0.0] * 6)
+    for k, v in fields.items():
+        setattr(msg, k, v)
+    return msg
+
+
+@pytest.mark.parametrize(('kind', 'make', 'reason', 'text'), INT_CASES)
+def test_integer_out_of_range_rejected_naming_field_and_range(
+        kind: str, make: Callable[[], Any], reason: str, text: str) -> None:
+    convert: dict[str, Callable[[Any], Any]] = {
+        'lmi': lambda m: lmi_from_msg(m, TASK, DOF),
+        'state': lambda m: state_from_msg(m, TASK),
+        'command': lambda m: command_from_msg(m, TASK),
+        'hand': lambda m: vt_wrench_from_hand(m, TASK, True, 100.0),
+        'path': lambda m: check_vt_path(m, TASK.dim),
+    }
+    with pytest.raises(MessageError) as err:
+        convert[kind](make())
+    assert err.value.reason == reason
+    assert text in str(err.value), str(err.value)
+
+
+def test_largest_sequence_numbers_pass_and_fit_the_core() -> None:
+    """MAX_SEQ itself is accepted everywhere, and the controller's loop seq (device seq plus
+    the previous session's loop seq) still fits its int64 ring."""
+    assert state_from_msg(_state(seq=MAX), TASK)[0] == MAX
+    assert command_from_msg(_command(state_seq=MAX), TASK)[0] == MAX
+    assert vt_wrench_from_hand(_hand(seq=MAX, state_seq=MAX), TASK, True, 100.0)[0] == MAX
+    snap = lmi_from_msg(_update(seq=MAX, hand_input_seq=MAX), TASK, DOF)
+    assert snap.seq == MAX and snap.hand_input_seq == MAX
+    assert check_vt_path(_path(hand_input_seqs=[MAX], hand_pose=[0.0] * 3), TASK.dim)[1] == [MAX]
+    assert 2 * MAX < np.iinfo(np.int64).max and float(MAX) == MAX
+
+
+def test_msgcheck_docstring_example() -> None:
+    import doctest
+
+    from haptic_topology import msgcheck
+
+    assert doctest.testmod(msgcheck).failed == 0

@@ -7,6 +7,10 @@ positive definite, constraint weights outside [0, 1], an unknown mode, ...) rais
 nodes count per reason in their diagnostics (``rejected_<reason>``); the node drops the
 message, so nothing of it reaches the device.
 
+Integers are range-checked too (sequence numbers at most
+:data:`~haptic_topology.msgcheck.MAX_SEQ` ``= 2**53``, see :mod:`haptic_topology.msgcheck`,
+where the checks live without rclpy so that the bag tools use the same ones).
+
 Sequence numbers: device states count from 1, so ``LmiUpdate.hand_input_seq == 0`` means
 "no hand input consumed yet" (the core's ``-1``).
 """
@@ -14,7 +18,6 @@ Sequence numbers: device states count from 1, so ``LmiUpdate.hand_input_seq == 0
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -23,37 +26,22 @@ from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
 from haptic_topology.dynamics.constraints import PenaltyDirection
-from haptic_topology.errors import HapticTopologyError
 from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.msgcheck import (
+    MAX_SEQ,
+    MODES,
+    REASONS,
+    MessageError,
+    RejectCounter,
+    array,
+    check_command,
+    check_hand,
+    check_range,
+    check_state,
+    check_update_header,
+    finite_scalar,
+)
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
-
-#: Why a message was rejected (diagnostics keys ``rejected_<reason>``).
-REASONS = ('task_dim', 'dof', 'size', 'non_finite', 'range')
-
-
-class MessageError(HapticTopologyError):
-    """An incoming message does not fit the graph (sizes, task_dim, non-finite values)."""
-
-    def __init__(self, reason: str, text: str) -> None:
-        super().__init__(text)
-        self.reason = reason
-
-
-class RejectCounter:
-    """Rejected messages per reason (for ``/diagnostics``)."""
-
-    def __init__(self) -> None:
-        self.counts: dict[str, int] = dict.fromkeys(REASONS, 0)
-
-    def add(self, exc: MessageError) -> None:
-        self.counts[exc.reason] = self.counts.get(exc.reason, 0) + 1
-
-    @property
-    def total(self) -> int:
-        return sum(self.counts.values())
-
-    def values(self, prefix: str = 'rejected_') -> dict[str, str]:
-        return {f'{prefix}{k}': str(v) for k, v in self.counts.items()}
 
 
 def stamp_seconds(stamp: Time) -> float:
@@ -73,37 +61,8 @@ def seconds_to_stamp(t: float) -> Time:
     return Time(sec=sec, nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
 
 
-def _array(msg: Any, field: str, size: int, finite: bool = True) -> np.ndarray:
-    a = np.asarray(getattr(msg, field), dtype=float)
-    if a.shape != (size,):
-        raise MessageError('size', f'{type(msg).__name__}.{field} must have {size} entries, '
-                           f'got {a.size}')
-    if finite and not np.all(np.isfinite(a)):
-        raise MessageError('non_finite', f'{type(msg).__name__}.{field} has non-finite '
-                           f'entries: {a.tolist()}')
-    return a
-
-
-def _finite_scalar(msg: Any, field: str) -> float:
-    v = float(getattr(msg, field))
-    if not np.isfinite(v):
-        raise MessageError('non_finite', f'{type(msg).__name__}.{field} is not finite: {v}')
-    return v
-
-
-def _range(ok: bool, msg: Any, text: str) -> None:
-    if not ok:
-        raise MessageError('range', f'{type(msg).__name__}.{text}')
-
-
-def _task_dim(msg: Any, task: TaskSpace) -> None:
-    if int(msg.task_dim) != task.dim:
-        raise MessageError('task_dim', f'{type(msg).__name__}.task_dim must be {task.dim}, '
-                           f'got {msg.task_dim}')
-
-
-_MODES = frozenset((DeviceCommand.MODE_PENALTY, DeviceCommand.MODE_ACCELERATION_ONLY,
-                    DeviceCommand.MODE_ZERO))
+assert set(MODES) == {DeviceCommand.MODE_PENALTY, DeviceCommand.MODE_ACCELERATION_ONLY,
+                      DeviceCommand.MODE_ZERO}
 
 
 # -- DeviceState ------------------------------------------------------------------------------
@@ -121,13 +80,11 @@ def state_msg(msg: DeviceState, seq: int, stamp: Time, reading: DeviceReading,
 
 
 def state_from_msg(msg: DeviceState, task: TaskSpace
-                   ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray]:
-    """``(seq, stamp_s, pose, twist, hand_wrench)``; seq >= 1."""
-    _task_dim(msg, task)
-    _range(int(msg.seq) >= 1, msg, f'seq must be >= 1, got {msg.seq}')
-    m = task.dim
-    return (int(msg.seq), stamp_seconds(msg.header.stamp), _array(msg, 'pose', m),
-            _array(msg, 'twist', m), _array(msg, 'hand_wrench', m))
+                   ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray, int]:
+    """``(seq, stamp_s, pose, twist, hand_wrench, status)``; every field checked
+    (:func:`haptic_topology.msgcheck.check_state`: seq in [1, MAX_SEQ], known status bits)."""
+    seq, stamp, pose, twist, f_h, _, status = check_state(msg, task.dim)
+    return seq, stamp, pose, twist, f_h, status
 
 
 # -- DeviceCommand ----------------------------------------------------------------------------
@@ -147,15 +104,13 @@ def command_msg(msg: DeviceCommand, state_seq: int, stamp: Time, out: CycleOutpu
 
 def command_from_msg(msg: DeviceCommand, task: TaskSpace) -> tuple[int, int, np.ndarray]:
     """``(state_seq, mode, wrench)``; the wrench must be finite and task_dim long, the mode
-    one of the message's MODE_* constants.
+    one of the message's MODE_* constants, state_seq in [1, MAX_SEQ]; the other fields are
+    checked too (:func:`haptic_topology.msgcheck.check_command`).
 
     A finite wrench beyond the device's limit is not an error: the device clamps it (status
     SATURATED), as it does for the controller's own large outputs.
     """
-    _task_dim(msg, task)
-    _range(int(msg.mode) in _MODES, msg, f'mode must be one of {sorted(_MODES)}, got '
-           f'{msg.mode}')
-    return int(msg.state_seq), int(msg.mode), _array(msg, 'wrench', task.dim)
+    return check_command(msg, task.dim)
 
 
 # -- HandInput --------------------------------------------------------------------------------
@@ -179,17 +134,9 @@ def vt_wrench_from_hand(msg: HandInput, task: TaskSpace, vt_coupling: bool,
     Every entry of the hand and coupling wrenches must be finite and within ``max_wrench``
     (N, N m): a hand input far beyond any device's force would only blow the VT up.
     """
-    _task_dim(msg, task)
-    _range(int(msg.seq) >= 1, msg, f'seq must be >= 1, got {msg.seq}')
-    f_h = _array(msg, 'hand_wrench', task.dim)
-    f_pc = _array(msg, 'coupling_wrench', task.dim)
-    _array(msg, 'pose', task.dim)
-    _array(msg, 'twist', task.dim)
-    for name, w in (('hand_wrench', f_h), ('coupling_wrench', f_pc)):
-        _range(bool(np.all(np.abs(w) <= max_wrench)), msg,
-               f'{name} must be within +-{max_wrench:g}, got {w.tolist()}')
+    _, state_seq, stamp, _, _, f_h, f_pc = check_hand(msg, task.dim, max_wrench)
     f_vt = f_h - f_pc if vt_coupling else f_h
-    return int(msg.state_seq), stamp_seconds(msg.header.stamp), f_vt
+    return state_seq, stamp, f_vt
 
 
 # -- LmiUpdate --------------------------------------------------------------------------------
@@ -221,42 +168,45 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
     against their ranges; ``penalty_direction``: the controller's own linkage setting (the
     message does not carry it) (the LMI factors the mass matrix: it must be symmetric positive
     definite; weights in [0, 1]; U orthogonal; ``L_c > 0``)."""
-    _task_dim(msg, task)
-    if int(msg.dof) != dof:
-        raise MessageError('dof', f'LmiUpdate.dof must be {dof}, got {msg.dof}')
+    seq, hand_input_seq = check_update_header(msg, task.dim, dof)
     m = task.dim
-    mass = _array(msg, 'mass_matrix', dof * dof).reshape(dof, dof)
-    _range(bool(np.allclose(mass, mass.T, rtol=1e-9, atol=1e-12)), msg,
+    mass = array(msg, 'mass_matrix', dof * dof).reshape(dof, dof)
+    check_range(bool(np.allclose(mass, mass.T, rtol=1e-9, atol=1e-12)), msg,
            'mass_matrix must be symmetric')
     try:
         np.linalg.cholesky(mass)
     except np.linalg.LinAlgError:
         raise MessageError('range', 'LmiUpdate.mass_matrix must be positive definite, got '
                            f'{mass.tolist()}') from None
-    sv = _array(msg, 'singular_values', min(m, dof))
-    _range(bool(np.all(sv >= 0.0)), msg, f'singular_values must be >= 0, got {sv.tolist()}')
-    u = _array(msg, 'left_singular_vectors', m * m).reshape(m, m)
-    _range(bool(np.allclose(u.T @ u, np.eye(m), atol=1e-6)), msg,
+    sv = array(msg, 'singular_values', min(m, dof))
+    check_range(bool(np.all(sv >= 0.0)), msg,
+                f'singular_values must be >= 0, got {sv.tolist()}')
+    u = array(msg, 'left_singular_vectors', m * m).reshape(m, m)
+    check_range(bool(np.allclose(u.T @ u, np.eye(m), atol=1e-6)), msg,
            'left_singular_vectors must be orthonormal')
-    weights = _array(msg, 'constraint_weights', m)
-    _range(bool(np.all((weights >= 0.0) & (weights <= 1.0))), msg,
+    weights = array(msg, 'constraint_weights', m)
+    check_range(bool(np.all((weights >= 0.0) & (weights <= 1.0))), msg,
            f'constraint_weights must be in [0, 1], got {weights.tolist()}')
-    _range(int(msg.constraint_count) <= m, msg,
-           f'constraint_count must be <= {m}, got {msg.constraint_count}')
-    length = _finite_scalar(msg, 'characteristic_length')
-    _range(length > 0.0, msg, f'characteristic_length must be > 0, got {length}')
+    length = finite_scalar(msg, 'characteristic_length')
+    check_range(length > 0.0, msg, f'characteristic_length must be > 0, got {length}')
     return LmiSnapshot(
-        seq=int(msg.seq),
-        hand_input_seq=int(msg.hand_input_seq) if msg.hand_input_seq > 0 else -1,
+        seq=seq,
+        hand_input_seq=hand_input_seq if hand_input_seq > 0 else -1,
         task=task,
-        q=_array(msg, 'q', dof), dq=_array(msg, 'dq', dof),
+        q=array(msg, 'q', dof), dq=array(msg, 'dq', dof),
         mass_matrix=mass,
-        gravity=_array(msg, 'gravity', dof),
-        hand_jacobian=_array(msg, 'hand_jacobian', m * dof).reshape(m, dof),
+        gravity=array(msg, 'gravity', dof),
+        hand_jacobian=array(msg, 'hand_jacobian', m * dof).reshape(m, dof),
         singular_values=sv,
         left_vectors=u,
         weights=weights,
         constraint_count=int(msg.constraint_count),
         characteristic_length=length,
-        hand_pose=_array(msg, 'hand_pose', m), hand_twist=_array(msg, 'hand_twist', m),
+        hand_pose=array(msg, 'hand_pose', m), hand_twist=array(msg, 'hand_twist', m),
         penalty_direction=penalty_direction)
+
+
+__all__ = ['MAX_SEQ', 'REASONS', 'MessageError', 'RejectCounter', 'command_from_msg',
+           'command_msg', 'hand_msg', 'lmi_from_msg', 'lmi_msg', 'ns_to_stamp',
+           'seconds_to_stamp', 'stamp_seconds', 'state_from_msg', 'state_msg',
+           'vt_wrench_from_hand']

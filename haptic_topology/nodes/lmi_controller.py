@@ -104,10 +104,10 @@ class LmiController(Node):
     def _on_state(self, msg: DeviceState) -> None:
         self._loop_wall = wall = common.monotonic()
         try:
-            seq, stamp, pose, twist, f_h = state_from_msg(msg, self.task)
+            seq, stamp, pose, twist, f_h, status = state_from_msg(msg, self.task)
         except MessageError as exc:
             return self._reject('state', exc)
-        sample = StateSample(seq, stamp, pose, twist, f_h, int(msg.status))
+        sample = StateSample(seq, stamp, pose, twist, f_h, status)
         if self.lockstep and self.loop.waiting_for_update():
             self._held = (sample, msg.header.stamp, wall)
             return None

@@ -1,0 +1,207 @@
+"""Checks of the graph's messages where they enter, without rclpy (nodes and bag readers).
+
+Every field of an incoming ``haptic_topology_msgs`` message is checked before the core sees
+it: ``task_dim`` and ``dof`` against the linkage, every array's size, every float finite (where
+the core computes with it), every integer against its range. A failed check raises
+:class:`MessageError` naming the message type, the field, the expected value and the value
+received, with a ``reason`` (one of :data:`REASONS`) that the nodes count per reason in their
+diagnostics (``rejected_<reason>``) and the bag analysis counts per reason in its summary.
+
+The functions take any object with the message's attributes: an rclpy message in the nodes, a
+``rosbags`` message in the bag tools.
+
+Integer ranges: sequence numbers are ``uint64`` on the wire, but the core keeps them in Python
+ints, ``int64`` arrays and float64 diagnostics, and adds offsets to them (a restarted
+``device_driver`` continues the controller's loop seq at ``device seq + previous loop seq``).
+So every sequence number must be at most :data:`MAX_SEQ` ``= 2**53``: exact as a float64,
+and any sum of two stays below ``2**54``, far inside ``int64``. At 1 kHz, ``2**53`` cycles are
+285,000 years; a larger value is not a counter but an impostor or a corrupt message.
+
+Example::
+
+    >>> from types import SimpleNamespace
+    >>> try:
+    ...     check_seq(SimpleNamespace(seq=2**63 - 1), 'seq')
+    ... except MessageError as exc:
+    ...     print(exc.reason, '|', exc)
+    range | SimpleNamespace.seq must be in [1, 9007199254740992], got 9223372036854775807
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from haptic_topology.errors import HapticTopologyError
+
+#: Why a message was rejected (diagnostics keys ``rejected_<reason>``).
+REASONS = ('task_dim', 'dof', 'size', 'non_finite', 'range')
+
+#: Largest sequence number accepted (see module doc).
+MAX_SEQ = 2 ** 53
+#: Bits of ``DeviceState.status`` (OK 0, WORKSPACE_LIMIT 1, SATURATED 2, WATCHDOG 4, FAULT 8,
+#: IDLE 16).
+STATUS_BITS = 31
+#: ``DeviceCommand.mode``: MODE_PENALTY 0, MODE_ACCELERATION_ONLY 1, MODE_ZERO 2.
+MODES = (0, 1, 2)
+
+
+class MessageError(HapticTopologyError):
+    """An incoming message does not fit the graph (sizes, task_dim, non-finite values,
+    integers out of range); ``reason`` is one of :data:`REASONS`."""
+
+    def __init__(self, reason: str, text: str) -> None:
+        super().__init__(text)
+        self.reason = reason
+
+
+class RejectCounter:
+    """Rejected messages per reason (for ``/diagnostics`` and bag summaries)."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = dict.fromkeys(REASONS, 0)
+
+    def add(self, exc: MessageError) -> None:
+        self.counts[exc.reason] = self.counts.get(exc.reason, 0) + 1
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def values(self, prefix: str = 'rejected_') -> dict[str, str]:
+        return {f'{prefix}{k}': str(v) for k, v in self.counts.items()}
+
+
+def _name(msg: Any) -> str:
+    return type(msg).__name__.rsplit('__', 1)[-1]
+
+
+def array(msg: Any, field: str, size: int, finite: bool = True) -> np.ndarray:
+    """``msg.field`` as a float array of ``size`` entries (finite unless ``finite=False``)."""
+    try:
+        a = np.asarray(getattr(msg, field), dtype=float)
+    except (TypeError, ValueError):
+        raise MessageError('size', f'{_name(msg)}.{field} must be {size} numbers') from None
+    if a.shape != (size,):
+        raise MessageError('size', f'{_name(msg)}.{field} must have {size} entries, '
+                           f'got {a.size}')
+    if finite and not np.all(np.isfinite(a)):
+        raise MessageError('non_finite', f'{_name(msg)}.{field} has non-finite '
+                           f'entries: {a.tolist()}')
+    return a
+
+
+def finite_scalar(msg: Any, field: str) -> float:
+    v = float(getattr(msg, field))
+    if not np.isfinite(v):
+        raise MessageError('non_finite', f'{_name(msg)}.{field} is not finite: {v}')
+    return v
+
+
+def check_range(ok: bool, msg: Any, text: str) -> None:
+    """Raise a ``range`` :class:`MessageError` ``<Type>.<text>`` unless ``ok``."""
+    if not ok:
+        raise MessageError('range', f'{_name(msg)}.{text}')
+
+
+def check_int(msg: Any, field: str, lo: int, hi: int) -> int:
+    """``msg.field`` as an int in ``[lo, hi]``."""
+    v = int(getattr(msg, field))
+    check_range(lo <= v <= hi, msg, f'{field} must be in [{lo}, {hi}], got {v}')
+    return v
+
+
+def check_seq(msg: Any, field: str, lo: int = 1) -> int:
+    """A sequence number in ``[lo, MAX_SEQ]`` (see module doc)."""
+    return check_int(msg, field, lo, MAX_SEQ)
+
+
+def check_task_dim(msg: Any, dim: int) -> None:
+    if int(msg.task_dim) != dim:
+        raise MessageError('task_dim', f'{_name(msg)}.task_dim must be {dim}, '
+                           f'got {msg.task_dim}')
+
+
+def check_stamp(msg: Any) -> float:
+    """``header.stamp`` in seconds; ``sec >= 0`` and ``nanosec < 1e9`` (a stamp from before
+    1970 or with a nanosecond overflow is not one of ours)."""
+    stamp = msg.header.stamp
+    sec, nanosec = int(stamp.sec), int(stamp.nanosec)
+    check_range(sec >= 0, msg, f'header.stamp.sec must be >= 0, got {sec}')
+    check_range(nanosec < 1_000_000_000, msg,
+                f'header.stamp.nanosec must be < 1000000000, got {nanosec}')
+    return float(sec) + 1e-9 * float(nanosec)
+
+
+# -- per message ------------------------------------------------------------------------------
+def check_state(msg: Any, dim: int) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray,
+                                             np.ndarray, int]:
+    """A ``DeviceState``: ``(seq, stamp_s, pose, twist, hand_wrench, applied_wrench,
+    status)``; seq in [1, MAX_SEQ], status only known bits."""
+    check_task_dim(msg, dim)
+    seq = check_seq(msg, 'seq')
+    status = check_int(msg, 'status', 0, STATUS_BITS)
+    stamp = check_stamp(msg)
+    return (seq, stamp, array(msg, 'pose', dim), array(msg, 'twist', dim),
+            array(msg, 'hand_wrench', dim), array(msg, 'applied_wrench', dim), status)
+
+
+def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray]:
+    """A ``DeviceCommand``: ``(state_seq, mode, wrench)``. The wrench must be finite; the VT
+    pose/twist (recorded, not applied) must have ``dim`` entries; ``constraint_count`` in
+    [0, dim]; ``update_age`` >= 0 (inf before the controller's first update)."""
+    check_task_dim(msg, dim)
+    mode = int(msg.mode)
+    check_range(mode in MODES, msg, f'mode must be one of {list(MODES)}, got {mode}')
+    state_seq = check_seq(msg, 'state_seq')
+    check_int(msg, 'constraint_count', 0, dim)
+    age = float(msg.update_age)
+    check_range(age >= 0.0, msg, f'update_age must be >= 0 (or inf), got {age}')
+    check_stamp(msg)
+    array(msg, 'vt_pose', dim, finite=False)
+    array(msg, 'vt_twist', dim, finite=False)
+    return state_seq, mode, array(msg, 'wrench', dim)
+
+
+def check_hand(msg: Any, dim: int, max_wrench: float) -> tuple[int, int, float, np.ndarray,
+                                                               np.ndarray, np.ndarray,
+                                                               np.ndarray]:
+    """A ``HandInput``: ``(seq, state_seq, stamp_s, pose, twist, F_h, F_pc)``; every wrench
+    entry within ``max_wrench``."""
+    check_task_dim(msg, dim)
+    seq = check_seq(msg, 'seq')
+    state_seq = check_seq(msg, 'state_seq')
+    stamp = check_stamp(msg)
+    f_h = array(msg, 'hand_wrench', dim)
+    f_pc = array(msg, 'coupling_wrench', dim)
+    for name, w in (('hand_wrench', f_h), ('coupling_wrench', f_pc)):
+        check_range(bool(np.all(np.abs(w) <= max_wrench)), msg,
+                    f'{name} must be within +-{max_wrench:g}, got {w.tolist()}')
+    return seq, state_seq, stamp, array(msg, 'pose', dim), array(msg, 'twist', dim), f_h, f_pc
+
+
+def check_update_header(msg: Any, dim: int, dof: int) -> tuple[int, int]:
+    """The integers of an ``LmiUpdate``: ``(seq, hand_input_seq)``, both in [0, MAX_SEQ]
+    (the VE's first update is seq 0; hand_input_seq 0: no input consumed yet); ``dof`` and
+    ``task_dim`` those of the linkage; ``constraint_count`` in [0, task_dim]."""
+    check_task_dim(msg, dim)
+    if int(msg.dof) != dof:
+        raise MessageError('dof', f'{_name(msg)}.dof must be {dof}, got {msg.dof}')
+    seq = check_seq(msg, 'seq', 0)
+    hand_input_seq = check_seq(msg, 'hand_input_seq', 0)
+    check_int(msg, 'constraint_count', 0, dim)
+    check_stamp(msg)
+    return seq, hand_input_seq
+
+
+def check_vt_path(msg: Any, dim: int) -> tuple[int, list[int], np.ndarray]:
+    """A ``VtPath``: ``(update_seq, hand_input_seqs, hand_pose rows)``; every seq in
+    [1, MAX_SEQ], ``hand_pose`` ``len(hand_input_seqs) x dim`` and finite."""
+    check_task_dim(msg, dim)
+    update_seq = check_seq(msg, 'update_seq', 0)
+    seqs = [int(s) for s in msg.hand_input_seqs]
+    bad = [s for s in seqs if not 1 <= s <= MAX_SEQ]
+    check_range(not bad, msg, f'hand_input_seqs must be in [1, {MAX_SEQ}], got {bad[:3]}')
+    poses = array(msg, 'hand_pose', len(seqs) * dim).reshape(len(seqs), dim)
+    return update_seq, seqs, poses

@@ -1,0 +1,206 @@
+"""Foreign and hostile messages on the graph's topics, against real node processes.
+
+* extreme integers (``seq = 2**63 - 1``, ``2**64 - 1``, ``task_dim`` 255, ...) at a running
+  ``lmi_controller`` and ``ve_sim``: rejected and counted per reason in ``/diagnostics``, and
+  both nodes still answer afterwards (one message must never end a node);
+
+Every wait is on a message, with a deadline; nothing is timed.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from haptic_topology.msgcheck import MAX_SEQ
+from haptic_topology.paths import config_dir
+
+pytestmark = pytest.mark.graph
+
+PARAMS = config_dir() / 'haptic_topology.yaml'
+#: Longest wait (s) for a node to start or answer: generous, a loaded machine is only slower.
+WAIT = 60.0
+BIG = 2 ** 63 - 1
+U64 = 2 ** 64 - 1
+IDLE_WATCHDOG = 16 | 4
+
+
+def _start(name: str, *extra: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, '-m', f'haptic_topology.nodes.{name}', '--ros-args', '--params-file',
+         str(PARAMS), '-p', 'scenario:=fig8', *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> tuple[int | None, str]:
+    """SIGINT, then the exit status and output (None: it had died before)."""
+    alive = proc.poll() is None
+    if alive:
+        proc.send_signal(signal.SIGINT)
+    try:
+        out, _ = proc.communicate(timeout=15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+    return (proc.returncode if alive else None), out.decode(errors='replace')
+
+
+class Probe:
+    """A node of the test process (own rclpy context) on the graph's topics."""
+
+    def __init__(self, procs: list[subprocess.Popen[bytes]]) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+
+        from haptic_topology.nodes import common
+        from haptic_topology_msgs.msg import (
+            DeviceCommand,
+            DeviceState,
+            HandInput,
+            LmiUpdate,
+        )
+
+        self.rclpy = rclpy
+        self.procs = procs
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = n = rclpy.create_node('foreign_probe', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(n)
+        self.state_pub = n.create_publisher(DeviceState, common.TOPIC_STATE, common.QOS_LOOP)
+        self.hand_pub = n.create_publisher(HandInput, common.TOPIC_HAND, common.QOS_HAND)
+        self.lmi_pub = n.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
+        self.commands: list[Any] = []
+        self.updates: list[Any] = []
+        self.status: dict[str, dict[str, str]] = {}
+        n.create_subscription(DeviceCommand, common.TOPIC_COMMAND, self.commands.append,
+                              common.QOS_LOOP)
+        n.create_subscription(LmiUpdate, common.TOPIC_LMI, self.updates.append, common.QOS_LMI)
+        n.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS, self._on_diag,
+                              common.QOS_DIAGNOSTICS)
+
+    def _on_diag(self, msg: Any) -> None:
+        for st in msg.status:
+            self.status[st.name] = {kv.key: kv.value for kv in st.values}
+
+    def value(self, status: str, key: str) -> int:
+        return int(self.status.get(status, {}).get(key, '-1'))
+
+    def wait(self, cond: Callable[[], bool], what: str, tick: Callable[[], None] | None = None,
+             timeout: float = WAIT) -> None:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            for p in self.procs:
+                assert p.poll() is None, f'{what}: a node died:\n{_stop(p)[1][-3000:]}'
+            assert time.monotonic() < deadline, f'{what}: not within {timeout:g} s'
+            if tick is not None:
+                tick()
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+
+
+def _state(seq: int, status: int = IDLE_WATCHDOG, task_dim: int = 3) -> Any:
+    from haptic_topology_msgs.msg import DeviceState
+
+    v = [0.0] * task_dim
+    return DeviceState(seq=seq, task_dim=task_dim, pose=v, twist=v, hand_wrench=v,
+                       applied_wrench=v, status=status)
+
+
+def _hand(seq: int, state_seq: int, task_dim: int = 3) -> Any:
+    from builtin_interfaces.msg import Time
+
+    from haptic_topology_msgs.msg import HandInput
+
+    v = [0.0] * task_dim
+    msg = HandInput(seq=seq, state_seq=state_seq, task_dim=task_dim, pose=v, twist=v,
+                    hand_wrench=v, coupling_wrench=v)
+    msg.header.stamp = Time(sec=0, nanosec=1_000_000 * min(state_seq, 999))
+    return msg
+
+
+def _update(**ints: int) -> Any:
+    from haptic_topology.control.lmi import LmiSnapshot
+    from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+    from haptic_topology.nodes.convert import lmi_msg, seconds_to_stamp
+    from haptic_topology.sim.scenario import load_scenario
+    from haptic_topology_msgs.msg import LmiUpdate
+
+    sc = load_scenario('fig8')
+    snap = LmiSnapshot.from_dynamics(LinkageDynamics(sc.linkage).snapshot(sc.q0, sc.dq0),
+                                     sc.linkage.task,
+                                     sc.linkage.constraints.characteristic_length, 3, 7)
+    msg = lmi_msg(LmiUpdate(), snap, seconds_to_stamp(1.0))
+    for k, v in ints.items():
+        setattr(msg, k, v)
+    return msg
+
+
+def test_extreme_integers_are_rejected_and_nodes_keep_answering() -> None:
+    ctl, ve = 'lmi_controller: loop', 've_sim: loop'
+    procs = [_start('lmi_controller'), _start('ve_sim')]
+    probe: Probe | None = None
+    try:
+        probe = p = Probe(procs)
+
+        def answered(seq: int) -> bool:
+            return any(int(c.state_seq) == seq for c in p.commands)
+
+        # Up: the controller answers an idle state; both report diagnostics.
+        p.wait(lambda: answered(1), 'controller answers state 1',
+               lambda: p.state_pub.publish(_state(1)))
+        p.wait(lambda: p.value(ctl, 'rejected_range') == 0 and p.value(ve, 'rejected_range')
+               == 0, 'diagnostics of both nodes')
+
+        hostile_states = [_state(BIG), _state(U64), _state(MAX_SEQ + 1), _state(2, 255),
+                          _state(2, 0, 255)]
+        hostile_hands = [_hand(U64, 1), _hand(1, BIG), _hand(BIG, BIG), _hand(1, 0)]
+        hostile_updates = [_update(seq=U64), _update(hand_input_seq=BIG),
+                           _update(constraint_count=255), _update(dof=2 ** 32 - 1),
+                           _update(task_dim=255)]
+        # Best-effort states: each one is sent until the controller has counted it.
+        for msg, reason in zip(hostile_states, ['rejected_range'] * 4 + ['rejected_task_dim'],
+                               strict=True):
+            base = p.value(ctl, reason)
+            p.wait(lambda r=reason, b=base: p.value(ctl, r) > b,
+                   f'controller counts a hostile state ({reason})',
+                   lambda m=msg: p.state_pub.publish(m))
+        for msg in hostile_hands:
+            p.hand_pub.publish(msg)
+        for msg in hostile_updates:
+            p.lmi_pub.publish(msg)
+        # Reliable topics: every hostile message arrives and is counted.
+        p.wait(lambda: p.value(ve, 'rejected_range') >= len(hostile_hands),
+               've_sim counted the hostile hand inputs')
+        p.wait(lambda: p.value(ctl, 'rejected_dof') >= 1 and p.value(ctl, 'rejected_task_dim')
+               >= 2 and p.value(ctl, 'rejected_range') >= 4 + 3, 'controller counted updates')
+
+        # The largest accepted seq (a plausible but false running state) does not end it.
+        p.wait(lambda: answered(MAX_SEQ), 'controller answers state MAX_SEQ',
+               lambda: p.state_pub.publish(_state(MAX_SEQ, status=0)))
+        # Both still answer: the controller a new idle state, the VE ten hand inputs with an
+        # update that consumed them.
+        p.wait(lambda: answered(2), 'controller still answers',
+               lambda: p.state_pub.publish(_state(2)))
+        for k in range(1, 11):
+            p.hand_pub.publish(_hand(k, k))
+        p.wait(lambda: any(int(u.hand_input_seq) >= 9 for u in p.updates),
+               've_sim still answers hand inputs')
+    finally:
+        if probe is not None:
+            probe.close()
+        results = [_stop(proc) for proc in procs]
+    for code, out in results:
+        assert code == 0, out[-3000:]
+        assert 'Traceback' not in out, out[-3000:]
