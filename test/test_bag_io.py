@@ -10,6 +10,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -180,3 +181,101 @@ def test_bad_bags_name_the_file_and_the_problem(tmp_path: Path, case: str,
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and expected in lines[0], proc.stderr
         assert 'Traceback' not in proc.stderr
+
+
+# -- foreign and malformed messages in a bag -------------------------------------------------
+def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
+    """Copy the bag ``src`` to ``dst`` and add foreign/malformed messages on the graph's
+    topics (each after the real message it imitates); return the skips expected per key."""
+    from dataclasses import replace as dc_replace
+
+    ts = typestore_with_haptic_msgs()
+    bag = open_bag(src)
+    topics = dict(bag.metadata_topics(), **{'/haptic/ve/path': type_name('VtPath')})
+    names = sorted(topics)
+    w = BagWriter(dst, [TopicSpec(t, topics[t], (make_qos(False, 1),)) for t in names], ts,
+                  sources=message_definitions(),
+                  custom=(bag.metadata or {}).get('custom_data') or {})
+    index = {t: i for i, t in enumerate(names)}
+    decode = decoder()
+    first: dict[str, Any] = {}
+    running_state: Any = None
+    for m in iter_messages(bag):
+        w.write(index[m.topic], m.log_time, m.data)
+        kind = m.topic.rsplit('/', 1)[-1]
+        msg = decode(m)
+        first.setdefault(kind, (m, msg))
+        if kind == 'state' and running_state is None and not msg.status & 4:
+            running_state = (m, msg)
+    nan3 = np.array([np.nan, 0.0, 0.0])
+    z6 = np.zeros(6)
+
+    def add(kind: str, msg: Any, log_time: int) -> None:
+        raw = first[kind][0]
+        w.write(index[raw.topic], log_time, bytes(ts.serialize_cdr(msg, raw.msgtype)))
+
+    rm, st = running_state
+    t = rm.log_time + 1
+    hostile_states = [
+        dc_replace(st, pose=np.zeros(4)),                       # the issue's (4,) into (3,)
+        dc_replace(st, twist=nan3),
+        dc_replace(st, task_dim=6, pose=z6, twist=z6, hand_wrench=z6, applied_wrench=z6),
+        dc_replace(st, seq=2 ** 63 - 1),
+        dc_replace(st, seq=2 ** 64 - 1),
+        dc_replace(st, status=200),
+        dc_replace(st, applied_wrench=np.array([-13.25, 11.5, 1.125])),   # same seq: false
+        dc_replace(st, seq=10 ** 9),                            # far outside the run
+    ]
+    for msg in hostile_states:
+        add('state', msg, t)
+    cm, cmd = first['command'][0], decode(first['command'][0])
+    for msg in (dc_replace(cmd, wrench=nan3), dc_replace(cmd, task_dim=6, wrench=z6),
+                dc_replace(cmd, state_seq=2 ** 63 - 1),
+                dc_replace(cmd, wrench=np.array([-13.25, 11.5, 1.125]))):  # duplicate
+        add('command', msg, cm.log_time + 1)
+    um, upd = first['update']
+    for msg in (dc_replace(upd, dof=4), dc_replace(upd, seq=2 ** 64 - 1),
+                dc_replace(upd, hand_input_seq=2 ** 63 - 1),
+                dc_replace(upd, hand_pose=np.array([np.inf, 0.0, 0.0]))):
+        add('update', msg, um.log_time + 1)
+    path_type = type_name('VtPath')
+    path = ts.types[path_type](upd.header, 1, 3, np.array([2 ** 63 - 1], dtype=np.uint64),
+                               np.zeros(3))
+    for msg in (path, dc_replace(path, hand_input_seqs=np.array([5], dtype=np.uint64),
+                                 hand_pose=np.zeros(4))):
+        w.write(index['/haptic/ve/path'], um.log_time + 2,
+                bytes(ts.serialize_cdr(msg, path_type)))
+    w.write(index[rm.topic], t, b'\x00\x01garbage')               # does not decode
+    w.close()
+    return {'state_size': 1, 'state_non_finite': 1, 'state_task_dim': 1, 'state_range': 3,
+            'state_duplicate': 1, 'state_foreign_seq': 1, 'state_decode': 1,
+            'command_non_finite': 1, 'command_task_dim': 1, 'command_range': 1,
+            'command_duplicate': 1, 'update_dof': 1, 'update_range': 2,
+            'update_non_finite': 1, 'path_range': 1, 'path_size': 1}
+
+
+def test_foreign_and_malformed_messages_in_a_bag_are_skipped_and_counted(
+        tmp_path: Path) -> None:
+    """A recorded run plus hostile messages on every graph topic (wrong sizes, NaN,
+    task_dim 6, seq 2**63 - 1, false states with real seqs, a seq far outside the run,
+    undecodable bytes): the trace is the clean run's, every hostile message is counted, and
+    ``haptic-topology analyze`` writes trace plot and summary."""
+    expected = _hostile_copy(REFERENCE, tmp_path / 'hostile')
+    clean = read_graph_bag(REFERENCE, 'fig8', 3)
+    run = read_graph_bag(tmp_path / 'hostile', 'fig8', 3, task_dim=3)
+    assert run.skipped == expected
+    assert clean.skipped == {}
+    for col in ('device_pose', 'applied', 'command', 'vt_pose', 'q'):
+        np.testing.assert_array_equal(run.trace.columns[col], clean.trace.columns[col])
+    # Without the scenario's sizes (task_dim, dof from the bag's majority): the same.
+    assert read_graph_bag(tmp_path / 'hostile').skipped == expected
+    out = tmp_path / 'out'
+    proc = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', 'analyze',
+                           str(tmp_path / 'hostile'), '--out', str(out)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert 'Traceback' not in proc.stderr
+    assert f'skipped {sum(expected.values())} foreign or malformed messages' in proc.stdout
+    summary = json.loads((out / 'summary.json').read_text())['runs'][0]
+    assert summary['skipped_messages'] == expected
+    assert (out / 'hostile.png').is_file()

@@ -15,7 +15,9 @@ period p50/p99 and its standard deviation, from the state stamps). It writes int
 * ``summary.json``: ``{"runs": [...]}``, one object per input with the drift fields of
   ``simulate`` (``final_distance_m``, ``max_distance_m``, ``rms_distance_m``,
   ``constrained_time_s``, ...), ``label``, ``input``, ``source`` (graph/simulate) and, for
-  bags, the loop figures.
+  bags, the loop figures and ``skipped_messages``: the foreign or malformed messages on the
+  graph's topics that were left out, per ``<kind>_<reason>`` (see
+  :mod:`haptic_topology.bag.graph_trace`); the trace, plot and summary are written anyway.
 
 Reading a large bag shows a progress line on stderr (when stderr is a terminal, or the bag
 is larger than 20 MB).
@@ -49,6 +51,7 @@ class Run:
     path: Path
     trace: Trace
     loop: dict[str, float] = field(default_factory=dict)
+    skipped: dict[str, int] = field(default_factory=dict)
 
 
 class _ProgressLine:
@@ -92,22 +95,24 @@ def load_run(path: str | Path) -> Run:
     if _is_bag(p):
         scenario = _scenario_of_bag(p)
         name = Path(scenario).stem if scenario else ''
-        dof = None
+        dof = task_dim = None
         if scenario:
             try:
                 from haptic_topology.sim.scenario import load_scenario
 
                 sc = load_scenario(scenario)
-                dof, name = sc.linkage.dof, sc.name
+                dof, task_dim, name = sc.linkage.dof, sc.linkage.task.dim, sc.name
             except ConfigError:
                 pass
         size = sum(f.stat().st_size for f in ([p] if p.is_file() else p.glob('*.mcap')))
-        result = read_graph_bag(p, name, dof, progress=_ProgressLine(p.name, size))
+        result = read_graph_bag(p, name, dof, progress=_ProgressLine(p.name, size),
+                                task_dim=task_dim)
         loop = dict(result.loop)
         loop.update(_period_figures(result.trace))
         if scenario:
             result.trace.meta.setdefault('scenario_ref', scenario)
-        return Run(p.name if p.is_dir() else p.stem, p, result.trace, loop)
+        return Run(p.name if p.is_dir() else p.stem, p, result.trace, loop,
+                   dict(result.skipped))
     csv_path = p / 'trace.csv' if p.is_dir() else p
     if not csv_path.is_file():
         raise BagError(f'{p}: not a bag (no {METADATA} and no .mcap file) and no trace.csv')
@@ -217,6 +222,8 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
                                'truncated': bool(r.trace.meta.get('truncated', False))}
         row.update(summary)
         row.update({k: (v if math.isfinite(v) else None) for k, v in r.loop.items()})
+        if row['source'] == 'graph':
+            row['skipped_messages'] = dict(r.skipped)
         rows.append(row)
         if plots:
             from haptic_topology.sim.plots import plot_trace
@@ -253,5 +260,10 @@ def run(args: argparse.Namespace) -> int:
     if truncated:
         print(f'\nnote: {", ".join(truncated)} ended early (recorder killed?); read up to '
               'the last complete chunk')
+    for r in rows:
+        skipped = r.get('skipped_messages') or {}
+        if skipped:
+            print(f'\nnote: {r["label"]}: skipped {sum(skipped.values())} foreign or '
+                  f'malformed messages ({", ".join(f"{k} {v}" for k, v in skipped.items())})')
     print(f'\nwrote {args.out / "summary.json"}' + ('' if args.no_plot else ' and plots'))
     return 0

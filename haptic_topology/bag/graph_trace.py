@@ -13,6 +13,17 @@ the state at which the controller engaged; ``t = 0`` there), in sequence order:
   joint positions from ``LmiUpdate``, interpolated the same way; after the last sample they
   are NaN; the constraint count is held from the last update.
 
+Messages that do not belong to the run are skipped and counted per ``<kind>_<reason>`` in
+:attr:`GraphRun.skipped` (``analyze`` writes them to ``summary.json`` as
+``skipped_messages``): messages on the graph's topics that do not decode (``<kind>_decode``),
+fail the nodes' own checks (:mod:`haptic_topology.msgcheck`: task_dim, dof, sizes,
+non-finite values, integer ranges; the run's task_dim is the scenario's, else the most common
+one among the states, its dof the scenario's, else the most common among the updates), repeat
+a sequence number already read (``state_duplicate``, ``command_duplicate``: the first one
+read is kept; a bag cannot tell which publisher sent which), or lie far outside the run
+(``state_foreign_seq``: states are grouped where consecutive seqs are at most
+:data:`MAX_SEQ_GAP` apart, and the largest group holding running states is the run).
+
 Loop figures: the device driver's own counts from its last ``/diagnostics`` status
 (answered fraction, round trip p50/p99), and an estimate from the bag alone: the fraction of
 states k whose command was computed (``DeviceCommand.header.stamp``) before state k+1 was
@@ -28,8 +39,23 @@ from typing import Any
 
 import numpy as np
 
-from haptic_topology.bag.reader import Progress, decoder, iter_messages, open_bag, require_types
+from haptic_topology.bag.reader import (
+    BagMessage,
+    Progress,
+    decoder,
+    iter_messages,
+    open_bag,
+    require_types,
+)
 from haptic_topology.errors import BagError
+from haptic_topology.msgcheck import (
+    MessageError,
+    array,
+    check_command,
+    check_state,
+    check_update_header,
+    check_vt_path,
+)
 from haptic_topology.msgdefs import type_name
 from haptic_topology.sim.trace import Trace
 
@@ -44,6 +70,9 @@ GRAPH_TYPES = {
 #: Topics the graph also publishes that newer bags have (not required to read a bag).
 PATH_TOPIC = 'haptic/ve/path'
 _MODE_LABELS = {0: 'penalty', 1: 'acceleration_only', 2: 'zero'}
+#: Largest gap between consecutive state seqs within one run (10 s of 1 kHz states; a
+#: recorder loses far less).
+MAX_SEQ_GAP = 10_000
 
 
 @dataclass
@@ -53,6 +82,8 @@ class GraphRun:
     trace: Trace
     loop: dict[str, float] = field(default_factory=dict)
     diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
+    #: Skipped messages per ``<kind>_<reason>`` (module doc).
+    skipped: dict[str, int] = field(default_factory=dict)
 
 
 def _stamp(header: Any) -> float:
@@ -60,51 +91,94 @@ def _stamp(header: Any) -> float:
 
 
 def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
-                   progress: Progress | None = None) -> GraphRun:
-    """Read the bag ``path`` (see module doc); ``progress`` gets the fraction read.
+                   progress: Progress | None = None, task_dim: int | None = None) -> GraphRun:
+    """Read the bag ``path`` (see module doc); ``progress`` gets the fraction read;
+    ``dof``/``task_dim``: the scenario's linkage (None: from the bag's majority).
 
     A truncated bag (recorder killed) is read up to its last complete chunk; the trace's
-    ``meta['truncated']`` is then True.
+    ``meta['truncated']`` is then True. Foreign and malformed messages are skipped and
+    counted (:attr:`GraphRun.skipped`).
     """
     bag = open_bag(path)
     p = bag.path
     require_types(bag, GRAPH_TYPES)
     decode = decoder()
-    states: dict[int, Any] = {}
-    commands: dict[int, Any] = {}
-    updates: list[Any] = []
-    vt_path: dict[int, Any] = {}
+    skipped: dict[str, int] = {}
+
+    def skip(kind: str, reason: str) -> None:
+        key = f'{kind}_{reason}'
+        skipped[key] = skipped.get(key, 0) + 1
+
+    def decoded(kind: str, raw: BagMessage) -> Any:
+        try:
+            return decode(raw)
+        except BagError:
+            skip(kind, 'decode')
+            return None
+
+    raw_states: list[Any] = []
+    raw_commands: list[Any] = []
+    updates_in: list[Any] = []
+    paths_in: list[Any] = []
     diags: dict[str, dict[str, str]] = {}
     for raw in iter_messages(bag, progress=progress):
         topic = raw.topic
-        msg: Any
         if topic.endswith('haptic/device/state'):
-            msg = decode(raw)
-            states[int(msg.seq)] = msg
+            raw_states.append(decoded('state', raw))
         elif topic.endswith('haptic/device/command'):
-            msg = decode(raw)
-            commands.setdefault(int(msg.state_seq), msg)
+            raw_commands.append(decoded('command', raw))
         elif topic.endswith('haptic/lmi/update'):
-            updates.append(decode(raw))
+            updates_in.append(decoded('update', raw))
         elif topic.endswith(PATH_TOPIC):
-            msg = decode(raw)
-            m_path = int(msg.task_dim)
-            poses = np.asarray(msg.hand_pose, dtype=float).reshape(-1, max(m_path, 1))
-            for s_in, pose in zip(msg.hand_input_seqs, poses, strict=True):
-                vt_path[int(s_in)] = pose
+            paths_in.append(decoded('path', raw))
         elif topic == '/diagnostics':
-            msg = decode(raw)
-            for st in msg.status:
+            msg = decoded('diagnostics', raw)
+            for st in getattr(msg, 'status', None) or []:
                 diags[st.name] = {kv.key: kv.value for kv in st.values}
+    m = task_dim if task_dim is not None else _most_common(
+        [int(s.task_dim) for s in raw_states if s is not None])
+    if dof is None:
+        dof = _most_common([int(u.dof) for u in updates_in if u is not None]) or 0
+
+    def valid(kind: str, msgs: list[Any], check: Any) -> list[Any]:
+        out = []
+        for msg in msgs:
+            if msg is None:
+                continue
+            try:
+                check(msg)
+            except MessageError as exc:
+                skip(kind, exc.reason)
+                continue
+            out.append(msg)
+        return out
+
+    states: dict[int, Any] = {}
+    for msg in valid('state', raw_states, lambda s: check_state(s, m)):
+        if int(msg.seq) in states:
+            skip('state', 'duplicate')
+        else:
+            states[int(msg.seq)] = msg
+    commands: dict[int, Any] = {}
+    for msg in valid('command', raw_commands, lambda c: check_command(c, m)):
+        if int(msg.state_seq) in commands:
+            skip('command', 'duplicate')
+        else:
+            commands[int(msg.state_seq)] = msg
+    updates = valid('update', updates_in, lambda u: _check_update(u, m, dof))
+    vt_path: dict[int, Any] = {}
+    for msg in valid('path', paths_in, lambda v: check_vt_path(v, m)):
+        _, path_seqs, poses = check_vt_path(msg, m)
+        vt_path.update(zip(path_seqs, poses, strict=True))
+    for seq in _foreign_seqs(states):
+        del states[seq]
+        skip('state', 'foreign_seq')
     run_seqs = sorted(s for s, m in states.items() if not m.status & _WATCHDOG)
     if not run_seqs:
         raise BagError(f'{p}: no device state of a running loop (controller never engaged?)')
     k0 = run_seqs[0]
     seqs = np.array(sorted(s for s in states if s >= k0))
     first = states[k0]
-    m = int(first.task_dim)
-    if dof is None:
-        dof = int(updates[0].dof) if updates else 0
     modes = [int(c.mode) for s, c in commands.items() if s >= k0]
     mode = max(set(modes), key=modes.count) if modes else 2
     trace = Trace.empty(len(seqs), m, dof, mode=_MODE_LABELS.get(mode, str(mode)),
@@ -151,7 +225,32 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         counts = np.array([int(known[r].constraint_count) for r in rows])
         idx = np.searchsorted(rows, np.arange(len(seqs)), side='right') - 1
         trace.columns['constraint_count'][:] = np.where(idx >= 0, counts[np.maximum(idx, 0)], 0)
-    return GraphRun(trace, loop_figures(states, commands, seqs, diags), diags)
+    return GraphRun(trace, loop_figures(states, commands, seqs, diags), diags, skipped)
+
+
+def _most_common(values: list[int]) -> int:
+    return max(set(values), key=values.count) if values else 0
+
+
+def _check_update(msg: Any, m: int, dof: int) -> None:
+    """The fields of an ``LmiUpdate`` the trace uses: integers, VT hand pose and q."""
+    check_update_header(msg, m, dof)
+    array(msg, 'hand_pose', m)
+    array(msg, 'q', dof)
+
+
+def _foreign_seqs(states: dict[int, Any]) -> list[int]:
+    """Seqs of the states outside the run (module doc: groups split at gaps larger than
+    MAX_SEQ_GAP; the run is the largest group with a running state)."""
+    seqs = sorted(states)
+    if not seqs:
+        return []
+    cuts = [i + 1 for i, (a, b) in enumerate(zip(seqs[:-1], seqs[1:], strict=True))
+            if b - a > MAX_SEQ_GAP]
+    groups = [seqs[a:b] for a, b in zip([0, *cuts], [*cuts, len(seqs)], strict=True)]
+    running = [g for g in groups if any(not states[s].status & _WATCHDOG for s in g)]
+    run = max(running or groups, key=len)
+    return [s for g in groups if g is not run for s in g]
 
 
 def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndarray,

@@ -25,6 +25,7 @@ import yaml
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
+from rosbags.serde import SerdeError
 from rosbags.typesys.store import Typestore
 
 from haptic_topology.errors import BagError
@@ -240,7 +241,7 @@ def decoder(typestore: Typestore | None = None) -> Callable[[BagMessage], Any]:
             return store.deserialize_cdr(msg.data, msg.msgtype)
         except KeyError:
             raise BagError(f'{msg.topic}: unknown message type {msg.msgtype!r}') from None
-        except (ValueError, IndexError, struct.error, AssertionError) as exc:
+        except (ValueError, IndexError, struct.error, AssertionError, SerdeError) as exc:
             raise BagError(f'{msg.topic}: cannot decode {msg.msgtype} at t={msg.log_time} '
                            f'({exc})') from None
     return decode

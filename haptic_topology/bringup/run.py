@@ -224,10 +224,14 @@ def run(args: argparse.Namespace) -> int:
               f'{" composed" if args.composed else ""} ...', flush=True)
         run_graph(scenario_ref, mode, duration, bag, params, args.composed, args.backend,
                   args.startup_timeout, args.clock)
-        result = read_graph_bag(bag, sc.name, sc.linkage.dof)
+        result = read_graph_bag(bag, sc.name, sc.linkage.dof, task_dim=sc.linkage.task.dim)
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')
         summary = dict(trace.summary(), **{k: v for k, v in result.loop.items()})
+        summary['skipped_messages'] = dict(result.skipped)
+        if result.skipped:
+            print(f'skipped {sum(result.skipped.values())} foreign or malformed messages in '
+                  f'the bag: {result.skipped}', flush=True)
         cpu_file = bag / 'logs' / 'cpu.json'
         if cpu_file.is_file():
             summary.update({f'cpu_{name}': v for name, v in
