@@ -39,12 +39,16 @@ def _joint_points(linkage: Linkage, q: np.ndarray) -> np.ndarray:
 
 
 def _spatial_points(linkage: Linkage, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World positions (m) of the joint origins (rows) and of the grasp point at q."""
+    """World positions (m) of the joint origins (rows; then the grasp point when the last link
+    is grasped) and of the grasp point at q."""
     lm = build_model(linkage)
     data = lm.model.createData()
     pin.framesForwardKinematics(lm.model, data, q)
-    pts = np.array([np.array(data.oMi[j].translation) for j in range(1, lm.model.njoints)])
-    return pts, np.array(data.oMf[lm.hand_frame].translation)
+    pts = [np.array(data.oMi[j].translation) for j in range(1, lm.model.njoints)]
+    grasp = np.array(data.oMf[lm.hand_frame].translation)
+    if linkage.grasp_link == linkage.links[-1].name:
+        pts.append(grasp)
+    return np.array(pts), grasp
 
 
 def _hand_paths(ax: plt.Axes, vt: np.ndarray, dev: np.ndarray, title: str,
