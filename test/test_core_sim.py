@@ -129,6 +129,11 @@ def test_simulate_with_another_linkage(tmp_path: Path) -> None:
     (lambda s: s['user'].update(type='robot'),
      r"scenario\.user\.type: expected one of constant_wrench, spring_damper, got 'robot'"),
     (lambda s: s.update(linkage='nope'), r'nope: no such file, and no linkage of that name'),
+    (lambda s: s.update(gravity=[0, -9.81]), r'scenario\.gravity: expected 3 numbers'),
+    (lambda s: (s.update(gravity=[0, 0, -9.81]), s['lmi'].update(model='eq20')),
+     r'scenario\.lmi\.model: eq20 \(D qdd = J_h\^T F_vt\) neglects the gravity \[0\.0, 0\.0, '
+     r'-9\.81\] m/s\^2 of linkage table1_planar3 that the VE integrates; expected eq17, or '
+     r'scenario\.gravity: \[0, 0, 0\]'),
 ])
 def test_bad_scenarios_name_the_key(tmp_path: Path, mutate, expected: str) -> None:
     doc = yaml.safe_load((config_dir() / 'scenarios' / 'fig6.yaml').read_text())

@@ -69,6 +69,23 @@ def test_lockstep_graph_equals_offline_simulation(tmp_path: Path, scenario: str,
         assert g[key] == pytest.approx(o[key], rel=1e-9, abs=0.0), key
 
 
+def test_lockstep_graph_equals_offline_simulation_spatial(tmp_path: Path) -> None:
+    """The same agreement in 6-D: the Panda of example-robot-data held at a middle link
+    (J_h 6 x 7, t >= 2), a 6-DOF device with an orientation stop, eq. 14, for 0.5 s."""
+    scenario, duration = 'panda_link4', 0.5
+    sc = load_scenario(scenario)
+    graph = _graph_run(tmp_path, scenario, 'penalty', duration).trace
+    offline = simulate(replace(sc, duration=duration), ControlMode.PENALTY)
+    assert graph.task_dim == 6
+    assert len(graph) == len(offline) == round(duration / sc.dt) + 1
+    for col in EXACT_COLUMNS:
+        np.testing.assert_allclose(graph.columns[col], offline.columns[col], rtol=0.0,
+                                   atol=1e-9, err_msg=col)
+    g, o = graph.summary(), offline.summary()
+    for key in ('final_distance_m', 'max_distance_m', 'rms_distance_m'):
+        assert g[key] == pytest.approx(o[key], rel=1e-9, abs=0.0), key
+
+
 def test_swapping_the_backend_needs_no_change_in_other_nodes(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The test double (test/fake_backend.py) is selected by a parameter value only; in

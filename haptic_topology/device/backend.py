@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from haptic_topology.device.maglev import DeviceParams, DeviceStatus, MaglevModel
+from haptic_topology.device.maglev import DeviceParams, DeviceStatus, MaglevModel, PositionSensor
 from haptic_topology.device.users import UserModel, user_from_config
 from haptic_topology.errors import DeviceError
 
@@ -111,7 +111,9 @@ class SimMaglevBackend(DeviceBackend):
 
     Until the first :meth:`write` from an engaged controller the model is parked at its
     initial pose (``idle`` does not integrate), so a run starts when the loop is closed, like
-    the offline lock-step simulation. The user's clock starts at engagement too.
+    the offline lock-step simulation. The user's clock starts at engagement too. What it
+    reports goes through the scenario's sensor model (:class:`PositionSensor`: exact unless
+    ``device.sensor`` says otherwise); the simulated user feels the true state.
     Options: none.
     """
 
@@ -119,6 +121,7 @@ class SimMaglevBackend(DeviceBackend):
 
     def __init__(self) -> None:
         self._model: MaglevModel | None = None
+        self._sensor: PositionSensor | None = None
         self._user: UserModel | None = None
         self._u = np.zeros(0)
         self._f_h = np.zeros(0)
@@ -131,6 +134,7 @@ class SimMaglevBackend(DeviceBackend):
                               f'{sorted(config.options)}')
         p = config.params
         self._model = MaglevModel(p, config.initial_pose)
+        self._sensor = PositionSensor(p)
         self._user = user_from_config(config.user, p.task, f'{config.source}: scenario.user',
                                       self._model.pose)
         m = p.task.dim
@@ -142,6 +146,12 @@ class SimMaglevBackend(DeviceBackend):
         if self._model is None or self._user is None:
             raise DeviceError(f'{self.name}: used before configure()')
         return self._model, self._user
+
+    def _reading(self, dt: float, status: DeviceStatus = DeviceStatus.OK) -> DeviceReading:
+        model, _ = self._require()
+        assert self._sensor is not None
+        pose, twist = self._sensor.measure(model.pose, model.twist, dt)
+        return DeviceReading(pose, twist, self._f_h.copy(), status)
 
     def task_dim(self) -> int:
         return self._require()[0].params.task.dim
@@ -164,11 +174,10 @@ class SimMaglevBackend(DeviceBackend):
         status = model.step(self._u, self._f_h, dt)
         self._t += dt
         self._f_h = user.wrench(self._t, model.pose, model.twist)
-        return DeviceReading(model.pose.copy(), model.twist.copy(), self._f_h.copy(), status)
+        return self._reading(dt, status)
 
     def idle(self, dt: float) -> DeviceReading:
-        model, _ = self._require()
-        return DeviceReading(model.pose.copy(), model.twist.copy(), self._f_h.copy())
+        return self._reading(dt)
 
 
 class HardwareBackend(DeviceBackend):

@@ -1,23 +1,45 @@
-"""Simulated haptic device: ``M_d xdd + C_d xd = F_h + u`` (eq. 9) with hard stops and saturation.
+"""Simulated haptic device: ``M_d xdd + C_d xd = F_h + u`` (eq. 9) with hard stops, saturation
+and, as options, the imperfections of a real device.
 
 Task vectors at the user's hand as in :mod:`haptic_topology.dynamics.taskspace` (planar: x, y,
-theta; spatial: x, y, z, rotation vector). ``M_d`` is the device inertia (kg, kg m^2),
-``C_d`` the Christoffel (velocity) matrix, here constant (N s/m). The planar maglev of the
-paper's lab is modelled with ``M_d = I`` (Section VI).
+theta; spatial: x, y, z and the orientation as a rotation vector, world frame; twists with the
+angular velocity in the world frame). ``M_d`` is the device inertia (kg, kg m^2; any symmetric
+positive definite m x m matrix, e.g. a 6 x 6 spatial inertia with translation-rotation
+coupling), ``C_d`` the Christoffel (velocity) matrix, here constant (N s/m, N m s/rad). The
+planar maglev of the paper's lab is modelled with ``M_d = I`` (Section VI).
+
+Limits: translational hard stops per axis (m), planar theta stops (rad), and for a spatial
+device an orientation cone: the rotation from a centre orientation is at most ``max_angle``
+(rad). The control wrench ``u`` saturates per axis (N, N m).
+
+Realism (:class:`DeviceRealism`, all off by default, so that the paper's ideal device is the
+default): position sensor quantization and Gaussian noise (seeded), velocity estimated from the
+measured positions through a first-order low-pass filter, one cycle of actuation delay, viscous
+and Coulomb friction. None of them is known to the controller: friction is not part of the
+``C_d`` that eq. 10 compensates.
 """
 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
-from haptic_topology.dynamics.taskspace import integrate_pose
+from haptic_topology.dynamics.taskspace import integrate_pose, pose_difference
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import TaskSpace
-from haptic_topology.validate import as_angles, as_vector, check_keys
+from haptic_topology.validate import (
+    as_angles,
+    as_float,
+    as_int,
+    as_str,
+    as_vector,
+    check_keys,
+)
 
 
 class DeviceStatus(enum.IntFlag):
@@ -31,12 +53,72 @@ class DeviceStatus(enum.IntFlag):
     IDLE = 16       # not engaged yet (always with WATCHDOG): controllers integrate nothing
 
 
+class VelocitySource(enum.Enum):
+    """Where the device's reported twist comes from."""
+
+    MODEL = 'model'             # the model's exact twist (an ideal velocity sensor)
+    DIFFERENCE = 'difference'   # backward difference of measured poses, low-pass filtered
+
+
+@dataclass(frozen=True)
+class DeviceRealism:
+    """Imperfections of the simulated device; the defaults switch every one off.
+
+    Sensor (what the device reports, not how it moves): ``quantization`` (m values, m / rad per
+    count; 0 = none), ``noise_std`` (m values, m / rad, Gaussian, added before quantization,
+    drawn from ``numpy.random.default_rng(seed)``: the same seed gives the same run),
+    ``velocity`` (:class:`VelocitySource`) with ``velocity_cutoff_hz`` (Hz) of the first-order
+    low-pass applied to the differenced velocity (0 = unfiltered).
+    Actuator: ``actuation_delay`` (cycles, 0 or 1): the wrench written in cycle k acts in cycle
+    k + 1. Friction (in eq. 9, unknown to the controller): ``viscous`` (m values, N s/m,
+    N m s/rad) and ``coulomb`` (m values, N, N m; stick-slip, exact for a diagonal ``M_d``).
+    """
+
+    quantization: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    noise_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seed: int = 0
+    velocity: VelocitySource = VelocitySource.MODEL
+    velocity_cutoff_hz: float = 0.0
+    actuation_delay: int = 0
+    viscous: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    coulomb: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def is_ideal(self) -> bool:
+        """True when no option is on (the device of the paper)."""
+        return (not np.any(self.quantization) and not np.any(self.noise_std)
+                and self.velocity is VelocitySource.MODEL and self.actuation_delay == 0
+                and not np.any(self.viscous) and not np.any(self.coulomb))
+
+    def labels(self) -> list[str]:
+        """Short names of the options that are on (for tables)."""
+        out = []
+        if np.any(self.quantization):
+            out.append('quantization')
+        if np.any(self.noise_std):
+            out.append('noise')
+        if self.velocity is VelocitySource.DIFFERENCE:
+            out.append('velocity from positions')
+        if self.actuation_delay:
+            out.append('actuation delay')
+        if np.any(self.viscous):
+            out.append('viscous friction')
+        if np.any(self.coulomb):
+            out.append('Coulomb friction')
+        return out
+
+
 @dataclass(frozen=True)
 class DeviceParams:
     """Device model parameters (task vectors of length m = task.dim).
 
-    ``workspace_lo``/``workspace_hi``: hard stops per pose coordinate (m / rad; +-inf for
-    none). ``wrench_limit``: symmetric saturation of u per coordinate (N / N m).
+    ``mass`` (m x m, symmetric positive definite; kg, kg m^2) and ``christoffel`` (m x m,
+    N s/m, N m s/rad): ``M_d`` and ``C_d`` of eq. 9. ``workspace_lo``/``workspace_hi``: hard
+    stops per pose coordinate (m / rad; +-inf for none; a spatial device's rotation-vector
+    entries are always +-inf, its orientation is limited by ``max_angle``).
+    ``wrench_limit``: symmetric saturation of u per coordinate (N / N m). ``max_angle`` (rad,
+    spatial only): largest rotation away from ``orientation_center`` (rotation vector, world
+    frame; None = the device's initial orientation). ``realism``: see :class:`DeviceRealism`.
     """
 
     task: TaskSpace
@@ -45,6 +127,9 @@ class DeviceParams:
     workspace_lo: np.ndarray
     workspace_hi: np.ndarray
     wrench_limit: np.ndarray
+    max_angle: float = math.inf
+    orientation_center: np.ndarray | None = None
+    realism: DeviceRealism = field(default_factory=DeviceRealism)
 
     @classmethod
     def unlimited(cls, task: TaskSpace, mass: float = 1.0) -> DeviceParams:
@@ -53,35 +138,123 @@ class DeviceParams:
         return cls(task, np.eye(m) * mass, np.zeros((m, m)), -inf, inf, inf.copy())
 
 
+def _matrix_or_diagonal(value: Any, where: str, m: int, positive_definite: bool) -> np.ndarray:
+    """``m`` numbers (the diagonal) or an m x m symmetric matrix (list of m rows)."""
+    if isinstance(value, list) and value and all(isinstance(r, list) for r in value):
+        if len(value) != m:
+            raise ConfigError(f'{where}: expected {m} rows of {m} numbers, got {len(value)} rows')
+        a = np.array([as_vector(r, f'{where}[{i}]', m) for i, r in enumerate(value)])
+        if not np.allclose(a, a.T, rtol=0.0, atol=1e-12 * max(1.0, float(np.abs(a).max()))):
+            raise ConfigError(f'{where}: expected a symmetric matrix, got {a.tolist()}')
+        eig = np.linalg.eigvalsh(a)
+        if positive_definite and eig.min() <= 0.0:
+            raise ConfigError(f'{where}: expected a positive definite matrix, got eigenvalues '
+                              f'{eig.tolist()}')
+        if not positive_definite and eig.min() < 0.0:
+            raise ConfigError(f'{where}: expected a positive semi-definite matrix, got '
+                              f'eigenvalues {eig.tolist()}')
+        return a
+    return np.diag(as_vector(value, where, m, lo=0.0, lo_open=positive_definite))
+
+
+def _realism_from_config(dev: Any, where: str, m: int) -> DeviceRealism:
+    zeros = [0.0] * m
+    sensor = check_keys(dev.get('sensor', {}), f'{where}.sensor', optional=(
+        'quantization', 'noise_std', 'seed', 'velocity', 'velocity_cutoff_hz'))
+    ws = f'{where}.sensor'
+    quant = as_vector(sensor.get('quantization', zeros), f'{ws}.quantization', m, lo=0.0)
+    noise = as_vector(sensor.get('noise_std', zeros), f'{ws}.noise_std', m, lo=0.0)
+    seed = as_int(sensor.get('seed', 0), f'{ws}.seed', lo=0)
+    velocity = VelocitySource(as_str(sensor.get('velocity', 'model'), f'{ws}.velocity',
+                                     [v.value for v in VelocitySource]))
+    if 'velocity_cutoff_hz' in sensor and velocity is VelocitySource.MODEL:
+        raise ConfigError(f'{ws}.velocity_cutoff_hz: only used with velocity: difference '
+                          '(the model velocity is not filtered)')
+    cutoff = as_float(sensor.get('velocity_cutoff_hz', DEFAULT_VELOCITY_CUTOFF_HZ),
+                      f'{ws}.velocity_cutoff_hz', lo=0.0)
+    delay = as_int(dev.get('actuation_delay', 0), f'{where}.actuation_delay', lo=0, hi=1)
+    fr = check_keys(dev.get('friction', {}), f'{where}.friction',
+                    optional=('viscous', 'coulomb'))
+    viscous = as_vector(fr.get('viscous', zeros), f'{where}.friction.viscous', m, lo=0.0)
+    coulomb = as_vector(fr.get('coulomb', zeros), f'{where}.friction.coulomb', m, lo=0.0)
+    return DeviceRealism(quant, noise, seed, velocity, cutoff, delay, viscous, coulomb)
+
+
+#: Low-pass cutoff (Hz) of the differenced velocity when ``velocity_cutoff_hz`` is not given.
+DEFAULT_VELOCITY_CUTOFF_HZ = 100.0
+
+
 def device_from_config(raw: Any, where: str, task: TaskSpace) -> tuple[DeviceParams, np.ndarray]:
     """The ``device:`` block of a scenario: its :class:`DeviceParams` and the initial offset
     (device pose - VT hand pose, m / rad). ``where``: the block's path (``file: scenario.device``).
 
-    Keys (all optional): ``offset`` (m values, default 0), ``mass`` and ``christoffel``
-    (diagonals of M_d > 0 and C_d >= 0; default 1 and 0), ``workspace: {lo, hi}`` (absolute hard
-    stops, m / rad, ``pi`` expressions accepted; default none), ``wrench_limit`` (> 0 per axis,
-    N / N m; default 1e9).
+    Keys (all optional; defaults give the ideal device of the paper):
+
+    * ``offset``: m values (m / rad), default 0;
+    * ``mass``: M_d of eq. 9, m values (the diagonal, > 0) or an m x m symmetric positive
+      definite matrix (kg, kg m^2), default I; ``christoffel``: C_d, m values >= 0 or a
+      symmetric positive semi-definite matrix (N s/m, N m s/rad), default 0;
+    * ``workspace``: absolute hard stops ``{lo, hi}`` (``pi`` expressions accepted; default
+      none): planar 3 values (m, m, rad); spatial 3 translation values (m) plus, optionally,
+      ``max_angle`` (rad, in (0, pi]) and ``center`` (rotation vector, rad, world frame;
+      default the device's initial orientation) for the orientation;
+    * ``wrench_limit``: > 0 per axis (N / N m), default 1e9;
+    * ``sensor: {quantization, noise_std, seed, velocity: model|difference,
+      velocity_cutoff_hz}``, ``actuation_delay`` (0 or 1 cycles), ``friction: {viscous,
+      coulomb}``: :class:`DeviceRealism` (all off by default; cutoff default
+      :data:`DEFAULT_VELOCITY_CUTOFF_HZ`).
     """
     m = task.dim
     dev = check_keys(raw, where, optional=(
-        'offset', 'mass', 'christoffel', 'workspace', 'wrench_limit'))
+        'offset', 'mass', 'christoffel', 'workspace', 'wrench_limit', 'sensor',
+        'actuation_delay', 'friction'))
     offset = as_vector(dev.get('offset', [0.0] * m), f'{where}.offset', m)
-    mass = np.diag(as_vector(dev.get('mass', [1.0] * m), f'{where}.mass', m, lo=0.0,
-                             lo_open=True))
-    chris = np.diag(as_vector(dev.get('christoffel', [0.0] * m), f'{where}.christoffel', m,
-                              lo=0.0))
+    mass = _matrix_or_diagonal(dev.get('mass', [1.0] * m), f'{where}.mass', m, True)
+    chris = _matrix_or_diagonal(dev.get('christoffel', [0.0] * m), f'{where}.christoffel', m,
+                                False)
     lo = np.full(m, -np.inf)
     hi = np.full(m, np.inf)
+    max_angle = math.inf
+    center: np.ndarray | None = None
     if 'workspace' in dev:
-        ws = check_keys(dev['workspace'], f'{where}.workspace', required=('lo', 'hi'))
-        lo = as_angles(ws['lo'], f'{where}.workspace.lo', m)
-        hi = as_angles(ws['hi'], f'{where}.workspace.hi', m)
+        wk = f'{where}.workspace'
+        if task is TaskSpace.SPATIAL:
+            ws = check_keys(dev['workspace'], wk, optional=('lo', 'hi', 'max_angle', 'center'))
+            if ('lo' in ws) != ('hi' in ws):
+                raise ConfigError(f'{wk}: give both lo and hi (3 translation stops each, m)')
+            if 'lo' in ws:
+                lo[:3] = _spatial_stops(ws['lo'], f'{wk}.lo')
+                hi[:3] = _spatial_stops(ws['hi'], f'{wk}.hi')
+            if 'max_angle' in ws:
+                max_angle = as_float(_angle(ws['max_angle'], f'{wk}.max_angle'),
+                                     f'{wk}.max_angle', lo=0.0, lo_open=True, hi=math.pi)
+            if 'center' in ws:
+                if 'max_angle' not in ws:
+                    raise ConfigError(f'{wk}.center: only used with max_angle')
+                center = as_angles(ws['center'], f'{wk}.center', 3)
+        else:
+            ws = check_keys(dev['workspace'], wk, required=('lo', 'hi'))
+            lo = as_angles(ws['lo'], f'{wk}.lo', m)
+            hi = as_angles(ws['hi'], f'{wk}.hi', m)
         if np.any(lo >= hi):
-            raise ConfigError(f'{where}.workspace: expected lo < hi on every axis, got lo='
+            raise ConfigError(f'{wk}: expected lo < hi on every axis, got lo='
                               f'{lo.tolist()} hi={hi.tolist()}')
     limit = as_vector(dev.get('wrench_limit', [1e9] * m), f'{where}.wrench_limit', m,
                       lo=0.0, lo_open=True)
-    return DeviceParams(task, mass, chris, lo, hi, limit), offset
+    realism = _realism_from_config(dev, where, m)
+    return DeviceParams(task, mass, chris, lo, hi, limit, max_angle, center, realism), offset
+
+
+def _spatial_stops(value: Any, where: str) -> np.ndarray:
+    if isinstance(value, list) and len(value) == 6:
+        raise ConfigError(f'{where}: a spatial device takes 3 translation stops (m); its '
+                          'orientation is limited by workspace.max_angle (rad), not by '
+                          'rotation-vector components')
+    return as_angles(value, where, 3)
+
+
+def _angle(value: Any, where: str) -> float:
+    return float(as_angles([value], where, 1)[0])
 
 
 def saturate(wrench: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -97,7 +270,12 @@ def saturate(wrench: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 class MaglevModel:
-    """State and one-step integration of the simulated device (semi-implicit Euler)."""
+    """State and one-step integration of the simulated device (semi-implicit Euler).
+
+    Each :meth:`step` integrates eq. 9, ``M_d xdd = F_h + u - C_d xd - F_friction``, with the
+    saturated ``u`` (of the previous step when ``actuation_delay`` is 1), then enforces the
+    hard stops. ``pose``/``twist`` are the true state; :class:`PositionSensor` reports it.
+    """
 
     def __init__(self, params: DeviceParams, pose: np.ndarray,
                  twist: np.ndarray | None = None) -> None:
@@ -107,16 +285,35 @@ class MaglevModel:
         self.params = params
         self.pose = np.array(pose, dtype=float)
         self.twist = np.zeros(m) if twist is None else np.array(twist, dtype=float)
-        self._mass_inv = np.linalg.inv(params.mass)  # constant, factored once
+        self._mass_inv = np.linalg.inv(params.mass)  # constant, inverted once
+        self._mass_diag = np.diag(params.mass).copy()
         self.applied = np.zeros(m)
+        self._pending = np.zeros(m)   # the wrench written last cycle (actuation delay)
+        r = params.realism
+        self._viscous = r.viscous if r.viscous.size else np.zeros(m)
+        self._coulomb = r.coulomb if r.coulomb.size else np.zeros(m)
+        self._rot_center = None
+        if params.task is TaskSpace.SPATIAL and math.isfinite(params.max_angle):
+            c = self.pose[3:6] if params.orientation_center is None else params.orientation_center
+            self._rot_center = pin.exp3(np.asarray(c, dtype=float))
 
     def step(self, u: np.ndarray, f_h: np.ndarray, dt: float) -> DeviceStatus:
         """Advance by ``dt`` (s) under control wrench ``u`` and hand wrench ``f_h`` (eq. 9)."""
         p = self.params
         u_sat, saturated = saturate(u, p.wrench_limit)
+        if p.realism.actuation_delay:
+            u_sat, self._pending = self._pending, u_sat
         self.applied = u_sat
-        xdd = self._mass_inv @ (f_h + u_sat - p.christoffel @ self.twist)
-        self.twist = self.twist + xdd * dt
+        force = f_h + u_sat - p.christoffel @ self.twist - self._viscous * self.twist
+        twist = self.twist + self._mass_inv @ force * dt
+        if np.any(self._coulomb):
+            # Implicit Coulomb friction per axis: stick when the friction force that stops
+            # the axis within this step is within its bound, else slide against the motion.
+            stop = -self._mass_diag * twist / dt
+            friction = np.where(np.abs(stop) <= self._coulomb, stop,
+                                -np.sign(twist) * self._coulomb)
+            twist = twist + self._mass_inv @ friction * dt
+        self.twist = twist
         self.pose = integrate_pose(self.pose, self.twist, dt, p.task)
         status = DeviceStatus.SATURATED if saturated else DeviceStatus.OK
         below = self.pose < p.workspace_lo
@@ -127,4 +324,64 @@ class MaglevModel:
             self.twist = np.where((below & (self.twist < 0)) | (above & (self.twist > 0)),
                                   0.0, self.twist)
             status |= DeviceStatus.WORKSPACE_LIMIT
+        if self._rot_center is not None and self._orientation_stop():
+            status |= DeviceStatus.WORKSPACE_LIMIT
         return status
+
+    def _orientation_stop(self) -> bool:
+        """Hold the orientation within ``max_angle`` of the centre; cancel the angular velocity
+        that turns further away. Returns whether the stop was hit."""
+        assert self._rot_center is not None
+        rot = pin.exp3(self.pose[3:6])
+        away = pin.log3(rot @ self._rot_center.T)   # world-frame rotation from the centre
+        angle = float(np.linalg.norm(away))
+        limit = self.params.max_angle
+        if angle <= limit:
+            return False
+        axis = away / angle
+        self.pose[3:6] = pin.log3(pin.exp3(axis * limit) @ self._rot_center)
+        w_out = float(axis @ self.twist[3:6])
+        if w_out > 0.0:
+            self.twist[3:6] -= w_out * axis
+        return True
+
+
+class PositionSensor:
+    """What the device reports of its true state (see :class:`DeviceRealism`).
+
+    ``measure(pose, twist, dt)`` returns the reported pose (true pose + noise, quantized per
+    coordinate) and twist (the true twist, or the low-pass filtered backward difference of the
+    reported poses: ``v_k = v_{k-1} + a ((x_k (-) x_{k-1}) / dt - v_{k-1})`` with
+    ``a = 1 - exp(-2 pi f_c dt)``). Deterministic: the noise comes from a generator seeded
+    with ``realism.seed``.
+    """
+
+    def __init__(self, params: DeviceParams) -> None:
+        self.task = params.task
+        self.realism = params.realism
+        m = params.task.dim
+        r = params.realism
+        self._quant = r.quantization if r.quantization.size else np.zeros(m)
+        self._noise = r.noise_std if r.noise_std.size else np.zeros(m)
+        self._rng = np.random.default_rng(r.seed)
+        self._last: np.ndarray | None = None
+        self._velocity = np.zeros(m)
+
+    def measure(self, pose: np.ndarray, twist: np.ndarray,
+                dt: float) -> tuple[np.ndarray, np.ndarray]:
+        r = self.realism
+        x = np.array(pose, dtype=float)
+        if np.any(self._noise):
+            x = x + self._noise * self._rng.standard_normal(x.size)
+        q = self._quant
+        if np.any(q):
+            x = np.where(q > 0.0, np.round(x / np.where(q > 0.0, q, 1.0)) * q, x)
+        if r.velocity is VelocitySource.MODEL:
+            return x, np.array(twist, dtype=float)
+        if self._last is not None and dt > 0.0:
+            raw = pose_difference(x, self._last, self.task) / dt
+            a = (1.0 if r.velocity_cutoff_hz <= 0.0
+                 else 1.0 - math.exp(-2.0 * math.pi * r.velocity_cutoff_hz * dt))
+            self._velocity = self._velocity + a * (raw - self._velocity)
+        self._last = x
+        return x, self._velocity.copy()

@@ -30,7 +30,9 @@ Izz; spatial: ``[ixx, iyy, izz]``, ``[ixx, iyy, izz, ixy, ixz, iyz]`` or a 3x3 l
 (``{xyz: [...], rpy: [...]}``: placement of this joint in the previous link's frame, default
 ``xyz = [previous length, 0, 0]``).
 
-Instead of ``links``, ``urdf: file.urdf`` reads the chain from a URDF (``revolute``,
+Instead of ``links``, ``urdf: file.urdf`` reads the chain from a URDF (a path relative to the
+YAML file, or ``package://NAME/PATH`` for a file of an installed package, see
+:func:`~haptic_topology.paths.resolve_package_uri`; ``revolute``,
 ``continuous``, ``prismatic`` and ``fixed`` joints; fixed links are merged into their parent).
 A URDF tree is reduced to the serial chain from the root through the grasped link, continued
 beyond it until the tree first branches; every other joint is locked at ``locked_joints:
@@ -60,6 +62,7 @@ import numpy as np
 import pinocchio as pin
 
 from haptic_topology.errors import ConfigError, LinkageError
+from haptic_topology.paths import PACKAGE_URI, resolve_package_uri
 from haptic_topology.validate import (
     as_float,
     as_str,
@@ -347,7 +350,11 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     if 'urdf' in raw:
         if 'links' in raw:
             raise LinkageError(f'{where}: give either links or urdf, not both')
-        urdf_path = Path(as_str(raw['urdf'], f'{where}.urdf', error=LinkageError))
+        urdf_ref = as_str(raw['urdf'], f'{where}.urdf', error=LinkageError)
+        if urdf_ref.startswith(PACKAGE_URI):
+            urdf_path = resolve_package_uri(urdf_ref, f'{where}.urdf', LinkageError)
+        else:
+            urdf_path = Path(urdf_ref)
         if not urdf_path.is_absolute() and source != '<memory>':
             urdf_path = Path(source).parent / urdf_path
         locks = raw.get('locked_joints', {})

@@ -10,6 +10,7 @@ Layout (``config/scenarios/fig6.yaml``)::
       duration: 2.0                              # s
       dt: 0.001                                  # device period (s)
       mode: penalty                              # default control law (CLI --mode overrides)
+      gravity: [0, 0, 0]                         # m/s^2, world; default: the linkage's
       device:
         offset: [0.005, 0.003, 0.0]              # initial device pose - VT hand pose
         mass: [1, 1, 1]                          # diagonal of M_d (eq. 9)
@@ -45,7 +46,14 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage, load_linkage
 from haptic_topology.paths import resolve_config
 from haptic_topology.sim.ve import VeSettings
-from haptic_topology.validate import as_angles, as_float, as_str, check_keys, load_yaml
+from haptic_topology.validate import (
+    as_angles,
+    as_float,
+    as_str,
+    as_vector,
+    check_keys,
+    load_yaml,
+)
 
 
 @dataclass(frozen=True)
@@ -98,12 +106,15 @@ def load_scenario(name_or_path: str) -> Scenario:
     top = check_keys(doc, src, required=('scenario',))
     w = f'{src}: scenario'
     raw = check_keys(top['scenario'], w, required=('linkage', 'q0', 'duration'), optional=(
-        'name', 'description', 'dq0', 'dt', 'mode', 'device', 'user', 'control', 'lmi', 've'))
+        'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'device', 'user', 'control', 'lmi',
+        've'))
     link_ref = as_str(raw['linkage'], f'{w}.linkage')
     link_path = Path(link_ref)
     if not link_path.is_absolute() and (path.parent / link_path).is_file():
         link_path = path.parent / link_path
     linkage = load_linkage(resolve_config(str(link_path), 'linkages'))
+    if 'gravity' in raw:
+        linkage = replace(linkage, gravity=as_vector(raw['gravity'], f'{w}.gravity', 3))
     d, m = linkage.dof, linkage.task.dim
     q0 = as_angles(raw['q0'], f'{w}.q0', d)
     dq0 = as_angles(raw.get('dq0', [0.0] * d), f'{w}.dq0', d)
@@ -121,6 +132,10 @@ def load_scenario(name_or_path: str) -> Scenario:
     user_from_config(user, linkage.task, f'{w}.user', np.zeros(m))  # validate now
     gains = ControlGains.from_config(raw.get('control', {}), f'{w}.control', m)
     lmi = LmiSettings.from_config(raw.get('lmi', {}), f'{w}.lmi')
+    if lmi.model is LmiModel.EQ20 and np.any(linkage.gravity != 0.0):
+        raise ConfigError(f'{w}.lmi.model: eq20 (D qdd = J_h^T F_vt) neglects the gravity '
+                          f'{linkage.gravity.tolist()} m/s^2 of linkage {linkage.name} that the '
+                          'VE integrates; expected eq17, or scenario.gravity: [0, 0, 0]')
     ve = VeSettings.from_config(raw.get('ve', {}), f'{w}.ve', dt)
     name = as_str(raw.get('name', path.stem), f'{w}.name')
     return Scenario(name, linkage, q0, dq0, duration, dt, mode, device, offset, dict(user),

@@ -75,6 +75,7 @@ class Trace:
         counts = self.columns['constraint_count'][ok]
         status = self.columns['status'][ok]
         applied = self.columns['applied'][ok]
+        at_limit = np.nonzero(status & 1)[0]
         return {
             'scenario': self.meta.get('scenario', ''),
             'mode': self.meta.get('mode', ''),
@@ -85,6 +86,8 @@ class Trace:
             'rms_distance_m': float(math.sqrt(float(np.mean(dist * dist)))),
             'constrained_time_s': float(np.count_nonzero(counts > 0) * dt),
             'workspace_limit_time_s': float(np.count_nonzero(status & 1) * dt),
+            # When the device first reported a workspace stop (s from the first row), or None.
+            'first_limit_s': float(t[at_limit[0]] - t[0]) if at_limit.size else None,
             'max_abs_wrench': float(np.nanmax(np.abs(applied))) if applied.size else 0.0,
         }
 
@@ -150,7 +153,8 @@ def format_summary(rows: list[dict[str, Any]]) -> str:
                                                            '{:.3f}'),
             ('rms_distance_m', 'rms [mm]', '{:.3f}'),
             ('constrained_time_s', 'constrained [s]', '{:.3f}'),
-            ('workspace_limit_time_s', 'at limit [s]', '{:.3f}')]
+            ('workspace_limit_time_s', 'at limit [s]', '{:.3f}'),
+            ('first_limit_s', 'first at limit [s]', '{:.3f}')]
     cells = [[title for _, title, _ in cols]]
     for r in rows:
         line = []
@@ -158,7 +162,7 @@ def format_summary(rows: list[dict[str, Any]]) -> str:
             v = r.get(key, '')
             if key.endswith('_m') and isinstance(v, float):
                 v = v * 1000.0
-            line.append(fmt.format(v) if v != '' else '')
+            line.append('-' if v is None else fmt.format(v) if v != '' else '')
         cells.append(line)
     widths = [max(len(c[i]) for c in cells) for i in range(len(cols))]
     out = []

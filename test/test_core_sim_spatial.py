@@ -1,0 +1,96 @@
+"""Spatial end to end: the 6-DOF device on spatial_arm4 and on a public robot arm's URDF
+(example-robot-data's Panda, held at a middle link), offline; package:// references."""
+
+from __future__ import annotations
+
+import importlib.metadata as md
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from haptic_topology.control import ControlMode
+from haptic_topology.errors import ConfigError, LinkageError
+from haptic_topology.model.linkage import linkage_from_dict
+from haptic_topology.paths import resolve_package_uri
+from haptic_topology.sim import Trace, load_scenario, simulate
+from haptic_topology.sim.plots import plot_trace
+
+PANDA = 'package://example-robot-data/robots/panda_description/urdf/panda.urdf'
+
+
+@pytest.fixture(scope='module', params=['spatial_arm4', 'panda_link4'])
+def runs(request: pytest.FixtureRequest) -> dict[ControlMode, Trace]:
+    sc = load_scenario(request.param)
+    return {mode: simulate(sc, mode)
+            for mode in (ControlMode.PENALTY, ControlMode.ACCELERATION_ONLY)}
+
+
+def test_eq14_holds_the_device_where_eq10_drifts(runs: dict[ControlMode, Trace]) -> None:
+    """Section VIII in 6-D: with the penalty (eq. 14) the device stays within 0.7 mm of the
+    grasp point and never touches its stops; under eq. 10 it drifts more than 1.5 mm and
+    reaches a stop (placed just beyond the VT's path) before the end of the run."""
+    s14 = runs[ControlMode.PENALTY].summary()
+    s10 = runs[ControlMode.ACCELERATION_ONLY].summary()
+    assert runs[ControlMode.PENALTY].task_dim == 6
+    assert s14['max_distance_m'] < 0.7e-3
+    assert s10['max_distance_m'] > 1.5e-3
+    assert s10['rms_distance_m'] > 3.0 * s14['rms_distance_m']
+    assert s14['workspace_limit_time_s'] == 0.0 and s14['first_limit_s'] is None
+    assert s10['first_limit_s'] is not None and 1.0 < s10['first_limit_s'] < 2.0
+    counts = runs[ControlMode.PENALTY].columns['constraint_count']
+    assert counts.min() >= 2     # J_h is 6 x k with rank <= 4: t >= 2 throughout
+
+
+def test_spatial_plot_has_both_projections(runs: dict[ControlMode, Trace],
+                                           tmp_path: Path) -> None:
+    tr = runs[ControlMode.ACCELERATION_ONLY]
+    sc = load_scenario(str(tr.meta['scenario']))
+    out = plot_trace(tr, tmp_path / 'p.png', sc.linkage)
+    assert out.stat().st_size > 50_000
+
+
+def test_panda_is_loaded_unchanged_from_the_installed_package() -> None:
+    sc = load_scenario('panda_link4')
+    lk = sc.linkage
+    assert lk.urdf_path is not None and lk.urdf_path.is_file()
+    dist = md.distribution('example-robot-data')
+    assert lk.urdf_path.resolve() == Path(str(dist.locate_file(
+        'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf'
+    ))).resolve()
+    assert lk.dof == 7 and lk.grasp_link == 'panda_link4'
+    assert any('panda_finger_joint1' in note for note in lk.notes)
+    from haptic_topology.dynamics import LinkageDynamics
+
+    jac = LinkageDynamics(lk).hand_jacobian(sc.q0)
+    assert jac.shape == (6, 7)
+    np.testing.assert_array_equal(jac[:, 4:], 0.0)   # the wrist does not move link 4
+
+
+def test_package_uri_errors_name_the_field() -> None:
+    with pytest.raises(ConfigError, match=r"f\.urdf: package 'no-such-pkg-xyz' is not "
+                                          r'installed .*pip install no-such-pkg-xyz'):
+        resolve_package_uri('package://no-such-pkg-xyz/a.urdf', 'f.urdf')
+    with pytest.raises(ConfigError, match=r"f\.urdf: package 'example-robot-data' 6\.0\.0 has "
+                                          r'no file share/example-robot-data/robots/x\.urdf'):
+        resolve_package_uri('package://example-robot-data/robots/x.urdf', 'f.urdf')
+    with pytest.raises(ConfigError, match=r"f\.urdf: expected package://NAME/PATH, got "
+                                          r"'package://example-robot-data'"):
+        resolve_package_uri('package://example-robot-data', 'f.urdf')
+    with pytest.raises(LinkageError, match=r'<memory>: linkage\.urdf: package '):
+        linkage_from_dict({'linkage': {'task': 'spatial', 'urdf': 'package://nope-x/a.urdf'}})
+    assert resolve_package_uri(PANDA, 'f').name == 'panda.urdf'
+
+
+def test_simulate_command_runs_a_spatial_scenario(tmp_path: Path) -> None:
+    res = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', 'simulate',
+                          'spatial_arm4', '--mode', 'acceleration_only', '--duration', '0.3',
+                          '--out', str(tmp_path)], capture_output=True, text=True, check=True)
+    assert 'first at limit [s]' in res.stdout
+    summary = json.loads((tmp_path / 'summary.json').read_text())
+    assert summary['linkage'] == 'spatial_arm4' and summary['first_limit_s'] is None
+    tr = Trace.from_csv(tmp_path / 'trace.csv')
+    assert tr.task_dim == 6 and len(tr) == 301
