@@ -152,6 +152,7 @@ def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray]:
     pose/twist (recorded, not applied) must have ``dim`` entries; ``constraint_count`` in
     [0, dim]; ``update_age`` >= 0 (inf before the controller's first update)."""
     check_task_dim(msg, dim)
+    wrench = array(msg, 'wrench', dim)      # first: what is applied keeps its reason
     mode = int(msg.mode)
     check_range(mode in MODES, msg, f'mode must be one of {list(MODES)}, got {mode}')
     state_seq = check_seq(msg, 'state_seq')
@@ -161,7 +162,7 @@ def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray]:
     check_stamp(msg)
     array(msg, 'vt_pose', dim, finite=False)
     array(msg, 'vt_twist', dim, finite=False)
-    return state_seq, mode, array(msg, 'wrench', dim)
+    return state_seq, mode, wrench
 
 
 def check_hand(msg: Any, dim: int, max_wrench: float) -> tuple[int, int, float, np.ndarray,

@@ -208,7 +208,8 @@ class Injector:
         if self._huge and not msg.status & IDLE:
             cmd_t = self.types[0]
             self.cmd_pub.publish(cmd_t(state_seq=msg.seq, task_dim=3, mode=0,
-                                       wrench=[1e9, -1e9, 1e3]))
+                                       wrench=[1e9, -1e9, 1e3], vt_pose=list(msg.pose),
+                                       vt_twist=list(msg.twist)))
             self._count('command_huge_finite')
             # One malformed command per state too (the driver's queue is 1 deep: a message
             # sent only every 10 ms may be overwritten before it is taken).

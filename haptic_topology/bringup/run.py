@@ -173,7 +173,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                 procs.append(_start(name, py + [f'haptic_topology.nodes.{name}'] + ros,
                                     log_dir))
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
-                                           startup_timeout)
+                                           startup_timeout, poll=0.2)
             cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
             limit = startup_timeout + (duration + 10.0 if clock == 'wall'
                                        else max(60.0, 30.0 * duration))

@@ -29,7 +29,8 @@ class GraphWatcher:
     manager. ``alive``: called while waiting, raises if a process of the graph has died."""
 
     def __init__(self, name: str = 'haptic_watch', alive: Callable[[], None] | None = None,
-                 args: list[str] | None = None) -> None:
+                 args: list[str] | None = None,
+                 lifecycle_nodes: tuple[str, ...] = ('device_driver',)) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from lifecycle_msgs.srv import GetState
@@ -49,6 +50,12 @@ class GraphWatcher:
                                       self._on_diagnostics, common.QOS_DIAGNOSTICS)
         self._get_state = GetState
         self._clients: dict[str, Any] = {}
+        #: Newest lifecycle state label seen per node (transition events, or get_state).
+        self.lifecycle: dict[str, str] = {}
+        from lifecycle_msgs.msg import TransitionEvent
+        for n in lifecycle_nodes:
+            self.node.create_subscription(TransitionEvent, f'/{n}/transition_event',
+                                          self._on_transition(n), 10)
 
     def __enter__(self) -> GraphWatcher:
         return self
@@ -60,6 +67,11 @@ class GraphWatcher:
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         self._rclpy.try_shutdown(context=self.context)
+
+    def _on_transition(self, node: str) -> Callable[[Any], None]:
+        def on_event(msg: Any) -> None:
+            self.lifecycle[node] = str(msg.goal_state.label)
+        return on_event
 
     def _on_diagnostics(self, msg: Any) -> None:
         for st in msg.status:
@@ -98,16 +110,28 @@ class GraphWatcher:
             return ''
         return str(future.result().current_state.label)
 
-    def wait_lifecycle(self, node: str, labels: tuple[str, ...], timeout: float) -> float:
-        """Wait until ``node`` is in one of the lifecycle states ``labels``."""
+    def wait_lifecycle(self, node: str, labels: tuple[str, ...], timeout: float,
+                       poll: float = 2.0) -> float:
+        """Wait until ``node`` is in one of the lifecycle states ``labels``.
+
+        Transition events (``~/transition_event``) are the signal; ``get_state`` is asked
+        only every ``poll`` s, for events sent before this watcher was matched: serving that
+        service at 20 Hz cost the 1 kHz loop of the driver half its answered cycles.
+        """
         deadline = time.monotonic() + timeout
+        next_poll = time.monotonic()
         while True:
-            label = self.lifecycle_state(node)
-            if label in labels:
+            if time.monotonic() >= next_poll:
+                label = self.lifecycle_state(node)
+                if label:
+                    self.lifecycle[node] = label
+                next_poll = time.monotonic() + poll
+            if self.lifecycle.get(node) in labels:
                 return time.monotonic()
             self.alive()
             if time.monotonic() > deadline:
-                raise WaitTimeout(f'{node}: lifecycle state {label or "(no answer)"}, not '
+                raise WaitTimeout(f'{node}: lifecycle state '
+                                  f'{self.lifecycle.get(node) or "(no answer)"}, not '
                                   f'{" or ".join(labels)} within {timeout:g} s')
             self.spin(0.05)
 

@@ -106,7 +106,7 @@ class DeviceDriver(LifecycleNode):
         if self.lockstep:
             timers.append((c.lockstep_warn_after, self._warn_stalled))
             self._publish_clock(0)
-        self._loop_timers = [self.create_timer(p, cb, clock=self.steady) for p, cb in timers]
+        self._loop_timers = [self.create_timer(p, cb) for p, cb in timers]
         self.get_logger().info(f'active: backend {c.backend}, {c.rate_hz:g} Hz {c.clock.value}')
         return SUCCESS
 
