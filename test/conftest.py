@@ -20,6 +20,17 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 
 
+@pytest.fixture(scope='session')
+def spare_domains(ros_domain_env: dict[str, str]) -> Iterator[list[int]]:
+    """Six more domain ids held by this session, for graphs that run at the same time."""
+    locks = [_lock_domain() for _ in range(6)]
+    try:
+        yield [d for d, _ in locks]
+    finally:
+        for _, fd in locks:
+            os.close(fd)
+
+
 def _lock_domain() -> tuple[int, int]:
     """A ROS domain id no other test session on this machine holds, and the descriptor of its
     lock file (flock, released when closed or when the process dies)."""

@@ -320,7 +320,7 @@ def run_faults(out: Path) -> FaultRun:
         t = time.monotonic()
         g.start('device_driver')
         wait(lambda: engaged_since(t), 'device engaged')
-        injector.spin(1.5)
+        injector.spin(1.0)
 
         run.events['watchdog'] = g.pause('lmi_controller', 0.1)
         inj.status.pop(dev, None)
@@ -350,7 +350,7 @@ def run_faults(out: Path) -> FaultRun:
                 wait(lambda t=t: engaged_since(t), 'restarted device engaged')
             wait(back, f'loop back after restarting {name}')
             run.events[f'kill_{name}'] = (t0, time.time())
-            injector.spin(2.0)
+            injector.spin(1.0)
 
         t0 = time.time()
         g.kill('recorder')
@@ -358,7 +358,7 @@ def run_faults(out: Path) -> FaultRun:
         g.start('recorder')
         wait(lambda: inj.value(rec, 'connected') == 'true', 'restarted recorder connected')
         run.events['kill_recorder'] = (t0, time.time())
-        injector.spin(2.0)
+        injector.spin(1.0)
     finally:
         if injector is not None:
             run.injected = dict(injector.counts)

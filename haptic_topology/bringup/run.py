@@ -85,10 +85,11 @@ def _tail(path: Path, lines: int = 8) -> str:
     return '\n'.join(_read(path).strip().splitlines()[-lines:])
 
 
-def _start(name: str, argv: list[str], log_dir: Path) -> _Proc:
+def _start(name: str, argv: list[str], log_dir: Path,
+           env_extra: dict[str, str] | None = None) -> _Proc:
     log = log_dir / f'{name}.log'
     handle = log.open('wb')
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    env = dict(os.environ, PYTHONUNBUFFERED='1', **(env_extra or {}))
     popen = subprocess.Popen(argv, stdout=handle, stderr=subprocess.STDOUT, env=env,
                              start_new_session=True)
     return _Proc(name, popen, log, handle)
@@ -130,12 +131,14 @@ def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
 
 def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path,
               composed: bool = False, backend: str | None = None,
-              startup_timeout: float = 30.0, clock: str = 'wall') -> dict[str, int]:
+              startup_timeout: float = 30.0, clock: str = 'wall',
+              domain_id: int | None = None) -> dict[str, int]:
     """Run the graph once, recording to ``bag``; return the processes' exit codes.
 
     ``device_driver`` runs the loop for ``duration`` s from engagement (simulated seconds with
     ``clock='lockstep'``) and then deactivates itself; the run is over when its lifecycle
-    state is ``inactive``.
+    state is ``inactive``. ``domain_id``: run in this ROS domain instead of the
+    environment's (several graphs at once on one machine).
     """
     from haptic_topology.bringup.watch import GraphWatcher
 
@@ -161,7 +164,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                                    f'{_tail(p.log)}')
 
     try:
-        with GraphWatcher('haptic_bringup', alive) as watch:
+        env = {} if domain_id is None else {'ROS_DOMAIN_ID': str(domain_id)}
+        with GraphWatcher('haptic_bringup', alive, domain_id=domain_id) as watch:
             py = [sys.executable, '-m']
             names = ['composed'] if composed else list(NODES)
             for name in names:
@@ -171,7 +175,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                     watch.wait(watch.recorder_connected, startup_timeout,
                                'recorder connected to the loop topics')
                 procs.append(_start(name, py + [f'haptic_topology.nodes.{name}'] + ros,
-                                    log_dir))
+                                    log_dir, env))
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
                                            startup_timeout, poll=0.2)
             cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}

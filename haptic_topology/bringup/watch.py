@@ -30,7 +30,8 @@ class GraphWatcher:
 
     def __init__(self, name: str = 'haptic_watch', alive: Callable[[], None] | None = None,
                  args: list[str] | None = None,
-                 lifecycle_nodes: tuple[str, ...] = ('device_driver',)) -> None:
+                 lifecycle_nodes: tuple[str, ...] = ('device_driver',),
+                 domain_id: int | None = None) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from lifecycle_msgs.srv import GetState
@@ -40,7 +41,10 @@ class GraphWatcher:
 
         self._rclpy = rclpy
         self.context = rclpy.Context()
-        rclpy.init(context=self.context, args=args)
+        if domain_id is None:
+            rclpy.init(context=self.context, args=args)
+        else:
+            rclpy.init(context=self.context, args=args, domain_id=domain_id)
         self.node = rclpy.create_node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
