@@ -176,7 +176,7 @@ def test_live_k_tc_takes_effect_and_bad_values_are_refused() -> None:
     executor = rclpy.executors.SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
-        def wait(future: rclpy.task.Future, timeout: float = 10.0) -> object:
+        def wait(future: rclpy.task.Future, timeout: float = 60.0) -> object:
             deadline = time.monotonic() + timeout
             while not future.done() and time.monotonic() < deadline:
                 executor.spin_once(timeout_sec=0.05)

@@ -141,6 +141,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     environment's (several graphs at once on one machine).
     """
     from haptic_topology.bringup.watch import GraphWatcher
+    from haptic_topology.nodes.common import TOPIC_STATE
 
     if bag.exists():
         raise ConfigError(f'--out: {bag} already exists')
@@ -159,7 +160,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
 
     def alive() -> None:
         for p in procs:
-            if p.popen.poll() is not None:
+            if p.name not in codes and p.popen.poll() is not None:
                 raise BringupError(f'{p.name} exited with status {p.popen.returncode}:\n'
                                    f'{_tail(p.log)}')
 
@@ -169,13 +170,22 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             py = [sys.executable, '-m']
             names = ['composed'] if composed else list(NODES)
             for name in names:
+                argv = py + [f'haptic_topology.nodes.{name}'] + ros
                 if name == 'device_driver':
                     # The loop starts with the device: only once the recorder is matched to
-                    # the controller's and the VE's publishers (discovery can take seconds).
+                    # the controller's and the VE's publishers (discovery can take seconds)
+                    # and, below, to the device's own state publisher.
                     watch.wait(watch.recorder_connected, startup_timeout,
                                'recorder connected to the loop topics')
-                procs.append(_start(name, py + [f'haptic_topology.nodes.{name}'] + ros,
-                                    log_dir, env))
+                    argv += ['-p', 'device_driver:autostart:=false']
+                procs.append(_start(name, argv, log_dir, env))
+            if not composed:
+                # As a lifecycle manager: configure and activate the driver once the recorder
+                # sees its state publisher, so the bag holds the run's first state.
+                watch.wait(lambda: watch.recorder_sees(TOPIC_STATE), startup_timeout,
+                           'recorder matched to the device state publisher')
+                for transition in ('configure', 'activate'):
+                    watch.change_state('device_driver', transition, startup_timeout)
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
                                            startup_timeout, poll=0.2)
             cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
@@ -187,9 +197,13 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                 c0, c1 = cpu0[p.name], _cpu_seconds(p.popen.pid)
                 if c0 is not None and c1 is not None and wall > 0.0:
                     cpu[p.name] = round((c1 - c0) / wall, 4)
+            if not composed:
+                # Device first (the loop stops), then the other publishers; the recorder once
+                # it has taken everything they sent (its counts stop growing).
+                codes = stop(list(reversed(procs[1:])))
+                watch.wait(watch.recorder_settled, startup_timeout, 'recorder caught up')
     finally:
-        # Device first (the loop stops), recorder last (it keeps every message until then).
-        codes = stop(list(reversed(procs)))
+        codes.update(stop([p for p in reversed(procs) if p.name not in codes]))
         if bag.is_dir():
             shutil.copytree(log_dir, bag / 'logs', dirs_exist_ok=True)
             (bag / 'logs' / 'cpu.json').write_text(json.dumps(cpu) + '\n', encoding='utf-8')

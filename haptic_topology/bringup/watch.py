@@ -54,6 +54,7 @@ class GraphWatcher:
                                       self._on_diagnostics, common.QOS_DIAGNOSTICS)
         self._get_state = GetState
         self._clients: dict[str, Any] = {}
+        self._recorder_counts: list[dict[str, str]] = []
         #: Newest lifecycle state label seen per node (transition events, or get_state).
         self.lifecycle: dict[str, str] = {}
         from lifecycle_msgs.msg import TransitionEvent
@@ -79,7 +80,14 @@ class GraphWatcher:
 
     def _on_diagnostics(self, msg: Any) -> None:
         for st in msg.status:
-            self.status[st.name] = {kv.key: kv.value for kv in st.values}
+            values = {kv.key: kv.value for kv in st.values}
+            if st.name == RECORDER_STATUS:
+                # /diagnostics excluded: the recorder records its own status too.
+                self._recorder_counts.append({k: v for k, v in values.items()
+                                              if k.startswith('received ')
+                                              and not k.endswith('/diagnostics')})
+                del self._recorder_counts[:-2]
+            self.status[st.name] = values
 
     def spin(self, seconds: float) -> None:
         self.executor.spin_once(timeout_sec=seconds)
@@ -97,6 +105,35 @@ class GraphWatcher:
     # -- what to wait for --------------------------------------------------------------------
     def recorder_connected(self) -> bool:
         return self.status.get(RECORDER_STATUS, {}).get('connected') == 'true'
+
+    def recorder_settled(self) -> bool:
+        """The recorder reported the same message counts twice in a row (its status comes
+        every 0.25 s): it has taken everything the stopped publishers sent."""
+        h = self._recorder_counts
+        return len(h) == 2 and h[0] == h[1] and bool(h[1])
+
+    def recorder_sees(self, topic: str) -> bool:
+        """The recorder reports a publisher matched on ``topic`` (state or command)."""
+        status = self.status.get(RECORDER_STATUS, {})
+        return int(status.get(f'publishers {topic}', '0')) > 0
+
+    def change_state(self, node: str, transition: str, timeout: float = 10.0) -> None:
+        """Ask ``node``'s lifecycle to make ``transition`` ('configure', 'activate', ...);
+        raise :class:`WaitTimeout` if it is not answered, or not done, in time."""
+        from lifecycle_msgs.msg import Transition
+        from lifecycle_msgs.srv import ChangeState
+
+        client = self.node.create_client(ChangeState, f'/{node}/change_state')
+        try:
+            self.wait(client.service_is_ready, timeout, f'{node}: change_state service')
+            req = ChangeState.Request()
+            req.transition.id = getattr(Transition, f'TRANSITION_{transition.upper()}')
+            future = client.call_async(req)
+            self.wait(future.done, timeout, f'{node}: {transition}')
+            if not future.result().success:
+                raise WaitTimeout(f'{node}: transition {transition} failed')
+        finally:
+            self.node.destroy_client(client)
 
     def lifecycle_state(self, node: str, timeout: float = 2.0) -> str:
         """The label of ``node``'s lifecycle state ('' when its service does not answer)."""

@@ -8,12 +8,12 @@ topic                         QoS                               why
 ``haptic/device/state``       best effort, keep last 1          1 kHz; the newest state counts
 ``haptic/device/command``     best effort, keep last 1          1 kHz; a late command is useless,
                                                                 the device applies the newest
-``haptic/hand``               reliable, keep last 1000          the VE integrates every input
+``haptic/hand``               reliable, keep last 5000          the VE integrates every input
                                                                 (zero-order hold between them);
                                                                 a lost one would bend the VT path.
                                                                 Not on the device's critical path,
                                                                 so a retransmission costs nothing
-``haptic/lmi/update``,        reliable, keep last 1000          ~100 Hz; each update re-syncs;
+``haptic/lmi/update``,        reliable, keep last 5000          ~100 Hz; each update re-syncs;
 ``haptic/ve/path``                                              the VT hand at every cycle
 ``/clock``                    best effort, keep last 1          lock-step only: simulated time
 ``haptic/joint_states``,      reliable, keep last 5             visualisation, ~30 Hz
@@ -21,7 +21,7 @@ topic                         QoS                               why
 ``/diagnostics``              reliable, keep last 10            1 Hz loop health
 ============================  ================================  ===================================
 
-With ``clock: lockstep`` the state and command topics are reliable (keep last 100): the
+With ``clock: lockstep`` the state and command topics are reliable (keep last 10000): the
 device steps only when the answer has come, so a lost message would stall the loop, and a bag
 of the run must hold every state. The recorder subscribes best effort with a deep queue (1000)
 to the best-effort topics and reliable to the others, so it never slows a publisher down.
@@ -58,7 +58,6 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from haptic_topology.errors import ConfigError, HapticTopologyError
-from haptic_topology.nodes.node_params import SCHED_PRIORITY
 from haptic_topology.params import (
     NodeParams,
     ParamSpec,
@@ -89,17 +88,18 @@ def _qos(reliable: bool, depth: int) -> QoSProfile:
 
 
 QOS_LOOP = _qos(False, 1)         # state, command
-#: Lock-step: the device steps only on the answer, so nothing may be lost (and nothing waits).
-QOS_LOOP_LOCKSTEP = _qos(True, 100)
+#: Lock-step: the device steps only on the answer, so nothing may be lost (and nothing waits);
+#: a deep history so that a recorder that falls behind a fast lock-step run loses nothing.
+QOS_LOOP_LOCKSTEP = _qos(True, 10000)
 QOS_CLOCK = _qos(False, 1)
-#: Reliable topics keep 1 s of 1 kHz messages: a reader (the recorder) that falls behind by
+#: Reliable topics keep 5 s of 1 kHz messages: a reader (the recorder) that falls behind by
 #: less than that loses nothing (a keep-last writer overwrites what is not acknowledged).
-QOS_HAND = _qos(True, 1000)
-QOS_LMI = _qos(True, 1000)
+QOS_HAND = _qos(True, 5000)
+QOS_LMI = _qos(True, 5000)
 QOS_VIZ = _qos(True, 5)
 QOS_DIAGNOSTICS = _qos(True, 10)
 QOS_RECORD_BEST_EFFORT = _qos(False, 1000)
-QOS_RECORD_RELIABLE = _qos(True, 1000)
+QOS_RECORD_RELIABLE = _qos(True, 10000)
 
 #: Topic -> QoS of its publisher (the recorder mirrors the reliability).
 TOPIC_QOS: dict[str, QoSProfile] = {
@@ -108,21 +108,9 @@ TOPIC_QOS: dict[str, QoSProfile] = {
     TOPIC_JOINTS: QOS_VIZ, TOPIC_MARKERS: QOS_VIZ, TOPIC_DIAGNOSTICS: QOS_DIAGNOSTICS,
 }
 
-EXECUTORS = ('events', 'single_threaded')
-
-
 def loop_qos(clock: Clock) -> QoSProfile:
     """QoS of the 1 kHz state/command topics under ``clock`` (see the table above)."""
     return QOS_LOOP_LOCKSTEP if clock is Clock.LOCKSTEP else QOS_LOOP
-
-#: The nodes of the graph (params-file sections).
-NODE_NAMES = ('device_driver', 'lmi_controller', 've_sim', 'recorder')
-
-#: Parameters every node declares.
-COMMON_PARAMS = (
-    ParamSpec('executor', 'events', 'executor of the process', choices=EXECUTORS),
-    SCHED_PRIORITY,
-)
 
 
 # -- parameters --------------------------------------------------------------------------------
@@ -159,13 +147,6 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
     if isinstance(value, float) and not math.isfinite(value):
         raise ConfigError(f'{where}: expected a finite number, got {value}')
     return value
-
-
-def declare_process_params(node: Node, spec: NodeParams) -> None:
-    """Declare the process-level parameters that :func:`run_main` reads after the nodes are
-    built: ``executor`` and ``sched_priority``."""
-    for name in ('executor', 'sched_priority'):
-        declare_spec(node, spec[name])
 
 
 def declare_spec(node: Node, spec: ParamSpec, default: Any = None) -> Any:

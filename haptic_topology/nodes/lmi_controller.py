@@ -59,8 +59,7 @@ class LmiController(Node):
         self.lockstep = c.clock is Clock.LOCKSTEP
         self.loop: ControllerLoop = build_controller_loop(
             sc, c.mode, c.guard, c.max_dt, c.resync_max_jump,
-            sc.update_period if self.lockstep else None)
-        self.loop.ctrl.gains = c.gains
+            sc.update_period if self.lockstep else None, c.gains)
         self.task, self.dof = sc.linkage.task, sc.linkage.dof
         self.penalty_direction = sc.linkage.constraints.penalty_direction
         self.add_on_set_parameters_callback(self._on_set_parameters)

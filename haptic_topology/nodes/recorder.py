@@ -51,7 +51,7 @@ RECORDED: dict[str, tuple[Any, str]] = {
 }
 
 #: Topics whose publishers must be matched before the loop starts (see _check_connected).
-CONNECT_TOPICS = (common.TOPIC_COMMAND, common.TOPIC_HAND, common.TOPIC_LMI)
+CONNECT_TOPICS = (common.TOPIC_COMMAND, common.TOPIC_HAND, common.TOPIC_LMI, common.TOPIC_VT_PATH)
 LOOP_TOPICS = (common.TOPIC_STATE, common.TOPIC_COMMAND)
 _STOP = None
 
@@ -103,7 +103,7 @@ class Recorder(Node):
         self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                               common.QOS_DIAGNOSTICS)
         self._connect_timer = self.create_timer(0.05, self._check_connected)
-        self.create_timer(1.0, self._publish_status)
+        self.create_timer(0.25, self._publish_status)
         self.get_logger().info(f'recording to {self.path}')
         print(f'recording to {self.path}', flush=True)
 
@@ -164,9 +164,15 @@ class Recorder(Node):
         self._publish_status()
 
     def _publish_status(self) -> None:
-        """``/diagnostics`` status ``recorder: bag``: path, counts, ``connected``."""
+        """``/diagnostics`` status ``recorder: bag``: path, counts, ``connected``, and the
+        publishers matched on the state and command topics (the bringup activates the device
+        driver once its state publisher is matched here, so the bag holds the run's first
+        state)."""
         values = {'path': str(self.path), 'connected': str(self.connected).lower(),
-                  **{f'received {t}': str(n) for t, n in self.counts.items()}}
+                  **{f'received {t}': str(n) for t, n in self.counts.items()},
+                  **{f'publishers {t}': str(sub.get_publisher_count())
+                     for t, sub in self.subscriptions_by_topic.items()
+                     if t in LOOP_TOPICS}}
         self.diag_pub.publish(common.diagnostics(self, 'recorder: bag', values, 0,
                                                  'recording'))
 

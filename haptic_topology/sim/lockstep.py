@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from haptic_topology.control.controller import HapticController
-from haptic_topology.control.laws import ControlMode
+from haptic_topology.control.laws import ControlGains, ControlMode
 from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
 from haptic_topology.control.safety import SyncGuard, SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
@@ -43,9 +43,11 @@ RESYNC_MAX_JUMP = 1.0
 def build_controller_loop(sc: Scenario, mode: ControlMode,
                           guard: SyncGuardConfig | None = None, max_dt: float = MAX_DT,
                           max_jump: float = RESYNC_MAX_JUMP,
-                          update_period: int | None = None) -> ControllerLoop:
-    """The controller-side loop of scenario ``sc`` (what ``lmi_controller`` builds)."""
-    ctrl = HapticController(sc.linkage.task, mode, sc.gains, sc.device.mass,
+                          update_period: int | None = None,
+                          gains: ControlGains | None = None) -> ControllerLoop:
+    """The controller-side loop of scenario ``sc`` (what ``lmi_controller`` builds);
+    ``gains``: default the scenario's."""
+    ctrl = HapticController(sc.linkage.task, mode, gains or sc.gains, sc.device.mass,
                             sc.device.christoffel, sc.lmi_model, sc.vt_coupling)
     return ControllerLoop(ctrl, SyncGuard(guard or SyncGuardConfig(), sc.dt), sc.dt, max_dt,
                           max_jump, sc.device.wrench_limit, update_period)
