@@ -198,11 +198,11 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                 if c0 is not None and c1 is not None and wall > 0.0:
                     cpu[p.name] = round((c1 - c0) / wall, 4)
             if not composed:
-                # Device first (the loop stops), then the other publishers; the recorder once
-                # it has taken everything they sent (its counts stop growing).
-                codes = stop(list(reversed(procs[1:])))
+                # The loop has stopped; the recorder must take everything it sent while
+                # every writer is still there to resend (its counts stop growing).
                 watch.wait(watch.recorder_settled, startup_timeout, 'recorder caught up')
     finally:
+        # Device first, recorder last (it keeps every message until then).
         codes.update(stop([p for p in reversed(procs) if p.name not in codes]))
         if bag.is_dir():
             shutil.copytree(log_dir, bag / 'logs', dirs_exist_ok=True)

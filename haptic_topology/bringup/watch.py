@@ -20,6 +20,13 @@ RECORDER_STATUS = 'recorder: bag'
 DEVICE_STATUS = 'device_driver: loop'
 
 
+#: Consecutive equal recorder reports that count as settled (0.25 s apart).
+SETTLE_REPORTS = 5
+#: Topics whose recorded counts stop growing once the loop has stopped.
+SETTLE_TOPICS = ('haptic/device/state', 'haptic/device/command', 'haptic/hand',
+                 'haptic/ve/path')
+
+
 class WaitTimeout(HapticTopologyError):
     """Something the graph should have done within a deadline did not happen."""
 
@@ -82,11 +89,12 @@ class GraphWatcher:
         for st in msg.status:
             values = {kv.key: kv.value for kv in st.values}
             if st.name == RECORDER_STATUS:
-                # /diagnostics excluded: the recorder records its own status too.
+                # The run's topics only: keep-alive updates, visualisation and diagnostics
+                # go on after the run.
                 self._recorder_counts.append({k: v for k, v in values.items()
                                               if k.startswith('received ')
-                                              and not k.endswith('/diagnostics')})
-                del self._recorder_counts[:-2]
+                                              and k.endswith(SETTLE_TOPICS)})
+                del self._recorder_counts[:-SETTLE_REPORTS]
             self.status[st.name] = values
 
     def spin(self, seconds: float) -> None:
@@ -107,10 +115,12 @@ class GraphWatcher:
         return self.status.get(RECORDER_STATUS, {}).get('connected') == 'true'
 
     def recorder_settled(self) -> bool:
-        """The recorder reported the same message counts twice in a row (its status comes
-        every 0.25 s): it has taken everything the stopped publishers sent."""
+        """The recorder reported the same counts of the run's topics ``SETTLE_REPORTS`` times
+        in a row (its status comes every 0.25 s, so for 1 s): it has taken everything the
+        loop sent."""
         h = self._recorder_counts
-        return len(h) == 2 and h[0] == h[1] and bool(h[1])
+        return (len(h) == SETTLE_REPORTS and all(c == h[-1] for c in h)
+                and any(v != '0' for v in h[-1].values()))
 
     def recorder_sees(self, topic: str) -> bool:
         """The recorder reports a publisher matched on ``topic`` (state or command)."""
