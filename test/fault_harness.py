@@ -68,6 +68,9 @@ class FaultRun:
     logs: dict[str, str] = field(default_factory=dict)
     exit_codes: dict[str, int] = field(default_factory=dict)
     injected: dict[str, int] = field(default_factory=dict)
+    #: Seconds from the end of a fault (the kill, for kills) until the nodes reported the loop
+    #: back on /diagnostics (what the harness waited for).
+    recovered: dict[str, float] = field(default_factory=dict)
     # From the bags:
     states: list[list[Any]] = field(default_factory=list)  # per bag, in arrival order
     commands: list[Any] = field(default_factory=list)
@@ -344,7 +347,8 @@ def _run_faults(out: Path) -> FaultRun:
 
         run.events['watchdog'] = g.pause('lmi_controller', 0.1)
         inj.status.pop(dev, None)
-        wait(lambda: inj.value(dev, 'watchdog_scale') == '1.000', 'device faded back in')
+        run.recovered['watchdog'] = wait(lambda: inj.value(dev, 'watchdog_scale') == '1.000',
+                                         'device faded back in') - run.events['watchdog'][1]
         injector.spin(1.0)
 
         t0 = time.time()
@@ -354,7 +358,9 @@ def _run_faults(out: Path) -> FaultRun:
 
         run.events['ve_stop'] = g.pause('ve_sim', 1.0)
         inj.status.pop(ctl, None)
-        wait(lambda: controller_back('degradations', 1), 'controller re-synced after ve_stop')
+        run.recovered['ve_stop'] = wait(lambda: controller_back('degradations', 1),
+                                        'controller re-synced after ve_stop'
+                                        ) - run.events['ve_stop'][1]
         injector.spin(1.0)
 
         for name, back in (
@@ -368,7 +374,7 @@ def _run_faults(out: Path) -> FaultRun:
             g.start(name)
             if name == 'device_driver':
                 wait(lambda t=t: engaged_since(t), 'restarted device engaged')
-            wait(back, f'loop back after restarting {name}')
+            run.recovered[f'kill_{name}'] = wait(back, f'loop back after restarting {name}') - t0
             run.events[f'kill_{name}'] = (t0, time.time())
             injector.spin(1.0)
 
@@ -376,7 +382,8 @@ def _run_faults(out: Path) -> FaultRun:
         g.kill('recorder')
         inj.status.pop(rec, None)
         g.start('recorder')
-        wait(lambda: inj.value(rec, 'connected') == 'true', 'restarted recorder connected')
+        run.recovered['kill_recorder'] = wait(lambda: inj.value(rec, 'connected') == 'true',
+                                              'restarted recorder connected') - t0
         run.events['kill_recorder'] = (t0, time.time())
         injector.spin(1.0)
     finally:
