@@ -24,6 +24,7 @@ from haptic_topology.control.laws import ControlMode
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.sim.trace import Trace
 
 pytestmark = pytest.mark.graph
 
@@ -83,16 +84,13 @@ EXACT_COLUMNS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'appli
                  'vt_pose', 'lmi_pose')
 
 
-@pytest.mark.parametrize(('scenario', 'mode'), LOCKSTEP_RUNS)
-def test_lockstep_graph_equals_offline_simulation(
-        lockstep_runs: dict[tuple[str, str], GraphRun], scenario: str, mode: str) -> None:
-    """The lock-step graph (four processes, DDS between them) computes what ``simulate()``
-    computes: device and VT poses equal to 1e-9 m at every cycle (bit-identical in practice:
-    the same core objects, the same floating-point times), and the same drift summary."""
+def _assert_equals_offline(graph: Trace, scenario: str, mode: str, duration: float) -> None:
+    """``graph`` (a lock-step run's trace) equals ``simulate()`` of the same scenario, mode
+    and duration: same rows and times, the exact columns to 1e-9 at every cycle, the drift
+    summary to 1e-9 relative."""
     sc = load_scenario(scenario)
-    graph = lockstep_runs[(scenario, mode)].trace
-    offline = simulate(replace(sc, duration=DURATION), ControlMode.parse(mode))
-    assert len(graph) == len(offline) == round(DURATION / sc.dt) + 1
+    offline = simulate(replace(sc, duration=duration), ControlMode.parse(mode))
+    assert len(graph) == len(offline) == round(duration / sc.dt) + 1
     np.testing.assert_array_equal(graph.seq - graph.seq[0], np.arange(len(graph)))
     np.testing.assert_allclose(graph.t, offline.t, rtol=0.0, atol=1e-12)
     for col in EXACT_COLUMNS:
@@ -103,22 +101,22 @@ def test_lockstep_graph_equals_offline_simulation(
         assert g[key] == pytest.approx(o[key], rel=1e-9, abs=0.0), key
 
 
+@pytest.mark.parametrize(('scenario', 'mode'), LOCKSTEP_RUNS)
+def test_lockstep_graph_equals_offline_simulation(
+        lockstep_runs: dict[tuple[str, str], GraphRun], scenario: str, mode: str) -> None:
+    """The lock-step graph (four processes, DDS between them) computes what ``simulate()``
+    computes: device and VT poses equal to 1e-9 m at every cycle (bit-identical in practice:
+    the same core objects, the same floating-point times), and the same drift summary."""
+    _assert_equals_offline(lockstep_runs[(scenario, mode)].trace, scenario, mode, DURATION)
+
+
 def test_lockstep_graph_equals_offline_simulation_spatial(
         lockstep_runs: dict[tuple[str, str], GraphRun]) -> None:
     """The same agreement in 6-D: the Panda of example-robot-data held at a middle link
     (J_h 6 x 7, t >= 2), a 6-DOF device with an orientation stop, eq. 14, for 0.5 s."""
-    scenario, duration = SPATIAL[0], SPATIAL_DURATION
-    sc = load_scenario(scenario)
     graph = lockstep_runs[SPATIAL].trace
-    offline = simulate(replace(sc, duration=duration), ControlMode.PENALTY)
     assert graph.task_dim == 6
-    assert len(graph) == len(offline) == round(duration / sc.dt) + 1
-    for col in EXACT_COLUMNS:
-        np.testing.assert_allclose(graph.columns[col], offline.columns[col], rtol=0.0,
-                                   atol=1e-9, err_msg=col)
-    g, o = graph.summary(), offline.summary()
-    for key in ('final_distance_m', 'max_distance_m', 'rms_distance_m'):
-        assert g[key] == pytest.approx(o[key], rel=1e-9, abs=0.0), key
+    _assert_equals_offline(graph, SPATIAL[0], 'penalty', SPATIAL_DURATION)
 
 
 def test_swapping_the_backend_needs_no_change_in_other_nodes(
