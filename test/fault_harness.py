@@ -184,6 +184,7 @@ class Injector:
                               common.QOS_DIAGNOSTICS)
         self.status: dict[str, dict[str, str]] = {}
         self.last_running_state = -math.inf      # monotonic time of the newest running state
+        self.last_running_seq = 0                # and its seq
 
     def _on_diagnostics(self, msg: Any) -> None:
         for st in msg.status:
@@ -208,6 +209,7 @@ class Injector:
     def _on_state(self, msg: Any) -> None:
         if not msg.status & IDLE and int(msg.seq) != INJECTED_SEQ:
             self.last_running_state = time.monotonic()
+            self.last_running_seq = int(msg.seq)
         if self._huge and not msg.status & IDLE:
             cmd_t = self.types[0]
             self.cmd_pub.publish(cmd_t(state_seq=msg.seq, task_dim=3, mode=0,
@@ -325,15 +327,22 @@ def _run_faults(out: Path) -> FaultRun:
         inj = injector
 
         def wait(cond: Any, what: str) -> float:
-            return inj.wait(cond, what, g.check_alive)
+            try:
+                return inj.wait(cond, what, g.check_alive)
+            except RuntimeError as exc:
+                tails = '\n'.join(f'--- {p.log.name}:\n{p.text()[-1500:]}'
+                                   for p in g.procs.values())
+                raise RuntimeError(f'{exc}\nnode logs (tails):\n{tails}') from None
 
         def controller_back(key: str = '', least: int = 0) -> bool:
             return (inj.value(ctl, 'model') == 'fresh'
                     and inj.value(ctl, 'force_scale') == '1.000'
                     and (not key or int(inj.value(ctl, key, '0')) >= least))
 
-        def engaged_since(t: float) -> bool:
-            return inj.last_running_state > t
+        def engaged_since(t: float, below_seq: float = math.inf) -> bool:
+            # below_seq: a restarted driver's states (its seq starts again at 1), not a
+            # sample of the killed one still queued in this process
+            return inj.last_running_state > t and inj.last_running_seq < below_seq
 
         g.start('recorder')
         wait(lambda: rec in inj.status, 'recorder reporting')
@@ -368,12 +377,14 @@ def _run_faults(out: Path) -> FaultRun:
                 ('lmi_controller', controller_back),
                 ('device_driver', lambda: controller_back('device_sessions', 2))):
             t0 = time.time()
+            seq_killed = inj.last_running_seq
             g.kill(name)
             inj.status.pop(ctl, None)
             t = time.monotonic()
             g.start(name)
             if name == 'device_driver':
-                wait(lambda t=t: engaged_since(t), 'restarted device engaged')
+                inj.status.pop(dev, None)
+                wait(lambda t=t, s=seq_killed: engaged_since(t, s), 'restarted device engaged')
             run.recovered[f'kill_{name}'] = wait(back, f'loop back after restarting {name}') - t0
             run.events[f'kill_{name}'] = (t0, time.time())
             injector.spin(1.0)

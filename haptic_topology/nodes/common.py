@@ -235,6 +235,19 @@ def diagnostics(node: Node, name: str, values: dict[str, str], level: int = 0,
     return arr
 
 
+def matched(endpoints: Mapping[str, Any]) -> dict[str, str]:
+    """Diagnostic values ``matched <topic>``: for each publisher the DDS readers matched to
+    it, for each subscription the DDS writers matched to it (what the middleware actually
+    connected, not the graph cache). A restarted node whose topic stays at 0 here is not
+    connected, whatever the graph says."""
+    out = {}
+    for key, ep in endpoints.items():
+        n = (ep.get_subscription_count() if hasattr(ep, 'get_subscription_count')
+             else ep.get_publisher_count())
+        out[f'matched {key}'] = str(n)
+    return out
+
+
 def monotonic() -> float:
     return time.monotonic()
 

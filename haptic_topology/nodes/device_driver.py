@@ -75,7 +75,9 @@ class DeviceDriver(LifecycleNode):
         self.clock_pub = self.create_publisher(ClockMsg, common.TOPIC_CLOCK, common.QOS_CLOCK)
         self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                               common.QOS_DIAGNOSTICS)
-        self.create_subscription(DeviceCommand, common.TOPIC_COMMAND, self._on_command, qos)
+        cmd_sub = self.create_subscription(DeviceCommand, common.TOPIC_COMMAND, self._on_command,
+                                           qos)
+        self._endpoints = {common.TOPIC_STATE: self.state_pub, common.TOPIC_COMMAND: cmd_sub}
         self.create_timer(1.0, self._publish_diagnostics, clock=self.steady)
         if s.autostart:
             for step in (self.trigger_configure, self.trigger_activate):
@@ -213,7 +215,8 @@ class DeviceDriver(LifecycleNode):
         loop = self.loop
         values = self.stats.values()
         values.update({'backend': self.cfg.backend, 'clock': self.cfg.clock.value,
-                       'rejected_commands': str(self.rejected.total), **self.rejected.values()})
+                       'rejected_commands': str(self.rejected.total), **self.rejected.values(),
+                       **common.matched(self._endpoints)})
         level, message = (2, f'fault: {self.fault}') if self.fault else (1, 'not configured')
         if loop is not None:
             values.update(loop.values(common.monotonic()))

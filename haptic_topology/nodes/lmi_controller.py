@@ -68,8 +68,12 @@ class LmiController(Node):
         self.hand_pub = self.create_publisher(HandInput, common.TOPIC_HAND, common.QOS_HAND)
         self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                               common.QOS_DIAGNOSTICS)
-        self.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state, qos)
-        self.create_subscription(LmiUpdate, common.TOPIC_LMI, self._on_update, common.QOS_LMI)
+        state_sub = self.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state,
+                                             qos)
+        lmi_sub = self.create_subscription(LmiUpdate, common.TOPIC_LMI, self._on_update,
+                                           common.QOS_LMI)
+        self._endpoints = {common.TOPIC_STATE: state_sub, common.TOPIC_LMI: lmi_sub,
+                           common.TOPIC_COMMAND: self.cmd_pub, common.TOPIC_HAND: self.hand_pub}
         self.ack_pub = (self.create_publisher(UInt64, common.TOPIC_LMI_ACK, common.QOS_LMI)
                         if s.ack_updates else None)
         self._cmd, self._hand = DeviceCommand(), HandInput()
@@ -183,7 +187,8 @@ class LmiController(Node):
                else math.inf)
         values.update({'update_age_ms': f'{1e3 * age:.2f}', 'clock': self.cfg.clock.value,
                        'lockstep_timeouts': str(self.lockstep_timeouts),
-                       'rejected_messages': str(self.rejected.total), **self.rejected.values()})
+                       'rejected_messages': str(self.rejected.total), **self.rejected.values(),
+                       **common.matched(self._endpoints)})
         level, message = _HEALTH_MESSAGES[loop.guard.health(now)]
         self.diag_pub.publish(common.diagnostics(self, 'lmi_controller: loop', values, level,
                                                  message))

@@ -82,7 +82,9 @@ class VeSim(Node):
                                                 common.QOS_VIZ)
         self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                               common.QOS_DIAGNOSTICS)
-        self.create_subscription(HandInput, common.TOPIC_HAND, self._on_hand, common.QOS_HAND)
+        hand_sub = self.create_subscription(HandInput, common.TOPIC_HAND, self._on_hand,
+                                            common.QOS_HAND)
+        self._endpoints = {common.TOPIC_HAND: hand_sub, common.TOPIC_LMI: self.lmi_pub}
         self._lmi = LmiUpdate()
         self._path = VtPath()
         self._update_seq = 0
@@ -193,6 +195,7 @@ class VeSim(Node):
             'rejected_messages': str(self.rejected.total),
             **self.rejected.values(),
             'kinetic_energy_j': f'{self.ve.kinetic_energy():.6g}',
+            **common.matched(self._endpoints),
         })
         ok = all(math.isfinite(v) for v in self.ve.q)
         self.diag_pub.publish(common.diagnostics(
