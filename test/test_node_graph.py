@@ -107,7 +107,14 @@ def test_lockstep_graph_equals_offline_simulation(
     """The lock-step graph (four processes, DDS between them) computes what ``simulate()``
     computes: device and VT poses equal to 1e-9 m at every cycle (bit-identical in practice:
     the same core objects, the same floating-point times), and the same drift summary."""
-    _assert_equals_offline(lockstep_runs[(scenario, mode)].trace, scenario, mode, DURATION)
+    run = lockstep_runs[(scenario, mode)]
+    _assert_equals_offline(run.trace, scenario, mode, DURATION)
+    # Lock-step answers every state before the next, and the VE updates every update_period
+    # device cycles of simulated time.
+    sc = load_scenario(scenario)
+    assert run.loop['max_consecutive_missed'] == 0
+    assert run.loop['ve_update_rate_hz'] == pytest.approx(1.0 / (sc.update_period * sc.dt),
+                                                          rel=1e-9)
 
 
 def test_lockstep_graph_equals_offline_simulation_spatial(

@@ -225,7 +225,18 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         counts = np.array([int(known[r].constraint_count) for r in rows])
         idx = np.searchsorted(rows, np.arange(len(seqs)), side='right') - 1
         trace.columns['constraint_count'][:] = np.where(idx >= 0, counts[np.maximum(idx, 0)], 0)
-    return GraphRun(trace, loop_figures(states, commands, seqs, diags), diags, skipped)
+    figures = loop_figures(states, commands, seqs, diags)
+    figures['ve_update_rate_hz'] = _update_rate(trace.t, sorted(known))
+    return GraphRun(trace, figures, diags, skipped)
+
+
+def _update_rate(t: np.ndarray, rows: list[int]) -> float:
+    """The VE's LMI update rate (Hz) over the run, on the device's clock: updates that
+    consumed a hand input of the run, per second between the first and the last of them."""
+    rows = [r for r in rows if r > 0]
+    if len(rows) < 2 or t[rows[-1]] <= t[rows[0]]:
+        return math.nan
+    return (len(rows) - 1) / float(t[rows[-1]] - t[rows[0]])
 
 
 def _most_common(values: list[int]) -> int:
@@ -253,6 +264,13 @@ def _foreign_seqs(states: dict[int, Any]) -> list[int]:
     return [s for g in groups if g is not run for s in g]
 
 
+def _float(values: dict[str, str], key: str) -> float:
+    try:
+        return float(values[key])
+    except (KeyError, ValueError):
+        return math.nan
+
+
 def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndarray,
                  diags: dict[str, dict[str, str]]) -> dict[str, float]:
     """Loop figures from the device driver's diagnostics and from the bag's stamps."""
@@ -260,11 +278,9 @@ def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndar
     dev = diags.get('device_driver: loop', {})
     for key in ('answered_fraction', 'answered_or_previous_fraction', 'round_trip_p50_ms',
                 'round_trip_p99_ms', 'round_trip_max_ms', 'rate_hz', 'period_p99_ms',
-                'overruns'):
-        try:
-            out[f'device_{key}'] = float(dev[key])
-        except (KeyError, ValueError):
-            out[f'device_{key}'] = math.nan
+                'overruns', 'max_consecutive_missed'):
+        out[f'device_{key}'] = _float(dev, key)
+    out['max_consecutive_missed'] = out.pop('device_max_consecutive_missed')
     in_time = 0
     total = 0
     for a, b in zip(seqs[:-1], seqs[1:], strict=True):

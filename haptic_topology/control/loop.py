@@ -185,18 +185,27 @@ class ControllerLoop:
             out = replace(out, wrench=scaled_wrench(out.wrench, scale, self.limit))
         hand = None
         if out.mode is not ControlMode.ZERO:
-            hand = self._hand_input(loop_seq, s, out)
+            hand = self._hand_input(loop_seq, s, out, scale)
         return Answer(s.seq, out, hand)
 
-    def _hand_input(self, loop_seq: int, s: StateSample, out: CycleOutput) -> HandSample:
+    def _hand_input(self, loop_seq: int, s: StateSample, out: CycleOutput,
+                    scale: float) -> HandSample:
+        """The VE's input for this cycle. While the guard fades the device's force (stale or
+        re-syncing model), the coupling F_pc the VE feels fades with the same ``scale``: the
+        spring acts on both ends alike, and a local model that drifted while stale must not
+        push the full VE through it."""
         self.hand_seq += 1
         if (self.update_period is not None and self.hand_seq % self.update_period == 0
                 and self._prev_input_seq is not None):
             # The VE answers this input with an update that has consumed the previous one.
             self._await_consumed = self._prev_input_seq
         self._prev_input_seq = loop_seq
+        coupling, vt_wrench = out.coupling, out.vt_wrench
+        if scale < 1.0:
+            coupling = scale * out.coupling
+            vt_wrench = s.hand_wrench - coupling if self.ctrl.vt_coupling else out.vt_wrench
         return HandSample(self.hand_seq, loop_seq, s.stamp, s.pose, s.twist, s.hand_wrench,
-                          out.coupling, out.vt_wrench)
+                          coupling, vt_wrench)
 
     def waiting_for_update(self) -> bool:
         """Lock-step: True while the update the offline simulation applies before the next

@@ -97,6 +97,8 @@ class DeviceLoop:
         self.answered = 0             # the command for state k arrived before tick k+1
         self.answered_previous = 0    # ... or the one for state k-1
         self.expected = 0
+        self.missed_run = 0           # consecutive cycles without their answer in time, now
+        self.max_missed_run = 0       # ... the longest such run (Franka's FCI stops at 20)
         self.rejected_seq = 0
         self.saturated_cycles = 0
         self.max_applied = np.zeros(m)
@@ -159,6 +161,10 @@ class DeviceLoop:
             self.expected += 1
             if self._cmd_seq == self.seq:
                 self.answered += 1
+                self.missed_run = 0
+            else:
+                self.missed_run += 1
+                self.max_missed_run = max(self.max_missed_run, self.missed_run)
             if self._cmd_seq >= self.seq - 1:
                 self.answered_previous += 1
             cmd, saturated = saturate(self._cmd, self.limit)
@@ -193,6 +199,7 @@ class DeviceLoop:
             'round_trip_p50_ms': 1e3 * float(np.percentile(rtt, 50)) if n else math.nan,
             'round_trip_p99_ms': 1e3 * float(np.percentile(rtt, 99)) if n else math.nan,
             'round_trip_max_ms': 1e3 * float(rtt.max()) if n else math.nan,
+            'max_consecutive_missed': float(self.max_missed_run),
         }
 
     def values(self, now: float) -> dict[str, str]:
@@ -205,6 +212,7 @@ class DeviceLoop:
             'answer_expected': str(self.expected),
             'answered_fraction': f'{f["answered_fraction"]:.5f}',
             'answered_or_previous_fraction': f'{f["answered_or_previous_fraction"]:.5f}',
+            'max_consecutive_missed': str(self.max_missed_run),
             'round_trip_max_ms': f'{f["round_trip_max_ms"]:.3f}',
             'round_trip_p50_ms': f'{f["round_trip_p50_ms"]:.3f}',
             'round_trip_p99_ms': f'{f["round_trip_p99_ms"]:.3f}',
