@@ -133,6 +133,7 @@ class ControllerLoop:
         self.updates_ignored = 0
         self.skipped = 0
         self.resync_jump_max = 0.0
+        self.dt_capped = 0              # cycles whose period exceeded the stable LMI step
         self.jumps_held = 0
 
     # -- device states -----------------------------------------------------------------------
@@ -168,7 +169,10 @@ class ControllerLoop:
             dt = s.stamp - self._last_stamp
         else:
             dt = self.dt
-        dt = min(max(dt, 0.0), self.max_dt)
+        dt = max(dt, 0.0)
+        if dt > self.ctrl.stable_dt:
+            self.dt_capped += 1
+        dt = min(dt, self.max_dt, self.ctrl.stable_dt)
         self.last_seq, self._last_stamp = loop_seq, s.stamp
         scale = 1.0
         if self.ctrl.lmi.synced:
@@ -295,6 +299,7 @@ class ControllerLoop:
             'last_state_seq': str(self.device_seq),
             'loop_seq': str(self.last_seq),
             'skipped_states': str(self.skipped),
+            'dt_capped': str(self.dt_capped),
             'lmi_updates': str(self.updates),
             'lmi_updates_ignored': str(self.updates_ignored),
             'model_age_ms': f'{1e3 * self.guard.age(now):.2f}',
