@@ -334,8 +334,12 @@ def _run_faults(out: Path) -> FaultRun:
                                    for p in g.procs.values())
                 raise RuntimeError(f'{exc}\nnode logs (tails):\n{tails}') from None
 
+        def current(status: str, node: str) -> bool:
+            # A report of the node's current process, not a late one of a killed process
+            return inj.value(status, 'pid') == str(g.procs[node].popen.pid)
+
         def controller_back(key: str = '', least: int = 0) -> bool:
-            return (inj.value(ctl, 'model') == 'fresh'
+            return (current(ctl, 'lmi_controller') and inj.value(ctl, 'model') == 'fresh'
                     and inj.value(ctl, 'force_scale') == '1.000'
                     and (not key or int(inj.value(ctl, key, '0')) >= least))
 
@@ -354,10 +358,12 @@ def _run_faults(out: Path) -> FaultRun:
         wait(lambda: engaged_since(t), 'device engaged')
         injector.spin(1.0)
 
+        trips = int(inj.value(dev, 'watchdog_trips', '0'))
         run.events['watchdog'] = g.pause('lmi_controller', 0.1)
-        inj.status.pop(dev, None)
-        run.recovered['watchdog'] = wait(lambda: inj.value(dev, 'watchdog_scale') == '1.000',
-                                         'device faded back in') - run.events['watchdog'][1]
+        run.recovered['watchdog'] = wait(
+            lambda: (int(inj.value(dev, 'watchdog_trips', '0')) > trips
+                     and inj.value(dev, 'watchdog_scale') == '1.000'),
+            'device tripped and faded back in') - run.events['watchdog'][1]
         injector.spin(1.0)
 
         t0 = time.time()
@@ -393,7 +399,8 @@ def _run_faults(out: Path) -> FaultRun:
         g.kill('recorder')
         inj.status.pop(rec, None)
         g.start('recorder')
-        run.recovered['kill_recorder'] = wait(lambda: inj.value(rec, 'connected') == 'true',
+        run.recovered['kill_recorder'] = wait(lambda: current(rec, 'recorder')
+                                              and inj.value(rec, 'connected') == 'true',
                                               'restarted recorder connected') - t0
         run.events['kill_recorder'] = (t0, time.time())
         injector.spin(1.0)

@@ -225,7 +225,11 @@ class LoopStats:
 
 def diagnostics(node: Node, name: str, values: dict[str, str], level: int = 0,
                 message: str = 'ok') -> DiagnosticArray:
-    """A one-status :class:`DiagnosticArray` (level: DiagnosticStatus.OK/WARN/ERROR)."""
+    """A one-status :class:`DiagnosticArray` (level: DiagnosticStatus.OK/WARN/ERROR).
+
+    Every status carries ``pid``: the reporting process, so a tool that restarts a node can
+    tell the new process's reports from late ones of the process it replaced."""
+    values = {**values, 'pid': str(os.getpid())}
     arr = DiagnosticArray()
     arr.header.stamp = node.get_clock().now().to_msg()
     status = DiagnosticStatus(level=bytes([level]), name=name, message=message,
