@@ -17,6 +17,7 @@ from haptic_topology.control.laws import (
     ControlMode,
     control_wrench,
     coordination_wrench,
+    stable_hold,
 )
 from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LocalModel
 from haptic_topology.model.linkage import TaskSpace
@@ -68,26 +69,14 @@ class HapticController:
         self.stable_dt = self._stable_dt()
 
     def _stable_dt(self) -> float:
-        """Half the longest step (s) for which the VT side of the coordination spring stays
-        stable. Eq. 17 is stepped (semi-implicit Euler) with ``F_vt = F_h - F_pc`` held over
-        the measured period, so a long period (a late device state) steps the spring
-        explicitly: for ``x'' = -k x - b x'`` that is stable while ``k dt^2 + 2 b dt < 4``,
-        with ``k``, ``b`` (1/s^2, 1/s) the largest eigenvalues of ``K_pc^1/2 Lambda^-1
-        K_pc^1/2`` and ``B_pc^1/2 Lambda^-1 B_pc^1/2`` (eq. 19's task-space inverse
-        inertia). Without VT coupling (``F_vt = F_h``) nothing feeds back: inf."""
+        """Longest LMI step (s) that keeps the VT side of the coordination spring stable.
+        Eq. 17 is stepped (semi-implicit Euler) with ``F_vt = F_h - F_pc`` held over the
+        measured period, so a long period (a late device state) steps the spring explicitly
+        (:func:`~haptic_topology.control.laws.stable_hold`). Without VT coupling
+        (``F_vt = F_h``) nothing feeds back: inf."""
         if not self.vt_coupling:
             return math.inf
-        lam = self.lmi.lambda_inv
-
-        def largest(gain: np.ndarray) -> float:
-            r = np.sqrt(np.maximum(gain, 0.0))
-            return float(np.linalg.eigvalsh(r[:, None] * lam * r[None, :]).max())
-
-        k, b = max(largest(self.gains.k_pc), 0.0), max(largest(self.gains.b_pc), 0.0)
-        if k <= 0.0 and b <= 0.0:
-            return math.inf
-        limit = (-b + math.sqrt(b * b + 4.0 * k)) / k if k > 0.0 else 2.0 / b
-        return 0.5 * limit
+        return stable_hold(self.lmi.lambda_inv, self.gains.k_pc, self.gains.b_pc)
 
     def cycle(self, seq: int, dt: float, x_h: np.ndarray, xd_h: np.ndarray,
               f_h: np.ndarray) -> CycleOutput:

@@ -9,6 +9,7 @@ poses m / rad, twists m/s / rad/s; ``M_d`` kg / kg m^2; ``k_tc`` N/(m kg), ``b_t
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -137,3 +138,23 @@ def control_wrench(mode: ControlMode, lambda_inv: np.ndarray, m_d: np.ndarray,
                                     gains.b_d, gains.k_d)
     return penalty_control(lambda_inv, m_d, c_d, f_h, fe, f_pc, x_h, xd_h, x_vt, xd_vt,
                            projector, gains.k_tc, gains.b_tc, task, gains.b_d, gains.k_d)
+
+
+def stable_hold(lambda_inv: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray) -> float:
+    """Half the longest time (s) a coordination wrench ``F_pc`` (eq. 10's spring-damper
+    ``K_pc``, ``B_pc``) may be held constant on a body of task-space inverse inertia
+    ``lambda_inv`` (eq. 19) and stay stable. Holding it for ``h`` steps the spring
+    explicitly: for ``x'' = -k x - b x'`` stepped that way the step is stable while
+    ``k h^2 + 2 b h < 4``, with ``k``, ``b`` (1/s^2, 1/s) the largest eigenvalues of
+    ``K^1/2 lambda_inv K^1/2`` and ``B^1/2 lambda_inv B^1/2``. inf when both are zero."""
+    lam = 0.5 * (lambda_inv + lambda_inv.T)
+
+    def largest(gain: np.ndarray) -> float:
+        r = np.sqrt(np.maximum(np.asarray(gain, dtype=float), 0.0))
+        return max(float(np.linalg.eigvalsh(r[:, None] * lam * r[None, :]).max()), 0.0)
+
+    k, b = largest(k_pc), largest(b_pc)
+    if k <= 0.0 and b <= 0.0:
+        return math.inf
+    limit = (-b + math.sqrt(b * b + 4.0 * k)) / k if k > 0.0 else 2.0 / b
+    return 0.5 * limit

@@ -72,7 +72,8 @@ class VeSim(Node):
         self.max_hand_wrench = c.max_hand_wrench
         self.task = sc.linkage.task
         self.dyn = LinkageDynamics(sc.linkage)
-        self.ve = VirtualEnvironment(self.dyn, sc.q0, sc.dq0, sc.internal_step)
+        self.ve = VirtualEnvironment(self.dyn, sc.q0, sc.dq0, sc.internal_step,
+                                     coupling=sc.coupling_gains())
         self._viz_dyn = LinkageDynamics(sc.linkage)     # separate Pinocchio workspace
 
         self.lmi_pub = self.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)

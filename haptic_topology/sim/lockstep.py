@@ -69,7 +69,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     mode = sc.mode if mode is None else mode
     task = sc.linkage.task
     dyn = LinkageDynamics(sc.linkage)
-    ve = VirtualEnvironment(dyn, sc.q0, sc.dq0, sc.internal_step)
+    ve = VirtualEnvironment(dyn, sc.q0, sc.dq0, sc.internal_step,
+                            coupling=sc.coupling_gains())
     ve_check = LinkageDynamics(sc.linkage)  # separate workspace for the trace's truth
     backend = SimMaglevBackend()
     backend.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},

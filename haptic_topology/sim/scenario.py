@@ -97,6 +97,11 @@ class Scenario:
         """The ``ve:`` block (internal_step, vt_coupling)."""
         return VeSettings(self.internal_step, self.vt_coupling)
 
+    def coupling_gains(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(K_pc, B_pc)`` when the VE's hand input carries the coordination wrench (VT
+        coupling), else None."""
+        return (self.gains.k_pc, self.gains.b_pc) if self.vt_coupling else None
+
 
 def load_scenario(name_or_path: str) -> Scenario:
     """Load ``config/scenarios/<name>.yaml`` or a scenario file; errors name file and key."""

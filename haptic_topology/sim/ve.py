@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from haptic_topology.control.laws import stable_hold
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.constraints import task_scale
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
@@ -44,7 +45,8 @@ class VirtualEnvironment:
     """Full VT simulation (eq. 2, no contacts) with RK4 at ``internal_step`` seconds."""
 
     def __init__(self, dynamics: LinkageDynamics, q0: np.ndarray, dq0: np.ndarray,
-                 internal_step: float = 2.5e-4, max_gap: float = 0.05) -> None:
+                 internal_step: float = 2.5e-4, max_gap: float = 0.05,
+                 coupling: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         d = dynamics.dof
         if np.shape(q0) != (d,) or np.shape(dq0) != (d,):
             raise ValueError(f'q0 and dq0 must have {d} entries, got {np.shape(q0)} and '
@@ -54,6 +56,11 @@ class VirtualEnvironment:
         self.dq = np.array(dq0, dtype=float)
         self.internal_step = internal_step
         self.max_gap = max_gap
+        #: ``(K_pc, B_pc)`` when the hand input carries the coordination wrench (VT
+        #: coupling): a held input is then integrated for at most :attr:`hold_limit`.
+        self.coupling = coupling
+        self.hold_limit = max_gap
+        self.held_capped = 0        # inputs whose gap exceeded the stable hold
         self.time = 0.0
         self.hand_input_seq = -1
         self._held: tuple[int, float, np.ndarray] | None = None
@@ -87,13 +94,19 @@ class VirtualEnvironment:
         """Take the hand input of device state ``seq`` at time ``stamp`` (s).
 
         The previously held input is integrated up to ``stamp`` (at most ``max_gap`` s, so a
-        pause of the haptic loop does not make the VT jump), then this one is held.
+        pause of the haptic loop does not make the VT jump, and with VT coupling at most the
+        stable hold of the coordination spring at the last snapshot's inertia, see
+        :func:`~haptic_topology.control.laws.stable_hold`: inputs seconds apart on a starved
+        machine must not blow the VE up), then this one is held.
         """
         if self._held is not None:
             held_seq, held_stamp, held_wrench = self._held
             if seq <= held_seq:
                 return  # duplicate or out-of-order input: ignore
-            self.integrate(held_wrench, min(stamp - held_stamp, self.max_gap))
+            gap = stamp - held_stamp
+            if gap > self.hold_limit:
+                self.held_capped += 1
+            self.integrate(held_wrench, min(gap, self.hold_limit))
             self.hand_input_seq = held_seq
             self.path.append((held_seq, self.dyn.hand_pose(self.q)))
         self._held = (seq, stamp, np.array(wrench, dtype=float))
@@ -140,9 +153,14 @@ class VirtualEnvironment:
     def snapshot(self, seq: int) -> LmiSnapshot:
         """The LMI update for the current state (eqs. 17-19)."""
         snap = self.dyn.snapshot(self.q, self.dq)
-        return LmiSnapshot.from_dynamics(snap, self.dyn.task,
-                                         self.dyn.linkage.constraints.characteristic_length,
-                                         seq, self.hand_input_seq)
+        out = LmiSnapshot.from_dynamics(snap, self.dyn.task,
+                                        self.dyn.linkage.constraints.characteristic_length,
+                                        seq, self.hand_input_seq)
+        if self.coupling is not None:
+            j = out.hand_jacobian
+            lambda_inv = j @ np.linalg.solve(out.mass_matrix, j.T)
+            self.hold_limit = min(self.max_gap, stable_hold(lambda_inv, *self.coupling))
+        return out
 
     def kinetic_energy(self) -> float:
         """``0.5 dq^T D(q) dq`` (J)."""
