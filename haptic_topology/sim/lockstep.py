@@ -1,7 +1,10 @@
 """Offline lock-step simulation of the whole haptic loop (the paper's Fig. 5 diagram).
 
 The same loop objects as the node graph, wired without messages, in the order the lock-step
-graph runs them (``device_driver`` with ``clock: lockstep``):
+graph runs them (``device_driver`` with ``clock: lockstep``). Steps 1-2 are one
+:class:`~haptic_topology.device.hosted.HostedCycle`, the object the hosted ``device_driver``
+runs in its loop thread; the VE's updates are offered to it and applied at the start of the
+next step, before that step's state:
 
 1. :class:`~haptic_topology.device.loop.DeviceLoop` ticks the simulated maglev
    (:class:`~haptic_topology.device.backend.SimMaglevBackend`: eq. 9 over the last period with
@@ -25,9 +28,10 @@ import numpy as np
 
 from haptic_topology.control.controller import HapticController
 from haptic_topology.control.laws import ControlGains, ControlMode
-from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
+from haptic_topology.control.loop import Answer, ControllerLoop
 from haptic_topology.control.safety import SyncGuard, SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
+from haptic_topology.device.hosted import HostedCycle
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, ns_to_seconds, period_ns
 from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
@@ -58,11 +62,6 @@ def initial_device_pose(sc: Scenario) -> np.ndarray:
     return LinkageDynamics(sc.linkage).hand_pose(sc.q0) + sc.device_offset
 
 
-def state_sample(tick: DeviceTick, stamp: float) -> StateSample:
-    r = tick.reading
-    return StateSample(tick.seq, stamp, r.pose, r.twist, r.hand_wrench, int(tick.status))
-
-
 def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace."""
     sc = scenario
@@ -78,19 +77,18 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     backend.activate()
     device = DeviceLoop(backend, sc.device.wrench_limit,
                         CommandWatchdog(WatchdogConfig(), task.dim), sc.dt)
-    loop = build_controller_loop(sc, mode, update_period=sc.update_period)
-    loop.on_update(ve.snapshot(seq=0))
+    cycle = HostedCycle(device, build_controller_loop(sc, mode, update_period=sc.update_period))
+    cycle.offer_update(ve.snapshot(seq=0))
     step_ns = period_ns(sc.dt)
 
-    def answer(tick: DeviceTick, stamp: float) -> Answer:
-        ans = loop.on_state(state_sample(tick, stamp))
-        if ans is None:
-            raise RuntimeError(f'controller did not answer state {tick.seq}')
-        device.on_command(ans.state_seq, int(ans.out.mode), ans.out.wrench, stamp)
-        return ans
+    def step(t: float) -> tuple[DeviceTick, Answer]:
+        done = cycle.step(t, sc.dt, t)
+        if done.answer is None:
+            raise RuntimeError(f'controller did not answer state {done.tick.seq}')
+        return done.tick, done.answer
 
     # Engagement: one idle state, answered in the controller's mode.
-    answer(device.tick(0.0, sc.dt), 0.0)
+    step(0.0)
     n = int(round(sc.duration / sc.dt)) + 1
     trace = Trace.empty(n, task.dim, dyn.dof, mode=mode.label, scenario=sc.name, dt=sc.dt)
     vt_pose = dyn.hand_pose(ve.q)
@@ -98,10 +96,9 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     update_seq = 1
     for k in range(n):
         t = ns_to_seconds(k * step_ns)
-        if loop.waiting_for_update():
+        if cycle.waiting_for_update():
             raise RuntimeError(f'state {k}: the VE update was not taken')
-        tick = device.tick(t, sc.dt)
-        ans = answer(tick, t)
+        tick, ans = step(t)
         hand = ans.hand
         if hand is not None:
             ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
@@ -116,6 +113,7 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
                      constraint_count=ve_check.constraints(ve.q).count,
                      lmi_constraint_count=ans.out.constraint_count, status=int(tick.status))
         if hand is not None and inputs % sc.update_period == 0:
-            loop.on_update(ve.snapshot(seq=update_seq))
+            # Applied at the start of the next step, before its state: as the graph does.
+            cycle.offer_update(ve.snapshot(seq=update_seq))
             update_seq += 1
     return trace
