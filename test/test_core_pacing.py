@@ -60,7 +60,7 @@ def test_on_time_cycles_sleep_to_each_deadline() -> None:
         PacerTick(k, 5.0 + k * P, P, 0, 0.0) for k in range(1, 5)]
     assert ft.sleeps == [3 * P / 4] * 4
     f = p.figures()
-    assert f == PacerFigures(cycles=5, missed=0, longest_miss_run=0, period_p50=P,
+    assert f == PacerFigures(cycles=5, missed=0, max_missed_run=0, period_p50=P,
                              period_p99=P, period_max=P)
 
 
@@ -90,7 +90,7 @@ def test_one_long_overrun_skips_the_passed_deadlines_and_counts_them() -> None:
     assert on_grid == PacerTick(5, 5 * P, 0.5 * P, 0, 0.0)
     assert ft.sleeps == [P, 0.5 * P]
     f = p.figures()           # periods P, 3.5 P, 0.5 P
-    assert (f.cycles, f.missed, f.longest_miss_run, f.period_p50, f.period_max) == (
+    assert (f.cycles, f.missed, f.max_missed_run, f.period_p50, f.period_max) == (
         4, 2, 2, P, 3.5 * P)
     assert f.period_p99 == pytest.approx(3.45 * P)
 
@@ -146,7 +146,7 @@ def test_consecutive_miss_runs() -> None:
         (0, 0, 0.0), (1, 0, 0.0), (5, 3, 0.25 * P), (6, 0, 0.0), (8, 1, 0.5 * P),
         (9, 0, 0.0), (30, 20, 0.0)]     # released exactly at a deadline: that one's cycle
     f = p.figures()
-    assert (f.cycles, f.missed, f.longest_miss_run) == (7, 24, 20)
+    assert (f.cycles, f.missed, f.max_missed_run) == (7, 24, 20)
 
 
 def test_busy_wait_before_the_deadline() -> None:
@@ -191,7 +191,8 @@ def test_period_figures_use_a_bounded_window_and_the_run_max() -> None:
     f = p.figures()
     assert (f.period_p50, f.period_p99, f.period_max) == (P, P, 2.5 * P)
     assert f.values('pacer_') == {
-        'pacer_cycles': '7', 'pacer_missed_deadlines': '1', 'pacer_longest_miss_run': '1',
+        'pacer_cycles': '7', 'pacer_missed_deadlines': '1',
+        'pacer_max_consecutive_missed_deadlines': '1',
         'pacer_period_p50_ms': f'{1e3 * P:.3f}', 'pacer_period_p99_ms': f'{1e3 * P:.3f}',
         'pacer_period_max_ms': f'{2.5e3 * P:.3f}'}
 

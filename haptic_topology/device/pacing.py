@@ -20,8 +20,10 @@ cycle overran), it does not sleep. It releases, at once, the newest deadline tha
 ``j = max{i : d_i <= now}``, and *skips* the deadlines ``d_k .. d_{j-1}``: no cycle runs for
 them, there is no burst of catch-up cycles. ``missed = j - k`` of them are counted. A cycle
 that starts late but before the following deadline misses nothing, and the next cycle is on
-the grid again. ``longest_miss_run`` is the longest run of consecutive skipped deadlines
-(Franka's FCI stops a robot after 20 lost cycles in a row).
+the grid again. ``max_missed_run`` is the longest run of consecutive skipped deadlines
+(Franka's FCI stops a robot after 20 lost cycles in a row). It is not
+``DeviceLoop.max_missed_run`` (:mod:`haptic_topology.device.loop`), which counts cycles that
+ran without the controller's answer in time.
 
 Example (checked by ``test/test_core_pacing.py``): ``period = 1 ms``, ``t0 = 0``; cycle 0 is
 released at 0 and its work takes 3.5 ms; ``wait()`` at 3.5 ms returns at once with index 3,
@@ -65,13 +67,13 @@ class PacerTick:
 @dataclass(frozen=True, slots=True)
 class PacerFigures:
     """Pacing figures: ``cycles`` released, ``missed`` deadlines skipped in all,
-    ``longest_miss_run`` (consecutive skipped deadlines), measured period (s): ``period_p50``
+    ``max_missed_run`` (consecutive skipped deadlines), measured period (s): ``period_p50``
     and ``period_p99`` over the last ``window`` periods, ``period_max`` over the run (NaN
     before two cycles)."""
 
     cycles: int
     missed: int
-    longest_miss_run: int
+    max_missed_run: int
     period_p50: float
     period_p99: float
     period_max: float
@@ -81,7 +83,7 @@ class PacerFigures:
         return {
             f'{prefix}cycles': str(self.cycles),
             f'{prefix}missed_deadlines': str(self.missed),
-            f'{prefix}longest_miss_run': str(self.longest_miss_run),
+            f'{prefix}max_consecutive_missed_deadlines': str(self.max_missed_run),
             f'{prefix}period_p50_ms': f'{1e3 * self.period_p50:.3f}',
             f'{prefix}period_p99_ms': f'{1e3 * self.period_p99:.3f}',
             f'{prefix}period_max_ms': f'{1e3 * self.period_max:.3f}',
@@ -122,7 +124,7 @@ class DeadlinePacer:
         self.period_max = math.nan
         self.cycles = 0
         self.missed = 0
-        self.longest_miss_run = 0
+        self.max_missed_run = 0
 
     @property
     def t0(self) -> float | None:
@@ -183,7 +185,7 @@ class DeadlinePacer:
         self._last_now = now
         self.cycles += 1
         self.missed += missed
-        self.longest_miss_run = max(self.longest_miss_run, missed)
+        self.max_missed_run = max(self.max_missed_run, missed)
         return PacerTick(j, now, dt, missed, now - self.deadline(j))
 
     def figures(self) -> PacerFigures:
@@ -191,5 +193,5 @@ class DeadlinePacer:
         n = min(self._n_periods, self._periods.size)
         p = self._periods[:n]
         p50, p99 = (float(v) for v in np.percentile(p, [50, 99])) if n else (math.nan, math.nan)
-        return PacerFigures(self.cycles, self.missed, self.longest_miss_run, p50, p99,
+        return PacerFigures(self.cycles, self.missed, self.max_missed_run, p50, p99,
                             self.period_max)
