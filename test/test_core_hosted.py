@@ -32,7 +32,12 @@ from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.errors import ConfigError
-from haptic_topology.sim.lockstep import build_controller_loop, initial_device_pose, simulate
+from haptic_topology.sim.lockstep import (
+    build_controller_loop,
+    initial_device_pose,
+    simulate,
+    virtual_environment,
+)
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.trace import Trace
 from haptic_topology.sim.ve import VirtualEnvironment
@@ -49,17 +54,16 @@ def _device(sc: Scenario) -> DeviceLoop:
 
 def _cycle(sc: Scenario, mode: ControlMode, **kwargs: Any) -> tuple[HostedCycle,
                                                                      VirtualEnvironment]:
-    ve = VirtualEnvironment(LinkageDynamics(sc.linkage), sc.q0, sc.dq0, sc.internal_step)
     loop = build_controller_loop(sc, mode, update_period=sc.update_period)
-    return HostedCycle(_device(sc), loop, **kwargs), ve
+    return HostedCycle(_device(sc), loop, **kwargs), virtual_environment(sc)
 
 
 def _simulate_direct(sc: Scenario, mode: ControlMode) -> Trace:
     """``simulate`` as it was before HostedCycle: DeviceLoop and ControllerLoop wired by hand
     (the reference the hosted cycle must reproduce exactly)."""
     task = sc.linkage.task
-    dyn = LinkageDynamics(sc.linkage)
-    ve = VirtualEnvironment(dyn, sc.q0, sc.dq0, sc.internal_step)
+    ve = virtual_environment(sc)      # shared with simulate: the VE is not under test here
+    dyn = ve.dyn
     ve_check = LinkageDynamics(sc.linkage)
     device = _device(sc)
     loop = build_controller_loop(sc, mode, update_period=sc.update_period)
@@ -145,8 +149,7 @@ def test_step_is_tick_then_answer_then_command() -> None:
 
 
 def _snapshots(sc: Scenario, n: int) -> list[LmiSnapshot]:
-    ve = VirtualEnvironment(LinkageDynamics(sc.linkage), sc.q0, sc.dq0, sc.internal_step)
-    first = ve.snapshot(seq=0)
+    first = virtual_environment(sc).snapshot(seq=0)
     return [replace(first, seq=i) for i in range(n)]
 
 

@@ -62,14 +62,19 @@ def initial_device_pose(sc: Scenario) -> np.ndarray:
     return LinkageDynamics(sc.linkage).hand_pose(sc.q0) + sc.device_offset
 
 
+def virtual_environment(sc: Scenario) -> VirtualEnvironment:
+    """The VE of scenario ``sc`` at its initial state, as ``simulate`` runs it."""
+    return VirtualEnvironment(LinkageDynamics(sc.linkage), sc.q0, sc.dq0, sc.internal_step,
+                              coupling=sc.coupling_gains())
+
+
 def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace."""
     sc = scenario
     mode = sc.mode if mode is None else mode
     task = sc.linkage.task
-    dyn = LinkageDynamics(sc.linkage)
-    ve = VirtualEnvironment(dyn, sc.q0, sc.dq0, sc.internal_step,
-                            coupling=sc.coupling_gains())
+    ve = virtual_environment(sc)
+    dyn = ve.dyn
     ve_check = LinkageDynamics(sc.linkage)  # separate workspace for the trace's truth
     backend = SimMaglevBackend()
     backend.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},
