@@ -231,23 +231,6 @@ def _seq_list(msg: Any, field: str, size: int | None) -> list[int]:
     return seqs
 
 
-def check_hand(msg: Any, dim: int, max_wrench: float) -> tuple[int, int, float, np.ndarray,
-                                                               np.ndarray, np.ndarray,
-                                                               np.ndarray]:
-    """A ``HandInput``: ``(seq, state_seq, stamp_s, pose, twist, F_h, F_pc)``; every wrench
-    entry within ``max_wrench``."""
-    check_task_dim(msg, dim)
-    seq = check_seq(msg, 'seq')
-    state_seq = check_seq(msg, 'state_seq')
-    stamp = check_stamp(msg)
-    f_h = array(msg, 'hand_wrench', dim)
-    f_pc = array(msg, 'coupling_wrench', dim)
-    for name, w in (('hand_wrench', f_h), ('coupling_wrench', f_pc)):
-        check_range(bool(np.all(np.abs(w) <= max_wrench)), msg,
-                    f'{name} must be within +-{max_wrench:g}, got {w.tolist()}')
-    return seq, state_seq, stamp, array(msg, 'pose', dim), array(msg, 'twist', dim), f_h, f_pc
-
-
 def check_update_header(msg: Any, dim: int, dof: int) -> tuple[int, int]:
     """The integers of an ``LmiUpdate``: ``(seq, hand_input_seq)``, both in [0, MAX_SEQ]
     (the VE's first update is seq 0; hand_input_seq 0: no input consumed yet); ``dof`` and

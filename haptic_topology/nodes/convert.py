@@ -36,20 +36,13 @@ from haptic_topology.msgcheck import (
     RejectCounter,
     array,
     check_command,
-    check_hand,
     check_hand_inputs,
     check_range,
     check_state,
     check_update_header,
     finite_scalar,
 )
-from haptic_topology_msgs.msg import (
-    DeviceCommand,
-    DeviceState,
-    HandInput,
-    HandInputs,
-    LmiUpdate,
-)
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
 
 def stamp_seconds(stamp: Time) -> float:
@@ -119,32 +112,6 @@ def command_from_msg(msg: DeviceCommand, task: TaskSpace) -> tuple[int, int, np.
     SATURATED), as it does for the controller's own large outputs.
     """
     return check_command(msg, task.dim)
-
-
-# -- HandInput --------------------------------------------------------------------------------
-def hand_msg(msg: HandInput, seq: int, state_seq: int, stamp: Time, pose: np.ndarray,
-             twist: np.ndarray, hand_wrench: np.ndarray, coupling: np.ndarray) -> HandInput:
-    msg.header.stamp = stamp
-    msg.seq = seq
-    msg.state_seq = state_seq
-    msg.task_dim = int(pose.size)
-    msg.pose = pose.tolist()
-    msg.twist = twist.tolist()
-    msg.hand_wrench = hand_wrench.tolist()
-    msg.coupling_wrench = coupling.tolist()
-    return msg
-
-
-def vt_wrench_from_hand(msg: HandInput, task: TaskSpace, vt_coupling: bool,
-                        max_wrench: float = math.inf) -> tuple[int, float, np.ndarray]:
-    """``(state_seq, stamp_s, F_vt)``: ``F_h - F_pc`` with VT coupling, else ``F_h``.
-
-    Every entry of the hand and coupling wrenches must be finite and within ``max_wrench``
-    (N, N m): a hand input far beyond any device's force would only blow the VT up.
-    """
-    _, state_seq, stamp, _, _, f_h, f_pc = check_hand(msg, task.dim, max_wrench)
-    f_vt = f_h - f_pc if vt_coupling else f_h
-    return state_seq, stamp, f_vt
 
 
 # -- HandInputs -------------------------------------------------------------------------------
@@ -254,6 +221,6 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
 
 
 __all__ = ['MAX_SEQ', 'REASONS', 'MessageError', 'RejectCounter', 'command_from_msg',
-           'command_msg', 'hand_inputs_msg', 'hand_msg', 'lmi_from_msg', 'lmi_msg', 'ns_to_stamp',
+           'command_msg', 'hand_inputs_msg', 'lmi_from_msg', 'lmi_msg', 'ns_to_stamp',
            'seconds_to_stamp', 'stamp_ns', 'stamp_seconds', 'state_from_msg', 'state_msg',
-           'vt_wrench_from_hand', 'vt_wrenches_from_hand_inputs']
+           'vt_wrenches_from_hand_inputs']
