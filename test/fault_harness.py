@@ -387,7 +387,12 @@ def _run_faults(out: Path) -> FaultRun:
 
         for name, back in (
                 ('ve_sim', lambda: controller_back('ve_restarts', 1)),
-                ('lmi_controller', controller_back),
+                # A new controller is back once it answers the running loop (loop_seq: the
+                # newest state it answered running), not when it has merely synced to the
+                # VE's keep-alive updates (fresh model, full scale from its start): else,
+                # on a loaded machine, the driver may be killed before the new controller
+                # has seen it and it never counts a second device session.
+                ('lmi_controller', lambda: controller_back('loop_seq', 1)),
                 ('device_driver', lambda: controller_back('device_sessions', 2))):
             t0 = time.time()
             seq_killed = inj.last_running_seq
