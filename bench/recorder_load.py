@@ -5,10 +5,11 @@ Two processes besides this one, in a random ROS_DOMAIN_ID with discovery on this
 * ``recorder`` (``python -m haptic_topology.nodes.recorder --ros-args -p output:=<tmp>/bag``),
   the node as the graph runs it (EventsExecutor, raw subscriptions, writer thread, zstd MCAP);
 * a synthetic publisher (this file, ``--role publisher``) with the graph's topics and QoS, per
-  1x: ``DeviceState``, ``DeviceCommand``, ``HandInput`` at 1 kHz, ``LmiUpdate`` at 100 Hz,
-  ``/diagnostics`` at 3 Hz, with the sizes of the planar 3-DOF scenarios (every array field
-  filled). Each message carries a sequence number running 1..N on its topic
-  (``seq``; ``state_seq`` on DeviceCommand; a ``seq`` key in /diagnostics). It wakes every
+  1x: ``DeviceState``, ``DeviceCommand`` at 1 kHz, ``HandInputs`` (batches of 10 samples) and
+  ``LmiUpdate`` at 100 Hz, ``/diagnostics`` at 3 Hz, with the sizes of the planar 3-DOF
+  scenarios (every array field filled). Each message carries a sequence number running 1..N
+  on its topic (``seq``; ``state_seq`` on DeviceCommand; a ``seq`` key in /diagnostics; the
+  samples of the i-th HandInputs have seqs ``10 (i - 1) + 1 .. 10 i``). It wakes every
   1 ms and publishes on each topic what is due by then (``rate * factor * elapsed``), so at
   10x a tick is a burst of ~10 messages per topic; when it falls behind it catches up in a
   bigger burst, and at the deadline it stops without sending what is still due, so
@@ -50,10 +51,12 @@ from typing import IO, Any
 TOPICS: dict[str, tuple[float, str]] = {
     'haptic/device/state': (1000.0, 'seq'),
     'haptic/device/command': (1000.0, 'state_seq'),
-    'haptic/hand': (1000.0, 'seq'),
+    'haptic/hand_inputs': (100.0, 'seq'),
     'haptic/lmi/update': (100.0, 'seq'),
     '/diagnostics': (3.0, 'seq'),
 }
+#: Samples per HandInputs message (one VE update period of the 1 kHz loop).
+HAND_BATCH = 10
 TICK_S = 1e-3
 DISCOVERY_SETTLE_S = 0.5
 DRAIN_MAX_S = 5.0
@@ -63,9 +66,10 @@ START_TIMEOUT_S = 40.0
 # -- publisher process --------------------------------------------------------------------------
 def _messages() -> dict[str, Any]:
     """One message per topic, every field of the planar 3-DOF graph filled."""
+    from builtin_interfaces.msg import Time
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-    from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+    from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
     v3 = [0.1, -0.2, 0.3]
     m33 = [1.0, 0.1, 0.0, 0.1, 1.0, 0.1, 0.0, 0.1, 1.0]
@@ -75,7 +79,11 @@ def _messages() -> dict[str, Any]:
     cmd = DeviceCommand(mode=0, task_dim=3, wrench=v3, vt_pose=v3, vt_twist=v3,
                         constraint_count=0, update_age=0.004)
     cmd.header.frame_id = 'world'
-    hand = HandInput(task_dim=3, pose=v3, twist=v3, hand_wrench=v3, coupling_wrench=v3)
+    rows = v3 * HAND_BATCH
+    hand = HandInputs(task_dim=3, seq=list(range(1, HAND_BATCH + 1)),
+                      state_seq=list(range(1, HAND_BATCH + 1)),
+                      stamp=[Time() for _ in range(HAND_BATCH)], pose=rows, twist=rows,
+                      hand_wrench=rows, coupling_wrench=rows)
     hand.header.frame_id = 'world'
     upd = LmiUpdate(dof=3, task_dim=3, q=v3, dq=v3, mass_matrix=m33, gravity=v3,
                     hand_jacobian=m33, singular_values=v3, left_singular_vectors=m33,
@@ -89,8 +97,13 @@ def _messages() -> dict[str, Any]:
                      ('seq', 'answered', 'rtt_p50_ms', 'rtt_p99_ms', 'period_p99_ms',
                       'cycles', 'stale', 'rejected')]
     diag.status = [status]
-    return {'haptic/device/state': state, 'haptic/device/command': cmd, 'haptic/hand': hand,
-            'haptic/lmi/update': upd, '/diagnostics': diag}
+    return {'haptic/device/state': state, 'haptic/device/command': cmd,
+            'haptic/hand_inputs': hand, 'haptic/lmi/update': upd, '/diagnostics': diag}
+
+
+def _set_batch(msg: Any, i: int) -> None:
+    """The i-th HandInputs: samples 10 (i - 1) + 1 .. 10 i."""
+    msg.seq = msg.state_seq = list(range(HAND_BATCH * (i - 1) + 1, HAND_BATCH * i + 1))
 
 
 def _publisher(duration: float, factor: float) -> int:
@@ -121,6 +134,8 @@ def _publisher(duration: float, factor: float) -> int:
         msg, field = msgs[t], TOPICS[t][1]
         if t == '/diagnostics':
             setters.append(lambda i: setattr(diag_value, 'value', str(i)))
+        elif t == 'haptic/hand_inputs':
+            setters.append(lambda i, m=msg: _set_batch(m, i))
         else:
             setters.append(lambda i, m=msg, f=field: setattr(m, f, i))
     publish = [pubs[t].publish for t in order]
@@ -257,6 +272,8 @@ def _read_bag(path: Path) -> tuple[dict[str, list[int]], int, bool]:
         if topic == '/diagnostics':
             kv = {v.key: v.value for v in obj.status[0].values}
             seqs[topic].append(int(kv['seq']))
+        elif topic == 'haptic/hand_inputs':
+            seqs[topic].append(int(obj.seq[-1]) // HAND_BATCH)     # message number
         else:
             seqs[topic].append(int(getattr(obj, TOPICS[topic][1])))
     return seqs, bag.size, bool(bag.truncated)
@@ -377,7 +394,7 @@ def main() -> None:
                     help=argparse.SUPPRESS)
     ap.add_argument('--duration', type=float, default=60.0, help='publishing time (s)')
     ap.add_argument('--factor', type=float, default=1.0,
-                    help='multiple of the graph rates (1: 3 x 1 kHz + 100 Hz + 3 Hz)')
+                    help='multiple of the graph rates (1: 2 x 1 kHz + 2 x 100 Hz + 3 Hz)')
     a = ap.parse_args()
     if a.duration <= 0 or a.factor <= 0:
         ap.error('--duration and --factor must be > 0')

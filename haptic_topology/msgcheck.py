@@ -29,6 +29,7 @@ Example::
 
 from __future__ import annotations
 
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -165,21 +166,69 @@ def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray]:
     return state_seq, mode, wrench
 
 
-def check_hand(msg: Any, dim: int, max_wrench: float) -> tuple[int, int, float, np.ndarray,
-                                                               np.ndarray, np.ndarray,
-                                                               np.ndarray]:
-    """A ``HandInput``: ``(seq, state_seq, stamp_s, pose, twist, F_h, F_pc)``; every wrench
-    entry within ``max_wrench``."""
+def check_hand_inputs(msg: Any, dim: int, max_wrench: float
+                      ) -> tuple[list[int], list[int], list[float], np.ndarray, np.ndarray,
+                                 np.ndarray, np.ndarray]:
+    """A ``HandInputs`` batch of n samples: ``(seqs, state_seqs, stamps_s, pose, twist, F_h,
+    F_pc)``, the vectors n x ``dim``. n >= 1; ``seq`` and ``state_seq`` n entries each in
+    [1, MAX_SEQ], strictly ascending; ``stamp`` n stamps, each as ``header.stamp``; every
+    vector n x dim and finite; every wrench entry within ``max_wrench``. One bad field
+    rejects the whole batch.
+
+    Example::
+
+        >>> from types import SimpleNamespace as NS
+        >>> t = NS(sec=0, nanosec=1_000_000)
+        >>> batch = NS(header=NS(stamp=t), task_dim=1, seq=[7, 6], state_seq=[3, 4],
+        ...            stamp=[t, t], pose=[0.0, 0.0], twist=[0.0, 0.0],
+        ...            hand_wrench=[0.0, 0.0], coupling_wrench=[0.0, 0.0])
+        >>> try:
+        ...     check_hand_inputs(batch, 1, 100.0)
+        ... except MessageError as exc:
+        ...     print(exc.reason, '|', exc)
+        range | SimpleNamespace.seq must be strictly ascending, got [7, 6]
+    """
     check_task_dim(msg, dim)
-    seq = check_seq(msg, 'seq')
-    state_seq = check_seq(msg, 'state_seq')
-    stamp = check_stamp(msg)
-    f_h = array(msg, 'hand_wrench', dim)
-    f_pc = array(msg, 'coupling_wrench', dim)
+    check_stamp(msg)
+    seqs = _seq_list(msg, 'seq', None)
+    n = len(seqs)
+    state_seqs = _seq_list(msg, 'state_seq', n)
+    stamps = list(msg.stamp)
+    if len(stamps) != n:
+        raise MessageError('size', f'{_name(msg)}.stamp must have {n} entries (one per seq), '
+                           f'got {len(stamps)}')
+    seconds = []
+    for i, st in enumerate(stamps):
+        sec, nanosec = int(st.sec), int(st.nanosec)
+        check_range(sec >= 0, msg, f'stamp[{i}].sec must be >= 0, got {sec}')
+        check_range(nanosec < 1_000_000_000, msg,
+                    f'stamp[{i}].nanosec must be < 1000000000, got {nanosec}')
+        seconds.append(float(sec) + 1e-9 * float(nanosec))
+    pose, twist, f_h, f_pc = (array(msg, f, n * dim).reshape(n, dim)
+                              for f in ('pose', 'twist', 'hand_wrench', 'coupling_wrench'))
     for name, w in (('hand_wrench', f_h), ('coupling_wrench', f_pc)):
-        check_range(bool(np.all(np.abs(w) <= max_wrench)), msg,
-                    f'{name} must be within +-{max_wrench:g}, got {w.tolist()}')
-    return seq, state_seq, stamp, array(msg, 'pose', dim), array(msg, 'twist', dim), f_h, f_pc
+        bad = np.abs(w) > max_wrench
+        if np.any(bad):
+            row = int(np.flatnonzero(bad.any(axis=1))[0])
+            check_range(False, msg, f'{name} must be within +-{max_wrench:g}, got '
+                        f'{w[row].tolist()} (sample {row})')
+    return seqs, state_seqs, seconds, pose, twist, f_h, f_pc
+
+
+def _seq_list(msg: Any, field: str, size: int | None) -> list[int]:
+    """``msg.field`` as sequence numbers: ``size`` entries (None: at least one), each in
+    [1, MAX_SEQ], strictly ascending."""
+    seqs = [int(v) for v in getattr(msg, field)]
+    if size is None and not seqs:
+        raise MessageError('size', f'{_name(msg)}.{field} must have at least 1 entry, got 0')
+    if size is not None and len(seqs) != size:
+        raise MessageError('size', f'{_name(msg)}.{field} must have {size} entries (one per '
+                           f'seq), got {len(seqs)}')
+    bad = [v for v in seqs if not 1 <= v <= MAX_SEQ]
+    check_range(not bad, msg, f'{field} must be in [1, {MAX_SEQ}], got {bad[:3]}')
+    check_range(all(a < b for a, b in pairwise(seqs)), msg,
+                f'{field} must be strictly ascending, got {seqs[:12]}')
+    return seqs
 
 
 def check_update_header(msg: Any, dim: int, dof: int) -> tuple[int, int]:

@@ -30,9 +30,10 @@ from rosbags.typesys.store import Typestore
 from haptic_topology import MSGS_PACKAGE_NAME
 from haptic_topology.errors import HapticTopologyError
 
-#: Message names of haptic_topology_msgs, in the order they appear in the node graph.
-MESSAGE_NAMES: tuple[str, ...] = ('DeviceState', 'DeviceCommand', 'LmiUpdate', 'HandInput',
-                                   'VtPath')
+#: Message names of haptic_topology_msgs, in the order they appear in the node graph
+#: (``HandInput``: the graph no longer sends it; bags recorded before hold it).
+MESSAGE_NAMES: tuple[str, ...] = ('DeviceState', 'DeviceCommand', 'LmiUpdate', 'HandInputs',
+                                   'VtPath', 'HandInput')
 
 _SOURCE_MSG_DIR = Path(__file__).resolve().parent.parent / 'msg_schemas' / 'msg'
 

@@ -3,9 +3,10 @@
     python bag_publisher.py N TIMEOUT_S [NAMESPACE]
 
 Publishes on the graph's topics with the graph's QoS (see haptic_topology.nodes.common):
-DeviceState.seq, DeviceCommand.state_seq, HandInput.seq and LmiUpdate.seq run 1..N, one of
-each per millisecond. Starts once every topic has a subscriber (prints ``publishing``);
-prints ``sent N ...`` and exits.
+DeviceState.seq, DeviceCommand.state_seq and LmiUpdate.seq run 1..N, one of each per
+millisecond; HandInputs.seq runs 1..N too, in batches of BATCH samples (one message every
+BATCH ms, as lmi_controller sends them; N must be a multiple of BATCH). Starts once every
+topic has a subscriber (prints ``publishing``); prints ``sent N ...`` and exits.
 """
 
 from __future__ import annotations
@@ -14,9 +15,13 @@ import sys
 import time
 
 import rclpy
+from builtin_interfaces.msg import Time
 
 from haptic_topology.nodes import common
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
+
+#: Samples per HandInputs message.
+BATCH = 10
 
 
 def main() -> int:
@@ -25,7 +30,7 @@ def main() -> int:
     rclpy.init()
     node = rclpy.create_node('bag_test_publisher', namespace=namespace)
     topics = ((DeviceState, common.TOPIC_STATE), (DeviceCommand, common.TOPIC_COMMAND),
-              (HandInput, common.TOPIC_HAND), (LmiUpdate, common.TOPIC_LMI))
+              (HandInputs, common.TOPIC_HAND_INPUTS), (LmiUpdate, common.TOPIC_LMI))
     pubs = [node.create_publisher(t, name, common.TOPIC_QOS[name]) for t, name in topics]
     deadline = time.monotonic() + timeout
     while any(p.get_subscription_count() == 0 for p in pubs):
@@ -34,10 +39,12 @@ def main() -> int:
             return 2
         time.sleep(0.02)
     time.sleep(0.5)  # both directions of discovery
-    state, cmd, hand, upd = DeviceState(), DeviceCommand(), HandInput(), LmiUpdate()
+    state, cmd, hand, upd = DeviceState(), DeviceCommand(), HandInputs(), LmiUpdate()
     state.task_dim = cmd.task_dim = hand.task_dim = upd.task_dim = 3
     state.pose = state.twist = state.hand_wrench = state.applied_wrench = [0.1, 0.2, 0.3]
     cmd.wrench = cmd.vt_pose = cmd.vt_twist = [0.4, 0.5, 0.6]
+    hand.pose = hand.twist = hand.hand_wrench = hand.coupling_wrench = [0.7, 0.8, 0.9] * BATCH
+    stamps: list[Time] = []
     upd.dof = 3
     upd.q = upd.dq = upd.gravity = [0.0, 0.1, 0.2]
     upd.mass_matrix = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]
@@ -47,12 +54,18 @@ def main() -> int:
         while (rem := start + i * 1e-3 - time.perf_counter()) > 0:
             time.sleep(rem)
         stamp = node.get_clock().now().to_msg()
-        state.header.stamp = cmd.header.stamp = hand.header.stamp = upd.header.stamp = stamp
+        state.header.stamp = cmd.header.stamp = upd.header.stamp = stamp
         state.seq = i
         cmd.state_seq = i
-        hand.seq = hand.state_seq = i
         upd.seq = upd.hand_input_seq = i
+        stamps.append(stamp)
         for pub, msg in zip(pubs, (state, cmd, hand, upd), strict=True):
+            if msg is hand:
+                if i % BATCH:
+                    continue
+                hand.header.stamp = stamp
+                hand.seq = hand.state_seq = list(range(i - BATCH + 1, i + 1))
+                hand.stamp, stamps = stamps, []
             pub.publish(msg)
     print(f'sent {n} in {time.perf_counter() - start:.2f} s', flush=True)
     time.sleep(0.5)

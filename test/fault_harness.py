@@ -6,8 +6,9 @@ at a logged wall-clock time (the header stamps are wall-clock ROS time too):
 
 1. ``watchdog``: SIGSTOP lmi_controller for 100 ms (commands stop), SIGCONT;
 2. ``bad_messages``: 0.5 s of malformed messages from this process on every input topic
-   (NaN, wrong sizes, wrong task_dim / dof, non-SPD mass matrix, unknown mode, huge hand
-   wrench) plus finite commands of 1e9 N answering real device states;
+   (NaN, wrong sizes, wrong task_dim / dof, non-SPD mass matrix, unknown mode, hand input
+   batches with a huge wrench, a NaN, a short pose or fewer state seqs than seqs) plus
+   finite commands of 1e9 N answering real device states;
 3. ``ve_stop``: SIGSTOP ve_sim for 1 s, SIGCONT (stale LMI, degrade, re-sync);
 4. ``kill_ve``, ``kill_controller``, ``kill_device``, ``kill_recorder``: SIGKILL the node and
    start it again (the recorder into a second bag).
@@ -74,7 +75,7 @@ class FaultRun:
     # From the bags:
     states: list[list[Any]] = field(default_factory=list)  # per bag, in arrival order
     commands: list[Any] = field(default_factory=list)
-    hands: list[list[Any]] = field(default_factory=list)    # per bag
+    hands: list[list[Any]] = field(default_factory=list)    # HandInputs, per bag
     updates: list[Any] = field(default_factory=list)
     diagnostics: dict[str, dict[str, float]] = field(default_factory=dict)  # max per key
     truncated: list[Path] = field(default_factory=list)
@@ -159,7 +160,7 @@ class Injector:
         from rclpy.executors import SingleThreadedExecutor
 
         from haptic_topology.nodes import common
-        from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+        from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
         self.rclpy = rclpy
         self.context = rclpy.Context()
@@ -171,8 +172,9 @@ class Injector:
         self.cmd_pub = n.create_publisher(DeviceCommand, common.TOPIC_COMMAND, common.QOS_LOOP)
         self.state_pub = n.create_publisher(DeviceState, common.TOPIC_STATE, common.QOS_LOOP)
         self.lmi_pub = n.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
-        self.hand_pub = n.create_publisher(HandInput, common.TOPIC_HAND, common.QOS_HAND)
-        self.types = (DeviceCommand, DeviceState, HandInput, LmiUpdate)
+        self.hand_pub = n.create_publisher(HandInputs, common.TOPIC_HAND_INPUTS,
+                                           common.QOS_HAND_INPUTS)
+        self.types = (DeviceCommand, DeviceState, HandInputs, LmiUpdate)
         self.counts: dict[str, int] = {}
         self._huge = False
         self._n_state = 0
@@ -255,12 +257,17 @@ class Injector:
             'update_not_spd': dict(lmi_base, mass_matrix=(-eye).ravel().tolist()),
             'update_task_dim': dict(lmi_base, task_dim=6),
         }
-        hand_base = dict(seq=INJECTED_SEQ, state_seq=INJECTED_SEQ, task_dim=3, pose=[0.0] * 3,
-                         twist=[0.0] * 3, hand_wrench=[0.0] * 3, coupling_wrench=[0.0] * 3)
+        # Batches of two samples, each malformed in one field of one sample: rejected whole.
+        from builtin_interfaces.msg import Time
+        seqs = [INJECTED_SEQ, INJECTED_SEQ + 1]
+        hand_base = dict(seq=seqs, state_seq=seqs, task_dim=3, stamp=[Time(), Time()],
+                         pose=[0.0] * 6, twist=[0.0] * 6, hand_wrench=[0.0] * 6,
+                         coupling_wrench=[0.0] * 6)
         bad_hands = {
-            'hand_nan': dict(hand_base, hand_wrench=[nan, 0.0, 0.0]),
-            'hand_huge': dict(hand_base, coupling_wrench=[1e7, 0.0, 0.0]),
-            'hand_size': dict(hand_base, pose=[0.0]),
+            'hand_nan': dict(hand_base, hand_wrench=[0.0] * 3 + [nan, 0.0, 0.0]),
+            'hand_huge': dict(hand_base, coupling_wrench=[1e7] + [0.0] * 5),
+            'hand_size': dict(hand_base, pose=[0.0] * 4),
+            'hand_count': dict(hand_base, state_seq=seqs[:1]),
         }
         bad_states = {
             'state_nan': dict(seq=INJECTED_SEQ, task_dim=3, pose=[nan, 0.0, 0.0], twist=[0.0] * 3,
@@ -380,7 +387,12 @@ def _run_faults(out: Path) -> FaultRun:
 
         for name, back in (
                 ('ve_sim', lambda: controller_back('ve_restarts', 1)),
-                ('lmi_controller', controller_back),
+                # A new controller is back once it answers the running loop (loop_seq: the
+                # newest state it answered running), not when it has merely synced to the
+                # VE's keep-alive updates (fresh model, full scale from its start): else,
+                # on a loaded machine, the driver may be killed before the new controller
+                # has seen it and it never counts a second device session.
+                ('lmi_controller', lambda: controller_back('loop_seq', 1)),
                 ('device_driver', lambda: controller_back('device_sessions', 2))):
             t0 = time.time()
             seq_killed = inj.last_running_seq
@@ -428,7 +440,7 @@ def _read_bags(run: FaultRun) -> None:
                 run.states[-1].append(decode(m))
             elif m.topic.endswith('haptic/device/command'):
                 run.commands.append(decode(m))
-            elif m.topic.endswith('haptic/hand'):
+            elif m.topic.endswith('haptic/hand_inputs'):
                 run.hands[-1].append(decode(m))
             elif m.topic.endswith('haptic/lmi/update'):
                 u = decode(m)
@@ -448,6 +460,12 @@ def _read_bags(run: FaultRun) -> None:
 
 
 # -- analysis ---------------------------------------------------------------------------------
+def hand_seqs(batches: list[Any]) -> list[int]:
+    """The seqs of the hand input samples in the recorded ``HandInputs`` batches, in order,
+    without the injector's."""
+    return [int(s) for b in batches for s in b.seq if int(s) < INJECTED_SEQ]
+
+
 def stamp(msg: Any) -> float:
     return float(msg.header.stamp.sec) + 1e-9 * float(msg.header.stamp.nanosec)
 

@@ -3,7 +3,7 @@
 Every field gets a distinct non-default value (arrays get several elements), derived from the
 field's position so the publisher and subscriber processes compute the same sample. Because the
 samples come from the definitions, the tests keep covering every field when a .msg changes.
-Plain data: nested messages are dicts, arrays are lists.
+Plain data: nested messages are dicts, arrays are lists (of dicts for arrays of messages).
 """
 
 from __future__ import annotations
@@ -42,10 +42,13 @@ def sample_values(store: Typestore, type_name: str, salt: int = 1) -> dict[str, 
             out[field] = sample_values(store, desc, s)
         elif node.name in ('SEQUENCE', 'ARRAY'):
             (elem_node, elem_desc), count = desc
-            if elem_node.name != 'BASE':
-                raise NotImplementedError(f'{type_name}.{field}: arrays of messages')
             n = count if node.name == 'ARRAY' else 3 + i % 4
-            out[field] = [_base_value(elem_desc[0], s + k) for k in range(n)]
+            if elem_node.name == 'NAME':
+                out[field] = [sample_values(store, elem_desc, s + k) for k in range(n)]
+            elif elem_node.name == 'BASE':
+                out[field] = [_base_value(elem_desc[0], s + k) for k in range(n)]
+            else:
+                raise NotImplementedError(f'{type_name}.{field}: arrays of {elem_node}')
         else:
             raise NotImplementedError(f'{type_name}.{field}: node type {node}')
     return out
@@ -57,13 +60,25 @@ def rclpy_type(name: str) -> Any:
 
 
 def fill_rclpy(msg: Any, values: dict[str, Any]) -> Any:
-    """Set every field of rclpy message ``msg`` from ``values`` (nested dicts for submessages)."""
+    """Set every field of rclpy message ``msg`` from ``values`` (nested dicts for submessages,
+    lists of dicts for arrays of them)."""
+    types = msg.get_fields_and_field_types()
     for field, value in values.items():
         if isinstance(value, dict):
             fill_rclpy(getattr(msg, field), value)
+        elif isinstance(value, list) and value and isinstance(value[0], dict):
+            elem = _rclpy_class(types[field])
+            setattr(msg, field, [fill_rclpy(elem(), v) for v in value])
         else:
             setattr(msg, field, value)
     return msg
+
+
+def _rclpy_class(field_type: str) -> Any:
+    """The element class of an rclpy field type such as ``sequence<builtin_interfaces/Time>``."""
+    name = field_type.removeprefix('sequence<').split(',')[0].rstrip('>').split('[')[0]
+    pkg, _, cls = name.partition('/')
+    return getattr(importlib.import_module(f'{pkg}.msg'), cls)
 
 
 def rclpy_to_dict(msg: Any) -> dict[str, Any]:
@@ -76,7 +91,8 @@ def rclpy_to_dict(msg: Any) -> dict[str, Any]:
         elif isinstance(value, str | int | float | bool):
             out[field] = value
         else:
-            out[field] = [v.item() if hasattr(v, 'item') else v for v in value]
+            out[field] = [rclpy_to_dict(v) if hasattr(v, 'get_fields_and_field_types')
+                          else v.item() if hasattr(v, 'item') else v for v in value]
     return out
 
 
@@ -87,6 +103,8 @@ def rosbags_msg(store: Typestore, type_name: str, values: dict[str, Any]) -> Any
         value = values[field]
         if node.name == 'NAME':
             kwargs[field] = rosbags_msg(store, desc, value)
+        elif node.name in ('SEQUENCE', 'ARRAY') and desc[0][0].name == 'NAME':
+            kwargs[field] = [rosbags_msg(store, desc[0][1], v) for v in value]
         elif node.name in ('SEQUENCE', 'ARRAY'):
             kwargs[field] = np.asarray(value, dtype=np.dtype(desc[0][1][0]))
         else:
@@ -101,6 +119,8 @@ def rosbags_to_dict(store: Typestore, type_name: str, msg: Any) -> dict[str, Any
         value = getattr(msg, field)
         if node.name == 'NAME':
             out[field] = rosbags_to_dict(store, desc, value)
+        elif node.name in ('SEQUENCE', 'ARRAY') and desc[0][0].name == 'NAME':
+            out[field] = [rosbags_to_dict(store, desc[0][1], v) for v in value]
         elif node.name in ('SEQUENCE', 'ARRAY'):
             out[field] = [v.item() if hasattr(v, 'item') else v for v in value]
         else:

@@ -279,3 +279,77 @@ def test_foreign_and_malformed_messages_in_a_bag_are_skipped_and_counted(
     summary = json.loads((out / 'summary.json').read_text())['runs'][0]
     assert summary['skipped_messages'] == expected
     assert (out / 'hostile.png').is_file()
+
+
+# -- bags of the batched hand inputs ------------------------------------------------------------
+def _batched_copy(src: Path, dst: Path, drop_commands: set[int]) -> int:
+    """Copy the bag ``src`` (1 kHz ``HandInput`` on ``/haptic/hand``) to ``dst`` as the graph
+    records it now: ``HandInputs`` of 10 samples on ``/haptic/hand_inputs`` (written when the
+    10th sample was, the rest at the end), without the commands answering ``drop_commands``.
+    Returns the number of batches."""
+    ts = typestore_with_haptic_msgs()
+    bag = open_bag(src)
+    topics = {t: ty for t, ty in bag.metadata_topics().items() if not t.endswith('/hand')}
+    topics['/haptic/hand_inputs'] = type_name('HandInputs')
+    names = sorted(topics)
+    index = {t: i for i, t in enumerate(names)}
+    w = BagWriter(dst, [TopicSpec(t, topics[t], (make_qos(True, 500),)) for t in names], ts,
+                  sources=message_definitions(),
+                  custom=(bag.metadata or {}).get('custom_data') or {})
+    decode = decoder()
+    batch_type = type_name('HandInputs')
+    pending: list[Any] = []
+    batches = 0
+
+    def flush(log_time: int) -> None:
+        nonlocal batches
+        if not pending:
+            return
+        msg = ts.types[batch_type](
+            header=pending[-1].header, task_dim=3,
+            seq=np.array([h.seq for h in pending], dtype=np.uint64),
+            state_seq=np.array([h.state_seq for h in pending], dtype=np.uint64),
+            stamp=[h.header.stamp for h in pending],
+            **{f: np.concatenate([getattr(h, f) for h in pending])
+               for f in ('pose', 'twist', 'hand_wrench', 'coupling_wrench')})
+        w.write(index['/haptic/hand_inputs'], log_time,
+                bytes(ts.serialize_cdr(msg, batch_type)))
+        pending.clear()
+        batches += 1
+
+    last = 0
+    for m in iter_messages(bag):
+        last = m.log_time
+        if m.topic.endswith('/hand'):
+            pending.append(decode(m))
+            if len(pending) == 10:
+                flush(m.log_time)
+        elif not (m.topic.endswith('/command') and int(decode(m).state_seq) in drop_commands):
+            w.write(index[m.topic], m.log_time, m.data)
+    flush(last)
+    w.close()
+    return batches
+
+
+def test_bags_of_batched_hand_inputs_read_as_the_old_ones(tmp_path: Path) -> None:
+    """The reference bag rewritten with HandInputs batches reads to the same trace (less the
+    commands left out), and the controller check's plan takes the answered states from the
+    batches: a state whose command the recorder lost is still replayed."""
+    from haptic_topology.bag.replay import controller_plan
+
+    old = open_bag(REFERENCE)
+    assert '/haptic/hand' in old.metadata_topics()
+    states = [int(it.seq) for it in controller_plan(old).items if it.seq >= 0]
+    drop = set(states[100:110]) | {states[-1]}
+    new = tmp_path / 'batched'
+    assert _batched_copy(REFERENCE, new, drop) >= len(states) // 10
+    plan = controller_plan(open_bag(new))
+    assert [int(it.seq) for it in plan.items if it.seq >= 0] == states
+    assert not drop & set(plan.commands)
+    a, b = read_graph_bag(REFERENCE, 'fig8', 3).trace, read_graph_bag(new, 'fig8', 3).trace
+    assert len(a) == len(b)
+    kept = ~np.isin(a.seq, list(drop))
+    for col in ('device_pose', 'vt_pose', 'applied'):
+        np.testing.assert_array_equal(a.columns[col], b.columns[col], err_msg=col)
+    np.testing.assert_array_equal(a.columns['command'][kept], b.columns['command'][kept])
+    assert np.all(np.isnan(b.columns['command'][~kept]))

@@ -25,6 +25,7 @@ def test_info_lists_versions_share_and_messages(capsys: pytest.CaptureFixture[st
     out = capsys.readouterr().out
     for needle in ('rclpy', 'pinocchio', 'numpy', f'{sys.prefix}/share/haptic_topology',
                    'haptic_topology_msgs/msg/DeviceState  [built]',
+                   'haptic_topology_msgs/msg/HandInputs  [built]',
                    'haptic_topology_msgs/msg/HandInput  [built]'):
         assert needle in out
 

@@ -48,10 +48,10 @@ def test_applied_wrench_finite_and_within_limits_at_every_cycle(run: fh.FaultRun
 
 
 def test_bags_complete_up_to_every_fault(run: fh.FaultRun) -> None:
-    """What holds on any machine: hand inputs (reliable) contiguous per controller in every
-    bag; every recorded device state in order (best-effort states may be missing when the
-    recorder is starved: that count is a figure, not a test); the killed recorder's bag holds
-    everything up to ~its flush period."""
+    """What holds on any machine: hand input samples (reliable batches) contiguous per
+    controller in every bag; every recorded device state in order (best-effort states may be
+    missing when the recorder is starved: that count is a figure, not a test); the killed
+    recorder's bag holds everything up to ~its flush period."""
     assert len(run.bags) == 2
     sessions = [fh.sessions(b) for b in run.states]
     assert len(sessions[0]) == 2        # the device_driver was restarted within bag 1
@@ -59,11 +59,11 @@ def test_bags_complete_up_to_every_fault(run: fh.FaultRun) -> None:
         for s in per_bag:
             assert np.all(np.diff(s.seqs) >= 1)
     for bag_hands in run.hands:
-        hands = [int(h.seq) for h in bag_hands if int(h.seq) != fh.INJECTED_SEQ]
+        hands = fh.hand_seqs(bag_hands)
         pieces = np.split(np.array(hands), np.flatnonzero(np.diff(hands) <= 0) + 1)
         for p in pieces:
             assert np.all(np.diff(p) == 1), p[np.flatnonzero(np.diff(p) != 1)[:5]]
-    assert len(run.hands[0]) > 0
+    assert len(fh.hand_seqs(run.hands[0])) > 0
     f = fh.figures(run, 'kill_recorder')
     assert 0.0 <= f['tail_s'] < math.inf    # the killed recorder's bag reads back
 

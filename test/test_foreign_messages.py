@@ -1,8 +1,9 @@
 """Foreign and hostile messages on the graph's topics, against real node processes.
 
 * extreme integers (``seq = 2**63 - 1``, ``2**64 - 1``, ``task_dim`` 255, ...) at a running
-  ``lmi_controller`` and ``ve_sim``: rejected and counted per reason in ``/diagnostics``, and
-  both nodes still answer afterwards (one message must never end a node);
+  ``lmi_controller`` and ``ve_sim``: rejected and counted per reason in ``/diagnostics`` (a
+  hand input batch with one bad sample as a whole), and both nodes still answer afterwards
+  (one message must never end a node);
 
 Every wait is on a message, with a deadline; nothing is timed.
 """
@@ -63,7 +64,7 @@ class Probe:
         from haptic_topology_msgs.msg import (
             DeviceCommand,
             DeviceState,
-            HandInput,
+            HandInputs,
             LmiUpdate,
         )
 
@@ -75,7 +76,8 @@ class Probe:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(n)
         self.state_pub = n.create_publisher(DeviceState, common.TOPIC_STATE, common.QOS_LOOP)
-        self.hand_pub = n.create_publisher(HandInput, common.TOPIC_HAND, common.QOS_HAND)
+        self.hand_pub = n.create_publisher(HandInputs, common.TOPIC_HAND_INPUTS,
+                                           common.QOS_HAND_INPUTS)
         self.lmi_pub = n.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
         self.commands: list[Any] = []
         self.updates: list[Any] = []
@@ -118,15 +120,17 @@ def _state(seq: int, status: int = IDLE_WATCHDOG, task_dim: int = 3) -> Any:
                        applied_wrench=v, status=status)
 
 
-def _hand(seq: int, state_seq: int, task_dim: int = 3) -> Any:
+def _hand(seqs: list[int], state_seqs: list[int], task_dim: int = 3) -> Any:
+    """A HandInputs batch of the samples ``seqs`` of states ``state_seqs``."""
     from builtin_interfaces.msg import Time
 
-    from haptic_topology_msgs.msg import HandInput
+    from haptic_topology_msgs.msg import HandInputs
 
-    v = [0.0] * task_dim
-    msg = HandInput(seq=seq, state_seq=state_seq, task_dim=task_dim, pose=v, twist=v,
-                    hand_wrench=v, coupling_wrench=v)
-    msg.header.stamp = Time(sec=0, nanosec=1_000_000 * min(state_seq, 999))
+    v = [0.0] * (task_dim * len(seqs))
+    stamps = [Time(sec=0, nanosec=1_000_000 * min(s, 999)) for s in state_seqs]
+    msg = HandInputs(seq=seqs, state_seq=state_seqs, task_dim=task_dim, stamp=stamps,
+                     pose=v, twist=v, hand_wrench=v, coupling_wrench=v)
+    msg.header.stamp = stamps[-1]
     return msg
 
 
@@ -165,7 +169,9 @@ def test_extreme_integers_are_rejected_and_nodes_keep_answering() -> None:
 
         hostile_states = [_state(BIG), _state(U64), _state(MAX_SEQ + 1), _state(2, 255),
                           _state(2, 0, 255)]
-        hostile_hands = [_hand(U64, 1), _hand(1, BIG), _hand(BIG, BIG), _hand(1, 0)]
+        hostile_hands = [_hand([U64], [1]), _hand([1], [BIG]), _hand([BIG], [BIG]),
+                         _hand([1], [0]), _hand([1, 2, U64], [1, 2, 3]),
+                         _hand([1, 2], [2, 1])]
         hostile_updates = [_update(seq=U64), _update(hand_input_seq=BIG),
                            _update(constraint_count=255), _update(dof=2 ** 32 - 1),
                            _update(task_dim=255)]
@@ -183,18 +189,19 @@ def test_extreme_integers_are_rejected_and_nodes_keep_answering() -> None:
         # Reliable topics: every hostile message arrives and is counted.
         p.wait(lambda: p.value(ve, 'rejected_range') >= len(hostile_hands),
                've_sim counted the hostile hand inputs')
+        # Nothing of a rejected batch was taken (not the good samples of the mixed ones).
+        assert p.value(ve, 'hand_inputs') == 0 and p.value(ve, 'hand_batches') == 0
         p.wait(lambda: p.value(ctl, 'rejected_dof') >= 1 and p.value(ctl, 'rejected_task_dim')
                >= 2 and p.value(ctl, 'rejected_range') >= 4 + 3, 'controller counted updates')
 
         # The largest accepted seq (a plausible but false running state) does not end it.
         p.wait(lambda: answered(MAX_SEQ), 'controller answers state MAX_SEQ',
                lambda: p.state_pub.publish(_state(MAX_SEQ, status=0)))
-        # Both still answer: the controller a new idle state, the VE ten hand inputs with an
-        # update that consumed them.
+        # Both still answer: the controller a new idle state, the VE a batch of ten hand
+        # inputs with an update that consumed them.
         p.wait(lambda: answered(2), 'controller still answers',
                lambda: p.state_pub.publish(_state(2)))
-        for k in range(1, 11):
-            p.hand_pub.publish(_hand(k, k))
+        p.hand_pub.publish(_hand(list(range(1, 11)), list(range(1, 11))))
         p.wait(lambda: any(int(u.hand_input_seq) >= 9 for u in p.updates),
                've_sim still answers hand inputs')
     finally:

@@ -34,11 +34,19 @@ def test_ament_prefix_path_comes_from_the_venv_pth() -> None:
 
 
 def test_built_messages_import() -> None:
-    from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+    from haptic_topology_msgs.msg import (
+        DeviceCommand,
+        DeviceState,
+        HandInput,
+        HandInputs,
+        LmiUpdate,
+        VtPath,
+    )
 
     assert DeviceState.STATUS_FAULT == 8
-    assert {c.__name__ for c in (DeviceCommand, DeviceState, HandInput, LmiUpdate)} == {
-        'DeviceCommand', 'DeviceState', 'HandInput', 'LmiUpdate'}
+    classes = (DeviceCommand, DeviceState, HandInput, HandInputs, LmiUpdate, VtPath)
+    assert {c.__name__ for c in classes} == {
+        'DeviceCommand', 'DeviceState', 'HandInput', 'HandInputs', 'LmiUpdate', 'VtPath'}
 
 
 @pytest.mark.parametrize('script', ['haptic-topology', 'device_driver', 'lmi_controller',

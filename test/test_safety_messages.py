@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
 
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
@@ -21,10 +22,10 @@ from haptic_topology.nodes.convert import (
     lmi_msg,
     seconds_to_stamp,
     state_from_msg,
-    vt_wrench_from_hand,
+    vt_wrenches_from_hand_inputs,
 )
 from haptic_topology.sim.scenario import load_scenario
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate, VtPath
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate, VtPath
 
 SC = load_scenario('fig8')
 TASK = SC.linkage.task
@@ -60,12 +61,20 @@ def _command(**fields: Any) -> DeviceCommand:
     return msg
 
 
-def _hand(**fields: Any) -> HandInput:
-    msg = HandInput(seq=1, state_seq=5, task_dim=3, pose=[0.0] * 3, twist=[0.0] * 3,
-                    hand_wrench=[0.4, 0.0, 0.0], coupling_wrench=[0.0] * 3)
+def _hand(**fields: Any) -> HandInputs:
+    """A batch of two samples (seq 1, 2 of states 5, 6); ``fields`` replace its fields."""
+    msg = HandInputs(task_dim=3, seq=[1, 2], state_seq=[5, 6],
+                     stamp=[Time(sec=0, nanosec=5_000_000), Time(sec=0, nanosec=6_000_000)],
+                     pose=[0.0] * 6, twist=[0.0] * 6, hand_wrench=[0.4, 0.0, 0.0, 0.5, 0.0, 0.0],
+                     coupling_wrench=[0.0] * 6)
+    msg.header.stamp = Time(sec=0, nanosec=6_000_000)
     for k, v in fields.items():
         setattr(msg, k, v)
     return msg
+
+
+def _hand_inputs(m: Any) -> Any:
+    return vt_wrenches_from_hand_inputs(m, TASK, True, 100.0)
 
 
 def test_good_messages_pass() -> None:
@@ -73,7 +82,7 @@ def test_good_messages_pass() -> None:
     np.testing.assert_allclose(snap.mass_matrix, _snapshot().mass_matrix)
     assert state_from_msg(_state(), TASK)[0] == 5
     assert command_from_msg(_command(), TASK)[0] == 5
-    assert vt_wrench_from_hand(_hand(), TASK, True, 100.0)[0] == 5
+    assert _hand_inputs(_hand())[1] == [5, 6]
 
 
 def _spd_broken() -> list[float]:
@@ -105,10 +114,17 @@ CASES: list[tuple[str, Callable[[], Any], str, str]] = [
      'DeviceCommand.wrench has non-finite'),
     ('command', lambda: _command(wrench=[1.0]), 'size', 'DeviceCommand.wrench must have 3'),
     ('command', lambda: _command(mode=7), 'range', 'DeviceCommand.mode must be one of'),
-    ('hand', lambda: _hand(hand_wrench=[1e6, 0.0, 0.0]), 'range', 'hand_wrench must be within'),
-    ('hand', lambda: _hand(coupling_wrench=[0.0, -math.inf, 0.0]), 'non_finite',
-     'HandInput.coupling_wrench'),
-    ('hand', lambda: _hand(pose=[0.0, 0.0]), 'size', 'HandInput.pose must have 3'),
+    ('hand', lambda: _hand(hand_wrench=[0.0] * 4 + [1e6, 0.0]), 'range',
+     'HandInputs.hand_wrench must be within +-100, got [0.0, 1000000.0, 0.0] (sample 1)'),
+    ('hand', lambda: _hand(coupling_wrench=[0.0, -math.inf] + [0.0] * 4), 'non_finite',
+     'HandInputs.coupling_wrench'),
+    ('hand', lambda: _hand(pose=[0.0] * 3), 'size', 'HandInputs.pose must have 6 entries, got 3'),
+    ('hand', lambda: _hand(twist=[0.0] * 9), 'size', 'HandInputs.twist must have 6 entries'),
+    ('hand', lambda: _hand(seq=[]), 'size', 'HandInputs.seq must have at least 1 entry, got 0'),
+    ('hand', lambda: _hand(state_seq=[5]), 'size',
+     'HandInputs.state_seq must have 2 entries (one per seq), got 1'),
+    ('hand', lambda: _hand(stamp=[Time()]), 'size',
+     'HandInputs.stamp must have 2 entries (one per seq), got 1'),
 ]
 
 
@@ -119,7 +135,7 @@ def test_bad_message_rejected_with_reason(kind: str, make: Callable[[], Any], re
         'lmi': lambda m: lmi_from_msg(m, TASK, DOF),
         'state': lambda m: state_from_msg(m, TASK),
         'command': lambda m: command_from_msg(m, TASK),
-        'hand': lambda m: vt_wrench_from_hand(m, TASK, True, 100.0),
+        'hand': _hand_inputs,
     }
     with pytest.raises(MessageError) as err:
         convert[kind](make())
@@ -160,10 +176,22 @@ INT_CASES: list[tuple[str, Callable[[], Any], str, str]] = [
      'DeviceCommand.update_age must be >= 0'),
     ('command', lambda: _command(vt_pose=[0.0] * 6), 'size',
      'DeviceCommand.vt_pose must have 3 entries'),
-    ('hand', lambda: _hand(seq=BIG), 'range', f'HandInput.seq must be in [1, {MAX}]'),
-    ('hand', lambda: _hand(state_seq=BIG), 'range', 'HandInput.state_seq must be in [1, '),
-    ('hand', lambda: _hand(state_seq=0), 'range', 'HandInput.state_seq must be in [1, '),
-    ('hand', lambda: _hand(task_dim=6), 'task_dim', 'HandInput.task_dim must be 3'),
+    ('hand', lambda: _hand(seq=[1, BIG]), 'range',
+     f'HandInputs.seq must be in [1, {MAX}], got [{BIG}]'),
+    ('hand', lambda: _hand(state_seq=[BIG, BIG]), 'range',
+     'HandInputs.state_seq must be in [1, '),
+    ('hand', lambda: _hand(state_seq=[0, 1]), 'range', 'HandInputs.state_seq must be in [1, '),
+    ('hand', lambda: _hand(seq=[2, 2]), 'range',
+     'HandInputs.seq must be strictly ascending, got [2, 2]'),
+    ('hand', lambda: _hand(state_seq=[6, 5]), 'range',
+     'HandInputs.state_seq must be strictly ascending, got [6, 5]'),
+    ('hand', lambda: _hand(task_dim=6), 'task_dim', 'HandInputs.task_dim must be 3'),
+    ('hand', lambda: _hand(stamp=[Time(), _bad_stamp(-1, 0)]), 'range',
+     'HandInputs.stamp[1].sec must be >= 0, got -1'),
+    ('hand', lambda: _hand(stamp=[_bad_stamp(0, 10 ** 9), Time()]), 'range',
+     'HandInputs.stamp[0].nanosec must be < 1000000000, got 1000000000'),
+    ('hand', lambda: _stamped(_hand(), 0, 10 ** 9), 'range',
+     'HandInputs.header.stamp.nanosec must be < 1000000000'),
     ('lmi', lambda: _update(seq=BIG), 'range', f'LmiUpdate.seq must be in [0, {MAX}]'),
     ('lmi', lambda: _update(hand_input_seq=2 ** 64 - 1), 'range',
      'LmiUpdate.hand_input_seq must be in [0, '),
@@ -178,6 +206,11 @@ INT_CASES: list[tuple[str, Callable[[], Any], str, str]] = [
     ('path', lambda: _path(task_dim=6), 'task_dim', 'VtPath.task_dim must be 3'),
     ('path', lambda: _path(hand_pose=[0.0] * 5), 'size', 'VtPath.hand_pose must have 6'),
 ]
+
+
+def _bad_stamp(sec: int, nanosec: int) -> Any:
+    # rclpy's Time refuses such values; a message decoded from a bag (rosbags) carries them.
+    return SimpleNamespace(sec=sec, nanosec=nanosec)
 
 
 def _stamped(msg: Any, sec: int, nanosec: int) -> Any:
@@ -200,7 +233,7 @@ def test_integer_out_of_range_rejected_naming_field_and_range(
         'lmi': lambda m: lmi_from_msg(m, TASK, DOF),
         'state': lambda m: state_from_msg(m, TASK),
         'command': lambda m: command_from_msg(m, TASK),
-        'hand': lambda m: vt_wrench_from_hand(m, TASK, True, 100.0),
+        'hand': _hand_inputs,
         'path': lambda m: check_vt_path(m, TASK.dim),
     }
     with pytest.raises(MessageError) as err:
@@ -214,7 +247,7 @@ def test_largest_sequence_numbers_pass_and_fit_the_core() -> None:
     the previous session's loop seq) still fits its int64 ring."""
     assert state_from_msg(_state(seq=MAX), TASK)[0] == MAX
     assert command_from_msg(_command(state_seq=MAX), TASK)[0] == MAX
-    assert vt_wrench_from_hand(_hand(seq=MAX, state_seq=MAX), TASK, True, 100.0)[0] == MAX
+    assert _hand_inputs(_hand(seq=[MAX - 1, MAX], state_seq=[MAX - 1, MAX]))[1][-1] == MAX
     snap = lmi_from_msg(_update(seq=MAX, hand_input_seq=MAX), TASK, DOF)
     assert snap.seq == MAX and snap.hand_input_seq == MAX
     assert check_vt_path(_path(hand_input_seqs=[MAX], hand_pose=[0.0] * 3), TASK.dim)[1] == [MAX]

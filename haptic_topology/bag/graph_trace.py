@@ -60,10 +60,13 @@ from haptic_topology.msgdefs import type_name
 from haptic_topology.sim.trace import Trace
 
 _WATCHDOG = 4
-#: Topic suffix -> type the graph publishes on it (a bag without any of them is foreign).
+#: Topic suffix -> type the graph publishes on it (a bag without any of them is foreign);
+#: ``haptic/hand`` (one ``HandInput`` per cycle): bags recorded before the hand inputs were
+#: batched on ``haptic/hand_inputs``.
 GRAPH_TYPES = {
     'haptic/device/state': type_name('DeviceState'),
     'haptic/device/command': type_name('DeviceCommand'),
+    'haptic/hand_inputs': type_name('HandInputs'),
     'haptic/hand': type_name('HandInput'),
     'haptic/lmi/update': type_name('LmiUpdate'),
 }

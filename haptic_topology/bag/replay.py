@@ -72,6 +72,8 @@ from haptic_topology.msgdefs import type_name
 STATE = 'haptic/device/state'
 COMMAND = 'haptic/device/command'
 UPDATE = 'haptic/lmi/update'
+HAND_INPUTS = 'haptic/hand_inputs'
+#: One ``HandInput`` per cycle: bags recorded before the hand inputs were batched.
 HAND = 'haptic/hand'
 #: A recorded and a replayed command agree when no wrench component differs by more (N or
 #: N m). The controller is deterministic given the same inputs in the same order, so the
@@ -166,6 +168,8 @@ def controller_plan(bag: Bag) -> ControllerPlan:
             commands.setdefault(int(c.state_seq), c)
         elif m.topic.endswith(UPDATE):
             updates.append((m, decode(m)))
+        elif m.topic.endswith(HAND_INPUTS):
+            answered.update(int(s) for s in decode(m).state_seq)
         elif m.topic.endswith(HAND):
             answered.add(int(decode(m).state_seq))
     answered |= set(commands)

@@ -22,9 +22,6 @@ DEVICE_STATUS = 'device_driver: loop'
 
 #: Consecutive equal recorder reports that count as settled (0.25 s apart).
 SETTLE_REPORTS = 5
-#: Topics whose recorded counts stop growing once the loop has stopped.
-SETTLE_TOPICS = ('haptic/device/state', 'haptic/device/command', 'haptic/hand',
-                 'haptic/ve/path')
 
 
 class WaitTimeout(HapticTopologyError):
@@ -57,6 +54,10 @@ class GraphWatcher:
         self.executor.add_node(self.node)
         self.alive = alive or (lambda: None)
         self.status: dict[str, dict[str, str]] = {}
+        #: Topics whose recorded counts stop growing once the loop has stopped (the hand
+        #: inputs a little after the states: the controller flushes its last partial batch).
+        self.settle_topics = (common.TOPIC_STATE, common.TOPIC_COMMAND,
+                              common.TOPIC_HAND_INPUTS, common.TOPIC_VT_PATH)
         self.node.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                       self._on_diagnostics, common.QOS_DIAGNOSTICS)
         self._get_state = GetState
@@ -93,7 +94,7 @@ class GraphWatcher:
                 # go on after the run.
                 self._recorder_counts.append({k: v for k, v in values.items()
                                               if k.startswith('received ')
-                                              and k.endswith(SETTLE_TOPICS)})
+                                              and k.endswith(self.settle_topics)})
                 del self._recorder_counts[:-SETTLE_REPORTS]
             self.status[st.name] = values
 

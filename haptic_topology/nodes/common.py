@@ -8,11 +8,14 @@ topic                         QoS                               why
 ``haptic/device/state``       best effort, keep last 1          1 kHz; the newest state counts
 ``haptic/device/command``     best effort, keep last 1          1 kHz; a late command is useless,
                                                                 the device applies the newest
-``haptic/hand``               reliable, keep last 5000          the VE integrates every input
-                                                                (zero-order hold between them);
-                                                                a lost one would bend the VT path.
-                                                                Not on the device's critical path,
-                                                                so a retransmission costs nothing
+``haptic/hand_inputs``        reliable, keep last 500           ~100 Hz: one ``HandInputs`` per
+                                                                VE update period with the 1 kHz
+                                                                samples; the VE integrates every
+                                                                one (zero-order hold between
+                                                                them), a lost one would bend the
+                                                                VT path. 500 batches: 5 s. Not on
+                                                                the device's critical path, so a
+                                                                retransmission costs nothing
 ``haptic/lmi/update``,        reliable, keep last 5000          ~100 Hz; each update re-syncs;
 ``haptic/ve/path``                                              the VT hand at every cycle
 ``/clock``                    best effort, keep last 1          lock-step only: simulated time
@@ -23,8 +26,17 @@ topic                         QoS                               why
 
 With ``clock: lockstep`` the state and command topics are reliable (keep last 10000): the
 device steps only when the answer has come, so a lost message would stall the loop, and a bag
-of the run must hold every state. The recorder subscribes best effort with a deep queue (1000)
-to the best-effort topics and reliable to the others, so it never slows a publisher down.
+of the run must hold every state; the hand inputs keep 10000 batches too
+(:func:`hand_inputs_qos`).
+
+Why batches: a reliable 1 kHz stream with 5 s of history over UDP turned every gap (ve_sim
+stopped for 1 s, or restarted) into a repair burst of hundreds of datagrams that overflowed
+the socket buffer again, and the stream never recovered (fault test under load: 40697 inputs
+lost against 11845 received). One message per VE update period carries the same samples in a
+tenth of the messages, at the rate the VE consumes them anyway.
+
+The recorder subscribes best effort with a deep queue (1000) to the best-effort topics and
+reliable to the others, so it never slows a publisher down.
 
 Executors: :class:`rclpy.experimental.EventsExecutor` by default (about 6 us per callback
 against 130 us for the ``SingleThreadedExecutor``), spun with ``spin_once(timeout_sec=0.1)``
@@ -71,7 +83,7 @@ from haptic_topology.settings import Clock, NodeSettings, param_specs
 TOPIC_STATE = 'haptic/device/state'
 TOPIC_COMMAND = 'haptic/device/command'
 TOPIC_LMI = 'haptic/lmi/update'
-TOPIC_HAND = 'haptic/hand'
+TOPIC_HAND_INPUTS = 'haptic/hand_inputs'
 TOPIC_JOINTS = 'haptic/joint_states'
 TOPIC_MARKERS = 'haptic/markers'
 TOPIC_DIAGNOSTICS = '/diagnostics'
@@ -92,9 +104,11 @@ QOS_LOOP = _qos(False, 1)         # state, command
 #: a deep history so that a recorder that falls behind a fast lock-step run loses nothing.
 QOS_LOOP_LOCKSTEP = _qos(True, 10000)
 QOS_CLOCK = _qos(False, 1)
-#: Reliable topics keep 5 s of 1 kHz messages: a reader (the recorder) that falls behind by
-#: less than that loses nothing (a keep-last writer overwrites what is not acknowledged).
-QOS_HAND = _qos(True, 5000)
+#: Reliable topics keep 5 s of messages: a reader (the recorder) that falls behind by less
+#: than that loses nothing (a keep-last writer overwrites what is not acknowledged).
+QOS_HAND_INPUTS = _qos(True, 500)   # 100 Hz batches
+#: Lock-step: as deep as the loop topics (a recorder behind a fast lock-step run).
+QOS_HAND_INPUTS_LOCKSTEP = _qos(True, 10000)
 QOS_LMI = _qos(True, 5000)
 QOS_VIZ = _qos(True, 5)
 QOS_DIAGNOSTICS = _qos(True, 10)
@@ -103,14 +117,31 @@ QOS_RECORD_RELIABLE = _qos(True, 10000)
 
 #: Topic -> QoS of its publisher (the recorder mirrors the reliability).
 TOPIC_QOS: dict[str, QoSProfile] = {
-    TOPIC_STATE: QOS_LOOP, TOPIC_COMMAND: QOS_LOOP, TOPIC_HAND: QOS_HAND, TOPIC_LMI: QOS_LMI,
-    TOPIC_VT_PATH: QOS_LMI,
+    TOPIC_STATE: QOS_LOOP, TOPIC_COMMAND: QOS_LOOP, TOPIC_HAND_INPUTS: QOS_HAND_INPUTS,
+    TOPIC_LMI: QOS_LMI, TOPIC_VT_PATH: QOS_LMI,
     TOPIC_JOINTS: QOS_VIZ, TOPIC_MARKERS: QOS_VIZ, TOPIC_DIAGNOSTICS: QOS_DIAGNOSTICS,
 }
+
 
 def loop_qos(clock: Clock) -> QoSProfile:
     """QoS of the 1 kHz state/command topics under ``clock`` (see the table above)."""
     return QOS_LOOP_LOCKSTEP if clock is Clock.LOCKSTEP else QOS_LOOP
+
+
+def hand_inputs_qos(clock: Clock) -> QoSProfile:
+    """QoS of ``haptic/hand_inputs`` under ``clock``: reliable either way (the VE must
+    integrate every input); keep last 500 batches (5 s at 100 Hz), 10000 in lock-step."""
+    return QOS_HAND_INPUTS_LOCKSTEP if clock is Clock.LOCKSTEP else QOS_HAND_INPUTS
+
+
+def publisher_qos(topic: str, clock: Clock) -> QoSProfile:
+    """QoS the graph's publisher of ``topic`` (a key of :data:`TOPIC_QOS`) offers under
+    ``clock`` (what the recorder mirrors and writes into the bag)."""
+    if topic in (TOPIC_STATE, TOPIC_COMMAND):
+        return loop_qos(clock)
+    if topic == TOPIC_HAND_INPUTS:
+        return hand_inputs_qos(clock)
+    return TOPIC_QOS[topic]
 
 
 # -- parameters --------------------------------------------------------------------------------

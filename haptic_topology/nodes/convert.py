@@ -22,6 +22,7 @@ import math
 import numpy as np
 from builtin_interfaces.msg import Time
 
+from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
@@ -35,13 +36,13 @@ from haptic_topology.msgcheck import (
     RejectCounter,
     array,
     check_command,
-    check_hand,
+    check_hand_inputs,
     check_range,
     check_state,
     check_update_header,
     finite_scalar,
 )
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
 
 def stamp_seconds(stamp: Time) -> float:
@@ -113,30 +114,43 @@ def command_from_msg(msg: DeviceCommand, task: TaskSpace) -> tuple[int, int, np.
     return check_command(msg, task.dim)
 
 
-# -- HandInput --------------------------------------------------------------------------------
-def hand_msg(msg: HandInput, seq: int, state_seq: int, stamp: Time, pose: np.ndarray,
-             twist: np.ndarray, hand_wrench: np.ndarray, coupling: np.ndarray) -> HandInput:
-    msg.header.stamp = stamp
-    msg.seq = seq
-    msg.state_seq = state_seq
-    msg.task_dim = int(pose.size)
-    msg.pose = pose.tolist()
-    msg.twist = twist.tolist()
-    msg.hand_wrench = hand_wrench.tolist()
-    msg.coupling_wrench = coupling.tolist()
+# -- HandInputs -------------------------------------------------------------------------------
+def stamp_ns(stamp: Time) -> int:
+    """Integer nanoseconds of a stamp (exact; :func:`ns_to_stamp` turns them back)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def hand_inputs_msg(msg: HandInputs, batch: HandBatch) -> HandInputs:
+    """``msg`` filled with ``batch`` (header stamp: the newest sample's state stamp)."""
+    stamps = [ns_to_stamp(ns) for ns in batch.stamp_ns.tolist()]
+    msg.header.stamp = stamps[-1]
+    msg.task_dim = int(batch.pose.shape[1])
+    msg.seq = batch.seq.tolist()
+    msg.state_seq = batch.state_seq.tolist()
+    msg.stamp = stamps
+    msg.pose = batch.pose.ravel().tolist()
+    msg.twist = batch.twist.ravel().tolist()
+    msg.hand_wrench = batch.hand_wrench.ravel().tolist()
+    msg.coupling_wrench = batch.coupling.ravel().tolist()
     return msg
 
 
-def vt_wrench_from_hand(msg: HandInput, task: TaskSpace, vt_coupling: bool,
-                        max_wrench: float = math.inf) -> tuple[int, float, np.ndarray]:
-    """``(state_seq, stamp_s, F_vt)``: ``F_h - F_pc`` with VT coupling, else ``F_h``.
+def vt_wrenches_from_hand_inputs(msg: HandInputs, task: TaskSpace, vt_coupling: bool,
+                                 max_wrench: float = math.inf
+                                 ) -> tuple[list[int], list[int], list[float], np.ndarray,
+                                            np.ndarray, np.ndarray]:
+    """``(seqs, state_seqs, stamps_s, pose, twist, F_vt)`` of a batch, per sample (rows):
+    ``F_vt = F_h - F_pc`` with VT coupling, else ``F_h``.
 
-    Every entry of the hand and coupling wrenches must be finite and within ``max_wrench``
-    (N, N m): a hand input far beyond any device's force would only blow the VT up.
+    The whole batch is checked first (:func:`haptic_topology.msgcheck.check_hand_inputs`:
+    sizes n and n x task_dim, integer ranges, ascending seqs, finite values, every wrench
+    entry within ``max_wrench`` (N, N m): a hand input far beyond any device's force would
+    only blow the VT up); one bad field rejects it all.
     """
-    _, state_seq, stamp, _, _, f_h, f_pc = check_hand(msg, task.dim, max_wrench)
+    seqs, state_seqs, stamps, pose, twist, f_h, f_pc = check_hand_inputs(msg, task.dim,
+                                                                        max_wrench)
     f_vt = f_h - f_pc if vt_coupling else f_h
-    return state_seq, stamp, f_vt
+    return seqs, state_seqs, stamps, pose, twist, f_vt
 
 
 # -- LmiUpdate --------------------------------------------------------------------------------
@@ -207,6 +221,6 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
 
 
 __all__ = ['MAX_SEQ', 'REASONS', 'MessageError', 'RejectCounter', 'command_from_msg',
-           'command_msg', 'hand_msg', 'lmi_from_msg', 'lmi_msg', 'ns_to_stamp',
-           'seconds_to_stamp', 'stamp_seconds', 'state_from_msg', 'state_msg',
-           'vt_wrench_from_hand']
+           'command_msg', 'hand_inputs_msg', 'lmi_from_msg', 'lmi_msg', 'ns_to_stamp',
+           'seconds_to_stamp', 'stamp_ns', 'stamp_seconds', 'state_from_msg', 'state_msg',
+           'vt_wrenches_from_hand_inputs']

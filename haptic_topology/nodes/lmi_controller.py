@@ -3,7 +3,12 @@
 ROS I/O only; the loop policy is :class:`~haptic_topology.control.loop.ControllerLoop` (LMI,
 law, sync guard, device/VE session tracking, re-sync force-jump check):
 
-* ``DeviceState`` -> ``on_state`` -> ``DeviceCommand`` (and the ``HandInput`` for the VE);
+* ``DeviceState`` -> ``on_state`` -> ``DeviceCommand``, and the hand input for the VE into a
+  :class:`~haptic_topology.control.batch.HandBatcher`: one ``HandInputs`` message per VE
+  update period (the scenario's ``lmi.update_period``), published when the input's seq
+  completes the period, the schedule of the VE's updates; a steady-clock timer (every update
+  period, at least 10 ms) flushes samples whose oldest is two update periods old (the end of
+  a run, a stalled device), which changes no result: the VE takes the samples one by one;
 * ``LmiUpdate`` -> ``on_update``;
 * lock-step (``clock: lockstep``): a state that comes before the LMI update the offline
   simulation applies at that step is held until the update has come (at most
@@ -11,7 +16,8 @@ law, sync guard, device/VE session tracking, re-sync force-jump check):
 
 Live parameters: ``mode``, ``k_tc``, ``b_tc`` (checked in an on-set-parameters callback); the
 others are read-only. ``DeviceCommand.update_age`` and ``/diagnostics`` report the age of the
-newest update (wall seconds since it arrived).
+newest update (wall seconds since it arrived); ``hand_batches_sent`` counts the
+``HandInputs`` messages (``hand_batches_partial`` of them flushed by the timer).
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import UInt64
 
+from haptic_topology.control.batch import HandBatch, HandBatcher
 from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
 from haptic_topology.control.safety import ModelHealth
@@ -35,15 +42,16 @@ from haptic_topology.nodes.convert import (
     MessageError,
     RejectCounter,
     command_msg,
-    hand_msg,
+    hand_inputs_msg,
     lmi_from_msg,
+    stamp_ns,
     state_from_msg,
 )
 from haptic_topology.resolve import resolve_lmi_controller
 from haptic_topology.settings import Clock, LmiControllerSettings, check_live, scenario_defaults
 from haptic_topology.sim.lockstep import build_controller_loop
 from haptic_topology.sim.scenario import Scenario, load_scenario
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
 
 class LmiController(Node):
@@ -65,7 +73,8 @@ class LmiController(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         qos = common.loop_qos(c.clock)
         self.cmd_pub = self.create_publisher(DeviceCommand, common.TOPIC_COMMAND, qos)
-        self.hand_pub = self.create_publisher(HandInput, common.TOPIC_HAND, common.QOS_HAND)
+        self.hand_pub = self.create_publisher(HandInputs, common.TOPIC_HAND_INPUTS,
+                                              common.hand_inputs_qos(c.clock))
         self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                               common.QOS_DIAGNOSTICS)
         state_sub = self.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state,
@@ -73,10 +82,13 @@ class LmiController(Node):
         lmi_sub = self.create_subscription(LmiUpdate, common.TOPIC_LMI, self._on_update,
                                            common.QOS_LMI)
         self._endpoints = {common.TOPIC_STATE: state_sub, common.TOPIC_LMI: lmi_sub,
-                           common.TOPIC_COMMAND: self.cmd_pub, common.TOPIC_HAND: self.hand_pub}
+                           common.TOPIC_COMMAND: self.cmd_pub,
+                           common.TOPIC_HAND_INPUTS: self.hand_pub}
         self.ack_pub = (self.create_publisher(UInt64, common.TOPIC_LMI_ACK, common.QOS_LMI)
                         if s.ack_updates else None)
-        self._cmd, self._hand = DeviceCommand(), HandInput()
+        self._cmd, self._hand = DeviceCommand(), HandInputs()
+        batch_period = sc.dt * sc.update_period     # s: one VE update period
+        self.batcher = HandBatcher(sc.update_period, self.task.dim, 2.0 * batch_period)
         self._held: tuple[StateSample, Any, float] | None = None   # lock-step wait
         self._update_wall: float | None = None
         self._loop_wall = 0.0
@@ -85,6 +97,7 @@ class LmiController(Node):
         self.stats = common.LoopStats(sc.dt)
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
+        self.create_timer(max(batch_period, 0.01), self._flush_hand, clock=steady)
         if self.lockstep:
             self.create_timer(0.01, self._check_wait, clock=steady)
 
@@ -128,10 +141,19 @@ class LmiController(Node):
                else math.inf)
         self.cmd_pub.publish(command_msg(self._cmd, ans.state_seq,
                                          self.get_clock().now().to_msg(), ans.out, age))
-        h = ans.hand
-        if h is not None:
-            self.hand_pub.publish(hand_msg(self._hand, h.seq, h.state_seq, stamp, h.pose,
-                                           h.twist, h.hand_wrench, h.coupling))
+        if ans.hand is not None:
+            batch = self.batcher.add(ans.hand, stamp_ns(stamp), common.monotonic())
+            if batch is not None:
+                self._publish_hand(batch)
+
+    def _publish_hand(self, batch: HandBatch) -> None:
+        self.hand_pub.publish(hand_inputs_msg(self._hand, batch))
+
+    def _flush_hand(self) -> None:
+        """Steady timer: the pending hand samples once the oldest is two periods old."""
+        batch = self.batcher.due(common.monotonic())
+        if batch is not None:
+            self._publish_hand(batch)
 
     def _on_update(self, msg: LmiUpdate) -> None:
         try:
@@ -187,6 +209,8 @@ class LmiController(Node):
                else math.inf)
         values.update({'update_age_ms': f'{1e3 * age:.2f}', 'clock': self.cfg.clock.value,
                        'lockstep_timeouts': str(self.lockstep_timeouts),
+                       'hand_batches_sent': str(self.batcher.batches),
+                       'hand_batches_partial': str(self.batcher.partial),
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
                        **common.matched(self._endpoints)})
         level, message = _HEALTH_MESSAGES[loop.guard.health(now)]

@@ -36,13 +36,13 @@ from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
 from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
 from haptic_topology.nodes import common, node_params
 from haptic_topology.settings import RecorderSettings
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInput, LmiUpdate, VtPath
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate, VtPath
 
 #: Topic -> (rclpy type, type name in the bag).
 RECORDED: dict[str, tuple[Any, str]] = {
     common.TOPIC_STATE: (DeviceState, 'haptic_topology_msgs/msg/DeviceState'),
     common.TOPIC_COMMAND: (DeviceCommand, 'haptic_topology_msgs/msg/DeviceCommand'),
-    common.TOPIC_HAND: (HandInput, 'haptic_topology_msgs/msg/HandInput'),
+    common.TOPIC_HAND_INPUTS: (HandInputs, 'haptic_topology_msgs/msg/HandInputs'),
     common.TOPIC_LMI: (LmiUpdate, 'haptic_topology_msgs/msg/LmiUpdate'),
     common.TOPIC_VT_PATH: (VtPath, 'haptic_topology_msgs/msg/VtPath'),
     common.TOPIC_JOINTS: (JointState, 'sensor_msgs/msg/JointState'),
@@ -51,7 +51,8 @@ RECORDED: dict[str, tuple[Any, str]] = {
 }
 
 #: Topics whose publishers must be matched before the loop starts (see _check_connected).
-CONNECT_TOPICS = (common.TOPIC_COMMAND, common.TOPIC_HAND, common.TOPIC_LMI, common.TOPIC_VT_PATH)
+CONNECT_TOPICS = (common.TOPIC_COMMAND, common.TOPIC_HAND_INPUTS, common.TOPIC_LMI,
+                  common.TOPIC_VT_PATH)
 LOOP_TOPICS = (common.TOPIC_STATE, common.TOPIC_COMMAND)
 _STOP = None
 
@@ -90,8 +91,7 @@ class Recorder(Node):
         self._thread.start()
         self.subscriptions_by_topic: dict[str, Any] = {}
         for i, topic in enumerate(topics):
-            pub_qos = (common.loop_qos(config.clock) if topic in LOOP_TOPICS
-                       else common.TOPIC_QOS[topic])
+            pub_qos = common.publisher_qos(topic, config.clock)
             qos = (common.QOS_RECORD_RELIABLE
                    if pub_qos.reliability == ReliabilityPolicy.RELIABLE
                    else common.QOS_RECORD_BEST_EFFORT)

@@ -1,17 +1,23 @@
 """``ve_sim``: the full virtual-environment simulation (eq. 2) driven by the haptic loop.
 
-A thin adapter over :class:`~haptic_topology.sim.ve.VirtualEnvironment`:
+A thin adapter over :class:`~haptic_topology.sim.ve.VirtualEnvironment` and its input policy
+:class:`~haptic_topology.sim.ve.HandFeed`:
 
-* each ``HandInput`` (state_seq k, stamped with device state k's time) -> ``push_input``
-  with ``F_vt = F_h - F_pc`` (``vt_coupling``) or ``F_h``: the held input is integrated up
-  to this stamp; every ``update_period`` inputs an ``LmiUpdate`` is published (10 inputs of
-  a 1 kHz loop: 100 Hz), carrying ``hand_input_seq`` so the controller replays what is newer;
+* each ``HandInputs`` batch (~100 Hz, one per update period of the controller) is checked
+  as a whole where it enters (sizes n and n x task_dim, integer ranges, ascending seqs,
+  finite, ``|wrench| <= max_hand_wrench``); a malformed batch is rejected entirely, counted
+  per reason and logged with the field and the expected value;
+* then each of its samples (state_seq k, stamped with device state k's time) goes through
+  ``HandFeed.take`` on its own, as single inputs did: ``push_input`` with
+  ``F_vt = F_h - F_pc`` (``vt_coupling``) or ``F_h``, the held input integrated up to this
+  stamp; after every ``update_period``-th input an ``LmiUpdate`` is published (10 inputs of
+  a 1 kHz loop: 100 Hz), also in the middle of a batch, carrying ``hand_input_seq`` so the
+  controller replays what is newer; a seq going backwards is a restarted controller (the VE
+  forgets the held input, the numbering starts afresh); a jump counts lost inputs;
 * while no hand input comes (before the first one, or while the controller is stopped or
   restarting) the current state is published as an ``LmiUpdate`` at ``idle_update_rate_hz``
-  so that a (new) controller can sync and close the loop;
-* hand inputs are checked where they enter (sizes, finite, ``|wrench| <= max_hand_wrench``)
-  and counted per rejection reason; a ``HandInput.seq`` going backwards is a restarted
-  controller: the VE forgets the held input (its numbering starts afresh);
+  so that a (new) controller can sync and close the loop. "No input" means none for the
+  idle period and for three update periods (batches come once per update period);
 * a restarted ``ve_sim`` (its first hand input is not the controller's first) places the
   VT's grasp point at the device pose (damped least squares from ``q0``, zero velocity
   relative to the device): nothing in the graph holds the old VE's joint state, and starting
@@ -24,6 +30,9 @@ A thin adapter over :class:`~haptic_topology.sim.ve.VirtualEnvironment`:
   clock, stamps are simulated time;
 * ``sensor_msgs/JointState`` and a ``visualization_msgs/MarkerArray`` (linkage, VT grasp
   point, device point, directions of topological constraint) at ``viz_rate_hz``.
+
+Diagnostics: ``hand_inputs`` (samples taken), ``hand_batches`` (messages),
+``lost_hand_inputs``, ``batch_*`` (arrival periods of the batches), ``update_*``.
 """
 
 from __future__ import annotations
@@ -46,17 +55,13 @@ from haptic_topology.nodes.convert import (
     MessageError,
     RejectCounter,
     lmi_msg,
-    vt_wrench_from_hand,
+    vt_wrenches_from_hand_inputs,
 )
 from haptic_topology.resolve import resolve_ve_sim
 from haptic_topology.settings import Clock, VeSimSettings
 from haptic_topology.sim.scenario import Scenario, load_scenario
-from haptic_topology.sim.ve import VirtualEnvironment
-from haptic_topology_msgs.msg import HandInput, LmiUpdate, VtPath
-
-
-def _array3(values: Sequence[float]) -> np.ndarray:
-    return np.asarray(values, dtype=float)
+from haptic_topology.sim.ve import HandFeed, VirtualEnvironment
+from haptic_topology_msgs.msg import HandInputs, LmiUpdate, VtPath
 
 
 class VeSim(Node):
@@ -83,24 +88,23 @@ class VeSim(Node):
                                                 common.QOS_VIZ)
         self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                               common.QOS_DIAGNOSTICS)
-        hand_sub = self.create_subscription(HandInput, common.TOPIC_HAND, self._on_hand,
-                                            common.QOS_HAND)
-        self._endpoints = {common.TOPIC_HAND: hand_sub, common.TOPIC_LMI: self.lmi_pub}
+        hand_sub = self.create_subscription(HandInputs, common.TOPIC_HAND_INPUTS,
+                                            self._on_hand, common.hand_inputs_qos(c.clock))
+        self._endpoints = {common.TOPIC_HAND_INPUTS: hand_sub, common.TOPIC_LMI: self.lmi_pub}
         self._lmi = LmiUpdate()
         self._path = VtPath()
         self._update_seq = 0
-        self._inputs = 0
-        self._last_hand_seq = 0
-        self.lost_inputs = 0
-        self.controller_restarts = 0
+        self.feed = HandFeed(self.ve, self.update_period)
+        self.batches = 0
         self.rejected = RejectCounter()
         self._last_publish = -math.inf
         self._last_input = -math.inf
         self._idle_period = c.idle_period
-        self._t0: float | None = None
-        self._device_pose: np.ndarray | None = None
+        # Inputs come in batches, one per update period: silence shorter than a few of
+        # those is not "no input".
+        self._silent_after = max(c.idle_period, 3.0 * sc.dt * self.update_period)
         self._last_snap: LmiSnapshot = self.ve.snapshot(seq=0)
-        self.stats = common.LoopStats(sc.dt)
+        self.stats = common.LoopStats(sc.dt * self.update_period)
         self.update_stats = common.LoopStats(sc.dt * self.update_period)
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(min(self._idle_period, sc.dt * self.update_period),
@@ -122,48 +126,35 @@ class VeSim(Node):
         period. While inputs flow, updates go out every ``update_period`` inputs only, as in
         the offline simulation."""
         now = common.monotonic()
-        if now - self._last_input >= self._idle_period:
+        silent = now - self._last_input >= self._silent_after
+        if silent:
             self._publish_path()    # the inputs since the last update, once they stop
-        if self.lockstep and self._t0 is not None:
+        if self.lockstep and self.feed.t0 is not None:
             return
-        if (now - self._last_input >= self._idle_period
-                and now - self._last_publish >= self._idle_period):
+        if silent and now - self._last_publish >= self._idle_period:
             self._publish_update()
 
-    def _on_hand(self, msg: HandInput) -> None:
+    def _on_hand(self, msg: HandInputs) -> None:
         try:
-            seq, stamp, f_vt = vt_wrench_from_hand(msg, self.task, self.scenario.vt_coupling,
-                                                   self.max_hand_wrench)
+            seqs, state_seqs, stamps, pose, twist, f_vt = vt_wrenches_from_hand_inputs(
+                msg, self.task, self.scenario.vt_coupling, self.max_hand_wrench)
         except MessageError as exc:
             self.rejected.add(exc)
-            self.get_logger().warn(f'hand input rejected: {exc}', throttle_duration_sec=1.0)
+            self.get_logger().warn(f'hand input batch rejected: {exc}',
+                                   throttle_duration_sec=1.0)
             return
-        if self._last_hand_seq and msg.seq <= self._last_hand_seq:
-            # The controller's input counter went backwards: a restarted controller.
-            self.controller_restarts += 1
-            self.get_logger().warn(f'hand input seq {msg.seq} after {self._last_hand_seq}: '
-                                   'a new controller; the held input is dropped')
-            self.ve.reset_inputs()
-            self._last_hand_seq = 0
-        if self._last_hand_seq and msg.seq > self._last_hand_seq + 1:
-            self.lost_inputs += int(msg.seq - self._last_hand_seq - 1)
-        self._last_hand_seq = int(msg.seq)
-        if self._t0 is None:
-            self._t0 = stamp
-            if msg.seq > 1:
-                # Our first input is not the controller's first: this VE joins a running
-                # loop (it was restarted). Start the VT where the hand is, not at q0.
-                err = self.ve.place_hand(_array3(msg.pose), _array3(msg.twist))
-                self.get_logger().warn(f'joined a running loop (hand input {msg.seq}): VT '
-                                       f'placed at the device pose (residual {err:.2e} m)')
+        self.batches += 1
         self._last_input = common.monotonic()
         self.stats.tick(self._last_input)
-        self._device_pose = np.asarray(msg.pose, dtype=float)
-        self.ve.push_input(seq, stamp - self._t0, f_vt)
-        self._inputs += 1
-        if self._inputs % self.update_period == 0:
-            self._publish_update()
-            self._publish_path()
+        feed = self.feed
+        for i, seq in enumerate(seqs):
+            update_due = feed.take(seq, state_seqs[i], stamps[i], pose[i], twist[i], f_vt[i])
+            for text in feed.notices:
+                self.get_logger().warn(text)
+            feed.notices.clear()
+            if update_due:
+                self._publish_update()
+                self._publish_path()
 
     def _publish_path(self) -> None:
         path = self.ve.take_path()
@@ -182,17 +173,20 @@ class VeSim(Node):
         q = self.ve.q
         self.joint_pub.publish(viz.joint_state(self.scenario.linkage, q, self.ve.dq, stamp))
         self.marker_pub.publish(viz.linkage_markers(
-            self._viz_dyn, q, self._device_pose, self._last_snap, self.cfg.frame_id, stamp))
+            self._viz_dyn, q, self.feed.device_pose, self._last_snap, self.cfg.frame_id,
+            stamp))
 
     def _publish_diagnostics(self) -> None:
-        values = self.stats.values('input_')
+        feed = self.feed
+        values = self.stats.values('batch_')
         values.update(self.update_stats.values('update_'))
         values.update({
-            'hand_inputs': str(self._inputs),
-            'lost_hand_inputs': str(self.lost_inputs),
+            'hand_inputs': str(feed.inputs),
+            'hand_batches': str(self.batches),
+            'lost_hand_inputs': str(feed.lost),
             'hand_input_seq': str(self.ve.hand_input_seq),
             'lmi_updates': str(self._update_seq),
-            'controller_restarts': str(self.controller_restarts),
+            'controller_restarts': str(feed.controller_restarts),
             'rejected_messages': str(self.rejected.total),
             **self.rejected.values(),
             'kinetic_energy_j': f'{self.ve.kinetic_energy():.6g}',

@@ -165,3 +165,61 @@ class VirtualEnvironment:
     def kinetic_energy(self) -> float:
         """``0.5 dq^T D(q) dq`` (J)."""
         return 0.5 * float(self.dq @ self.dyn.mass_matrix(self.q) @ self.dq)
+
+
+class HandFeed:
+    """``ve_sim``'s policy for the hand inputs of the haptic loop, one input at a time.
+
+    The inputs come in ``HandInputs`` batches, but each goes through :meth:`take` on its own,
+    so how the controller cut them into messages changes nothing the VE computes:
+
+    * ``seq`` (the controller's input counter) not above the previous one: a restarted
+      controller; the held input is dropped (:meth:`VirtualEnvironment.reset_inputs`);
+    * ``seq`` jumping: the inputs in between were lost (counted in :attr:`lost`);
+    * the first input, if not the controller's first (``seq > 1``): this VE joins a running
+      loop (it was restarted): the VT is placed where the hand is
+      (:meth:`VirtualEnvironment.place_hand`), not left at ``q0``;
+    * :meth:`VirtualEnvironment.push_input` with the stamp relative to the first input's;
+    * every ``update_period``-th input the caller publishes an LMI update (``take`` returns
+      True), also when that input is in the middle of a batch.
+
+    Events for the node's log go to :attr:`notices` (drained by the node).
+    """
+
+    def __init__(self, ve: VirtualEnvironment, update_period: int) -> None:
+        if update_period < 1:
+            raise ValueError(f'update_period must be >= 1, got {update_period}')
+        self.ve = ve
+        self.update_period = update_period
+        self.inputs = 0
+        self.last_seq = 0
+        self.lost = 0
+        self.controller_restarts = 0
+        self.t0: float | None = None
+        #: Device pose of the newest input (task vector), None before the first.
+        self.device_pose: np.ndarray | None = None
+        self.notices: list[str] = []
+
+    def take(self, seq: int, state_seq: int, stamp: float, pose: np.ndarray,
+             twist: np.ndarray, f_vt: np.ndarray) -> bool:
+        """Take the input ``seq`` of loop state ``state_seq`` stamped ``stamp`` (s): device
+        ``pose``/``twist``, wrench ``f_vt`` on the VT; True when an LMI update is due now."""
+        if self.last_seq and seq <= self.last_seq:
+            self.controller_restarts += 1
+            self.notices.append(f'hand input seq {seq} after {self.last_seq}: a new '
+                                'controller; the held input is dropped')
+            self.ve.reset_inputs()
+            self.last_seq = 0
+        if self.last_seq and seq > self.last_seq + 1:
+            self.lost += seq - self.last_seq - 1
+        self.last_seq = seq
+        if self.t0 is None:
+            self.t0 = stamp
+            if seq > 1:
+                err = self.ve.place_hand(pose, twist)
+                self.notices.append(f'joined a running loop (hand input {seq}): VT placed at '
+                                    f'the device pose (residual {err:.2e} m)')
+        self.device_pose = pose
+        self.ve.push_input(state_seq, stamp - self.t0, f_vt)
+        self.inputs += 1
+        return self.inputs % self.update_period == 0
