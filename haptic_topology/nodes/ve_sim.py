@@ -190,6 +190,7 @@ class VeSim(Node):
             'rejected_messages': str(self.rejected.total),
             **self.rejected.values(),
             'kinetic_energy_j': f'{self.ve.kinetic_energy():.6g}',
+            'held_capped': str(self.ve.held_capped),
             **common.matched(self._endpoints),
         })
         ok = all(math.isfinite(v) for v in self.ve.q)
