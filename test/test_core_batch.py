@@ -15,6 +15,7 @@ from haptic_topology.control.batch import HandBatch, HandBatcher
 from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.loop import HandSample
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
+from haptic_topology.device.hosted import state_sample
 from haptic_topology.device.loop import DeviceLoop, ns_to_seconds, period_ns
 from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
@@ -24,12 +25,7 @@ from haptic_topology.nodes.convert import (
     stamp_seconds,
     vt_wrenches_from_hand_inputs,
 )
-from haptic_topology.sim.lockstep import (
-    build_controller_loop,
-    initial_device_pose,
-    simulate,
-    state_sample,
-)
+from haptic_topology.sim.lockstep import build_controller_loop, initial_device_pose, simulate
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed, VirtualEnvironment
 from haptic_topology_msgs.msg import HandInputs
