@@ -1,8 +1,9 @@
 """Test helper (not collected): publish N messages of each haptic_topology_msgs type at 1 kHz.
 
-    python bag_publisher.py N TIMEOUT_S [NAMESPACE]
+    python bag_publisher.py N TIMEOUT_S [NAMESPACE [CLOCK]]
 
-Publishes on the graph's topics with the graph's QoS (see haptic_topology.nodes.common):
+Publishes on the graph's topics with the graph's QoS under CLOCK (``wall`` default, or
+``lockstep``: the loop topics reliable; see haptic_topology.nodes.common.publisher_qos):
 DeviceState.seq, DeviceCommand.state_seq and LmiUpdate.seq run 1..N, one of each per
 millisecond; HandInputs.seq runs 1..N too, in batches of BATCH samples (one message every
 BATCH ms, as lmi_controller sends them; N must be a multiple of BATCH). Starts once every
@@ -18,6 +19,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 
 from haptic_topology.nodes import common
+from haptic_topology.settings import Clock
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
 #: Samples per HandInputs message.
@@ -27,11 +29,13 @@ BATCH = 10
 def main() -> int:
     n, timeout = int(sys.argv[1]), float(sys.argv[2])
     namespace = sys.argv[3] if len(sys.argv) > 3 else ''
+    clock = Clock.parse(sys.argv[4] if len(sys.argv) > 4 else 'wall')
     rclpy.init()
     node = rclpy.create_node('bag_test_publisher', namespace=namespace)
     topics = ((DeviceState, common.TOPIC_STATE), (DeviceCommand, common.TOPIC_COMMAND),
               (HandInputs, common.TOPIC_HAND_INPUTS), (LmiUpdate, common.TOPIC_LMI))
-    pubs = [node.create_publisher(t, name, common.TOPIC_QOS[name]) for t, name in topics]
+    pubs = [node.create_publisher(t, name, common.publisher_qos(name, clock))
+            for t, name in topics]
     deadline = time.monotonic() + timeout
     while any(p.get_subscription_count() == 0 for p in pubs):
         if time.monotonic() > deadline:
