@@ -14,10 +14,8 @@ from haptic_topology.control import batch as batch_module
 from haptic_topology.control.batch import HandBatch, HandBatcher
 from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.loop import HandSample
-from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
 from haptic_topology.device.hosted import state_sample
-from haptic_topology.device.loop import DeviceLoop, ns_to_seconds, period_ns
-from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
+from haptic_topology.device.loop import ns_to_seconds, period_ns
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.nodes.convert import (
     hand_inputs_msg,
@@ -25,7 +23,7 @@ from haptic_topology.nodes.convert import (
     stamp_seconds,
     vt_wrenches_from_hand_inputs,
 )
-from haptic_topology.sim.lockstep import build_controller_loop, initial_device_pose, simulate
+from haptic_topology.sim.lockstep import build_controller_loop, build_device_loop, simulate
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed, VirtualEnvironment
 from haptic_topology_msgs.msg import HandInputs
@@ -121,12 +119,7 @@ def _run(sc: Scenario, mode: ControlMode, period: int | None,
     ve = VirtualEnvironment(dyn, sc.q0, sc.dq0, sc.internal_step,
                             coupling=sc.coupling_gains())
     feed = HandFeed(ve, sc.update_period)
-    backend = SimMaglevBackend()
-    backend.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},
-                                    sc.source))
-    backend.activate()
-    device = DeviceLoop(backend, sc.device.wrench_limit,
-                        CommandWatchdog(WatchdogConfig(), sc.linkage.task.dim), sc.dt)
+    device = build_device_loop(sc)
     loop = build_controller_loop(sc, mode, update_period=sc.update_period)
     loop.on_update(ve.snapshot(seq=0))
     batcher = None if period is None else HandBatcher(period, sc.linkage.task.dim,

@@ -19,22 +19,19 @@ from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.loop import Answer, UpdateVerdict
-from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
 from haptic_topology.device.hosted import HostedCycle, HostedStep, state_sample
 from haptic_topology.device.loop import (
     CommandVerdict,
-    DeviceLoop,
     DeviceTick,
     ns_to_seconds,
     period_ns,
 )
 from haptic_topology.device.maglev import DeviceStatus
-from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.errors import ConfigError
 from haptic_topology.sim.lockstep import (
     build_controller_loop,
-    initial_device_pose,
+    build_device_loop,
     simulate,
     virtual_environment,
 )
@@ -43,19 +40,10 @@ from haptic_topology.sim.trace import Trace
 from haptic_topology.sim.ve import VirtualEnvironment
 
 
-def _device(sc: Scenario) -> DeviceLoop:
-    backend = SimMaglevBackend()
-    backend.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},
-                                    sc.source))
-    backend.activate()
-    return DeviceLoop(backend, sc.device.wrench_limit,
-                      CommandWatchdog(WatchdogConfig(), sc.linkage.task.dim), sc.dt)
-
-
 def _cycle(sc: Scenario, mode: ControlMode, **kwargs: Any) -> tuple[HostedCycle,
                                                                      VirtualEnvironment]:
     loop = build_controller_loop(sc, mode, update_period=sc.update_period)
-    return HostedCycle(_device(sc), loop, **kwargs), virtual_environment(sc)
+    return HostedCycle(build_device_loop(sc), loop, **kwargs), virtual_environment(sc)
 
 
 def _simulate_direct(sc: Scenario, mode: ControlMode) -> Trace:
@@ -65,7 +53,7 @@ def _simulate_direct(sc: Scenario, mode: ControlMode) -> Trace:
     ve = virtual_environment(sc)      # shared with simulate: the VE is not under test here
     dyn = ve.dyn
     ve_check = LinkageDynamics(sc.linkage)
-    device = _device(sc)
+    device = build_device_loop(sc)
     loop = build_controller_loop(sc, mode, update_period=sc.update_period)
     loop.on_update(ve.snapshot(seq=0))
     step_ns = period_ns(sc.dt)
@@ -276,7 +264,7 @@ def test_applied_wrench_stays_finite_and_within_the_limit(
 def test_device_and_controller_must_match() -> None:
     fig8, spatial = load_scenario('fig8'), load_scenario('spatial_arm4')
     with pytest.raises(ConfigError, match='same task dimension, got 3 and 6'):
-        HostedCycle(_device(fig8), build_controller_loop(spatial, ControlMode.PENALTY))
+        HostedCycle(build_device_loop(fig8), build_controller_loop(spatial, ControlMode.PENALTY))
     with pytest.raises(ConfigError, match='max_pending must be >= 1 update, got 0'):
-        HostedCycle(_device(fig8), build_controller_loop(fig8, ControlMode.PENALTY),
+        HostedCycle(build_device_loop(fig8), build_controller_loop(fig8, ControlMode.PENALTY),
                     max_pending=0)

@@ -5,25 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from haptic_topology.control.laws import ControlMode
-from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
-from haptic_topology.device.loop import DeviceLoop
-from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
-from haptic_topology.sim.lockstep import initial_device_pose
+from haptic_topology.sim.lockstep import build_device_loop
 from haptic_topology.sim.scenario import load_scenario
 
 
-def _loop() -> DeviceLoop:
-    sc = load_scenario('fig8')
-    backend = SimMaglevBackend()
-    backend.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},
-                                    sc.source))
-    backend.activate()
-    return DeviceLoop(backend, sc.device.wrench_limit,
-                      CommandWatchdog(WatchdogConfig(), sc.linkage.task.dim), sc.dt)
-
-
 def test_longest_run_of_missed_cycles_is_counted() -> None:
-    loop = _loop()
+    loop = build_device_loop(load_scenario('fig8'))
     dt, t = loop.period, 0.0
     zero = np.zeros(3)
     tick = loop.tick(t, dt)                       # idle; its answer engages the device

@@ -62,6 +62,17 @@ def initial_device_pose(sc: Scenario) -> np.ndarray:
     return LinkageDynamics(sc.linkage).hand_pose(sc.q0) + sc.device_offset
 
 
+def build_device_loop(sc: Scenario) -> DeviceLoop:
+    """The device-side loop of scenario ``sc`` as ``simulate`` runs it: the simulated maglev
+    (with the scenario's user) at its initial pose, activated, default watchdog."""
+    backend = SimMaglevBackend()
+    backend.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},
+                                    sc.source))
+    backend.activate()
+    return DeviceLoop(backend, sc.device.wrench_limit,
+                      CommandWatchdog(WatchdogConfig(), sc.linkage.task.dim), sc.dt)
+
+
 def virtual_environment(sc: Scenario) -> VirtualEnvironment:
     """The VE of scenario ``sc`` at its initial state, as ``simulate`` runs it."""
     return VirtualEnvironment(LinkageDynamics(sc.linkage), sc.q0, sc.dq0, sc.internal_step,
@@ -76,13 +87,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     ve = virtual_environment(sc)
     dyn = ve.dyn
     ve_check = LinkageDynamics(sc.linkage)  # separate workspace for the trace's truth
-    backend = SimMaglevBackend()
-    backend.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},
-                                    sc.source))
-    backend.activate()
-    device = DeviceLoop(backend, sc.device.wrench_limit,
-                        CommandWatchdog(WatchdogConfig(), task.dim), sc.dt)
-    cycle = HostedCycle(device, build_controller_loop(sc, mode, update_period=sc.update_period))
+    cycle = HostedCycle(build_device_loop(sc),
+                        build_controller_loop(sc, mode, update_period=sc.update_period))
     cycle.offer_update(ve.snapshot(seq=0))
     step_ns = period_ns(sc.dt)
 
