@@ -7,13 +7,17 @@ Publishes on the graph's topics with the graph's QoS under CLOCK (``wall`` defau
 DeviceState.seq, DeviceCommand.state_seq and LmiUpdate.seq run 1..N, one of each per
 millisecond; HandInputs.seq runs 1..N too, in batches of BATCH samples (one message every
 BATCH ms, as lmi_controller sends them; N must be a multiple of BATCH). Starts once every
-topic has a subscriber (prints ``publishing``); prints ``sent N ...`` and exits.
+topic has a subscriber (prints ``publishing``); prints ``sent N ...``. With RECORDED (the
+5th argument, ``recorded``) it then stays up, so that its reliable writers can resend, until
+the recorder's ``/diagnostics`` report every message received (``received <topic>``), prints
+``recorded`` and exits; exit status 3 if that does not happen within TIMEOUT_S.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from typing import Any
 
 import rclpy
 from builtin_interfaces.msg import Time
@@ -72,9 +76,45 @@ def main() -> int:
                 hand.stamp, stamps = stamps, []
             pub.publish(msg)
     print(f'sent {n} in {time.perf_counter() - start:.2f} s', flush=True)
-    time.sleep(0.5)
+    status = 0
+    if len(sys.argv) > 5 and sys.argv[5] == 'recorded':
+        status = _wait_recorded(node, n, timeout)
+    else:
+        time.sleep(0.5)
     node.destroy_node()
     rclpy.try_shutdown()
+    return status
+
+
+def _wait_recorded(node: Any, n: int, timeout: float) -> int:
+    """Spin until the recorder reports all ``n`` messages of each topic received (hand
+    inputs: n / BATCH messages); 0, or 3 on timeout. A reliable writer that exits earlier
+    takes its unacknowledged samples with it: on a loaded machine the recorder can be more
+    than a second behind."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    want = {common.TOPIC_STATE: n, common.TOPIC_COMMAND: n, common.TOPIC_LMI: n,
+            common.TOPIC_HAND_INPUTS: n // BATCH}
+    got: dict[str, int] = {}
+
+    def on_diagnostics(msg: Any) -> None:
+        for st in msg.status:
+            if st.name == 'recorder: bag':
+                for kv in st.values:
+                    for topic in want:
+                        if kv.key == f'received {topic}':
+                            got[topic] = int(kv.value)
+
+    node.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS, on_diagnostics,
+                             common.QOS_DIAGNOSTICS)
+    deadline = time.monotonic() + timeout
+    while any(got.get(t, 0) < k for t, k in want.items()):
+        if time.monotonic() > deadline:
+            print(f'recorder did not report all received within {timeout:g} s: {got}',
+                  flush=True)
+            return 3
+        rclpy.spin_once(node, timeout_sec=0.05)
+    print('recorded', flush=True)
     return 0
 
 

@@ -62,9 +62,9 @@ def _start_recorder(bag: Path, namespace: str) -> subprocess.Popen[str]:
     return proc
 
 
-def _start_publisher(n: int, namespace: str) -> subprocess.Popen[str]:
+def _start_publisher(n: int, namespace: str, *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, str(TEST_DIR / 'bag_publisher.py'), str(n), '40',
-                             namespace, 'lockstep'],
+                             namespace, 'lockstep', *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED='1'))
 
@@ -90,10 +90,11 @@ def test_recorder_loses_nothing_and_any_reader_decodes(tmp_path: Path,
     bag = tmp_path / 'roundtrip'
     rec = _start_recorder(bag, topic_prefix)
     try:
-        pub = _start_publisher(n, topic_prefix)
-        out, _ = pub.communicate(timeout=60)
+        # The publisher stays up (its reliable writers resending) until the recorder
+        # reports every message received; then the recorder is stopped.
+        pub = _start_publisher(n, topic_prefix, 'recorded')
+        out, _ = pub.communicate(timeout=120)
         assert pub.returncode == 0, out
-        time.sleep(1.0)
     finally:
         rec.send_signal(signal.SIGINT)
         log, _ = rec.communicate(timeout=30)
