@@ -61,7 +61,7 @@ def test_on_time_cycles_sleep_to_each_deadline() -> None:
     assert ft.sleeps == [3 * P / 4] * 4
     f = p.figures()
     assert f == PacerFigures(cycles=5, missed=0, max_missed_run=0, period_p50=P,
-                             period_p99=P, period_max=P)
+                             period_p99=P, period_max=P, period_mean=P)
 
 
 def test_module_doc_example_at_1ms() -> None:

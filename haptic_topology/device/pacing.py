@@ -68,8 +68,8 @@ class PacerTick:
 class PacerFigures:
     """Pacing figures: ``cycles`` released, ``missed`` deadlines skipped in all,
     ``max_missed_run`` (consecutive skipped deadlines), measured period (s): ``period_p50``
-    and ``period_p99`` over the last ``window`` periods, ``period_max`` over the run (NaN
-    before two cycles)."""
+    and ``period_p99`` over the last ``window`` periods, ``period_max`` over the run,
+    ``period_mean`` over the window (NaN before two cycles)."""
 
     cycles: int
     missed: int
@@ -77,6 +77,7 @@ class PacerFigures:
     period_p50: float
     period_p99: float
     period_max: float
+    period_mean: float = math.nan
 
     def values(self, prefix: str = '') -> dict[str, str]:
         """As diagnostics key/values (periods in ms)."""
@@ -194,4 +195,4 @@ class DeadlinePacer:
         p = self._periods[:n]
         p50, p99 = (float(v) for v in np.percentile(p, [50, 99])) if n else (math.nan, math.nan)
         return PacerFigures(self.cycles, self.missed, self.max_missed_run, p50, p99,
-                            self.period_max)
+                            self.period_max, float(p.mean()) if n else math.nan)

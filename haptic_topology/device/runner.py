@@ -1,0 +1,267 @@
+"""The loop thread of the hosted layout: one :class:`HostedCycle` per device cycle, paced.
+
+As ros2_control's controller manager runs ``read -> update -> write``, the hosted
+``device_driver`` runs :meth:`HostedCycle.step` (device tick, controller answer, command held
+for the next write) in one thread of its own, and nothing else: no DDS, no diagnostics, no
+recording. What observers need (the state, the command, the hand input, the lock-step
+``/clock``) goes into an *outbox* that the node's executor thread drains and publishes, as
+``realtime_tools.RealtimePublisher`` hands messages to a non-real-time thread. No ROS here:
+clock, sleep and the executor's wake-up are injected, so the pacing logic is tested with a
+fake clock (``test/test_core_runner.py``).
+
+Pacing (:attr:`RunnerConfig.lockstep`):
+
+* **wall**: a :class:`~haptic_topology.device.pacing.DeadlinePacer` releases cycle ``k`` at
+  ``t0 + k * period`` (absolute deadlines; an overrun skips the passed deadlines and counts
+  them, no catch-up burst). The state is stamped with the injected wall clock (ns, the ROS
+  system clock's time). The device integrates over the measured period, clipped to
+  ``[0, 20 * period]`` as in the separate layout.
+* **lockstep**: simulated time. Before engagement the device idles at stamp 0, one cycle per
+  period; once engaged, each state ``k`` is stamped ``k * period`` (integer ns) and the loop
+  steps as soon as the controller has the LMI update that the offline simulation applies
+  before that state (:meth:`HostedCycle.waiting_for_update`), waiting at most
+  ``lockstep_wait`` wall seconds for it (then a notice, counted in ``lockstep_timeouts``, and
+  the answer from the local model). A full outbox makes it wait for the publisher (nothing
+  recorded is lost); in wall mode the outbox drops its oldest entry instead and counts it
+  (``outbox_dropped``): the deadline never waits for an observer.
+
+``run_duration`` (s, 0 = none): the thread stops after the first state whose stamp is that
+far from the run's first state; :attr:`LoopRunner.finished` is then True (the node
+deactivates).
+
+Threads: :meth:`start`, :meth:`stop`, :meth:`drain` and :meth:`submit` belong to the node's
+executor thread; :attr:`may_engage` is set by it and read by the loop thread (a bool).
+:meth:`submit` hands a function (a live parameter change) to the loop thread, which runs it
+between two cycles; when the thread is not running it runs at once.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from haptic_topology.device.hosted import HostedCycle, HostedStep
+from haptic_topology.device.loop import ns_to_seconds, period_ns
+from haptic_topology.device.pacing import DeadlinePacer
+from haptic_topology.errors import ConfigError
+
+#: Outbox entries kept (4 s at 1 kHz): a publisher that falls further behind loses the oldest
+#: (wall clock) or holds the loop (lock-step).
+OUTBOX = 4096
+#: Longest single wait of the loop thread for an update or for room in the outbox (s), so
+#: that submitted calls and a stop request are served meanwhile.
+_POLL = 0.01
+
+
+@dataclass(frozen=True, slots=True)
+class RunnerConfig:
+    """``period`` (s, the device's); ``lockstep``: simulated time (see module doc);
+    ``run_duration`` (s of loop time from the first engaged state, 0 = none);
+    ``lockstep_wait`` (wall s) a lock-step state waits for its LMI update; ``outbox``:
+    entries kept for the publisher."""
+
+    period: float
+    lockstep: bool = False
+    run_duration: float = 0.0
+    lockstep_wait: float = 5.0
+    outbox: int = OUTBOX
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.period) and self.period > 0.0):
+            raise ConfigError(f'period must be a finite number > 0 s, got {self.period}')
+        if not (math.isfinite(self.run_duration) and self.run_duration >= 0.0):
+            raise ConfigError(f'run_duration must be >= 0 s, got {self.run_duration}')
+        if not (math.isfinite(self.lockstep_wait) and self.lockstep_wait > 0.0):
+            raise ConfigError(f'lockstep_wait must be > 0 s, got {self.lockstep_wait}')
+        if self.outbox < 1:
+            raise ConfigError(f'outbox must be >= 1 entry, got {self.outbox}')
+
+
+@dataclass(frozen=True, slots=True)
+class Published:
+    """One outbox entry: the cycle ``step`` and its state's stamp ``stamp_ns`` (integer ns,
+    loop time: wall or simulated)."""
+
+    step: HostedStep
+    stamp_ns: int
+
+
+class LoopRunner:
+    """Runs a :class:`HostedCycle` in a paced loop thread (see module doc).
+
+    ``wall_ns``: the wall clock that stamps states (ns; the node passes its ROS clock);
+    ``clock``/``sleep``: monotonic time (s) and sleep, for the pacer and the waits; ``wake``
+    (attribute, settable before :meth:`start`): called after each outbox append, to wake the
+    thread that publishes.
+    """
+
+    def __init__(self, cycle: HostedCycle, cfg: RunnerConfig,
+                 wall_ns: Callable[[], int] = time.time_ns,
+                 clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep,
+                 wake: Callable[[], None] = lambda: None) -> None:
+        if abs(cycle.device.period - cfg.period) > 1e-12:
+            raise ConfigError(f'runner period {cfg.period} s differs from the device loop\'s '
+                              f'{cycle.device.period} s')
+        self.cycle = cycle
+        self.cfg = cfg
+        self.pacer = DeadlinePacer(cfg.period, clock, sleep)
+        self._wall_ns = wall_ns
+        self._clock = clock
+        self._sleep = sleep
+        self.wake = wake
+        self._period_ns = period_ns(cfg.period)
+        self.outbox: deque[Published] = deque()
+        self._calls: deque[Callable[[], None]] = deque()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.may_engage = False
+        self.finished = False
+        self.error: BaseException | None = None
+        self._run_start_ns: int | None = None
+        self.notices: deque[str] = deque(maxlen=100)
+        self.appended = 0                # entries put in the outbox in all
+        self.outbox_dropped = 0
+        self.missed_deadlines = 0        # skipped while engaged (wall clock)
+        self.max_missed_deadlines = 0    # ... the most in a row
+        self.lockstep_timeouts = 0
+        self.lockstep_waits = 0
+
+    # -- executor thread ---------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self, name: str = 'device_loop',
+              on_start: Callable[[], None] | None = None) -> None:
+        """Start the loop thread; ``on_start`` runs first in it (e.g. real-time settings of
+        the thread)."""
+        if self._thread is not None:
+            raise RuntimeError('LoopRunner.start: already started')
+        self._stop.clear()
+        self.pacer.start()
+
+        def body() -> None:
+            try:
+                if on_start is not None:
+                    on_start()
+                while not self._stop.is_set() and not self.finished:
+                    self.cycle_once()
+            except BaseException as exc:  # reported by the node, never silent
+                self.error = exc
+                self.wake()
+
+        self._thread = threading.Thread(target=body, name=name, daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Ask the loop thread to stop after its cycle and join it."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                raise RuntimeError(f'device loop thread did not stop within {timeout} s')
+            self._thread = None
+
+    def submit(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` in the loop thread between two cycles (at once when not running)."""
+        if self.running:
+            self._calls.append(fn)
+        else:
+            fn()
+
+    def drain(self) -> list[Published]:
+        """Take what the loop thread has published so far, oldest first."""
+        out = []
+        box = self.outbox
+        while box:
+            out.append(box.popleft())
+        return out
+
+    # -- loop thread -------------------------------------------------------------------------
+    def _run_calls(self) -> None:
+        while self._calls:
+            self._calls.popleft()()
+
+    def cycle_once(self) -> Published | None:
+        """One cycle of the loop (the thread's body calls this repeatedly; tests call it
+        with a fake clock). Returns what it published, or None (stopped while waiting)."""
+        if self.cfg.lockstep and self.cycle.device.engaged:
+            return self._lockstep_step()
+        tick = self.pacer.wait()
+        if self.cycle.device.engaged:
+            self.missed_deadlines += tick.missed
+            self.max_missed_deadlines = max(self.max_missed_deadlines, tick.missed)
+        self._run_calls()
+        if self.cfg.lockstep:        # idle before engagement: simulated time stays 0
+            stamp = 0
+            dt = self.cfg.period
+        else:
+            stamp = self._wall_ns()
+            dt = min(max(tick.dt, 0.0), 20.0 * self.cfg.period)
+        return self._publish(self.cycle.step(tick.now, dt, ns_to_seconds(stamp),
+                                             self.may_engage), stamp)
+
+    def _lockstep_step(self) -> Published | None:
+        started = self._clock()
+        waited = False
+        while self.cycle.waiting_for_update():
+            self._run_calls()
+            if self._stop.is_set():
+                return None
+            if self._clock() - started >= self.cfg.lockstep_wait:
+                self.lockstep_timeouts += 1
+                self.notices.append(
+                    f'lock-step: no LMI update for state {self.cycle.device.seq + 1} within '
+                    f'{self.cfg.lockstep_wait:g} s (is ve_sim running?): answering from the '
+                    'local model; the run no longer matches simulate')
+                break
+            waited = True
+            self.cycle.wait_offered(_POLL)
+        self.lockstep_waits += waited
+        while len(self.outbox) >= self.cfg.outbox:      # the recorder must get everything
+            self._run_calls()
+            if self._stop.is_set():
+                return None
+            self._sleep(0.001)
+        self._run_calls()
+        d = self.cycle.device
+        stamp = (d.run_index + 1) * self._period_ns
+        return self._publish(self.cycle.step(self._clock(), self.cfg.period,
+                                             ns_to_seconds(stamp), self.may_engage), stamp)
+
+    def _publish(self, step: HostedStep, stamp: int) -> Published:
+        entry = Published(step, stamp)
+        self.appended += 1
+        if len(self.outbox) >= self.cfg.outbox:
+            self.outbox.popleft()
+            self.outbox_dropped += 1
+        self.outbox.append(entry)
+        if step.tick.run_index >= 0:
+            if self._run_start_ns is None or step.tick.run_index == 0:
+                self._run_start_ns = stamp
+            duration = self.cfg.run_duration
+            if duration > 0.0 and stamp - self._run_start_ns >= round(duration * 1e9):
+                self.finished = True
+        self.wake()
+        return entry
+
+    # -- figures (any thread; counters as they are) ------------------------------------------
+    def values(self) -> dict[str, str]:
+        """Pacing and hand-over figures as diagnostics key/values."""
+        out = self.pacer.figures().values('loop_')
+        out.update(self.cycle.values())
+        out.update({'outbox_dropped': str(self.outbox_dropped),
+                    'lockstep_timeouts': str(self.lockstep_timeouts)})
+        return out
+
+    def answered_in_time(self) -> tuple[int, int]:
+        """``(answered, expected)``: engaged cycles answered before the next write, with
+        every skipped deadline counted as a cycle not answered in time (in the hosted layout
+        the answer comes within the cycle, so a late cycle is the only way to miss)."""
+        d = self.cycle.device
+        return d.answered, d.expected + self.missed_deadlines
