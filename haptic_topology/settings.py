@@ -22,6 +22,7 @@ from __future__ import annotations
 import array
 import enum
 import math
+import os
 import re
 from dataclasses import MISSING, dataclass, field, fields
 from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
@@ -206,7 +207,11 @@ class DeviceDriverSettings(NodeSettings):
 
     scenario: str = _scenario('device model, limits, initial pose and simulated user')
     executor: str = _executor()
-    sched_priority: int = _sched_priority()
+    sched_priority: int = param(0, 'SCHED_FIFO priority 1-99 of the loop thread (with '
+                                'host_controller; else of the process, all its threads); 0 = '
+                                'normal scheduling. Needs CAP_SYS_NICE (root or an rtprio '
+                                'limit): without it one warning and normal scheduling',
+                                lo=0, hi=99)
     backend: str = param('sim_maglev', 'device backend: sim_maglev, hardware, module:Class, '
                          'or an entry point of haptic_topology.device_backends')
     backend_options: str = param('', "backend settings as a YAML/JSON mapping (e.g. '{port: "
@@ -240,6 +245,17 @@ class DeviceDriverSettings(NodeSettings):
     run_duration: float = param(0.0, 'deactivate after this long of engaged loop (s; '
                                 'simulated s with clock lockstep); 0.0 = run until stopped',
                                 lo=0.0, hi=1e6)
+    host_controller: bool = param(True, 'run lmi_controller in this process: each cycle '
+                                  '(read device -> controller -> write) in one loop thread, '
+                                  'the state -> command hop a function call (ros2_control '
+                                  'pattern); false: commands come over DDS from a separate '
+                                  'lmi_controller process')
+    cpu_affinity: tuple[int, ...] = param(
+        [-1], 'CPUs the loop runs on (the loop thread when hosting the controller, else the '
+        'process), e.g. [1]; [-1] = no pinning')
+    lock_memory: bool = param(False, 'mlockall(MCL_CURRENT | MCL_FUTURE) at activation, so '
+                              'the loop never waits for a page fault; needs CAP_IPC_LOCK or '
+                              'a memlock limit (else one warning)')
 
     def check(self) -> None:
         if self.rate_hz != 0.0 and not RATE_MIN <= self.rate_hz <= RATE_MAX:
@@ -247,6 +263,11 @@ class DeviceDriverSettings(NodeSettings):
                               f'or a value in [{RATE_MIN:g}, {RATE_MAX:g}] Hz, got '
                               f'{self.rate_hz!r}')
         parse_backend_options(self.backend_options)
+        cpus = os.cpu_count() or 1
+        if self.cpu_affinity != (-1,) and not all(0 <= c < cpus for c in self.cpu_affinity):
+            raise ConfigError(f'device_driver: parameter cpu_affinity: expected [-1] (no '
+                              f'pinning) or CPU numbers in [0, {cpus - 1}], got '
+                              f'{list(self.cpu_affinity)}')
 
 
 # -- lmi_controller ----------------------------------------------------------------------------

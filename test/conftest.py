@@ -22,8 +22,8 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(scope='session')
 def spare_domains(ros_domain_env: dict[str, str]) -> Iterator[list[int]]:
-    """Six more domain ids held by this session, for graphs that run at the same time."""
-    locks = [_lock_domain() for _ in range(6)]
+    """Eight more domain ids held by this session, for graphs that run at the same time."""
+    locks = [_lock_domain() for _ in range(8)]
     try:
         yield [d for d, _ in locks]
     finally:

@@ -1,6 +1,7 @@
 """Fault injection on the real node graph: one run, several faults one after the other.
 
-Starts recorder, ve_sim, lmi_controller and device_driver as processes (scenario ``circle``:
+Starts recorder, ve_sim, lmi_controller and device_driver as four processes (the separate
+layout, ``device_driver.host_controller: false``; scenario ``circle``:
 the hand drags the device around a circle, so the loop is busy the whole time), then, each
 at a logged wall-clock time (the header stamps are wall-clock ROS time too):
 
@@ -100,7 +101,9 @@ class Graph:
                 '-p', f'lmi_controller:mode:={self.mode}', '-p',
                 # controller, recorder and this process's injector must see the device
                 # before it engages, so the bag holds the loop from its first state
-                'device_driver:min_subscribers:=3']
+                'device_driver:min_subscribers:=3',
+                # the separate layout: each node its own process, killed and restarted alone
+                '-p', 'device_driver:host_controller:=false']
         if name == 'recorder':
             bag = self.out / f'bag{n}'
             self.bags.append(bag)

@@ -35,9 +35,9 @@ DURATION = 2.0
 
 def _graph_run(tmp_path: Path, scenario: str, mode: str, duration: float,
                backend: str | None = None, clock: str = 'lockstep',
-               domain_id: int | None = None) -> GraphRun:
+               domain_id: int | None = None, layout: str = 'hosted') -> GraphRun:
     bag = tmp_path / f'{scenario}_{mode}_{clock}'
-    codes = run_graph(scenario, mode, duration, bag, PARAMS, backend=backend,
+    codes = run_graph(scenario, mode, duration, bag, PARAMS, layout, backend=backend,
                       startup_timeout=60.0, clock=clock, domain_id=domain_id)
     assert all(c == 0 for c in codes.values()), codes
     return read_graph_bag(bag, scenario, load_scenario(scenario).linkage.dof)
@@ -48,17 +48,23 @@ LOCKSTEP_RUNS = (('fig6', 'penalty'), ('fig6', 'acceleration_only'), ('fig8', 'p
 #: Also in the pool: the spatial scenario (0.5 s) and the swapped backend (1 s).
 SPATIAL, SPATIAL_DURATION = ('panda_link4', 'penalty'), 0.5
 SWAPPED, SWAPPED_DURATION = ('fig8', 'fake_backend'), 1.0
+#: The same in the separate-process layout (the others run hosted, the default).
+SEPARATE_RUNS = (('fig6', 'penalty', 'separate'), ('fig8', 'acceleration_only', 'separate'))
 
 
 @pytest.fixture(scope='module')
 def lockstep_runs(tmp_path_factory: pytest.TempPathFactory,
-                  spare_domains: list[int]) -> dict[tuple[str, str], GraphRun]:
-    """The four lock-step runs at once, each in a domain of its own: lock-step results do
-    not depend on the machine's load, and the runs wait mostly on each other's messages."""
+                  spare_domains: list[int]) -> dict[tuple[str, ...], GraphRun]:
+    """The lock-step runs at once, each in a domain of its own: lock-step results do not
+    depend on the machine's load, and the runs wait mostly on each other's messages."""
     tmp = tmp_path_factory.mktemp('lockstep')
-    jobs = {key: (key[0], key[1], DURATION, None) for key in LOCKSTEP_RUNS}
-    jobs[SPATIAL] = (SPATIAL[0], 'penalty', SPATIAL_DURATION, None)
-    jobs[SWAPPED] = ('fig8', 'penalty', SWAPPED_DURATION, 'fake_backend:CircleBackend')
+    jobs: dict[tuple[str, ...], tuple[str, str, float, str | None, str]] = {
+        key: (key[0], key[1], DURATION, None, 'hosted') for key in LOCKSTEP_RUNS}
+    jobs[SPATIAL] = (SPATIAL[0], 'penalty', SPATIAL_DURATION, None, 'hosted')
+    jobs[SWAPPED] = ('fig8', 'penalty', SWAPPED_DURATION, 'fake_backend:CircleBackend',
+                     'hosted')
+    for key in SEPARATE_RUNS:
+        jobs[key] = (key[0], key[1], DURATION, None, 'separate')
     old_path = os.environ.get('PYTHONPATH')
     # The test double lives in test/: the node processes find it on PYTHONPATH.
     os.environ['PYTHONPATH'] = os.pathsep.join([str(TEST_DIR), *filter(None, [old_path])])
@@ -67,8 +73,8 @@ def lockstep_runs(tmp_path_factory: pytest.TempPathFactory,
     try:
         with ThreadPoolExecutor(len(jobs)) as pool:
             futures = {key: pool.submit(_graph_run, tmp / '_'.join(key), sc, mode, duration,
-                                        backend, domain_id=domain)
-                       for (key, (sc, mode, duration, backend)), domain
+                                        backend, domain_id=domain, layout=layout)
+                       for (key, (sc, mode, duration, backend, layout)), domain
                        in zip(jobs.items(), spare_domains, strict=True)}
             return {key: f.result() for key, f in futures.items()}
     finally:
@@ -103,8 +109,9 @@ def _assert_equals_offline(graph: Trace, scenario: str, mode: str, duration: flo
 
 @pytest.mark.parametrize(('scenario', 'mode'), LOCKSTEP_RUNS)
 def test_lockstep_graph_equals_offline_simulation(
-        lockstep_runs: dict[tuple[str, str], GraphRun], scenario: str, mode: str) -> None:
-    """The lock-step graph (four processes, DDS between them) computes what ``simulate()``
+        lockstep_runs: dict[tuple[str, ...], GraphRun], scenario: str, mode: str) -> None:
+    """The lock-step graph (hosted layout: the device driver with the controller in its loop
+    thread, the VE and the recorder, DDS between them) computes what ``simulate()``
     computes: device and VT poses equal to 1e-9 m at every cycle (bit-identical in practice:
     the same core objects, the same floating-point times), and the same drift summary."""
     run = lockstep_runs[(scenario, mode)]
@@ -117,8 +124,22 @@ def test_lockstep_graph_equals_offline_simulation(
                                                           rel=1e-9)
 
 
+@pytest.mark.parametrize('key', SEPARATE_RUNS, ids=lambda k: '-'.join(k))
+def test_separate_layout_equals_hosted_layout_and_offline(
+        lockstep_runs: dict[tuple[str, ...], GraphRun], key: tuple[str, str, str]) -> None:
+    """The separate-process layout (state -> command over DDS) in lock-step computes the
+    same as the hosted layout and ``simulate()``: every exact column bit for bit."""
+    scenario, mode, _ = key
+    separate, hosted = lockstep_runs[key].trace, lockstep_runs[(scenario, mode)].trace
+    _assert_equals_offline(separate, scenario, mode, DURATION)
+    for col in EXACT_COLUMNS:
+        np.testing.assert_array_equal(separate.columns[col], hosted.columns[col],
+                                      err_msg=col)
+    assert lockstep_runs[key].loop['max_consecutive_missed'] == 0
+
+
 def test_lockstep_graph_equals_offline_simulation_spatial(
-        lockstep_runs: dict[tuple[str, str], GraphRun]) -> None:
+        lockstep_runs: dict[tuple[str, ...], GraphRun]) -> None:
     """The same agreement in 6-D: the Panda of example-robot-data held at a middle link
     (J_h 6 x 7, t >= 2), a 6-DOF device with an orientation stop, eq. 14, for 0.5 s."""
     graph = lockstep_runs[SPATIAL].trace
@@ -127,7 +148,7 @@ def test_lockstep_graph_equals_offline_simulation_spatial(
 
 
 def test_swapping_the_backend_needs_no_change_in_other_nodes(
-        lockstep_runs: dict[tuple[str, str], GraphRun]) -> None:
+        lockstep_runs: dict[tuple[str, ...], GraphRun]) -> None:
     """The test double (test/fake_backend.py) is selected by a parameter value only; in
     lock-step its states are exactly on its circle at t = k dt, and the loop around it ran
     unchanged (every state answered, the VE's hand reported at every cycle)."""
@@ -167,14 +188,18 @@ def _stop(proc: subprocess.Popen[bytes]) -> tuple[int, str]:
     return proc.returncode, out.decode(errors='replace')
 
 
-def test_live_k_tc_takes_effect_and_bad_values_are_refused() -> None:
+@pytest.mark.parametrize('process', ['lmi_controller', 'device_driver'],
+                         ids=['separate', 'hosted'])
+def test_live_k_tc_takes_effect_and_bad_values_are_refused(process: str) -> None:
+    """Live gains of ``lmi_controller``, in its own process or hosted by ``device_driver``
+    (where the change is handed to the loop thread)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rcl_interfaces.msg import Parameter as ParamMsg
     from rcl_interfaces.msg import ParameterType, ParameterValue
     from rcl_interfaces.srv import GetParameters, SetParameters
 
-    proc = _start_node('lmi_controller')
+    proc = _start_node(process)
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('param_test_client', context=context)

@@ -1,7 +1,10 @@
 """``haptic-topology run SCENARIO --mode penalty|acceleration_only --duration S``: the bringup.
 
-Starts ``recorder``, ``ve_sim``, ``lmi_controller`` and ``device_driver`` as separate
-processes (default) or composed in one process on one executor (``--composed``), all with
+Starts the graph in one of three layouts (``--layout``): ``hosted`` (default): ``recorder``,
+``ve_sim`` and ``device_driver``, which runs ``lmi_controller`` in its process and the 1 kHz
+cycle in one loop thread (``device_driver.host_controller``); ``separate``: the four nodes as
+four processes, the state -> command hop over DDS; ``composed``: all four in one process on
+one executor (``--composed`` is short for it; the driver hosts the controller). All with
 the params file (default ``config/haptic_topology.yaml``) plus ``scenario``, ``clock``
 (``wall`` or ``lockstep``), the controller's ``mode``, the recorder's ``output``,
 ``device_driver.min_subscribers = 2`` (controller and recorder must see the device before it
@@ -38,6 +41,9 @@ from haptic_topology.errors import ConfigError, HapticTopologyError
 
 NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
 CLOCKS = ('wall', 'lockstep')
+#: Layout -> the processes it starts (node modules), in start order.
+LAYOUTS = {'hosted': ('recorder', 've_sim', 'device_driver'), 'separate': NODES,
+           'composed': ('composed',)}
 
 
 class BringupError(HapticTopologyError):
@@ -62,8 +68,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--clock', choices=CLOCKS, default='wall',
                         help='wall: real time (default); lockstep: simulated time advancing '
                         'only when each state is answered, the result equals `simulate`')
-    parser.add_argument('--composed', action='store_true',
-                        help='all nodes in one process on one executor')
+    parser.add_argument('--layout', choices=tuple(LAYOUTS), default='hosted',
+                        help='hosted (default): the controller in the device driver\'s '
+                        'process and loop thread; separate: one process per node; composed: '
+                        'all in one process')
+    parser.add_argument('--composed', action='store_true', help='same as --layout composed')
     parser.add_argument('--out', type=Path, help='bag directory (one --mode only); default '
                         'bags/<scenario>_<mode>_<timestamp>')
     parser.add_argument('--params', type=Path, help='ROS 2 params file; default '
@@ -130,10 +139,11 @@ def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
 
 
 def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path,
-              composed: bool = False, backend: str | None = None,
+              layout: str = 'hosted', backend: str | None = None,
               startup_timeout: float = 30.0, clock: str = 'wall',
               domain_id: int | None = None) -> dict[str, int]:
-    """Run the graph once, recording to ``bag``; return the processes' exit codes.
+    """Run the graph once in ``layout`` (a key of :data:`LAYOUTS`), recording to ``bag``;
+    return the processes' exit codes.
 
     ``device_driver`` runs the loop for ``duration`` s from engagement (simulated seconds with
     ``clock='lockstep'``) and then deactivates itself; the run is over when its lifecycle
@@ -143,12 +153,18 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     from haptic_topology.bringup.watch import GraphWatcher
     from haptic_topology.nodes.common import TOPIC_STATE
 
+    if layout not in LAYOUTS:
+        raise ConfigError(f'--layout: expected one of {", ".join(LAYOUTS)}, got {layout!r}')
     if bag.exists():
         raise ConfigError(f'--out: {bag} already exists')
+    composed = layout == 'composed'
+    host = 'false' if layout == 'separate' else 'true'
+
     ros = ['--ros-args', '--params-file', str(params), '-p', f'scenario:={scenario}',
            '-p', f'clock:={clock}', '-p', f'lmi_controller:mode:={mode}',
            '-p', f'recorder:output:={bag}', '-p', 'device_driver:min_subscribers:=2',
-           '-p', f'device_driver:run_duration:={float(duration)!r}']
+           '-p', f'device_driver:run_duration:={float(duration)!r}',
+           '-p', f'device_driver:host_controller:={host}']
     if clock == 'lockstep':
         ros += ['-p', 'lmi_controller:use_sim_time:=true', '-p', 've_sim:use_sim_time:=true']
     if backend:
@@ -168,20 +184,18 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
         env = {} if domain_id is None else {'ROS_DOMAIN_ID': str(domain_id)}
         with GraphWatcher('haptic_bringup', alive, domain_id=domain_id) as watch:
             py = [sys.executable, '-m']
-            names = ['composed'] if composed else list(NODES)
-            for name in names:
+            for name in LAYOUTS[layout]:
                 argv = py + [f'haptic_topology.nodes.{name}'] + ros
                 if name == 'device_driver':
-                    # The loop starts with the device: only once the recorder is matched to
-                    # the controller's and the VE's publishers (discovery can take seconds)
-                    # and, below, to the device's own state publisher.
-                    watch.wait(watch.recorder_connected, startup_timeout,
-                               'recorder connected to the loop topics')
                     argv += ['-p', 'device_driver:autostart:=false']
                 procs.append(_start(name, argv, log_dir, env))
             if not composed:
-                # As a lifecycle manager: configure and activate the driver once the recorder
-                # sees its state publisher, so the bag holds the run's first state.
+                # As a lifecycle manager: the loop starts with the device, only once the
+                # recorder is matched to the controller's and the VE's publishers (discovery
+                # can take seconds) and to the device's own state publisher, so the bag
+                # holds the run's first state.
+                watch.wait(watch.recorder_connected, startup_timeout,
+                           'recorder connected to the loop topics')
                 watch.wait(lambda: watch.recorder_sees(TOPIC_STATE), startup_timeout,
                            'recorder matched to the device state publisher')
                 for transition in ('configure', 'activate'):
@@ -197,10 +211,10 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                 c0, c1 = cpu0[p.name], _cpu_seconds(p.popen.pid)
                 if c0 is not None and c1 is not None and wall > 0.0:
                     cpu[p.name] = round((c1 - c0) / wall, 4)
-            if not composed:
-                # The loop has stopped; the recorder must take everything it sent while
-                # every writer is still there to resend (its counts stop growing).
-                watch.wait(watch.recorder_settled, startup_timeout, 'recorder caught up')
+            # The loop has stopped; the recorder must take everything it sent while every
+            # writer is still there to resend (checked on the nodes' own counts).
+            watch.wait(lambda: watch.recorder_has_the_run(clock == 'lockstep'),
+                       startup_timeout, 'recorder has every message of the run')
     finally:
         # Device first, recorder last (it keeps every message until then).
         codes.update(stop([p for p in reversed(procs) if p.name not in codes]))
@@ -234,18 +248,20 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f'--params: {params}: no such file')
     scenario_ref = args.scenario if Path(args.scenario).suffix == '' else str(
         Path(args.scenario).resolve())
+    layout = 'composed' if args.composed else args.layout
     summaries = []
     loops = []
     for mode in modes:
         bag = args.out or Path('bags') / f'{sc.name}_{mode}_{time.strftime("%Y%m%d-%H%M%S")}'
-        print(f'running {sc.name} ({mode}) for {duration:g} s'
-              f'{" composed" if args.composed else ""} ...', flush=True)
-        run_graph(scenario_ref, mode, duration, bag, params, args.composed, args.backend,
+        print(f'running {sc.name} ({mode}) for {duration:g} s, {layout} layout ...',
+              flush=True)
+        run_graph(scenario_ref, mode, duration, bag, params, layout, args.backend,
                   args.startup_timeout, args.clock)
         result = read_graph_bag(bag, sc.name, sc.linkage.dof, task_dim=sc.linkage.task.dim)
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')
         summary = dict(trace.summary(), **{k: v for k, v in result.loop.items()})
+        summary['layout'] = layout
         summary['skipped_messages'] = dict(result.skipped)
         if result.skipped:
             print(f'skipped {sum(result.skipped.values())} foreign or malformed messages in '

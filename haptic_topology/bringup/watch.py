@@ -123,6 +123,41 @@ class GraphWatcher:
         return (len(h) == SETTLE_REPORTS and all(c == h[-1] for c in h)
                 and any(v != '0' for v in h[-1].values()))
 
+    def recorder_has_the_run(self, reliable_loop: bool) -> bool:
+        """The bag holds everything the run sent, by the nodes' own counts (no timing):
+        the device's loop has stopped (``loop_running`` false: its ``sent`` count of states
+        is final), the controller has nothing pending (``hand_pending`` 0) and, when the
+        loop topics are reliable (``reliable_loop``, lock-step), has seen the last state
+        (so its counts are final too), the VE has taken every hand-input batch the
+        controller sent and sent every path sample, and the recorder received as many
+        messages of each reliable topic as were sent. With best-effort loop topics (wall
+        clock) states and commands may be lost on the way: only the reliable topics are
+        compared, and the recorder's counts must also have settled."""
+        from haptic_topology.nodes import common
+
+        dev = self.status.get('device_driver: loop', {})
+        ctl = self.status.get('lmi_controller: loop', {})
+        ve = self.status.get('ve_sim: loop', {})
+        rec = self.status.get(RECORDER_STATUS, {})
+        hand = ctl.get(f'sent {common.TOPIC_HAND_INPUTS}')
+        if (dev.get('loop_running') != 'false' or ctl.get('hand_pending') != '0'
+                or ve.get(f'received {common.TOPIC_HAND_INPUTS}') != hand
+                or ve.get('path_pending') != '0'):
+            return False
+        sent = {common.TOPIC_HAND_INPUTS: hand,
+                common.TOPIC_VT_PATH: ve.get(f'sent {common.TOPIC_VT_PATH}')}
+        if reliable_loop:
+            if ctl.get('last_state_seq') != dev.get('seq'):
+                return False
+            sent[common.TOPIC_STATE] = dev.get(f'sent {common.TOPIC_STATE}')
+            sent[common.TOPIC_COMMAND] = ctl.get(f'sent {common.TOPIC_COMMAND}')
+        elif not self.recorder_settled():
+            return False
+        received = {k.removeprefix('received ').lstrip('/'): v for k, v in rec.items()
+                    if k.startswith('received ')}
+        return all(n is not None and received.get(t.lstrip('/')) == n
+                   for t, n in sent.items())
+
     def recorder_sees(self, topic: str) -> bool:
         """The recorder reports a publisher matched on ``topic`` (state or command)."""
         status = self.status.get(RECORDER_STATUS, {})

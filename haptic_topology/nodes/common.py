@@ -378,8 +378,12 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
     try:
         nodes = list(build())
         kind = str(nodes[0].get_parameter('executor').value) if nodes else 'events'
-        priority = max((int(n.get_parameter('sched_priority').value) for n in nodes
-                        if n.has_parameter('sched_priority')), default=0)
+        # A node that applies real-time settings to its own loop thread (the hosted
+        # device_driver) sets ``process_sched_priority`` = 0: the rest of its process stays
+        # under normal scheduling.
+        priority = max((int(getattr(n, 'process_sched_priority',
+                                    n.get_parameter('sched_priority').value))
+                        for n in nodes if n.has_parameter('sched_priority')), default=0)
         if priority:
             problem = set_realtime_priority(priority)
             if problem:
@@ -432,6 +436,44 @@ def set_realtime_priority(priority: int) -> str | None:
                 'limit, e.g. in /etc/security/limits.conf); running with normal scheduling')
     except (OSError, AttributeError) as exc:
         return f'sched_priority {priority}: {exc}; running with normal scheduling'
+    return None
+
+
+def set_thread_realtime(priority: int, cpus: Sequence[int], lock_memory: bool) -> list[str]:
+    """Real-time settings of the calling thread (the hosted device loop thread): SCHED_FIFO
+    at ``priority`` (0: keep normal scheduling), pinned to ``cpus`` (``[-1]``: no pinning),
+    and ``mlockall(MCL_CURRENT | MCL_FUTURE)`` for the process when ``lock_memory``. Returns
+    one line per setting that was not permitted (the loop then runs without it)."""
+    problems = []
+    if priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))  # this thread
+        except PermissionError:
+            problems.append(f'sched_priority {priority}: not permitted (needs CAP_SYS_NICE or '
+                            'an rtprio limit); normal scheduling')
+        except OSError as exc:
+            problems.append(f'sched_priority {priority}: {exc}; normal scheduling')
+    if list(cpus) != [-1]:
+        try:
+            os.sched_setaffinity(0, set(cpus))
+        except OSError as exc:
+            problems.append(f'cpu_affinity {list(cpus)}: {exc}; not pinned')
+    if lock_memory:
+        problems.extend(filter(None, [lock_all_memory()]))
+    return problems
+
+
+def lock_all_memory() -> str | None:
+    """``mlockall(MCL_CURRENT | MCL_FUTURE)``; None, or why it failed."""
+    import ctypes
+    import ctypes.util
+
+    libc = ctypes.CDLL(ctypes.util.find_library('c'), use_errno=True)
+    mcl_current, mcl_future = 1, 2
+    if libc.mlockall(mcl_current | mcl_future) != 0:
+        err = ctypes.get_errno()
+        return (f'lock_memory: mlockall failed: {os.strerror(err)} (needs CAP_IPC_LOCK or a '
+                'memlock limit, e.g. ulimit -l unlimited); memory not locked')
     return None
 
 

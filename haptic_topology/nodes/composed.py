@@ -2,8 +2,9 @@
 --composed``): ``ve_sim``, ``lmi_controller``, ``device_driver`` and ``recorder``.
 
 Parameters come from the same params file as for separate processes (one section per node
-name). Messages between the nodes still go through the middleware (no intra-process
-shortcut in rclpy), but no process boundary or scheduler hop is crossed.
+name). With ``device_driver.host_controller`` (default) the driver runs the controller in its
+loop thread as in its own process; otherwise the messages between the nodes go through the
+middleware (no intra-process shortcut in rclpy), but no process boundary is crossed.
 """
 
 from __future__ import annotations
@@ -16,15 +17,20 @@ from haptic_topology.nodes import common, node_params
 
 
 def build() -> list[Node]:
-    from haptic_topology.nodes.device_driver import DeviceDriver
+    from haptic_topology.nodes import device_driver
     from haptic_topology.nodes.lmi_controller import LmiController
     from haptic_topology.nodes.recorder import Recorder
     from haptic_topology.nodes.ve_sim import VeSim
 
     nodes: list[Node] = []
     try:
-        for cls in (Recorder, VeSim, LmiController, DeviceDriver):
+        for cls in (Recorder, VeSim):
             nodes.append(cls())
+        # The driver with the controller it hosts (host_controller, default), or without.
+        driver_nodes = device_driver.build()
+        nodes.extend(driver_nodes)
+        if len(driver_nodes) == 1:
+            nodes.append(LmiController())
     except BaseException:
         for n in nodes:
             close = getattr(n, 'close', None)
@@ -33,7 +39,7 @@ def build() -> list[Node]:
             n.destroy_node()
         raise
     # The device driver's executor parameter decides (it is the clock master).
-    return [nodes[-1], *nodes[:-1]]
+    return [nodes[2], *nodes[:2], *nodes[3:]]
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -14,6 +14,14 @@ law, sync guard, device/VE session tracking, re-sync force-jump check):
   simulation applies at that step is held until the update has come (at most
   ``lockstep_wait`` wall seconds, then a warning and the answer from the local model).
 
+Hosted (``device_driver`` with ``host_controller``, the default layout): the driver's loop
+thread calls the same :class:`ControllerLoop` through a
+:class:`~haptic_topology.device.hosted.HostedCycle`; this node then takes no ``DeviceState``
+from DDS, offers each LMI update to the cycle (applied by the loop thread at its next step)
+and publishes, from the driver's outbox thread, the commands and hand inputs the loop
+computed (:meth:`LmiController.observe`). Live parameter changes are handed to the loop
+thread. Lock-step waiting is then the loop thread's (``lockstep_wait`` the same).
+
 Live parameters: ``mode``, ``k_tc``, ``b_tc`` (checked in an on-set-parameters callback); the
 others are read-only. ``DeviceCommand.update_age`` and ``/diagnostics`` report the age of the
 newest update (wall seconds since it arrived); ``hand_batches_sent`` counts the
@@ -37,6 +45,7 @@ from haptic_topology.control.batch import HandBatch, HandBatcher
 from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
 from haptic_topology.control.safety import ModelHealth
+from haptic_topology.device.runner import LoopRunner, Published
 from haptic_topology.nodes import common, node_params
 from haptic_topology.nodes.convert import (
     MessageError,
@@ -44,6 +53,7 @@ from haptic_topology.nodes.convert import (
     command_msg,
     hand_inputs_msg,
     lmi_from_msg,
+    ns_to_stamp,
     stamp_ns,
     state_from_msg,
 )
@@ -57,7 +67,8 @@ from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, Lmi
 class LmiController(Node):
     """The haptic-rate controller node."""
 
-    def __init__(self, scenario: Scenario | None = None, **kwargs: Any) -> None:
+    def __init__(self, scenario: Scenario | None = None, hosted: bool = False,
+                 **kwargs: Any) -> None:
         super().__init__('lmi_controller', **kwargs)
         name = common.declare_spec(self, node_params.LMI_CONTROLLER['scenario'])
         sc = scenario or load_scenario(name)
@@ -77,13 +88,17 @@ class LmiController(Node):
                                               common.hand_inputs_qos(c.clock))
         self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
                                               common.QOS_DIAGNOSTICS)
-        state_sub = self.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state,
-                                             qos)
         lmi_sub = self.create_subscription(LmiUpdate, common.TOPIC_LMI, self._on_update,
                                            common.QOS_LMI)
-        self._endpoints = {common.TOPIC_STATE: state_sub, common.TOPIC_LMI: lmi_sub,
-                           common.TOPIC_COMMAND: self.cmd_pub,
+        self._endpoints = {common.TOPIC_LMI: lmi_sub, common.TOPIC_COMMAND: self.cmd_pub,
                            common.TOPIC_HAND_INPUTS: self.hand_pub}
+        self.hosted = hosted
+        self.host: LoopRunner | None = None     # the driver's loop, once attached
+        if hosted:
+            self.process_sched_priority = 0       # the driver's loop thread has its own
+        else:
+            self._endpoints[common.TOPIC_STATE] = self.create_subscription(
+                DeviceState, common.TOPIC_STATE, self._on_state, qos)
         self.ack_pub = (self.create_publisher(UInt64, common.TOPIC_LMI_ACK, common.QOS_LMI)
                         if s.ack_updates else None)
         self._cmd, self._hand = DeviceCommand(), HandInputs()
@@ -94,12 +109,15 @@ class LmiController(Node):
         self._loop_wall = 0.0
         self.rejected = RejectCounter()
         self.lockstep_timeouts = 0
+        self.commands_sent = 0
         self.stats = common.LoopStats(sc.dt)
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
-        self.create_timer(max(batch_period, 0.01), self._flush_hand, clock=steady)
-        if self.lockstep:
-            self.create_timer(0.01, self._check_wait, clock=steady)
+        self.flush_period = max(batch_period, 0.01)
+        if not hosted:
+            self.create_timer(self.flush_period, self.flush_hand, clock=steady)
+            if self.lockstep:
+                self.create_timer(0.01, self._check_wait, clock=steady)
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate and apply live changes of mode, k_tc, b_tc (all or none)."""
@@ -114,8 +132,32 @@ class LmiController(Node):
                 gains = gains.with_penalty(gains.k_tc, float(p.value))
             elif p.name == 'mode':
                 mode = ControlMode.parse(str(p.value))
-        self.loop.ctrl.gains, self.loop.ctrl.mode = gains, mode
+
+        def apply() -> None:
+            self.loop.ctrl.gains, self.loop.ctrl.mode = gains, mode
+
+        if self.host is not None:
+            self.host.submit(apply)       # between two cycles of the loop thread
+        else:
+            apply()
         return SetParametersResult(successful=True)
+
+    # -- hosted --------------------------------------------------------------------------------
+    def attach(self, runner: LoopRunner) -> None:
+        """Hosted: the driver's loop thread now runs :attr:`loop` (see module doc)."""
+        self.host = runner
+
+    def observe(self, entries: list[Published]) -> None:
+        """Hosted, outbox thread: publish the commands and hand inputs of these cycles."""
+        for e in entries:
+            ans = e.step.answer
+            if ans is None:
+                continue
+            if not e.step.tick.status & DeviceState.STATUS_IDLE:
+                self.stats.tick(1e-9 * e.stamp_ns)
+            self._publish_answer(ans, e.stamp_ns, ns_to_stamp(e.stamp_ns))
+        self._loop_wall = common.monotonic()
+        self._log_notices()
 
     def _on_state(self, msg: DeviceState) -> None:
         self._loop_wall = wall = common.monotonic()
@@ -135,22 +177,27 @@ class LmiController(Node):
             self.stats.tick(common.monotonic())
         ans: Answer | None = self.loop.on_state(sample)
         self._log_notices()
-        if ans is None:
-            return
+        if ans is not None:
+            self._publish_answer(ans, stamp_ns(stamp), self.get_clock().now().to_msg())
+
+    def _publish_answer(self, ans: Answer, state_ns: int, cmd_stamp: Any) -> None:
+        """The command (stamped ``cmd_stamp``) and the hand input of the state stamped
+        ``state_ns`` (ns)."""
         age = (common.monotonic() - self._update_wall if self._update_wall is not None
                else math.inf)
-        self.cmd_pub.publish(command_msg(self._cmd, ans.state_seq,
-                                         self.get_clock().now().to_msg(), ans.out, age))
+        self.cmd_pub.publish(command_msg(self._cmd, ans.state_seq, cmd_stamp, ans.out, age))
+        self.commands_sent += 1
         if ans.hand is not None:
-            batch = self.batcher.add(ans.hand, stamp_ns(stamp), common.monotonic())
+            batch = self.batcher.add(ans.hand, state_ns, common.monotonic())
             if batch is not None:
                 self._publish_hand(batch)
 
     def _publish_hand(self, batch: HandBatch) -> None:
         self.hand_pub.publish(hand_inputs_msg(self._hand, batch))
 
-    def _flush_hand(self) -> None:
-        """Steady timer: the pending hand samples once the oldest is two periods old."""
+    def flush_hand(self) -> None:
+        """Steady timer (hosted: the outbox thread): the pending hand samples once the
+        oldest is two periods old."""
         batch = self.batcher.due(common.monotonic())
         if batch is not None:
             self._publish_hand(batch)
@@ -162,7 +209,12 @@ class LmiController(Node):
             self._reject('LMI update', exc)
             snap = None
         if snap is not None:
-            self.loop.on_update(snap)
+            if self.host is None:
+                self.loop.on_update(snap)
+            else:       # the loop thread applies it at its next step
+                self.host.cycle.offer_update(snap)
+                if not self.host.running:
+                    self.host.cycle.apply_updates()
             self._update_wall = common.monotonic()
             self._log_notices()
         if self.ack_pub is not None:
@@ -194,9 +246,13 @@ class LmiController(Node):
         self.get_logger().warn(f'{what} rejected: {exc}', throttle_duration_sec=1.0)
 
     def _log_notices(self) -> None:
-        for text in self.loop.notices:
+        notices = self.loop.notices     # hosted: appended by the loop thread
+        while notices:
+            try:
+                text = notices.pop(0)
+            except IndexError:          # taken by the other thread meanwhile
+                break
             self.get_logger().warn(text)
-        self.loop.notices.clear()
 
     def _publish_diagnostics(self) -> None:
         loop = self.loop
@@ -208,9 +264,14 @@ class LmiController(Node):
         age = (common.monotonic() - self._update_wall if self._update_wall is not None
                else math.inf)
         values.update({'update_age_ms': f'{1e3 * age:.2f}', 'clock': self.cfg.clock.value,
-                       'lockstep_timeouts': str(self.lockstep_timeouts),
+                       'layout': 'hosted' if self.hosted else 'separate',
+                       'lockstep_timeouts': str(self.lockstep_timeouts + (
+                           self.host.lockstep_timeouts if self.host else 0)),
                        'hand_batches_sent': str(self.batcher.batches),
                        'hand_batches_partial': str(self.batcher.partial),
+                       f'sent {common.TOPIC_COMMAND}': str(self.commands_sent),
+                       f'sent {common.TOPIC_HAND_INPUTS}': str(self.batcher.batches),
+                       'hand_pending': str(self.batcher.pending),
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
                        **common.matched(self._endpoints)})
         level, message = _HEALTH_MESSAGES[loop.guard.health(now)]

@@ -104,6 +104,7 @@ class VeSim(Node):
         # those is not "no input".
         self._silent_after = max(c.idle_period, 3.0 * sc.dt * self.update_period)
         self._last_snap: LmiSnapshot = self.ve.snapshot(seq=0)
+        self.paths_sent = 0
         self.stats = common.LoopStats(sc.dt * self.update_period)
         self.update_stats = common.LoopStats(sc.dt * self.update_period)
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
@@ -167,6 +168,7 @@ class VeSim(Node):
         msg.hand_input_seqs = [int(s) for s, _ in path]
         msg.hand_pose = np.concatenate([x for _, x in path]).tolist()
         self.path_pub.publish(msg)
+        self.paths_sent += 1
 
     def _publish_viz(self) -> None:
         stamp = self.get_clock().now().to_msg()
@@ -183,6 +185,11 @@ class VeSim(Node):
         values.update({
             'hand_inputs': str(feed.inputs),
             'hand_batches': str(self.batches),
+            # What the bringup checks the bag against at the end of a run (exact, no
+            # timing): batches taken, path samples not yet sent, paths sent.
+            f'received {common.TOPIC_HAND_INPUTS}': str(self.batches),
+            'path_pending': str(len(self.ve.path)),
+            f'sent {common.TOPIC_VT_PATH}': str(self.paths_sent),
             'lost_hand_inputs': str(feed.lost),
             'hand_input_seq': str(self.ve.hand_input_seq),
             'lmi_updates': str(self._update_seq),
