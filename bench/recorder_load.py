@@ -270,8 +270,10 @@ def _read_bag(path: Path) -> tuple[dict[str, list[int]], int, bool]:
             continue
         obj = decode(msg)
         if topic == '/diagnostics':
+            # The synthetic publisher's status only (the recorder reports on the same topic).
             kv = {v.key: v.value for v in obj.status[0].values}
-            seqs[topic].append(int(kv['seq']))
+            if 'seq' in kv and obj.status[0].name == 'device_driver: loop':
+                seqs[topic].append(int(kv['seq']))
         elif topic == 'haptic/hand_inputs':
             seqs[topic].append(int(obj.seq[-1]) // HAND_BATCH)     # message number
         else:

@@ -3,20 +3,24 @@
 Sections (each a measurement, printed and collected into ``bench/latest.json``; the same run is
 appended to ``bench/RESULTS.md`` with the date, machine and versions):
 
-1. The 1 kHz loop on the node graph (``haptic-topology run circle``), separate processes and
-   composed in one process, ``--loop-duration`` s each (default 30): cycles answered in time
-   (by a command computed from that cycle's state; and from that cycle's or the previous
-   state), round trip p50/p99/max, device period p50/p99/max, CPU per node. The same figures
-   for a bare rclpy ping-pong of two processes with the same messages, QoS, executor and
-   SCHED_FIFO priorities (``bench/pingpong.py``): the ratio graph / bare at p99 is the
-   headline.
+1. The 1 kHz loop on the node graph (``haptic-topology run circle``), ``--loop-duration`` s
+   each (default 30), in the default hosted layout (the controller in the device driver's
+   loop thread) and in the separate-process layout, each without SCHED_FIFO and, where the
+   OS permits it, with it: cycles answered in time, device period p50/p99/max, the longest
+   run of consecutive missed cycles, round trip p50/p99 (separate layout), CPU per process
+   and in total. A bare rclpy ping-pong of two processes with the same messages, QoS and
+   executor (``bench/pingpong.py``) runs in the same session, with and without SCHED_FIFO,
+   for the separate layout's round-trip ratio.
 2. Controller compute per cycle without ROS (eq. 14 + LMI step, and eq. 10).
 3. ``ve_sim`` cost per 100 Hz update for chains of 3-200 links, planar and spatial.
 4. The recorder at the graph's rate and at 10x with a synthetic publisher
    (``bench/recorder_load.py``), ``--recorder-duration`` s each (default 60).
+5. The live fig8 eq. 14 run against ``simulate`` (largest device-VT distance), and the
+   offline ``simulate``'s speed (simulated s per wall s).
 
-Run: ``make bench`` (about 6 minutes), or ``.venv/bin/python bench/run.py --quick`` (short
-runs, for trying the script; its figures are not written to RESULTS.md).
+Then a table of every figure beside its goal (issue 11). Run: ``make bench`` (about 9
+minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
+its figures are not written to RESULTS.md).
 """
 
 from __future__ import annotations
@@ -42,8 +46,8 @@ sys.path.insert(0, str(BENCH))
 import core_costs  # noqa: E402
 import recorder_load  # noqa: E402
 
-#: SCHED_FIFO priorities the benchmark gives device_driver / lmi_controller (the shipped
-#: params file leaves them at 0: normal scheduling); the bare ping-pong gets the same.
+#: SCHED_FIFO priorities of the benchmark's "fifo" runs: the device driver (in the hosted
+#: layout its loop thread) / the separate lmi_controller; the bare ping-pong gets the same.
 DEVICE_PRIORITY, CONTROLLER_PRIORITY = 50, 49
 
 
@@ -54,8 +58,16 @@ def _env() -> dict[str, str]:
     return env
 
 
-def graph_loop(duration: float, composed: bool) -> dict[str, Any]:
-    """One recorded run of the circle scenario on the graph; loop figures and CPU."""
+def fifo_permitted() -> bool:
+    """Whether this machine lets a process use SCHED_FIFO (tried in a child process)."""
+    code = ('import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))')
+    return subprocess.run([sys.executable, '-c', code], capture_output=True,
+                          check=False).returncode == 0
+
+
+def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle',
+               mode: str | None = None) -> dict[str, Any]:
+    """One recorded run of ``scenario`` on the graph in ``layout``; loop figures and CPU."""
     import yaml
 
     from haptic_topology.paths import config_dir
@@ -63,19 +75,19 @@ def graph_loop(duration: float, composed: bool) -> dict[str, Any]:
 
     with tempfile.TemporaryDirectory(prefix='bench_graph_') as tmp:
         bag = Path(tmp) / 'bag'
-        # The shipped params with the 1 kHz pair under SCHED_FIFO (off by default).
         params = yaml.safe_load((config_dir() / 'haptic_topology.yaml').read_text())
-        params['device_driver']['ros__parameters']['sched_priority'] = DEVICE_PRIORITY
-        params['lmi_controller']['ros__parameters']['sched_priority'] = CONTROLLER_PRIORITY
+        if fifo:
+            params['device_driver']['ros__parameters']['sched_priority'] = DEVICE_PRIORITY
+            params['lmi_controller']['ros__parameters']['sched_priority'] = CONTROLLER_PRIORITY
         params_file = Path(tmp) / 'params.yaml'
         params_file.write_text(yaml.safe_dump(params), encoding='utf-8')
-        cmd = [str(Path(sys.executable).with_name('haptic-topology')), 'run', 'circle',
+        cmd = [str(Path(sys.executable).with_name('haptic-topology')), 'run', scenario,
                '--duration', str(duration), '--out', str(bag), '--no-plot', '--params',
-               str(params_file)]
-        if composed:
-            cmd.append('--composed')
+               str(params_file), '--layout', layout]
+        if mode:
+            cmd += ['--mode', mode]
         res = subprocess.run(cmd, env=_env(), capture_output=True, text=True,
-                             timeout=duration + 120, check=False)
+                             timeout=duration + 180, check=False)
         if res.returncode != 0:
             raise RuntimeError(f'{" ".join(cmd)} failed:\n{res.stdout}\n{res.stderr}')
         s = json.loads((bag / 'summary.json').read_text())
@@ -87,6 +99,7 @@ def graph_loop(duration: float, composed: bool) -> dict[str, Any]:
         'answered_fraction': s['device_answered_fraction'],
         'answered_or_previous_fraction': s.get('device_answered_or_previous_fraction'),
         'bag_answered_fraction': s['bag_answered_fraction'],
+        'max_consecutive_missed': s.get('max_consecutive_missed'),
         'rtt_p50_us': 1e3 * s['device_round_trip_p50_ms'],
         'rtt_p99_us': 1e3 * s['device_round_trip_p99_ms'],
         'rtt_max_us': 1e3 * s.get('device_round_trip_max_ms', float('nan')),
@@ -94,10 +107,27 @@ def graph_loop(duration: float, composed: bool) -> dict[str, Any]:
         'period_p99_us': float(np.percentile(periods, 99)),
         'period_max_us': float(periods.max()),
         'states': int(s['bag_states']),
+        'max_distance_m': s['max_distance_m'],
         'final_distance_mm': 1e3 * s['final_distance_m'],
     }
-    out.update({k: v for k, v in s.items() if k.startswith('cpu_')})
+    cpu = {k: v for k, v in s.items() if k.startswith('cpu_')}
+    out.update(cpu)
+    out['cpu_total'] = float(sum(cpu.values()))
     return out
+
+
+def offline(scenario: str, mode: str) -> dict[str, float]:
+    """``simulate`` of ``scenario``: its largest device-VT distance and its speed."""
+    from haptic_topology.control.laws import ControlMode
+    from haptic_topology.sim.lockstep import simulate
+    from haptic_topology.sim.scenario import load_scenario
+
+    sc = load_scenario(scenario)
+    t0 = time.perf_counter()
+    tr = simulate(sc, ControlMode.parse(mode))
+    wall = time.perf_counter() - t0
+    return {'max_distance_m': tr.summary()['max_distance_m'], 'duration_s': sc.duration,
+            'wall_s': wall, 'realtime_factor': sc.duration / wall}
 
 
 def _versions() -> dict[str, str]:
@@ -128,24 +158,49 @@ def _machine() -> dict[str, Any]:
     return {'cores': os.cpu_count(), 'cpu': model, 'kernel': platform.release()}
 
 
-def run(loop_duration: float, recorder_duration: float) -> dict[str, Any]:
-    res: dict[str, Any] = {'date': time.strftime('%Y-%m-%d %H:%M:%S %Z'),
-                           'machine': _machine(), 'versions': _versions()}
-    print('== controller and VE compute (no ROS) ...', flush=True)
-    res['core'] = core_costs.run()
-    print(f'== bare ping-pong, {loop_duration:g} s ...', flush=True)
+#: The loop runs: (key, layout, SCHED_FIFO).
+LOOP_RUNS = (('hosted', 'hosted', False), ('separate', 'separate', False),
+             ('hosted_fifo', 'hosted', True), ('separate_fifo', 'separate', True))
+
+
+def _pingpong(duration: float, fifo: bool) -> dict[str, Any]:
     # In a child process: its SCHED_FIFO priority must not stay on this process, or every
     # graph process started after it would inherit it (measured: 74 % answered instead of
     # 97 %, since ve_sim and the recorder then compete with the pair on equal terms).
-    out = subprocess.run(
-        [sys.executable, str(BENCH / 'pingpong.py'), '--duration', str(loop_duration),
-         '--sched-priority', str(DEVICE_PRIORITY), '--echo-sched-priority',
-         str(CONTROLLER_PRIORITY)], env=_env(), capture_output=True, text=True,
-        timeout=loop_duration + 60, check=True).stdout
-    res['baseline'] = json.loads(out[out.index('{'):])
-    for key, composed in (('separate', False), ('composed', True)):
+    prio = ['--sched-priority', str(DEVICE_PRIORITY), '--echo-sched-priority',
+            str(CONTROLLER_PRIORITY)] if fifo else []
+    out = subprocess.run([sys.executable, str(BENCH / 'pingpong.py'), '--duration',
+                          str(duration), *prio], env=_env(), capture_output=True, text=True,
+                         timeout=duration + 60, check=True).stdout
+    return dict(json.loads(out[out.index('{'):]))
+
+
+def run(loop_duration: float, recorder_duration: float) -> dict[str, Any]:
+    res: dict[str, Any] = {'date': time.strftime('%Y-%m-%d %H:%M:%S %Z'),
+                           'machine': _machine(), 'versions': _versions()}
+    fifo = fifo_permitted()
+    res['fifo_permitted'] = fifo
+    print('== controller and VE compute (no ROS) ...', flush=True)
+    res['core'] = core_costs.run()
+    for key, layout, with_fifo in LOOP_RUNS:
+        if with_fifo and not fifo:
+            print(f'== graph, {key}: skipped, SCHED_FIFO not permitted here', flush=True)
+            continue
+        if layout == 'separate':
+            base = 'baseline_fifo' if with_fifo else 'baseline'
+            print(f'== bare ping-pong{" (SCHED_FIFO)" if with_fifo else ""}, '
+                  f'{loop_duration:g} s ...', flush=True)
+            res[base] = _pingpong(loop_duration, with_fifo)
         print(f'== graph, {key}, {loop_duration:g} s ...', flush=True)
-        res[key] = graph_loop(loop_duration, composed)
+        res[key] = graph_loop(loop_duration, layout, with_fifo)
+    print('== live fig8 eq. 14 (hosted, wall clock) against simulate ...', flush=True)
+    off = offline('fig8', 'penalty')
+    live = graph_loop(off['duration_s'], 'hosted', False, 'fig8', 'penalty')
+    res['fig8'] = {'live_max_distance_m': live['max_distance_m'],
+                   'offline_max_distance_m': off['max_distance_m'],
+                   'ratio': live['max_distance_m'] / off['max_distance_m']}
+    res['simulate_speed'] = {name: offline(name, 'penalty')
+                             for name in ('fig8', 'fig6')}
     for factor in (1.0, 10.0):
         print(f'== recorder at {factor:g}x the graph rate, {recorder_duration:g} s ...',
               flush=True)
@@ -154,40 +209,100 @@ def run(loop_duration: float, recorder_duration: float) -> dict[str, Any]:
 
 
 def headline(res: dict[str, Any]) -> dict[str, Any]:
-    """The keys of bench/latest.json the issue asks for (plus a few)."""
+    """The figures of issue 11's goals table, flat (bench/latest.json 'headline')."""
     core = res['core']
-    out = {
-        'answered_fraction_separate': res['separate']['answered_fraction'],
-        'answered_or_previous_fraction_separate':
-            res['separate']['answered_or_previous_fraction'],
-        'rtt_p99_us_separate': res['separate']['rtt_p99_us'],
+    h, sep = res['hosted'], res['separate']
+    out: dict[str, Any] = {
+        'answered_fraction_hosted': h['answered_fraction'],
+        'max_consecutive_missed_hosted': h['max_consecutive_missed'],
+        'period_p99_us_hosted': h['period_p99_us'],
+        'cpu_total_hosted': h['cpu_total'],
+        'answered_fraction_separate': sep['answered_fraction'],
+        'max_consecutive_missed_separate': sep['max_consecutive_missed'],
+        'period_p99_us_separate': sep['period_p99_us'],
+        'cpu_total_separate': sep['cpu_total'],
+        'rtt_p99_us_separate': sep['rtt_p99_us'],
         'baseline_rtt_p99_us': res['baseline']['rtt_p99_us'],
         'rtt_p99_ratio_separate_to_baseline':
-            res['separate']['rtt_p99_us'] / res['baseline']['rtt_p99_us'],
-        'answered_fraction_composed': res['composed']['answered_fraction'],
-        'rtt_p99_us_composed': res['composed']['rtt_p99_us'],
-        'baseline_answered_fraction': res['baseline']['answered_fraction'],
+            sep['rtt_p99_us'] / res['baseline']['rtt_p99_us'],
+        'controller_step_p50_us': core['controller_step_p50_us'],
         'controller_step_p99_us': core['controller_step_p99_us'],
         'controller_step_eq10_p99_us': core['controller_step_eq10_p99_us'],
+        've_update_p99_us_3_links': next(
+            r['update_total_p99_us'] for r in core['ve_update']
+            if r['links'] == 3 and r['task'] == 'planar'),
         'max_links_at_100hz_planar': core['max_links_at_100hz_planar'],
         'max_links_at_100hz_spatial': core['max_links_at_100hz_spatial'],
+        'fig8_live_to_offline_max_distance': res['fig8']['ratio'],
+        'simulate_realtime_factor_fig8': res['simulate_speed']['fig8']['realtime_factor'],
     }
+    for key in ('hosted_fifo', 'separate_fifo'):
+        if key in res:
+            out[f'answered_fraction_{key}'] = res[key]['answered_fraction']
+            out[f'period_p99_us_{key}'] = res[key]['period_p99_us']
+    r10 = res.get('recorder_10x', {})
+    out['recorder_10x_msgs_per_s'] = r10.get('recorded_msgs_per_s', 0.0)
+    out['recorder_10x_lost'] = r10.get('lost')
+    out['recorder_10x_cpu'] = r10.get('cpu_fraction')
     lossless = [res[k]['recorded_msgs_per_s'] for k in ('recorder_1x', 'recorder_10x')
                 if k in res and res[k].get('lossless')]
     out['recorder_lossless_msgs_per_s'] = max(lossless) if lossless else 0.0
     return out
 
 
+def goals(head: dict[str, Any]) -> str:
+    """Every figure beside its goal (issue 11, default layout, no SCHED_FIFO, 30 s)."""
+    h = head
+    rows = [
+        ('cycles answered in time (hosted)', f'{100 * h["answered_fraction_hosted"]:.2f} %, '
+         f'max {h["max_consecutive_missed_hosted"]:.0f} in a row missed',
+         '>= 99.9 %, never 20 in a row', h['answered_fraction_hosted'] >= 0.999
+         and h['max_consecutive_missed_hosted'] < 20),
+        ('device period p99 (hosted)', f'{h["period_p99_us_hosted"] / 1e3:.3f} ms',
+         '<= 1.1 ms', h['period_p99_us_hosted'] <= 1100.0),
+        ('CPU of the whole graph with recorder (hosted)', f'{h["cpu_total_hosted"]:.2f} core',
+         '<= 0.6 core', h['cpu_total_hosted'] <= 0.6),
+        ('separate layout round trip p99 / bare ping-pong',
+         f'{h["rtt_p99_ratio_separate_to_baseline"]:.2f}x ({h["rtt_p99_us_separate"]:.0f} / '
+         f'{h["baseline_rtt_p99_us"]:.0f} us)', '<= 1.3x',
+         h['rtt_p99_ratio_separate_to_baseline'] <= 1.3),
+        ('VE update, 3 links / largest chain at 100 Hz',
+         f'{h["ve_update_p99_us_3_links"] / 1e3:.2f} ms / planar '
+         f'{h["max_links_at_100hz_planar"]}, spatial {h["max_links_at_100hz_spatial"]} links',
+         '<= 0.3 ms / 100 links within 30 % of 10 ms', h['ve_update_p99_us_3_links'] <= 300.0),
+        ('controller compute p99', f'{h["controller_step_p99_us"]:.0f} us', '<= 30 us',
+         h['controller_step_p99_us'] <= 30.0),
+        ('recorder at 10x', f'{h["recorder_10x_msgs_per_s"]:.0f} msg/s, lost '
+         f'{h["recorder_10x_lost"]}, {h["recorder_10x_cpu"] or float("nan"):.2f} core',
+         '30,000 msg/s lossless within 0.5 core',
+         h['recorder_lossless_msgs_per_s'] >= 30000 and (h['recorder_10x_cpu'] or 9) <= 0.5),
+        ('live fig8 eq. 14 max distance / offline',
+         f'{h["fig8_live_to_offline_max_distance"]:.3f}', 'within 10 % (0.9-1.1)',
+         abs(h['fig8_live_to_offline_max_distance'] - 1.0) <= 0.1),
+        ('offline simulate speed (fig8)', f'{h["simulate_realtime_factor_fig8"]:.1f}x real time',
+         '>= 10x real time', h['simulate_realtime_factor_fig8'] >= 10.0),
+    ]
+    w = max(len(r[0]) for r in rows)
+    lines = [f'{"figure":{w}s}  measured | goal | met']
+    lines += [f'{name:{w}s}  {got} | {goal} | {"yes" if ok else "NO"}'
+              for name, got, goal, ok in rows]
+    return '\n'.join(lines)
+
+
 def table(res: dict[str, Any]) -> str:
-    lines = ['loop (1 kHz)          answered  ans.|prev  rtt p50/p99/max [us]      '
+    lines = ['loop (1 kHz)          answered  ans.|prev  max miss  rtt p50/p99/max [us]      '
              'period p50/p99/max [us]   CPU']
-    for key in ('baseline', 'separate', 'composed'):
+    for key in ('baseline', 'baseline_fifo', *(k for k, _, _ in LOOP_RUNS)):
+        if key not in res:
+            continue
         r = res[key]
         cpu = ', '.join(f'{k[4:]} {v:.2f}' for k, v in r.items() if k.startswith('cpu_'))
         prev = r.get('answered_or_previous_fraction')
+        miss = r.get('max_consecutive_missed')
         lines.append(
             f'{key:20s}  {100 * r["answered_fraction"]:7.2f}%  '
             f'{(100 * prev if prev is not None else float("nan")):8.2f}%  '
+            f'{(miss if miss is not None else float("nan")):8.0f}  '
             f'{r["rtt_p50_us"]:6.0f}/{r["rtt_p99_us"]:6.0f}/{r["rtt_max_us"]:7.0f}   '
             f'{r["period_p50_us"]:6.0f}/{r["period_p99_us"]:6.0f}/{r["period_max_us"]:7.0f}   '
             f'{cpu}')
@@ -197,6 +312,12 @@ def table(res: dict[str, Any]) -> str:
             lines.append(f'{key}: {r["recorded_msgs_per_s"]:.0f} msg/s recorded of '
                          f'{r["published_msgs_per_s"]:.0f} published, lost {r["lost"]}, '
                          f'CPU {r["cpu_fraction"]:.2f}, {r["bytes_per_s"] / 1e3:.0f} kB/s')
+    f8 = res['fig8']
+    lines.append(f'fig8 eq. 14 max distance: live {1e3 * f8["live_max_distance_m"]:.3f} mm, '
+                 f'offline {1e3 * f8["offline_max_distance_m"]:.3f} mm')
+    for name, r in res['simulate_speed'].items():
+        lines.append(f'simulate {name}: {r["duration_s"]:g} s simulated in {r["wall_s"]:.2f} '
+                     f's ({r["realtime_factor"]:.1f}x real time)')
     return '\n'.join(lines)
 
 
@@ -215,6 +336,8 @@ def main() -> None:
     print()
     core_costs.print_table(res['core'])
     print(table(res))
+    print()
+    print(goals(head))
     print(json.dumps(head, indent=2))
     if a.quick:
         return
@@ -222,7 +345,8 @@ def main() -> None:
     with (BENCH / 'RESULTS.md').open('a', encoding='utf-8') as f:
         f.write(f'\n## {res["date"]} - {res["machine"]["cores"]} cores, '
                 f'{res["machine"]["cpu"]}\n\nversions: {json.dumps(res["versions"])}\n\n```\n')
-        f.write(table(res) + '\n```\n\n```json\n' + json.dumps(head, indent=2) + '\n```\n')
+        f.write(table(res) + '\n\n' + goals(head) + '\n```\n\n```json\n'
+                + json.dumps(head, indent=2) + '\n```\n')
     print(f'wrote {BENCH / "latest.json"}, appended {BENCH / "RESULTS.md"}')
 
 

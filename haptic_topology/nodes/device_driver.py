@@ -69,6 +69,8 @@ from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 #: GIL switch interval (s) of a process that hosts the loop thread (CPython's default: 5 ms).
 SWITCH_INTERVAL = 2e-4
+#: Hosted, wall clock: the outbox thread publishes what the loop produced every this many s.
+PUBLISH_PERIOD = 0.002
 
 
 class DeviceDriver(LifecycleNode):
@@ -143,9 +145,13 @@ class DeviceDriver(LifecycleNode):
                 RunnerConfig(c.period, self.lockstep, c.run_duration,
                              self.hosted.cfg.lockstep_wait),
                 wall_ns=lambda: self.get_clock().now().nanoseconds)
-            self._outbox = OutboxThread(self.runner, self._observe, self.hosted.flush_hand,
-                                        self.hosted.flush_period)
-            self.runner.wake = self._outbox.wake
+            # Lock-step: woken by every cycle (the VE waits on the hand inputs); wall clock:
+            # the outbox is drained every PUBLISH_PERIOD, so the loop thread pays no wake-up.
+            self._outbox = OutboxThread(
+                self.runner, self._observe, self.hosted.flush_hand,
+                min(self.hosted.flush_period, 1.0 if self.lockstep else PUBLISH_PERIOD))
+            if self.lockstep:
+                self.runner.wake = self._outbox.wake
             self.hosted.attach(self.runner)
         return SUCCESS
 
@@ -164,8 +170,12 @@ class DeviceDriver(LifecycleNode):
             sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
             self.runner.may_engage = self._may_engage()
             self._outbox.start()
-            self.runner.start(on_start=lambda: self._realtime_problems.extend(
-                common.set_thread_realtime(s.sched_priority, s.cpu_affinity, s.lock_memory)))
+            def on_start() -> None:     # in the loop thread
+                common.name_os_thread('device_loop')
+                self._realtime_problems.extend(common.set_thread_realtime(
+                    s.sched_priority, s.cpu_affinity, s.lock_memory))
+
+            self.runner.start(on_start=on_start)
             self._loop_timers = [self.create_timer(0.02, self._check_hosted)]
             self.get_logger().info(f'active: backend {c.backend}, {c.rate_hz:g} Hz '
                                    f'{c.clock.value}, lmi_controller hosted (loop thread)')

@@ -3,11 +3,12 @@
 The hosted ``device_driver`` runs the 1 kHz cycle in a loop thread
 (:class:`~haptic_topology.device.runner.LoopRunner`) that never touches DDS. Everything the
 graph's observers get (``DeviceState``, ``DeviceCommand``, ``HandInputs`` batches, the
-lock-step ``/clock``) is published by :class:`OutboxThread`: woken by the loop thread after
-each cycle (a :class:`threading.Event`, no executor involved: rclpy's ``EventsExecutor``
-supports no guard conditions), it takes every entry of the outbox in order and hands them to
-the node's publish function; between wake-ups it calls ``idle`` at least every
-``idle_period`` seconds (the controller's flush of a partial hand-input batch).
+lock-step ``/clock``) is published by :class:`OutboxThread`: every ``period`` seconds, or
+sooner when woken (lock-step: the loop thread wakes it after each cycle, a
+:class:`threading.Event`; no executor involved, as rclpy's ``EventsExecutor`` supports no
+guard conditions), it takes every entry of the outbox in order, hands them to the node's
+publish function, then calls ``idle`` (the controller's flush of a partial hand-input
+batch).
 """
 
 from __future__ import annotations
@@ -22,11 +23,11 @@ class OutboxThread:
     """Publishes what a :class:`LoopRunner` puts in its outbox (see module doc)."""
 
     def __init__(self, runner: LoopRunner, publish: Callable[[list[Published]], None],
-                 idle: Callable[[], None], idle_period: float) -> None:
+                 idle: Callable[[], None], period: float) -> None:
         self.runner = runner
         self._publish = publish
         self._idle = idle
-        self._idle_period = idle_period
+        self._period = period
         self._event = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -65,9 +66,12 @@ class OutboxThread:
             self._thread = None
 
     def _body(self) -> None:
+        from haptic_topology.nodes.common import name_os_thread
+
+        name_os_thread('device_publish')
         try:
             while True:
-                self._event.wait(self._idle_period)
+                self._event.wait(self._period)
                 self._event.clear()
                 entries = self.runner.drain()
                 if entries:

@@ -1,0 +1,109 @@
+"""The hosted layout (device_driver runs lmi_controller in its loop thread) against real
+processes: well-formed commands from another publisher on DDS never reach the device.
+
+An impostor answers every running state of the hosted driver with a plausible command of
+1000 N (mode penalty, the state's own seq) as soon as it sees the state. Had one been
+applied, the device would clamp it to its limit and flag the state SATURATED; in the hosted
+layout the driver takes no commands from DDS, so no state is. Every wait is on messages,
+with a deadline; nothing is timed.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+
+from haptic_topology.paths import config_dir
+from haptic_topology.sim.scenario import load_scenario
+
+pytestmark = pytest.mark.graph
+
+PARAMS = config_dir() / 'haptic_topology.yaml'
+WAIT = 60.0           # s: generous, a loaded machine is only slower
+
+
+def _start(name: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, '-m', f'haptic_topology.nodes.{name}', '--ros-args', '--params-file',
+         str(PARAMS), '-p', 'scenario:=circle'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> str:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        out, _ = proc.communicate(timeout=15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+    return out.decode(errors='replace')
+
+
+def test_commands_from_dds_never_reach_the_hosted_device() -> None:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from haptic_topology.nodes import common
+    from haptic_topology_msgs.msg import DeviceCommand, DeviceState
+
+    limit = load_scenario('circle').device.wrench_limit
+    procs = [_start('ve_sim'), _start('device_driver')]
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('impostor', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    states: list[Any] = []
+    sent: list[int] = []
+    attack = [False]
+    pub = node.create_publisher(DeviceCommand, common.TOPIC_COMMAND, common.QOS_LOOP)
+
+    def on_state(msg: Any) -> None:
+        states.append(msg)
+        if attack[0] and not msg.status & DeviceState.STATUS_IDLE:
+            cmd = DeviceCommand(state_seq=msg.seq, mode=DeviceCommand.MODE_PENALTY,
+                                task_dim=3, wrench=[1e3, -1e3, 1e3], vt_pose=list(msg.pose),
+                                vt_twist=[0.0] * 3, update_age=0.0)
+            cmd.header.stamp = msg.header.stamp
+            pub.publish(cmd)
+            sent.append(msg.seq)
+
+    node.create_subscription(DeviceState, common.TOPIC_STATE, on_state, common.QOS_LOOP)
+
+    def running() -> list[Any]:
+        return [s for s in states if not s.status & DeviceState.STATUS_IDLE]
+
+    def wait(cond: Any, what: str) -> None:
+        deadline = time.monotonic() + WAIT
+        while not cond():
+            for p in procs:
+                assert p.poll() is None, f'{what}: a node died:\n{_stop(p)[-3000:]}'
+            assert time.monotonic() < deadline, f'{what}: not within {WAIT:g} s'
+            executor.spin_once(timeout_sec=0.02)
+
+    try:
+        wait(lambda: len(running()) >= 200, 'the hosted loop running')
+        attack[0] = True
+        first = len(states)
+        wait(lambda: len(sent) >= 1000, 'impostor answering 1000 running states')
+        attack[0] = False
+        after = [s for s in states[first:] if not s.status & DeviceState.STATUS_IDLE]
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        outs = [_stop(p) for p in procs]
+    assert all('Traceback' not in o for o in outs), outs
+    assert len(after) >= 1000
+    applied = np.array([s.applied_wrench for s in after])
+    assert np.all(np.isfinite(applied))
+    saturated = [s.seq for s in after if s.status & DeviceState.STATUS_SATURATED]
+    assert saturated == [], f'states saturated while the impostor answered: {saturated[:10]}'
+    assert np.all(np.abs(applied) < limit), np.abs(applied).max(axis=0)
