@@ -93,7 +93,7 @@ class DeviceDriver(LifecycleNode):
             return self._fail(str(exc))
         self.loop = DeviceLoop(self.backend, self.cfg.wrench_limit,
                                CommandWatchdog(self.cfg.watchdog, self.cfg.task_dim),
-                               self.cfg.period)
+                               self.cfg.period, self.cfg.takeover_after)
         return SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -147,16 +147,18 @@ class DeviceDriver(LifecycleNode):
         if loop is None or not self._loop_timers:
             return
         try:
-            state_seq, mode, wrench = command_from_msg(msg, self.cfg.scenario.linkage.task)
+            state_seq, mode, wrench, cid = command_from_msg(msg, self.cfg.scenario.linkage.task)
         except MessageError as exc:
             self.rejected.add(exc)
             self.get_logger().warn(f'command rejected: {exc}', throttle_duration_sec=1.0)
             return
-        was_engaged = loop.engaged
+        was_engaged, followed = loop.engaged, loop.controller_id
         may_engage = self.state_pub.get_subscription_count() >= self.cfg.min_subscribers
-        verdict = loop.on_command(state_seq, mode, wrench, common.monotonic(), may_engage)
+        verdict = loop.on_command(state_seq, mode, wrench, common.monotonic(), may_engage, cid)
         if loop.engaged and not was_engaged:
-            self.get_logger().info(f'controller engaged at state {state_seq}')
+            self.get_logger().info(f'controller {cid} engaged at state {state_seq}')
+        elif loop.controller_id != followed:
+            self.get_logger().warn(f'controller {cid} took over from the silent {followed}')
         if (self.lockstep and verdict == CommandVerdict.APPLIED and loop.engaged
                 and loop.answered_current):
             self._step(self.cfg.period)
@@ -220,7 +222,7 @@ class DeviceDriver(LifecycleNode):
         level, message = (2, f'fault: {self.fault}') if self.fault else (1, 'not configured')
         if loop is not None:
             values.update(loop.values(common.monotonic()))
-            values['rejected_commands'] = str(self.rejected.total + loop.rejected_seq)
+            values['rejected_commands'] = str(self.rejected.total + loop.rejected_commands)
             if not self.fault:
                 level, message = loop.health()
         self.diag_pub.publish(common.diagnostics(self, 'device_driver: loop', values, level,

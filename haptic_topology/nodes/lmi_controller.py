@@ -39,6 +39,7 @@ from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
 from haptic_topology.control.safety import ModelHealth
 from haptic_topology.nodes import common, node_params
 from haptic_topology.nodes.convert import (
+    CONTROLLER_ID,
     MessageError,
     RejectCounter,
     command_msg,
@@ -211,6 +212,7 @@ class LmiController(Node):
                        'lockstep_timeouts': str(self.lockstep_timeouts),
                        'hand_batches_sent': str(self.batcher.batches),
                        'hand_batches_partial': str(self.batcher.partial),
+                       'controller_id': str(CONTROLLER_ID),
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
                        **common.matched(self._endpoints)})
         level, message = _HEALTH_MESSAGES[loop.guard.health(now)]
