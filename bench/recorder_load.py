@@ -76,8 +76,8 @@ def _messages() -> dict[str, Any]:
     state = DeviceState(task_dim=3, pose=v3, twist=v3, hand_wrench=v3, applied_wrench=v3,
                         status=0)
     state.header.frame_id = 'world'
-    cmd = DeviceCommand(mode=0, task_dim=3, wrench=v3, vt_pose=v3, vt_twist=v3,
-                        constraint_count=0, update_age=0.004)
+    cmd = DeviceCommand(controller_id=1, mode=0, task_dim=3, wrench=v3, vt_pose=v3,
+                        vt_twist=v3, constraint_count=0, update_age=0.004)
     cmd.header.frame_id = 'world'
     rows = v3 * HAND_BATCH
     hand = HandInputs(task_dim=3, seq=list(range(1, HAND_BATCH + 1)),

@@ -29,6 +29,7 @@ Example::
 
 from __future__ import annotations
 
+import secrets
 from itertools import pairwise
 from typing import Any
 
@@ -46,6 +47,15 @@ MAX_SEQ = 2 ** 53
 STATUS_BITS = 31
 #: ``DeviceCommand.mode``: MODE_PENALTY 0, MODE_ACCELERATION_ONLY 1, MODE_ZERO 2.
 MODES = (0, 1, 2)
+#: Largest ``DeviceCommand.controller_id``: ids are in [1, 2**63 - 1], so they fit a signed
+#: 64-bit integer wherever a tool keeps them (0 is no id: see :func:`check_command`).
+MAX_CONTROLLER_ID = 2 ** 63 - 1
+
+
+def new_controller_id() -> int:
+    """A random controller id in [1, :data:`MAX_CONTROLLER_ID`] (``secrets``, 63 bits): two
+    controller processes share one with probability 2**-63."""
+    return 1 + secrets.randbelow(MAX_CONTROLLER_ID)
 
 
 class MessageError(HapticTopologyError):
@@ -148,22 +158,26 @@ def check_state(msg: Any, dim: int) -> tuple[int, float, np.ndarray, np.ndarray,
             array(msg, 'hand_wrench', dim), array(msg, 'applied_wrench', dim), status)
 
 
-def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray]:
-    """A ``DeviceCommand``: ``(state_seq, mode, wrench)``. The wrench must be finite; the VT
-    pose/twist (recorded, not applied) must have ``dim`` entries; ``constraint_count`` in
-    [0, dim]; ``update_age`` >= 0 (inf before the controller's first update)."""
+def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray, int]:
+    """A ``DeviceCommand``: ``(state_seq, mode, wrench, controller_id)``. The wrench must be
+    finite; ``controller_id`` in [1, MAX_CONTROLLER_ID] (a message recorded before the field
+    existed has none: 0 is returned for it); the VT pose/twist (recorded, not applied) must
+    have ``dim`` entries; ``constraint_count`` in [0, dim]; ``update_age`` >= 0 (inf before
+    the controller's first update)."""
     check_task_dim(msg, dim)
     wrench = array(msg, 'wrench', dim)      # first: what is applied keeps its reason
     mode = int(msg.mode)
     check_range(mode in MODES, msg, f'mode must be one of {list(MODES)}, got {mode}')
     state_seq = check_seq(msg, 'state_seq')
+    controller_id = (check_int(msg, 'controller_id', 1, MAX_CONTROLLER_ID)
+                     if hasattr(msg, 'controller_id') else 0)
     check_int(msg, 'constraint_count', 0, dim)
     age = float(msg.update_age)
     check_range(age >= 0.0, msg, f'update_age must be >= 0 (or inf), got {age}')
     check_stamp(msg)
     array(msg, 'vt_pose', dim, finite=False)
     array(msg, 'vt_twist', dim, finite=False)
-    return state_seq, mode, wrench
+    return state_seq, mode, wrench, controller_id
 
 
 def check_hand_inputs(msg: Any, dim: int, max_wrench: float

@@ -45,8 +45,9 @@ if TYPE_CHECKING:
 class DeviceDriverConfig:
     """What ``device_driver`` runs with. ``rate_hz`` (Hz), ``period`` (s) and ``period_ns``
     (ns) describe the same device cycle; ``wrench_limit`` (N, N m, task_dim values);
-    ``watchdog`` with the damping expanded to task_dim values; ``run_duration`` (s, 0 = until
-    stopped)."""
+    ``watchdog`` with the damping expanded to task_dim values; ``takeover_after`` (s: silence
+    of the followed controller before another may take over, ``device.loop``);
+    ``run_duration`` (s, 0 = until stopped)."""
 
     settings: DeviceDriverSettings
     scenario: Scenario
@@ -58,6 +59,7 @@ class DeviceDriverConfig:
     period_ns: int
     wrench_limit: np.ndarray
     watchdog: WatchdogConfig
+    takeover_after: float
     min_subscribers: int
     lockstep_warn_after: float
     run_duration: float
@@ -121,7 +123,8 @@ def resolve_device_driver(s: DeviceDriverSettings, sc: Scenario) -> DeviceDriver
         settings=s, scenario=sc, backend=s.backend,
         backend_options=parse_backend_options(s.backend_options), clock=clock, rate_hz=rate,
         period=period, period_ns=period_ns, wrench_limit=limit, watchdog=watchdog,
-        min_subscribers=s.min_subscribers, lockstep_warn_after=s.lockstep_warn_after,
+        takeover_after=s.takeover_after, min_subscribers=s.min_subscribers,
+        lockstep_warn_after=s.lockstep_warn_after,
         run_duration=s.run_duration, executor=s.executor, sched_priority=s.sched_priority)
 
 

@@ -229,6 +229,11 @@ class DeviceDriverSettings(NodeSettings):
     watchdog_damping: tuple[float, ...] = param(
         [0.0], 'damping of the damping fallback (N s/m, N m s/rad): one value for every axis '
         'or task_dim values')
+    takeover_after: float = param(0.5, 'the device follows the controller whose command '
+                                  'engaged it; another controller (another '
+                                  'DeviceCommand.controller_id, e.g. a restarted one) may take '
+                                  'over only once it has been silent this long (s)',
+                                  lo=0.01, hi=3600.0)
     min_subscribers: int = param(1, 'ignore commands (device idle) until this many '
                                  'subscribers see the state topic (e.g. 2 with a recorder)',
                                  lo=0, hi=100)

@@ -51,6 +51,7 @@ def main() -> int:
     state.task_dim = cmd.task_dim = hand.task_dim = upd.task_dim = 3
     state.pose = state.twist = state.hand_wrench = state.applied_wrench = [0.1, 0.2, 0.3]
     cmd.wrench = cmd.vt_pose = cmd.vt_twist = [0.4, 0.5, 0.6]
+    cmd.controller_id = 1
     hand.pose = hand.twist = hand.hand_wrench = hand.coupling_wrench = [0.7, 0.8, 0.9] * BATCH
     stamps: list[Time] = []
     upd.dof = 3

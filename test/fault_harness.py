@@ -9,7 +9,10 @@ at a logged wall-clock time (the header stamps are wall-clock ROS time too):
 2. ``bad_messages``: 0.5 s of malformed messages from this process on every input topic
    (NaN, wrong sizes, wrong task_dim / dof, non-SPD mass matrix, unknown mode, hand input
    batches with a huge wrench, a NaN, a short pose or fewer state seqs than seqs) plus
-   finite commands of 1e9 N answering real device states;
+   finite commands of 1e9 N answering real device states, twice per state: with the id of
+   the controller the device follows, copied from the driver's ``/diagnostics`` (identity is
+   not authentication: these reach the device and must be clamped), and with another id
+   (rejected as foreign);
 3. ``ve_stop``: SIGSTOP ve_sim for 1 s, SIGCONT (stale LMI, degrade, re-sync);
 4. ``kill_ve``, ``kill_controller``, ``kill_device``, ``kill_recorder``: SIGKILL the node and
    start it again (the recorder into a second bag).
@@ -44,6 +47,8 @@ WAIT = 90.0
 WATCHDOG, IDLE = 4, 16
 #: seq / state_seq of every message the injector publishes (so the analysis can tell them apart).
 INJECTED_SEQ = 10 ** 9
+#: The controller id of the injector's foreign commands (not a controller's random one).
+FOREIGN_ID = 2 ** 62 + 54321
 
 
 @dataclass
@@ -180,6 +185,7 @@ class Injector:
         self.types = (DeviceCommand, DeviceState, HandInputs, LmiUpdate)
         self.counts: dict[str, int] = {}
         self._huge = False
+        self._followed = 0                       # the controller id the device follows
         self._n_state = 0
         self._bad_commands: dict[str, dict[str, Any]] = {}
         self._bad_keys: list[str] = []
@@ -217,10 +223,12 @@ class Injector:
             self.last_running_seq = int(msg.seq)
         if self._huge and not msg.status & IDLE:
             cmd_t = self.types[0]
-            self.cmd_pub.publish(cmd_t(state_seq=msg.seq, task_dim=3, mode=0,
-                                       wrench=[1e9, -1e9, 1e3], vt_pose=list(msg.pose),
-                                       vt_twist=list(msg.twist)))
-            self._count('command_huge_finite')
+            for cid, key in ((self._followed, 'command_huge_finite'),
+                             (FOREIGN_ID, 'command_huge_foreign')):
+                self.cmd_pub.publish(cmd_t(state_seq=msg.seq, controller_id=cid, task_dim=3,
+                                           mode=0, wrench=[1e9, -1e9, 1e3],
+                                           vt_pose=list(msg.pose), vt_twist=list(msg.twist)))
+                self._count(key)
             # One malformed command per state too (the driver's queue is 1 deep: a message
             # sent only every 10 ms may be overwritten before it is taken).
             key = self._bad_keys[self._n_state % len(self._bad_keys)]
@@ -234,7 +242,12 @@ class Injector:
             self.executor.spin_once(timeout_sec=0.005)
 
     def burst(self, seconds: float) -> None:
-        """Every 10 ms one of each malformed message; huge finite commands on every state."""
+        """Every 10 ms one of each malformed message; huge finite commands on every state
+        (module doc)."""
+        followed = self.value('device_driver: loop', 'controller_id', '0')
+        if not followed.isdigit() or int(followed) == 0:
+            raise RuntimeError(f'the device driver reports no controller id: {followed!r}')
+        self._followed = int(followed)
         cmd_t, state_t, hand_t, lmi_t = self.types
         nan = math.nan
         good_u = [1.0, 0.0, 0.0]
@@ -394,8 +407,10 @@ def _run_faults(out: Path) -> FaultRun:
                 # newest state it answered running), not when it has merely synced to the
                 # VE's keep-alive updates (fresh model, full scale from its start): else,
                 # on a loaded machine, the driver may be killed before the new controller
-                # has seen it and it never counts a second device session.
-                ('lmi_controller', lambda: controller_back('loop_seq', 1)),
+                # has seen it and it never counts a second device session. And the device
+                # follows it: it took over from the killed controller's id.
+                ('lmi_controller', lambda: controller_back('loop_seq', 1)
+                 and int(inj.value(dev, 'controller_takeovers', '0')) >= 1),
                 ('device_driver', lambda: controller_back('device_sessions', 2))):
             t0 = time.time()
             seq_killed = inj.last_running_seq
@@ -644,8 +659,9 @@ def main() -> None:
     print(f'device states missing in the bags (best effort): {missing} of {total}')
     for key in ('device_driver: loop', 'lmi_controller: loop', 've_sim: loop'):
         rej = {k: int(v) for k, v in run.diagnostics.get(key, {}).items()
-               if k.startswith('rejected_') and v}
+               if k.startswith(('rejected_', 'foreign_', 'controller_takeovers')) and v}
         print(f'{key} rejected: {rej}')
+    print(f'injected: {run.injected}')
 
 
 

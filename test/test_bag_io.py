@@ -31,6 +31,28 @@ from haptic_topology.sim.scenario import load_scenario
 REPO = Path(__file__).resolve().parent.parent
 REFERENCE = REPO / 'bags' / 'reference_fig8'
 STATE = type_name('DeviceState')
+COMMAND = type_name('DeviceCommand')
+#: The controller id given to the reference bag's commands (recorded before the field
+#: existed) when a test copies them into a bag of the current definitions.
+CID = 4242
+
+
+def _as_current(msg: Any, msgtype: str) -> Any:
+    """``msg`` (decoded from a bag, maybe with an older definition of its type) as an object
+    of the current definition: fields it lacks (``controller_id``) get :data:`CID`."""
+    ts = typestore_with_haptic_msgs()
+    names = [name for name, _ in ts.fielddefs[msgtype][1]]
+    if all(hasattr(msg, n) for n in names):
+        return msg
+    return ts.types[msgtype](**{n: getattr(msg, n, CID) for n in names})
+
+
+def _current_bytes(m: Any, msg: Any) -> bytes:
+    """The CDR of the bag message ``m`` (decoded: ``msg``) under the current definition."""
+    if m.msgtype != COMMAND or hasattr(msg, 'controller_id'):
+        return bytes(m.data)
+    ts = typestore_with_haptic_msgs()
+    return bytes(ts.serialize_cdr(_as_current(msg, COMMAND), COMMAND))
 
 
 def _state_bytes(seq: int) -> bytes:
@@ -186,7 +208,10 @@ def test_bad_bags_name_the_file_and_the_problem(tmp_path: Path, case: str,
 # -- foreign and malformed messages in a bag -------------------------------------------------
 def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
     """Copy the bag ``src`` to ``dst`` and add foreign/malformed messages on the graph's
-    topics (each after the real message it imitates); return the skips expected per key."""
+    topics (each after the real message it imitates, but for one command of another
+    controller id just before the real answer to the first running state, and a device
+    driver diagnostics status that reports following :data:`CID`); return the skips
+    expected per key."""
     from dataclasses import replace as dc_replace
 
     ts = typestore_with_haptic_msgs()
@@ -197,13 +222,26 @@ def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
                   sources=message_definitions(),
                   custom=(bag.metadata or {}).get('custom_data') or {})
     index = {t: i for i, t in enumerate(names)}
-    decode = decoder()
+    decode = decoder(bag=bag)
     first: dict[str, Any] = {}
     running_state: Any = None
     for m in iter_messages(bag):
-        w.write(index[m.topic], m.log_time, m.data)
-        kind = m.topic.rsplit('/', 1)[-1]
         msg = decode(m)
+        kind = m.topic.rsplit('/', 1)[-1]
+        if (kind == 'command' and running_state is not None
+                and int(msg.state_seq) == int(running_state[1].seq)):
+            impostor = replace(_as_current(msg, COMMAND), controller_id=CID + 1,
+                               wrench=np.array([7.5, -7.5, 0.75]))
+            w.write(index[m.topic], m.log_time - 1,
+                    bytes(ts.serialize_cdr(impostor, COMMAND)))
+            diag = ts.types['diagnostic_msgs/msg/DiagnosticArray']
+            status = ts.types['diagnostic_msgs/msg/DiagnosticStatus']
+            kv = ts.types['diagnostic_msgs/msg/KeyValue']
+            report = diag(msg.header, [status(0, 'device_driver: loop', 'ok', '',
+                                              [kv('controller_id', str(CID))])])
+            w.write(index['/diagnostics'], m.log_time + 1,
+                    bytes(ts.serialize_cdr(report, 'diagnostic_msgs/msg/DiagnosticArray')))
+        w.write(index[m.topic], m.log_time, _current_bytes(m, msg))
         first.setdefault(kind, (m, msg))
         if kind == 'state' and running_state is None and not msg.status & 4:
             running_state = (m, msg)
@@ -228,7 +266,7 @@ def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
     ]
     for msg in hostile_states:
         add('state', msg, t)
-    cm, cmd = first['command'][0], decode(first['command'][0])
+    cm, cmd = first['command'][0], _as_current(decode(first['command'][0]), COMMAND)
     for msg in (dc_replace(cmd, wrench=nan3), dc_replace(cmd, task_dim=6, wrench=z6),
                 dc_replace(cmd, state_seq=2 ** 63 - 1),
                 dc_replace(cmd, wrench=np.array([-13.25, 11.5, 1.125]))):  # duplicate
@@ -250,7 +288,7 @@ def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
     return {'state_size': 1, 'state_non_finite': 1, 'state_task_dim': 1, 'state_range': 3,
             'state_duplicate': 1, 'state_foreign_seq': 1, 'state_decode': 1,
             'command_non_finite': 1, 'command_task_dim': 1, 'command_range': 1,
-            'command_duplicate': 1, 'update_dof': 1, 'update_range': 2,
+            'command_duplicate': 2, 'update_dof': 1, 'update_range': 2,
             'update_non_finite': 1, 'path_range': 1, 'path_size': 1}
 
 
@@ -258,8 +296,9 @@ def test_foreign_and_malformed_messages_in_a_bag_are_skipped_and_counted(
         tmp_path: Path) -> None:
     """A recorded run plus hostile messages on every graph topic (wrong sizes, NaN,
     task_dim 6, seq 2**63 - 1, false states with real seqs, a seq far outside the run,
-    undecodable bytes): the trace is the clean run's, every hostile message is counted, and
-    ``haptic-topology analyze`` writes trace plot and summary."""
+    undecodable bytes, a command of another controller read before the real one): the trace
+    is the clean run's, every hostile message is counted, and ``haptic-topology analyze``
+    writes trace plot and summary."""
     expected = _hostile_copy(REFERENCE, tmp_path / 'hostile')
     clean = read_graph_bag(REFERENCE, 'fig8', 3)
     run = read_graph_bag(tmp_path / 'hostile', 'fig8', 3, task_dim=3)
@@ -281,6 +320,34 @@ def test_foreign_and_malformed_messages_in_a_bag_are_skipped_and_counted(
     assert (out / 'hostile.png').is_file()
 
 
+def test_bags_recorded_before_controller_id_decode_with_their_own_definition() -> None:
+    """The reference bag holds ``DeviceCommand`` without ``controller_id``: its bytes do not
+    decode with the current definition, so the reader takes the bag's stored one for it (and
+    the current one for the other types), and plain replay leaves the topic out."""
+    from haptic_topology.bag.reader import outdated_types
+    from haptic_topology.bag.replay import left_out, plan
+
+    bag = open_bag(REFERENCE)
+    assert outdated_types(bag) == {COMMAND}
+    assert left_out(bag) == {'/haptic/device/command': COMMAND}
+    decode = decoder(bag=bag)
+    msgs = list(iter_messages(bag, ['/haptic/device/command']))
+    commands = [decode(m) for m in msgs]
+    assert len(commands) == 1606 and not hasattr(commands[0], 'controller_id')
+    assert commands[0].task_dim == 3 and commands[0].wrench.shape == (3,)
+    with pytest.raises(BagError, match='cannot decode haptic_topology_msgs/msg/DeviceCommand'):
+        decoder()(msgs[0])
+    # States decode with the current (unchanged) definition from the same store.
+    state = decode(next(iter_messages(bag, ['/haptic/device/state'])))
+    assert state.task_dim == 3
+    assert {it.topic for it in plan(bag)} == set(bag.metadata_topics()) - {
+        '/haptic/device/command'}
+    with pytest.raises(BagError, match='cannot replay /haptic/device/command: recorded with '
+                                       'an older definition of haptic_topology_msgs/msg/'
+                                       'DeviceCommand'):
+        plan(bag, ['/haptic/device/command'])
+
+
 # -- bags of the batched hand inputs ------------------------------------------------------------
 def _batched_copy(src: Path, dst: Path, drop_commands: set[int]) -> int:
     """Copy the bag ``src`` (1 kHz ``HandInput`` on ``/haptic/hand``) to ``dst`` as the graph
@@ -296,7 +363,7 @@ def _batched_copy(src: Path, dst: Path, drop_commands: set[int]) -> int:
     w = BagWriter(dst, [TopicSpec(t, topics[t], (make_qos(True, 500),)) for t in names], ts,
                   sources=message_definitions(),
                   custom=(bag.metadata or {}).get('custom_data') or {})
-    decode = decoder()
+    decode = decoder(bag=bag)
     batch_type = type_name('HandInputs')
     pending: list[Any] = []
     batches = 0
@@ -325,7 +392,7 @@ def _batched_copy(src: Path, dst: Path, drop_commands: set[int]) -> int:
             if len(pending) == 10:
                 flush(m.log_time)
         elif not (m.topic.endswith('/command') and int(decode(m).state_seq) in drop_commands):
-            w.write(index[m.topic], m.log_time, m.data)
+            w.write(index[m.topic], m.log_time, _current_bytes(m, decode(m)))
     flush(last)
     w.close()
     return batches

@@ -41,10 +41,13 @@ def test_applied_wrench_finite_and_within_limits_at_every_cycle(run: fh.FaultRun
             assert np.all(np.abs(s.applied) <= fh.LIMIT + 1e-9), np.abs(s.applied).max(axis=0)
             n += len(s.seqs)
     assert n > 15000
-    # The injected 1e9 N commands (those that came before the controller's answer to the same
-    # state; how many did depends on scheduling) were clamped to the limit, not passed on.
+    # The injected 1e9 N commands with the followed controller's id copied (those that came
+    # before the controller's answer to the same state; how many did depends on scheduling)
+    # were clamped to the limit, not passed on; those with another id were counted foreign.
     assert run.injected['command_huge_finite'] > 0
+    assert run.injected['command_huge_foreign'] > 0
     assert fh.figures(run, 'bad_messages')['max_ratio'] <= 1.0 + 1e-9
+    assert run.diagnostics['device_driver: loop']['foreign_commands'] >= 1
 
 
 def test_bags_complete_up_to_every_fault(run: fh.FaultRun) -> None:
@@ -104,6 +107,8 @@ def test_loop_recovers_without_a_jump(run: fh.FaultRun, fault: str) -> None:
 
 def test_restarts_were_seen_by_the_others(run: fh.FaultRun) -> None:
     ctl = run.diagnostics['lmi_controller: loop']
+    # The restarted controller (a new id) took the device over from the killed one.
+    assert run.diagnostics['device_driver: loop']['controller_takeovers'] >= 1
     assert ctl['degradations'] >= 1         # ve_sim stopped: force faded out
     assert ctl['resyncs_held'] >= 1
     assert ctl['device_sessions'] >= 2      # the restarted device_driver's seq went back

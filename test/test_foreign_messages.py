@@ -4,6 +4,9 @@
   ``lmi_controller`` and ``ve_sim``: rejected and counted per reason in ``/diagnostics`` (a
   hand input batch with one bad sample as a whole), and both nodes still answer afterwards
   (one message must never end a node);
+* an impostor controller (another ``controller_id``) answering every running device state of
+  a lock-step graph with a well-formed command: none is applied (the run equals the offline
+  simulation exactly), and the device driver counts them as ``foreign_commands``;
 
 Every wait is on a message, with a deadline; nothing is timed.
 """
@@ -15,8 +18,11 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from haptic_topology.msgcheck import MAX_SEQ
@@ -211,3 +217,126 @@ def test_extreme_integers_are_rejected_and_nodes_keep_answering() -> None:
     for code, out in results:
         assert code == 0, out[-3000:]
         assert 'Traceback' not in out, out[-3000:]
+
+
+# -- an impostor controller --------------------------------------------------------------------
+#: The impostor's wrench (within fig8's limit of 20 N, 20 N, 2 N m: it would be applied as is)
+#: and its id (any other than the controller's random one).
+IMPOSTOR_WRENCH = [7.5, -7.5, 0.75]
+IMPOSTOR_ID = 2 ** 62 + 12345
+DURATION = 2.0
+
+
+class Impostor:
+    """Answers every running device state with a well-formed command of another controller
+    id, on the lock-step graph's QoS, from its own rclpy context in this process."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+
+        from haptic_topology.nodes import common
+        from haptic_topology.settings import Clock
+        from haptic_topology_msgs.msg import DeviceCommand, DeviceState
+
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = n = rclpy.create_node('impostor', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(n)
+        qos = common.loop_qos(Clock.LOCKSTEP)
+        self.cmd_t = DeviceCommand
+        self.pub = n.create_publisher(DeviceCommand, common.TOPIC_COMMAND, qos)
+        n.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state, qos)
+        n.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS, self._on_diag,
+                              common.QOS_DIAGNOSTICS)
+        self.sent = 0
+        self.foreign = 0          # the driver's foreign_commands, newest report
+
+    def _on_state(self, msg: Any) -> None:
+        if msg.status & 16:       # idle: only the controller's answer may engage the device
+            return
+        cmd = self.cmd_t(state_seq=msg.seq, controller_id=IMPOSTOR_ID, mode=0, task_dim=3,
+                         wrench=IMPOSTOR_WRENCH, vt_pose=list(msg.pose),
+                         vt_twist=list(msg.twist))
+        cmd.header.stamp = msg.header.stamp
+        self.pub.publish(cmd)
+        self.sent += 1
+
+    def _on_diag(self, msg: Any) -> None:
+        for st in msg.status:
+            if st.name == 'device_driver: loop':
+                values = {kv.key: kv.value for kv in st.values}
+                self.foreign = max(self.foreign, int(values.get('foreign_commands', '0')))
+
+    def spin_until(self, done: Callable[[], bool]) -> None:
+        while not done():
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+
+
+def test_impostor_commands_answering_real_states_are_never_applied(tmp_path: Path) -> None:
+    """A lock-step fig8 run (four node processes) with an impostor answering every running
+    state, often before the controller: the device applies only the controller's commands, so
+    the run equals ``simulate()`` to 1e-9 at every cycle; the driver reports following the
+    controller's id and counts the impostor's commands; the bag analysis keeps the
+    controller's commands where both answered a state."""
+    from dataclasses import replace
+
+    from haptic_topology.bag.graph_trace import read_graph_bag
+    from haptic_topology.bag.reader import decoder, iter_messages, open_bag
+    from haptic_topology.bringup.run import run_graph
+    from haptic_topology.control.laws import ControlMode
+    from haptic_topology.sim.lockstep import simulate
+    from haptic_topology.sim.scenario import load_scenario
+
+    bag = tmp_path / 'impostor'
+    impostor = Impostor()
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            job = pool.submit(run_graph, 'fig8', 'penalty', DURATION, bag, PARAMS,
+                              startup_timeout=60.0, clock='lockstep')
+            impostor.spin_until(job.done)
+            codes = job.result()
+        assert all(c == 0 for c in codes.values()), codes
+    finally:
+        impostor.close()
+    sc = load_scenario('fig8')
+    run = read_graph_bag(bag, 'fig8', sc.linkage.dof)
+    offline = simulate(replace(sc, duration=DURATION), ControlMode.PENALTY)
+    graph = run.trace
+    assert len(graph) == len(offline) == round(DURATION / sc.dt) + 1
+    for col in ('device_pose', 'device_twist', 'hand_wrench', 'applied', 'vt_pose', 'command',
+                'lmi_pose'):
+        np.testing.assert_allclose(graph.columns[col], offline.columns[col], rtol=0.0,
+                                   atol=1e-9, err_msg=col)
+    assert not np.any(np.all(graph.columns['applied'] == IMPOSTOR_WRENCH, axis=1))
+    # What the nodes reported: the driver follows the controller's id, not the impostor's,
+    # never let another take over, and counted the impostor's commands.
+    decode = decoder(bag=open_bag(bag))
+    reports: dict[str, dict[str, str]] = {}
+    counts: list[tuple[str, str]] = []      # device reports: (foreign, rejected commands)
+    for m in iter_messages(open_bag(bag), ['/diagnostics']):
+        for st in decode(m).status:
+            reports[st.name] = {kv.key: kv.value for kv in st.values}
+            if st.name == 'device_driver: loop':
+                d = reports[st.name]
+                counts.append((d.get('foreign_commands', ''), d.get('rejected_commands', '')))
+    dev, ctl = reports['device_driver: loop'], reports['lmi_controller: loop']
+    assert dev['controller_id'] == ctl['controller_id'] != str(IMPOSTOR_ID)
+    assert dev['controller_takeovers'] == '0'
+    # The newest count the driver reported (in the bag or live), against what was sent: the
+    # impostor's answers to the last states may come after the driver stopped.
+    foreign = max([impostor.foreign] + [int(f) for f, _ in counts if f])
+    assert 0 < foreign <= impostor.sent, (impostor.sent, impostor.foreign, counts)
+    assert int(dev['rejected_commands']) >= int(dev['foreign_commands'])
+    assert run.skipped.get('command_duplicate', 0) > 0     # both answered those states
+    print(f'impostor: sent {impostor.sent} commands, driver counted {foreign} foreign '
+          f'(reports in the bag: {counts}; live: {impostor.foreign}), applied none; '
+          f'{run.skipped.get("command_duplicate", 0)} states answered by both in the bag')

@@ -28,6 +28,8 @@ from haptic_topology.sim.scenario import load_scenario
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate, VtPath
 
 SC = load_scenario('fig8')
+#: A controller id (any in [1, 2**63 - 1]).
+CID = 12345
 TASK = SC.linkage.task
 DOF = SC.linkage.dof
 
@@ -54,8 +56,8 @@ def _state(**fields: Any) -> DeviceState:
 
 
 def _command(**fields: Any) -> DeviceCommand:
-    msg = DeviceCommand(state_seq=5, task_dim=3, wrench=[1.0, 0.0, 0.0], mode=0,
-                        vt_pose=[0.0] * 3, vt_twist=[0.0] * 3)
+    msg = DeviceCommand(state_seq=5, controller_id=CID, task_dim=3, wrench=[1.0, 0.0, 0.0],
+                        mode=0, vt_pose=[0.0] * 3, vt_twist=[0.0] * 3)
     for k, v in fields.items():
         setattr(msg, k, v)
     return msg
@@ -82,7 +84,26 @@ def test_good_messages_pass() -> None:
     np.testing.assert_allclose(snap.mass_matrix, _snapshot().mass_matrix)
     assert state_from_msg(_state(), TASK)[0] == 5
     assert command_from_msg(_command(), TASK)[0] == 5
+    assert command_from_msg(_command(), TASK)[3] == CID
     assert _hand_inputs(_hand())[1] == [5, 6]
+
+
+def test_controller_ids_drawn_in_range_and_written_into_commands() -> None:
+    """Every process draws its own random id in [1, 2**63 - 1]; ``command_msg`` writes it."""
+    from haptic_topology.control.controller import CycleOutput
+    from haptic_topology.control.laws import ControlMode
+    from haptic_topology.msgcheck import MAX_CONTROLLER_ID, new_controller_id
+    from haptic_topology.nodes.convert import CONTROLLER_ID, command_msg
+
+    ids = {new_controller_id() for _ in range(1000)}
+    assert len(ids) == 1000 and all(1 <= i <= MAX_CONTROLLER_ID for i in ids)
+    assert 1 <= CONTROLLER_ID <= MAX_CONTROLLER_ID == 2 ** 63 - 1
+    v = np.zeros(3)
+    out = CycleOutput(wrench=np.array([1.0, 0.0, 0.0]), coupling=v, vt_wrench=v, vt_pose=v,
+                      vt_twist=v, constraint_count=0, mode=ControlMode.PENALTY)
+    msg = command_msg(DeviceCommand(), 5, Time(), out, 0.0)
+    assert command_from_msg(msg, TASK)[3] == CONTROLLER_ID
+    assert command_msg(DeviceCommand(), 5, Time(), out, 0.0, 77).controller_id == 77
 
 
 def _spd_broken() -> list[float]:
@@ -176,6 +197,10 @@ INT_CASES: list[tuple[str, Callable[[], Any], str, str]] = [
      'DeviceCommand.update_age must be >= 0'),
     ('command', lambda: _command(vt_pose=[0.0] * 6), 'size',
      'DeviceCommand.vt_pose must have 3 entries'),
+    ('command', lambda: _command(controller_id=0), 'range',
+     f'DeviceCommand.controller_id must be in [1, {BIG}], got 0'),
+    ('command', lambda: _command(controller_id=2 ** 64 - 1), 'range',
+     f'DeviceCommand.controller_id must be in [1, {BIG}], got {2 ** 64 - 1}'),
     ('hand', lambda: _hand(seq=[1, BIG]), 'range',
      f'HandInputs.seq must be in [1, {MAX}], got [{BIG}]'),
     ('hand', lambda: _hand(state_seq=[BIG, BIG]), 'range',

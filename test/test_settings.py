@@ -54,6 +54,7 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
         ('watchdog_ramp', 0.05, 1e-3, 10.0, None, True),
         ('watchdog_fallback', 'zero', None, None, ('zero', 'damping'), True),
         ('watchdog_damping', [0.0], None, None, None, True),
+        ('takeover_after', 0.5, 0.01, 3600.0, None, True),
         ('min_subscribers', 1, 0, 100, None, True),
         ('wrench_limit', [0.0], None, None, None, True),
         ('clock', 'wall', None, None, ('wall', 'lockstep'), True),

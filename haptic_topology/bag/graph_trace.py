@@ -19,10 +19,15 @@ Messages that do not belong to the run are skipped and counted per ``<kind>_<rea
 fail the nodes' own checks (:mod:`haptic_topology.msgcheck`: task_dim, dof, sizes,
 non-finite values, integer ranges; the run's task_dim is the scenario's, else the most common
 one among the states, its dof the scenario's, else the most common among the updates), repeat
-a sequence number already read (``state_duplicate``, ``command_duplicate``: the first one
-read is kept; a bag cannot tell which publisher sent which), or lie far outside the run
-(``state_foreign_seq``: states are grouped where consecutive seqs are at most
-:data:`MAX_SEQ_GAP` apart, and the largest group holding running states is the run).
+a sequence number already read (``state_duplicate``, ``command_duplicate``; of several
+commands answering one state, the one from a controller the device driver reported following
+(``controller_id`` in its ``/diagnostics``, any time in the bag) is kept, else the first one
+read; of states, the first one read: a bag cannot tell which publisher sent which), or lie
+far outside the run (``state_foreign_seq``: states are grouped where consecutive seqs are at
+most :data:`MAX_SEQ_GAP` apart, and the largest group holding running states is the run).
+Messages are decoded with the definitions stored in the bag where they differ from the
+current ones (:func:`~haptic_topology.bag.reader.bag_typestore`): bags recorded before
+``DeviceCommand.controller_id`` existed read as before.
 
 Loop figures: the device driver's own counts from its last ``/diagnostics`` status
 (answered fraction, round trip p50/p99), and an estimate from the bag alone: the fraction of
@@ -60,6 +65,7 @@ from haptic_topology.msgdefs import type_name
 from haptic_topology.sim.trace import Trace
 
 _WATCHDOG = 4
+_DEVICE_STATUS = 'device_driver: loop'
 #: Topic suffix -> type the graph publishes on it (a bag without any of them is foreign);
 #: ``haptic/hand`` (one ``HandInput`` per cycle): bags recorded before the hand inputs were
 #: batched on ``haptic/hand_inputs``.
@@ -105,7 +111,7 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
     bag = open_bag(path)
     p = bag.path
     require_types(bag, GRAPH_TYPES)
-    decode = decoder()
+    decode = decoder(bag=bag)
     skipped: dict[str, int] = {}
 
     def skip(kind: str, reason: str) -> None:
@@ -124,6 +130,7 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
     updates_in: list[Any] = []
     paths_in: list[Any] = []
     diags: dict[str, dict[str, str]] = {}
+    followed: set[int] = set()     # controller ids the device driver reported following
     for raw in iter_messages(bag, progress=progress):
         topic = raw.topic
         if topic.endswith('haptic/device/state'):
@@ -137,7 +144,9 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         elif topic == '/diagnostics':
             msg = decoded('diagnostics', raw)
             for st in getattr(msg, 'status', None) or []:
-                diags[st.name] = {kv.key: kv.value for kv in st.values}
+                diags[st.name] = pairs = {kv.key: kv.value for kv in st.values}
+                if st.name == _DEVICE_STATUS and pairs.get('controller_id', '').isdigit():
+                    followed.add(int(pairs['controller_id']))
     m = task_dim if task_dim is not None else _most_common(
         [int(s.task_dim) for s in raw_states if s is not None])
     if dof is None:
@@ -163,11 +172,16 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         else:
             states[int(msg.seq)] = msg
     commands: dict[int, Any] = {}
+    followed.discard(0)
     for msg in valid('command', raw_commands, lambda c: check_command(c, m)):
-        if int(msg.state_seq) in commands:
+        seq = int(msg.state_seq)
+        if seq in commands:
             skip('command', 'duplicate')
+            if (int(getattr(msg, 'controller_id', 0)) in followed
+                    and int(getattr(commands[seq], 'controller_id', 0)) not in followed):
+                commands[seq] = msg
         else:
-            commands[int(msg.state_seq)] = msg
+            commands[seq] = msg
     updates = valid('update', updates_in, lambda u: _check_update(u, m, dof))
     vt_path: dict[int, Any] = {}
     for msg in valid('path', paths_in, lambda v: check_vt_path(v, m)):
@@ -278,7 +292,7 @@ def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndar
                  diags: dict[str, dict[str, str]]) -> dict[str, float]:
     """Loop figures from the device driver's diagnostics and from the bag's stamps."""
     out: dict[str, float] = {}
-    dev = diags.get('device_driver: loop', {})
+    dev = diags.get(_DEVICE_STATUS, {})
     for key in ('answered_fraction', 'answered_or_previous_fraction', 'round_trip_p50_ms',
                 'round_trip_p99_ms', 'round_trip_max_ms', 'rate_hz', 'period_p99_ms',
                 'overruns', 'max_consecutive_missed'):

@@ -11,10 +11,16 @@ reader, so it needs neither the summary nor the footer: a bag whose recorder was
 reads up to the last complete chunk, and :attr:`Bag.truncated` tells that this happened
 (:func:`haptic_topology.bag.repair.repair_bag` makes such a file whole for other readers).
 Messages come in file order, which for our recorder is arrival order.
+
+:func:`decoder` of a bag decodes each message with the definition the bag stores for its type
+(MCAP ``ros2msg`` schema) where that differs from the current ``.msg`` text: a bag recorded
+before a field was added (``DeviceCommand.controller_id``) reads as recorded, without the new
+field (:func:`bag_typestore`).
 """
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -26,8 +32,10 @@ from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from rosbags.serde import SerdeError
+from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
+from haptic_topology import MSGS_PACKAGE_NAME
 from haptic_topology.errors import BagError
 from haptic_topology.msgdefs import typestore_with_haptic_msgs
 
@@ -232,9 +240,78 @@ def read_channels(bag: Bag) -> dict[str, dict[str, Any]]:
     return out
 
 
-def decoder(typestore: Typestore | None = None) -> Callable[[BagMessage], Any]:
-    """A function decoding a :class:`BagMessage` with ``typestore`` (default: ours)."""
-    store = typestore or typestore_with_haptic_msgs()
+def bag_typestore(bag: Bag) -> Typestore:
+    """The typestore to decode ``bag`` with: ours (:func:`typestore_with_haptic_msgs`), unless
+    the bag stores another definition of one of our package's types (it was recorded with an
+    older ``.msg``, see :func:`outdated_types`); then a store with the bag's definitions of
+    those types and ours of the others."""
+    return _store_with(_stored_definitions(bag))
+
+
+def outdated_types(bag: Bag) -> set[str]:
+    """Our package's types whose definition stored in ``bag`` has other fields than the
+    current ``.msg`` (e.g. ``DeviceCommand`` of a bag recorded before ``controller_id``): their
+    recorded bytes decode only with the stored definition. A stored schema that does not
+    parse counts as current (ours is used)."""
+    stored = _stored_definitions(bag)
+    return set(_outdated(stored)) & {t for t, _ in stored}
+
+
+def _stored_definitions(bag: Bag) -> tuple[tuple[str, str], ...]:
+    """(type, ros2msg schema text) of our package's types in the bag's channels."""
+    stored: dict[str, str] = {}
+    for ch in read_channels(bag).values():
+        msgtype = ch['type']
+        if (msgtype.startswith(f'{MSGS_PACKAGE_NAME}/') and ch['schema']
+                and ch['schema_encoding'] == 'ros2msg'):
+            stored.setdefault(msgtype, ch['schema'])
+    return tuple(sorted(stored.items()))
+
+
+@functools.cache
+def _outdated(stored: tuple[tuple[str, str], ...]) -> dict[str, Any]:
+    """The parsed stored definitions (with their dependencies) of the types of ``stored``
+    whose fields differ from ours; empty when all are current (cached per bag kind)."""
+    ours = typestore_with_haptic_msgs()
+    older: dict[str, Any] = {}
+    for msgtype, text in stored:
+        try:
+            types = get_types_from_msg(text, msgtype)
+        except TypesysError:
+            continue
+        if msgtype in types and _fields(types[msgtype]) != _fields(ours.fielddefs.get(msgtype)):
+            older.update(types)
+    return older
+
+
+@functools.cache
+def _store_with(stored: tuple[tuple[str, str], ...]) -> Typestore:
+    """Our typestore with the outdated types of ``stored`` replaced by their stored
+    definitions (cached: the same store for bags of one kind)."""
+    ours = typestore_with_haptic_msgs()
+    older = _outdated(stored)
+    if not older:
+        return ours
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(older)
+    store.register({k: v for k, v in ours.fielddefs.items()
+                    if k.startswith(f'{MSGS_PACKAGE_NAME}/') and k not in older})
+    return store
+
+
+def _fields(fielddef: Any) -> Any:
+    """The field names and types of a rosbags type definition (constants left out)."""
+    return None if fielddef is None else [(f[0].lower(), f[1]) for f in fielddef[1]]
+
+
+def decoder(typestore: Typestore | None = None, bag: Bag | None = None
+            ) -> Callable[[BagMessage], Any]:
+    """A function decoding a :class:`BagMessage` with ``typestore``; default: the store for
+    ``bag`` (:func:`bag_typestore`), or ours without a bag."""
+    if typestore is not None:
+        store = typestore
+    else:
+        store = bag_typestore(bag) if bag is not None else typestore_with_haptic_msgs()
 
     def decode(msg: BagMessage) -> Any:
         try:

@@ -5,7 +5,10 @@ Plain replay publishes every message (or those of ``--topics``) as the recorded 
 recorded receive times scaled by ``1 / --rate``, from ``--start-offset`` seconds into the
 bag, once or ``--loop``. Each topic gets the QoS its publishers offered (the bag's
 ``offered_qos_profiles``), so e.g. recorded device states and LMI updates drive a live
-``lmi_controller`` exactly as the device and the VE did.
+``lmi_controller`` exactly as the device and the VE did. A topic whose type the bag holds in
+an older definition than the installed one (``DeviceCommand`` before ``controller_id``,
+:func:`~haptic_topology.bag.reader.outdated_types`) is left out, and named in the summary
+line: its bytes would be misread as the current type; naming it in ``--topics`` is an error.
 
 ``--check-controller`` is the controller's regression check: it starts ``lmi_controller``
 itself (in its own namespace, with the bag's scenario and the recorded control law), feeds
@@ -63,6 +66,7 @@ from haptic_topology.bag.reader import (
     decoder,
     iter_messages,
     open_bag,
+    outdated_types,
     read_channels,
     require_types,
 )
@@ -104,10 +108,15 @@ class ReplayStats:
     published: dict[str, int] = field(default_factory=dict)
     late_ms: list[float] = field(default_factory=list)
     wall_s: float = 0.0
+    #: Topics left out: recorded with an older definition of their type (module doc).
+    left_out: list[str] = field(default_factory=list)
 
     def line(self) -> str:
         text = (f'published {sum(self.published.values())} messages on '
                 f'{len(self.published)} topics in {self.wall_s:.2f} s')
+        if self.left_out:
+            text += (f'; left out {", ".join(self.left_out)} (recorded with an older message '
+                     'definition than the installed one)')
         if self.late_ms:
             late = np.array(self.late_ms)
             text += (f'; behind the recorded timing p50 {np.percentile(late, 50):.3f} ms, '
@@ -116,9 +125,17 @@ class ReplayStats:
 
 
 def plan(bag: Bag, topics: Iterable[str] | None = None, start_offset: float = 0.0) -> list[Item]:
-    """Messages of ``bag`` (``topics`` only if given) from ``start_offset`` s on, as items."""
+    """Messages of ``bag`` (``topics`` only if given) from ``start_offset`` s on, as items;
+    without the topics of :func:`left_out` (an error if ``topics`` names one)."""
     wanted = None if topics is None else {'/' + t.lstrip('/') for t in topics}
-    msgs = [m for m in iter_messages(bag) if wanted is None or m.topic in wanted]
+    old = left_out(bag)
+    if wanted is not None and wanted & set(old):
+        raise BagError(f'{bag.path}: cannot replay {", ".join(sorted(wanted & set(old)))}: '
+                       'recorded with an older definition of '
+                       f'{", ".join(sorted({old[t] for t in wanted & set(old)}))} than the '
+                       'installed one')
+    msgs = [m for m in iter_messages(bag)
+            if (wanted is None or m.topic in wanted) and m.topic not in old]
     if wanted is not None:
         missing = wanted - {m.topic for m in msgs}
         if missing:
@@ -133,6 +150,13 @@ def plan(bag: Bag, topics: Iterable[str] | None = None, start_offset: float = 0.
         raise BagError(f'{bag.path}: --start-offset {start_offset:g} s is past the bag\'s end')
     items.sort(key=lambda it: it.t)  # stable: equal times keep file order
     return items
+
+
+def left_out(bag: Bag) -> dict[str, str]:
+    """Topic -> type of the topics plain replay leaves out: their type is recorded in an older
+    definition than the installed one (module doc)."""
+    old = outdated_types(bag)
+    return {t: ch['type'] for t, ch in read_channels(bag).items() if ch['type'] in old}
 
 
 @dataclass
@@ -155,7 +179,7 @@ def controller_plan(bag: Bag) -> ControllerPlan:
     """Build the regression replay of the recorded controller (see module doc)."""
     require_types(bag, {STATE: type_name('DeviceState'), COMMAND: type_name('DeviceCommand'),
                         UPDATE: type_name('LmiUpdate')})
-    decode = decoder()
+    decode = decoder(bag=bag)
     states: list[tuple[BagMessage, Any]] = []
     commands: dict[int, Any] = {}
     updates: list[tuple[BagMessage, Any]] = []
@@ -407,7 +431,9 @@ def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None
         pubs = Publishers(spinner.node, bag, items, namespace)
         if wait_subscribers > 0:
             pubs.wait_for_subscribers(pubs.pubs, wait_subscribers)
-        return pubs.publish(items, rate, loop, stop)
+        stats = pubs.publish(items, rate, loop, stop)
+        stats.left_out = [] if topics else sorted(left_out(bag))
+        return stats
     finally:
         spinner.close()
 

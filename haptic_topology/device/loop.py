@@ -19,6 +19,35 @@ So the applied wrench is finite and within ``limit`` by construction, whatever t
 were. Commands enter through :meth:`DeviceLoop.on_command`, already checked for size and
 finiteness by the caller (``nodes.convert``); a command that answers a state this loop never
 published, or an older one than the command held, is not applied.
+
+**Which controller.** Every command carries the id of the controller that sent it
+(``DeviceCommand.controller_id``, drawn at random once per controller process; ``0`` in the
+offline simulation and for a controller hosted in the driver's process, whose commands never
+cross DDS). The loop follows one controller: the one whose command engaged the device. A
+command with another id is rejected and counted (``foreign_commands``), whatever state it
+answers, and never reaches the device, while that controller is *alive*: while a command
+carrying its id that answers one of this loop's states arrived less than ``takeover_after``
+seconds ago (default :data:`TAKEOVER_AFTER` = 0.5 s). Once it has been silent that long, the
+first command of another id that would be applied (it answers a state newer than the command
+held) is applied, and that id becomes the one followed (``controller_takeovers``): so a
+restarted controller, which draws a new id, takes the device over from its killed
+predecessor. By then the watchdog has long faded the output to its fallback
+(``timeout + ramp_time`` = 55 ms with the shipped parameters), so the take-over fades the new
+controller's output in like any recovery. The price of the rule: a foreign publisher can take
+the device over when the engaged controller stalls for ``takeover_after`` (a stall that long
+is a failure of its own: the output has been at the fallback for most of it). This is
+identity, not authentication: any process on the domain can read the id from the command
+topic and copy it (DDS security is the answer to that, see the README).
+
+Example (ids 7 and 9, ``takeover_after`` 0.5 s, states 1 to 4 published; the verdicts are
+checked by a test)::
+
+    loop.on_command(1, PENALTY, u, now=0.000, controller_id=7)  # 'applied', engages on 7
+    loop.on_command(2, PENALTY, v, now=0.001, controller_id=9)  # 'foreign', 7 is alive
+    loop.on_command(2, PENALTY, u, now=0.001, controller_id=7)  # 'applied'
+    # 7 silent from 0.001 s on; at 0.501 s it has been silent 0.5 s:
+    loop.on_command(3, PENALTY, v, now=0.501, controller_id=9)  # 'applied', 9 took over
+    loop.on_command(4, PENALTY, u, now=0.502, controller_id=7)  # 'foreign' now
 """
 
 from __future__ import annotations
@@ -37,6 +66,10 @@ from haptic_topology.device.watchdog import CommandWatchdog
 _KEEP = 4096
 #: Round-trip samples kept for the run's percentiles (10 min at 1 kHz).
 _RTT_KEEP = 600_000
+#: Default silence (s) of the followed controller after which another controller's command
+#: may take the device over (see module doc): 100 watchdog timeouts, 10 fade ramps of the
+#: shipped parameters, and shorter than a controller process needs to restart (2-4 s).
+TAKEOVER_AFTER = 0.5
 
 
 def period_ns(period: float) -> int:
@@ -58,6 +91,7 @@ class CommandVerdict:
     APPLIED = 'applied'
     OLD = 'old'                  # older than (or the same as) the command held
     UNKNOWN_STATE = 'unknown'    # answers a state this loop never published
+    FOREIGN = 'foreign'          # from another controller than the one followed
 
 
 @dataclass(frozen=True)
@@ -76,10 +110,15 @@ class DeviceLoop:
     """Engagement, the clamp/watchdog/clamp pipeline and loop statistics of one device."""
 
     def __init__(self, backend: DeviceBackend, limit: np.ndarray, watchdog: CommandWatchdog,
-                 period: float) -> None:
+                 period: float, takeover_after: float = TAKEOVER_AFTER) -> None:
+        """``limit`` (N, N m) per axis; ``period`` (s) nominal device period;
+        ``takeover_after`` (s, > 0; ``inf``: never): silence of the followed controller after
+        which another one may take over (module doc)."""
         limit = np.asarray(limit, dtype=float)
         if not (math.isfinite(period) and period > 0.0):
             raise ValueError(f'period must be > 0 s, got {period}')
+        if not takeover_after > 0.0:
+            raise ValueError(f'takeover_after must be > 0 s, got {takeover_after}')
         self.backend = backend
         self.limit = limit
         self.watchdog = watchdog
@@ -100,6 +139,11 @@ class DeviceLoop:
         self.missed_run = 0           # consecutive cycles without their answer in time, now
         self.max_missed_run = 0       # ... the longest such run (Franka's FCI stops at 20)
         self.rejected_seq = 0
+        self.takeover_after = float(takeover_after)
+        self.controller_id = 0        # id of the controller followed (valid once engaged)
+        self._heard = -math.inf       # when it last answered one of our states (s)
+        self.foreign_commands = 0     # commands of other controllers, rejected
+        self.takeovers = 0            # times another controller took over after silence
         self.saturated_cycles = 0
         self.max_applied = np.zeros(m)
 
@@ -109,24 +153,42 @@ class DeviceLoop:
 
     # -- commands ----------------------------------------------------------------------------
     def on_command(self, state_seq: int, mode: int, wrench: np.ndarray, now: float,
-                   may_engage: bool = True) -> str:
-        """Take a controller command answering state ``state_seq`` that arrived at ``now``
-        (s, the clock of :meth:`tick`); ``may_engage``: whether a non-ZERO mode may engage
-        the device now (e.g. enough subscribers see the state). Returns a
+                   may_engage: bool = True, controller_id: int = 0) -> str:
+        """Take a command of controller ``controller_id`` answering state ``state_seq`` that
+        arrived at ``now`` (s, the clock of :meth:`tick`); ``may_engage``: whether a non-ZERO
+        mode may engage the device now (e.g. enough subscribers see the state). Once engaged,
+        only the followed controller's commands are taken (module doc). Returns a
         :class:`CommandVerdict` value."""
+        other = self.engaged and controller_id != self.controller_id
+        if other and now - self._heard < self.takeover_after:
+            self.foreign_commands += 1
+            return CommandVerdict.FOREIGN
         if state_seq > self.seq or state_seq < 1:
             self.rejected_seq += 1
             return CommandVerdict.UNKNOWN_STATE
+        if not other:
+            self._heard = now
         if state_seq > self.seq - _KEEP:
             self._rtt[self._rtt_n % _RTT_KEEP] = now - self._publish_times[state_seq % _KEEP]
             self._rtt_n += 1
         if state_seq <= self._cmd_seq:
             return CommandVerdict.OLD
+        if other:                     # silent long enough: this controller takes over
+            self.controller_id = controller_id
+            self._heard = now
+            self.takeovers += 1
         if not self.engaged and mode != ControlMode.ZERO and may_engage:
             self.engaged_seq = state_seq
+            self.controller_id = controller_id
+            self._heard = now
         self._cmd = wrench
         self._cmd_seq = state_seq
         return CommandVerdict.APPLIED
+
+    @property
+    def rejected_commands(self) -> int:
+        """Commands refused by the loop: answering no state of this loop, or foreign."""
+        return self.rejected_seq + self.foreign_commands
 
     @property
     def answered_current(self) -> bool:
@@ -219,6 +281,9 @@ class DeviceLoop:
             'command_age_cycles': str(self.seq - self._cmd_seq if self._cmd_seq else -1),
             'command_age_ms': f'{1e3 * self.command_age(now):.2f}',
             'rejected_seq': str(self.rejected_seq),
+            'controller_id': str(self.controller_id),
+            'foreign_commands': str(self.foreign_commands),
+            'controller_takeovers': str(self.takeovers),
             'watchdog_trips': str(self.watchdog.trips),
             'watchdog_cycles': str(self.watchdog.stale_cycles),
             'watchdog_scale': f'{self.watchdog.scale:.3f}',

@@ -13,6 +13,11 @@ where the checks live without rclpy so that the bag tools use the same ones).
 
 Sequence numbers: device states count from 1, so ``LmiUpdate.hand_input_seq == 0`` means
 "no hand input consumed yet" (the core's ``-1``).
+
+Controller identity: :data:`CONTROLLER_ID` is drawn once per process when this module is
+imported; :func:`command_msg` writes it into every ``DeviceCommand``, so a restarted
+``lmi_controller`` has a new id, and the device driver follows the one it engaged with
+(:mod:`haptic_topology.device.loop`).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from haptic_topology.device.backend import DeviceReading
 from haptic_topology.dynamics.constraints import PenaltyDirection
 from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.msgcheck import (
+    MAX_CONTROLLER_ID,
     MAX_SEQ,
     MODES,
     REASONS,
@@ -41,6 +47,7 @@ from haptic_topology.msgcheck import (
     check_state,
     check_update_header,
     finite_scalar,
+    new_controller_id,
 )
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
@@ -61,6 +68,9 @@ def seconds_to_stamp(t: float) -> Time:
     sec = int(t // 1.0)
     return Time(sec=sec, nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
 
+
+#: This process's controller id (module doc), in [1, MAX_CONTROLLER_ID].
+CONTROLLER_ID: int = new_controller_id()
 
 assert set(MODES) == {DeviceCommand.MODE_PENALTY, DeviceCommand.MODE_ACCELERATION_ONLY,
                       DeviceCommand.MODE_ZERO}
@@ -90,9 +100,12 @@ def state_from_msg(msg: DeviceState, task: TaskSpace
 
 # -- DeviceCommand ----------------------------------------------------------------------------
 def command_msg(msg: DeviceCommand, state_seq: int, stamp: Time, out: CycleOutput,
-                update_age: float) -> DeviceCommand:
+                update_age: float, controller_id: int = CONTROLLER_ID) -> DeviceCommand:
+    """``msg`` filled with the answer ``out`` to state ``state_seq``, from the controller
+    ``controller_id`` (default this process's, :data:`CONTROLLER_ID`); ``update_age`` (s)."""
     msg.header.stamp = stamp
     msg.state_seq = state_seq
+    msg.controller_id = controller_id
     msg.mode = int(out.mode)
     msg.task_dim = int(out.wrench.size)
     msg.wrench = out.wrench.tolist()
@@ -103,10 +116,12 @@ def command_msg(msg: DeviceCommand, state_seq: int, stamp: Time, out: CycleOutpu
     return msg
 
 
-def command_from_msg(msg: DeviceCommand, task: TaskSpace) -> tuple[int, int, np.ndarray]:
-    """``(state_seq, mode, wrench)``; the wrench must be finite and task_dim long, the mode
-    one of the message's MODE_* constants, state_seq in [1, MAX_SEQ]; the other fields are
-    checked too (:func:`haptic_topology.msgcheck.check_command`).
+def command_from_msg(msg: DeviceCommand, task: TaskSpace
+                     ) -> tuple[int, int, np.ndarray, int]:
+    """``(state_seq, mode, wrench, controller_id)``; the wrench must be finite and task_dim
+    long, the mode one of the message's MODE_* constants, state_seq in [1, MAX_SEQ],
+    controller_id in [1, MAX_CONTROLLER_ID]; the other fields are checked too
+    (:func:`haptic_topology.msgcheck.check_command`).
 
     A finite wrench beyond the device's limit is not an error: the device clamps it (status
     SATURATED), as it does for the controller's own large outputs.
@@ -220,7 +235,7 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
         penalty_direction=penalty_direction)
 
 
-__all__ = ['MAX_SEQ', 'REASONS', 'MessageError', 'RejectCounter', 'command_from_msg',
-           'command_msg', 'hand_inputs_msg', 'lmi_from_msg', 'lmi_msg', 'ns_to_stamp',
-           'seconds_to_stamp', 'stamp_ns', 'stamp_seconds', 'state_from_msg', 'state_msg',
-           'vt_wrenches_from_hand_inputs']
+__all__ = ['CONTROLLER_ID', 'MAX_CONTROLLER_ID', 'MAX_SEQ', 'REASONS', 'MessageError',
+           'RejectCounter', 'command_from_msg', 'command_msg', 'hand_inputs_msg',
+           'lmi_from_msg', 'lmi_msg', 'ns_to_stamp', 'seconds_to_stamp', 'stamp_ns',
+           'stamp_seconds', 'state_from_msg', 'state_msg', 'vt_wrenches_from_hand_inputs']

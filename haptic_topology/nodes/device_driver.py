@@ -54,6 +54,7 @@ from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
 from haptic_topology.nodes import common, node_params
 from haptic_topology.nodes.convert import (
+    CONTROLLER_ID,
     MessageError,
     RejectCounter,
     command_from_msg,
@@ -133,7 +134,7 @@ class DeviceDriver(LifecycleNode):
             return self._fail(str(exc))
         self.loop = DeviceLoop(self.backend, self.cfg.wrench_limit,
                                CommandWatchdog(self.cfg.watchdog, self.cfg.task_dim),
-                               self.cfg.period)
+                               self.cfg.period, self.cfg.takeover_after)
         if self.cfg.settings.host_controller:
             if self.hosted is None:
                 return self._fail('host_controller is true but no lmi_controller is hosted '
@@ -280,16 +281,18 @@ class DeviceDriver(LifecycleNode):
         if loop is None or not self._loop_timers:
             return
         try:
-            state_seq, mode, wrench = command_from_msg(msg, self.cfg.scenario.linkage.task)
+            state_seq, mode, wrench, cid = command_from_msg(msg, self.cfg.scenario.linkage.task)
         except MessageError as exc:
             self.rejected.add(exc)
             self.get_logger().warn(f'command rejected: {exc}', throttle_duration_sec=1.0)
             return
-        was_engaged = loop.engaged
+        was_engaged, followed = loop.engaged, loop.controller_id
         may_engage = self.state_pub.get_subscription_count() >= self.cfg.min_subscribers
-        verdict = loop.on_command(state_seq, mode, wrench, common.monotonic(), may_engage)
+        verdict = loop.on_command(state_seq, mode, wrench, common.monotonic(), may_engage, cid)
         if loop.engaged and not was_engaged:
-            self.get_logger().info(f'controller engaged at state {state_seq}')
+            self.get_logger().info(f'controller {cid} engaged at state {state_seq}')
+        elif loop.controller_id != followed:
+            self.get_logger().warn(f'controller {cid} took over from the silent {followed}')
         if (self.lockstep and verdict == CommandVerdict.APPLIED and loop.engaged
                 and loop.answered_current):
             self._step(self.cfg.period)
@@ -357,7 +360,7 @@ class DeviceDriver(LifecycleNode):
         level, message = (2, f'fault: {self.fault}') if self.fault else (1, 'not configured')
         if loop is not None:
             values.update(loop.values(common.monotonic()))
-            values['rejected_commands'] = str(self.rejected.total + loop.rejected_seq)
+            values['rejected_commands'] = str(self.rejected.total + loop.rejected_commands)
             if runner is not None:
                 values.update(_hosted_answered(runner))
             if not self.fault:
@@ -397,6 +400,8 @@ def _hosted_answered(runner: LoopRunner) -> dict[str, str]:
     d = runner.cycle.device
     return {'answered_fraction': f'{answered / expected:.5f}' if expected else 'nan',
             'answer_expected': str(expected),
+            # The hosted controller's commands are published with this process's id.
+            'controller_id': str(CONTROLLER_ID),
             'max_consecutive_missed': str(max(d.max_missed_run, runner.max_missed_deadlines))}
 
 

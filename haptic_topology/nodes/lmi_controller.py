@@ -48,6 +48,7 @@ from haptic_topology.control.safety import ModelHealth
 from haptic_topology.device.runner import LoopRunner, Published
 from haptic_topology.nodes import common, node_params
 from haptic_topology.nodes.convert import (
+    CONTROLLER_ID,
     MessageError,
     RejectCounter,
     command_msg,
@@ -272,6 +273,7 @@ class LmiController(Node):
                        f'sent {common.TOPIC_COMMAND}': str(self.commands_sent),
                        f'sent {common.TOPIC_HAND_INPUTS}': str(self.batcher.batches),
                        'hand_pending': str(self.batcher.pending),
+                       'controller_id': str(CONTROLLER_ID),
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
                        **common.matched(self._endpoints)})
         level, message = _HEALTH_MESSAGES[loop.guard.health(now)]
