@@ -2,10 +2,13 @@
 processes: well-formed commands from another publisher on DDS never reach the device.
 
 An impostor answers every running state of the hosted driver with a plausible command of
-1000 N (mode penalty, the state's own seq) as soon as it sees the state. Had one been
-applied, the device would clamp it to its limit and flag the state SATURATED; in the hosted
-layout the driver takes no commands from DDS, so no state is. Every wait is on messages,
-with a deadline; nothing is timed.
+(1000, -1000, 1000) (N, N, N m; mode penalty, the state's own seq) as soon as it sees the
+state. Had one been applied, the device would have clamped it to (+l_x, -l_y, +l_z) of its
+limit l, faded by the watchdog at most, so the applied wrench would be s * (l_x, -l_y, l_z)
+for some s > 0: a pattern the controller's own commands do not produce (they may saturate
+one axis now and then on a loaded machine, the three in exactly that ratio never). In the
+hosted layout the driver takes no commands from DDS, so no state shows it. Every wait is on
+messages, with a deadline; nothing is timed.
 """
 
 from __future__ import annotations
@@ -103,7 +106,13 @@ def test_commands_from_dds_never_reach_the_hosted_device() -> None:
     assert all('Traceback' not in o for o in outs), outs
     assert len(after) >= 1000
     applied = np.array([s.applied_wrench for s in after])
-    assert np.all(np.isfinite(applied))
-    saturated = [s.seq for s in after if s.status & DeviceState.STATUS_SATURATED]
-    assert saturated == [], f'states saturated while the impostor answered: {saturated[:10]}'
-    assert np.all(np.abs(applied) < limit), np.abs(applied).max(axis=0)
+    assert np.all(np.isfinite(applied)) and np.all(np.abs(applied) <= limit)
+    ratio = applied / (limit * np.array([1.0, -1.0, 1.0]))       # s, s, s if applied
+    impostor_like = (ratio[:, 0] > 0.0) & np.isclose(ratio[:, 1], ratio[:, 0], rtol=1e-9,
+                                                     atol=0.0) & np.isclose(
+        ratio[:, 2], ratio[:, 0], rtol=1e-9, atol=0.0)
+    seqs = [s.seq for s, hit in zip(after, impostor_like, strict=True) if hit]
+    assert seqs == [], f'impostor commands applied at states {seqs[:10]}'
+    saturated = sum(1 for s in after if s.status & DeviceState.STATUS_SATURATED)
+    print(f'impostor: {len(sent)} commands answering running states, none applied; '
+          f'{saturated} of {len(after)} states saturated by the controller itself')
