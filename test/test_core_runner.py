@@ -215,3 +215,23 @@ def test_the_real_thread_publishes_every_cycle_in_order_and_stops() -> None:
 def test_bad_runner_settings_are_refused(kwargs: dict[str, float], message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         RunnerConfig(**kwargs)  # type: ignore[arg-type]
+
+
+def test_a_restarted_runner_runs_a_new_run_of_run_duration() -> None:
+    """Deactivate after run_duration, activate again: the loop runs (and ends) again."""
+    sc = load_scenario('fig6')
+    cycle = HostedCycle(build_device_loop(sc),
+                        build_controller_loop(sc, ControlMode.PENALTY))
+    runner = LoopRunner(cycle, RunnerConfig(sc.dt, run_duration=0.005))
+    runner.may_engage = True
+    cycle.offer_update(virtual_environment(sc).snapshot(seq=0))
+    seqs = []
+    for _ in range(2):
+        runner.start()
+        deadline = time.monotonic() + 20.0
+        while not runner.finished and time.monotonic() < deadline:
+            time.sleep(0.001)
+        runner.stop()
+        assert runner.finished and runner.error is None
+        seqs.append(cycle.device.seq)
+    assert seqs[1] >= seqs[0] + 5            # the second run ran its 5 periods too

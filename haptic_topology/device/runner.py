@@ -143,6 +143,8 @@ class LoopRunner:
         if self._thread is not None:
             raise RuntimeError('LoopRunner.start: already started')
         self._stop.clear()
+        self.finished = False           # a new run (after a deactivation) has its own end
+        self._run_start_ns = None
         self.pacer.start()
 
         def body() -> None:
