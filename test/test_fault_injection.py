@@ -43,11 +43,13 @@ def test_applied_wrench_finite_and_within_limits_at_every_cycle(run: fh.FaultRun
     assert n > 15000
     # The injected 1e9 N commands with the followed controller's id copied (those that came
     # before the controller's answer to the same state; how many did depends on scheduling)
-    # were clamped to the limit, not passed on; those with another id were counted foreign.
+    # were clamped to the limit, not passed on. How many of those with another id reach the
+    # driver's depth-1 best-effort queue before the next command overwrites them depends on
+    # scheduling too (in a stress run beside a busy process: none), so their count is a
+    # figure here; test_foreign_messages checks the rejection exactly, in lock-step.
     assert run.injected['command_huge_finite'] > 0
     assert run.injected['command_huge_foreign'] > 0
     assert fh.figures(run, 'bad_messages')['max_ratio'] <= 1.0 + 1e-9
-    assert run.diagnostics['device_driver: loop']['foreign_commands'] >= 1
 
 
 def test_bags_complete_up_to_every_fault(run: fh.FaultRun) -> None:
