@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
 from haptic_topology.control.laws import stable_hold
 from haptic_topology.control.lmi import LmiSnapshot
@@ -22,6 +23,9 @@ from haptic_topology.dynamics.constraints import task_scale
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.validate import as_bool, as_float, check_keys
+
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_RK4_WEIGHTS = np.array([[1.0], [2.0], [2.0], [1.0]])
 
 
 @dataclass(frozen=True)
@@ -42,7 +46,11 @@ class VeSettings:
 
 
 class VirtualEnvironment:
-    """Full VT simulation (eq. 2, no contacts) with RK4 at ``internal_step`` seconds."""
+    """Full VT simulation (eq. 2, no contacts) with RK4 at ``internal_step`` seconds.
+
+    :attr:`q` (rad / m) and :attr:`dq` (rad/s / m/s) are replaced by new arrays when the VE
+    moves, never changed in place; the arrays the VE makes itself are read-only.
+    """
 
     def __init__(self, dynamics: LinkageDynamics, q0: np.ndarray, dq0: np.ndarray,
                  internal_step: float = 2.5e-4, max_gap: float = 0.05,
@@ -66,27 +74,77 @@ class VirtualEnvironment:
         self._held: tuple[int, float, np.ndarray] | None = None
         #: ``(input seq, VT hand pose)`` after each consumed input, until :meth:`take_path`.
         self.path: list[tuple[int, np.ndarray]] = []
+        # RK4 workspace, allocated once. Row i of _stage is stage i's [q_i, dq_i, qdd_i]
+        # (3d): [q_i, dq_i] is the state the stage is evaluated at and [dq_i, qdd_i] its
+        # derivative k_i, both contiguous views of the same row.
+        self._stage = np.zeros((4, 3 * d))
+        self._weighted = np.zeros((4, 2 * d))
+        self._incr = np.zeros(2 * d)
+        #: ``(q, J_6, pose)``: the grasp frame's 6 x d Jacobian and task pose at the array
+        #: ``q`` (identity: one of the VE's own read-only arrays), for the next integration's
+        #: first stage, the path and the snapshot.
+        self._hand: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def _accel(self, q: np.ndarray, dq: np.ndarray, wrench: np.ndarray) -> np.ndarray:
-        return self.dyn.acceleration(q, dq, wrench)
+    def _hand_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grasp frame's 6 x d Jacobian and task pose at the current :attr:`q`."""
+        if self._hand is not None and self._hand[0] is self.q:
+            return self._hand[1], self._hand[2]
+        j6 = self.dyn.hand_frame_jacobian(self.q)
+        pose = self.dyn.hand_pose_in_data()
+        if not self.q.flags.writeable:  # the VE's own array: nobody can change it in place
+            self._hand = (self.q, j6, pose)
+        return j6, pose
 
     def integrate(self, wrench: np.ndarray, duration: float) -> None:
-        """Integrate eq. 2 for ``duration`` s under a constant hand wrench (RK4 substeps)."""
+        """Integrate eq. 2, ``D(q) qdd + B(q, dq) + G(q) = J_h^T F``, for ``duration`` s
+        under a constant hand wrench ``F`` (N, N m; world frame at the grasp point) with
+        classical RK4 substeps of at most ``internal_step`` s.
+
+        Each stage costs two Pinocchio calls: the grasp frame's Jacobian (eq. 7, for the
+        torques ``J_h^T F`` of eq. 12) and the articulated-body algorithm for ``qdd`` (eq. 2).
+        The stage arithmetic runs on preallocated arrays in the same order as the textbook
+        form ``q + h/6 (k1 + 2 k2 + 2 k3 + k4)``, so the result is the same bit for bit.
+        """
         if duration <= 0.0:
             return
         n = max(1, math.ceil(duration / self.internal_step - 1e-9))
         h = duration / n
-        q, dq = self.q, self.dq
-        for _ in range(n):
-            k1q, k1v = dq, self._accel(q, dq, wrench)
-            k2q = dq + 0.5 * h * k1v
-            k2v = self._accel(q + 0.5 * h * k1q, k2q, wrench)
-            k3q = dq + 0.5 * h * k2v
-            k3v = self._accel(q + 0.5 * h * k2q, k3q, wrench)
-            k4q = dq + h * k3v
-            k4v = self._accel(q + h * k3q, k4q, wrench)
-            q = q + h / 6.0 * (k1q + 2.0 * k2q + 2.0 * k3q + k4q)
-            dq = dq + h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+        dyn = self.dyn
+        model, data, frame, d = dyn.model, dyn.data, dyn.hand_frame, dyn.dof
+        jacobian, aba = pin.computeFrameJacobian, pin.aba
+        w6 = dyn.wrench6(wrench)
+        flat = d == 1   # Pinocchio returns a 6 x 1 Jacobian as a flat vector of 6
+        z, weighted, incr = self._stage, self._weighted, self._incr
+        qs = [z[i, :d] for i in range(4)]
+        dqs = [z[i, d:2 * d] for i in range(4)]
+        qdds = [z[i, 2 * d:] for i in range(4)]
+        xs = [z[i, :2 * d] for i in range(4)]       # stage states [q_i, dq_i]
+        ks = [z[i, d:] for i in range(4)]           # stage derivatives [dq_i, qdd_i]
+        derivs = z[:, d:]
+        x = xs[0]
+        first_jacobian = self._hand_now()[0]
+        qs[0][:] = self.q
+        dqs[0][:] = self.dq
+        half = 0.5 * h
+        for step in range(n):
+            for i in range(4):
+                j6 = first_jacobian if step == 0 and i == 0 else jacobian(model, data, qs[i],
+                                                                         frame, _LWA)
+                tau = j6.T.dot(w6)
+                qdds[i][:] = aba(model, data, qs[i], dqs[i], np.array([tau]) if flat else tau)
+                if i < 3:   # x_{i+1} = x + c_i k_i, c = h/2, h/2, h
+                    np.multiply(ks[i], h if i == 2 else half, out=incr)
+                    np.add(x, incr, out=xs[i + 1])
+            # x += h/6 (k1 + 2 k2 + 2 k3 + k4), summed k1 first as written (reduce over axis
+            # 0 adds the rows in order)
+            np.multiply(derivs, _RK4_WEIGHTS, out=weighted)
+            np.add.reduce(weighted, axis=0, out=incr)
+            np.multiply(incr, h / 6.0, out=incr)
+            np.add(x, incr, out=x)
+        q = qs[0].copy()
+        dq = dqs[0].copy()
+        q.flags.writeable = False
+        dq.flags.writeable = False
         self.q, self.dq = q, dq
         self.time += duration
 
@@ -108,7 +166,7 @@ class VirtualEnvironment:
                 self.held_capped += 1
             self.integrate(held_wrench, min(gap, self.hold_limit))
             self.hand_input_seq = held_seq
-            self.path.append((held_seq, self.dyn.hand_pose(self.q)))
+            self.path.append((held_seq, self._hand_now()[1].copy()))
         self._held = (seq, stamp, np.array(wrench, dtype=float))
 
     def place_hand(self, pose: np.ndarray, twist: np.ndarray, iterations: int = 100,
@@ -152,7 +210,8 @@ class VirtualEnvironment:
 
     def snapshot(self, seq: int) -> LmiSnapshot:
         """The LMI update for the current state (eqs. 17-19)."""
-        snap = self.dyn.snapshot(self.q, self.dq)
+        j6, pose = self._hand_now()
+        snap = self.dyn.snapshot(self.q, self.dq, (j6, pose.copy()))
         out = LmiSnapshot.from_dynamics(snap, self.dyn.task,
                                         self.dyn.linkage.constraints.characteristic_length,
                                         seq, self.hand_input_seq)
