@@ -142,7 +142,7 @@ def constraint_directions(jacobian: np.ndarray, task: TaskSpace, settings: Const
     if column_scale is not None:
         jw = jw * column_scale[None, :]
     u, s, _ = np.linalg.svd(jw, full_matrices=True)
-    ratio = np.ones(m) * 0.0
+    ratio = np.zeros(m)
     ratio[: s.size] = s / lc
     weights = penalty_weight(ratio, settings.rank_tolerance, settings.blend)
     # Rows beyond min(m, d) have no singular value: structurally constrained.

@@ -59,7 +59,9 @@ class LinkageDynamics:
         self.task_rows: tuple[int, ...] = ((0, 1, 5) if self.task is TaskSpace.PLANAR
                                            else tuple(range(6)))
         self._rows = list(self.task_rows)
-        self._joint_scale = joint_scale(self.linkage)
+        scale = joint_scale(self.linkage)
+        # Revolute joints only: S = I, and scaling by ones would change nothing.
+        self._joint_scale = None if np.all(scale == 1.0) else scale
         self._lower = np.tril_indices(self.dof, -1)
 
     # -- configuration-space terms (eq. 1) ------------------------------------------------

@@ -28,6 +28,13 @@ _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _RK4_WEIGHTS = np.array([[1.0], [2.0], [2.0], [1.0]])
 
 
+def _frame_jacobian_6x1(model: pin.Model, data: pin.Data, q: np.ndarray, frame: int,
+                        ref: pin.ReferenceFrame) -> np.ndarray:
+    """``pin.computeFrameJacobian`` of a 1-DOF model, which Pinocchio returns as a flat
+    vector of 6, as the 6 x 1 matrix it is."""
+    return pin.computeFrameJacobian(model, data, q, frame, ref).reshape(6, 1)
+
+
 @dataclass(frozen=True)
 class VeSettings:
     """The ``ve:`` block of a scenario: RK4 ``internal_step`` (s, in (0, dt]) and whether the
@@ -77,7 +84,13 @@ class VirtualEnvironment:
         # RK4 workspace, allocated once. Row i of _stage is stage i's [q_i, dq_i, qdd_i]
         # (3d): [q_i, dq_i] is the state the stage is evaluated at and [dq_i, qdd_i] its
         # derivative k_i, both contiguous views of the same row.
-        self._stage = np.zeros((4, 3 * d))
+        z = self._stage = np.zeros((4, 3 * d))
+        rows = range(4)
+        self._views = (tuple(z[i, :d] for i in rows), tuple(z[i, d:2 * d] for i in rows),
+                       tuple(z[i, 2 * d:] for i in rows),
+                       tuple(z[i, :2 * d] for i in rows),   # stage states [q_i, dq_i]
+                       tuple(z[i, d:] for i in rows),       # derivatives [dq_i, qdd_i]
+                       z[:, d:])
         self._weighted = np.zeros((4, 2 * d))
         self._incr = np.zeros(2 * d)
         #: ``(q, J_6, pose)``: the grasp frame's 6 x d Jacobian and task pose at the array
@@ -111,38 +124,39 @@ class VirtualEnvironment:
         h = duration / n
         dyn = self.dyn
         model, data, frame, d = dyn.model, dyn.data, dyn.hand_frame, dyn.dof
-        jacobian, aba = pin.computeFrameJacobian, pin.aba
+        aba = pin.aba
+        jacobian = pin.computeFrameJacobian if d > 1 else _frame_jacobian_6x1
         w6 = dyn.wrench6(wrench)
-        flat = d == 1   # Pinocchio returns a 6 x 1 Jacobian as a flat vector of 6
-        z, weighted, incr = self._stage, self._weighted, self._incr
-        qs = [z[i, :d] for i in range(4)]
-        dqs = [z[i, d:2 * d] for i in range(4)]
-        qdds = [z[i, 2 * d:] for i in range(4)]
-        xs = [z[i, :2 * d] for i in range(4)]       # stage states [q_i, dq_i]
-        ks = [z[i, d:] for i in range(4)]           # stage derivatives [dq_i, qdd_i]
-        derivs = z[:, d:]
-        x = xs[0]
-        first_jacobian = self._hand_now()[0]
-        qs[0][:] = self.q
-        dqs[0][:] = self.dq
+        mul, add = np.multiply, np.add
+        weighted, incr = self._weighted, self._incr
+        (q1, q2, q3, q4), (v1, v2, v3, v4), (a1, a2, a3, a4), (x1, x2, x3, x4), \
+            (k1, k2, k3, _), derivs = self._views
+        j6 = self._hand_now()[0]
+        q1[:] = self.q
+        v1[:] = self.dq
         half = 0.5 * h
+        sixth = h / 6.0
         for step in range(n):
-            for i in range(4):
-                j6 = first_jacobian if step == 0 and i == 0 else jacobian(model, data, qs[i],
-                                                                         frame, _LWA)
-                tau = j6.T.dot(w6)
-                qdds[i][:] = aba(model, data, qs[i], dqs[i], np.array([tau]) if flat else tau)
-                if i < 3:   # x_{i+1} = x + c_i k_i, c = h/2, h/2, h
-                    np.multiply(ks[i], h if i == 2 else half, out=incr)
-                    np.add(x, incr, out=xs[i + 1])
+            if step:
+                j6 = jacobian(model, data, q1, frame, _LWA)
+            a1[:] = aba(model, data, q1, v1, j6.T.dot(w6))
+            mul(k1, half, out=incr)
+            add(x1, incr, out=x2)                               # x + h/2 k1
+            a2[:] = aba(model, data, q2, v2, jacobian(model, data, q2, frame, _LWA).T.dot(w6))
+            mul(k2, half, out=incr)
+            add(x1, incr, out=x3)                               # x + h/2 k2
+            a3[:] = aba(model, data, q3, v3, jacobian(model, data, q3, frame, _LWA).T.dot(w6))
+            mul(k3, h, out=incr)
+            add(x1, incr, out=x4)                               # x + h k3
+            a4[:] = aba(model, data, q4, v4, jacobian(model, data, q4, frame, _LWA).T.dot(w6))
             # x += h/6 (k1 + 2 k2 + 2 k3 + k4), summed k1 first as written (reduce over axis
             # 0 adds the rows in order)
-            np.multiply(derivs, _RK4_WEIGHTS, out=weighted)
-            np.add.reduce(weighted, axis=0, out=incr)
-            np.multiply(incr, h / 6.0, out=incr)
-            np.add(x, incr, out=x)
-        q = qs[0].copy()
-        dq = dqs[0].copy()
+            mul(derivs, _RK4_WEIGHTS, out=weighted)
+            add.reduce(weighted, axis=0, out=incr)
+            mul(incr, sixth, out=incr)
+            add(x1, incr, out=x1)
+        q = q1.copy()
+        dq = v1.copy()
         q.flags.writeable = False
         dq.flags.writeable = False
         self.q, self.dq = q, dq
