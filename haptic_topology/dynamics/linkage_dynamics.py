@@ -62,13 +62,13 @@ class LinkageDynamics:
         scale = joint_scale(self.linkage)
         # Revolute joints only: S = I, and scaling by ones would change nothing.
         self._joint_scale = None if np.all(scale == 1.0) else scale
-        self._lower = np.tril_indices(self.dof, -1)
+        self._lower = np.tril(np.ones((self.dof, self.dof), dtype=bool), -1)
 
     # -- configuration-space terms (eq. 1) ------------------------------------------------
     def mass_matrix(self, q: np.ndarray) -> np.ndarray:
         """D(q) (d x d), symmetric positive definite (kg m^2 / kg), by CRBA."""
         m = pin.crba(self.model, self.data, q)  # a copy; only its upper triangle is set
-        m[self._lower] = m.T[self._lower]
+        np.copyto(m, m.T, where=self._lower)
         return m
 
     def gravity(self, q: np.ndarray) -> np.ndarray:
