@@ -7,9 +7,11 @@ it computes exactly (bit for bit) what the plain formulation computes, so the lo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from haptic_topology.dynamics import LinkageDynamics
@@ -97,3 +99,19 @@ def test_state_is_replaced_not_changed_in_place() -> None:
     np.testing.assert_array_equal(ve.snapshot(2).hand_jacobian, dyn.hand_jacobian(moved))
     moved[0] = -0.4  # the caller's own array: changed in place, seen at once
     np.testing.assert_array_equal(ve.snapshot(3).hand_jacobian, dyn.hand_jacobian(moved))
+
+
+@pytest.mark.parametrize('gravity', [[0.0, 0.0, 0.0], [0.0, -9.81, 0.0]])
+def test_snapshot_terms_equal_the_separate_algorithms(gravity: list[float]) -> None:
+    """The snapshot's D, G, B (eq. 1) are CRBA, RNEA's gravity and nonlinear terms exactly,
+    also where it skips the gravity pass (no gravity: G = 0)."""
+    linkage = dataclasses.replace(serial_chain(4, TaskSpace.PLANAR),
+                                  gravity=np.array(gravity))
+    dyn, ref = LinkageDynamics(linkage), LinkageDynamics(linkage)
+    q, dq = RNG.uniform(-1.0, 1.0, 4), RNG.uniform(-1.0, 1.0, 4)
+    snap = dyn.snapshot(q, dq)
+    d = pin.crba(ref.model, ref.data, q)
+    np.testing.assert_array_equal(snap.mass_matrix, np.triu(d) + np.triu(d, 1).T)
+    np.testing.assert_array_equal(snap.gravity, ref.gravity(q))
+    np.testing.assert_array_equal(snap.coriolis, ref.bias(q, dq) - ref.gravity(q))
+    assert np.any(snap.gravity) == any(gravity)

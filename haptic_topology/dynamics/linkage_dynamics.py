@@ -63,6 +63,8 @@ class LinkageDynamics:
         # Revolute joints only: S = I, and scaling by ones would change nothing.
         self._joint_scale = None if np.all(scale == 1.0) else scale
         self._lower = np.tril(np.ones((self.dof, self.dof), dtype=bool), -1)
+        #: G(q) is identically zero (no gravity): the snapshot skips its RNEA pass.
+        self._no_gravity = not np.any(np.asarray(self.model.gravity.linear))
 
     # -- configuration-space terms (eq. 1) ------------------------------------------------
     def mass_matrix(self, q: np.ndarray) -> np.ndarray:
@@ -162,7 +164,7 @@ class LinkageDynamics:
         q = np.array(q, dtype=float)
         dq = np.array(dq, dtype=float)
         d = self.mass_matrix(q)
-        g = self.gravity(q)
+        g = np.zeros(self.dof) if self._no_gravity else self.gravity(q)
         b = self.bias(q, dq) - g
         if hand is None:
             j6 = self.hand_frame_jacobian(q)  # also updates the grasp frame placement

@@ -25,7 +25,8 @@ def pose_from_placement(placement: pin.SE3, task: TaskSpace) -> np.ndarray:
     """Task pose of an SE3 placement (world frame)."""
     h = placement.homogeneous   # [R p; 0 1], one conversion for rotation and translation
     if task is TaskSpace.PLANAR:
-        return np.array([h[0, 3], h[1, 3], math.atan2(h[1, 0], h[0, 0])])
+        r0, r1 = h[:2].tolist()  # Python floats: cheaper to index than numpy scalars
+        return np.array([r0[3], r1[3], math.atan2(r1[0], r0[0])])
     return np.concatenate([h[:3, 3], pin.log3(h[:3, :3])])
 
 
