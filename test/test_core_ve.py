@@ -115,3 +115,16 @@ def test_snapshot_terms_equal_the_separate_algorithms(gravity: list[float]) -> N
     np.testing.assert_array_equal(snap.gravity, ref.gravity(q))
     np.testing.assert_array_equal(snap.coriolis, ref.bias(q, dq) - ref.gravity(q))
     assert np.any(snap.gravity) == any(gravity)
+
+
+@pytest.mark.parametrize('name', ['table1_planar3', 'spatial_arm4', 'chain1_spatial',
+                                  'chain40_planar'])
+def test_inverse_inertia_from_minverse_equals_cholesky(name: str) -> None:
+    """The VE's ``Lambda_h^-1`` (eq. 6, for the stable hold) from Pinocchio's ``D^-1`` equals
+    the Cholesky solve of the LMI's formula to rounding."""
+    dyn = _linkage(name)
+    for _ in range(5):
+        q = RNG.uniform(-1.5, 1.5, dyn.dof)
+        want = dyn.inverse_operational_inertia(q)
+        got = dyn.inverse_operational_inertia_aba(q, dyn.hand_jacobian(q))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())

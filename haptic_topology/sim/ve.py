@@ -241,8 +241,7 @@ class VirtualEnvironment:
                                         self.dyn.linkage.constraints.characteristic_length,
                                         seq, self.hand_input_seq)
         if self._stable_hold is not None:
-            j = out.hand_jacobian
-            lambda_inv = j @ np.linalg.solve(out.mass_matrix, j.T)
+            lambda_inv = self.dyn.inverse_operational_inertia_aba(self.q, out.hand_jacobian)
             self.hold_limit = min(self.max_gap, self._stable_hold(lambda_inv))
         return out
 
