@@ -95,6 +95,10 @@ class VirtualEnvironment:
         self._weighted = np.zeros((4, 2 * d))
         self._incr = np.zeros(2 * d)
         self._wrench6 = np.zeros(6)
+        self._pin = (dynamics.model, dynamics.data, dynamics.hand_frame,
+                     pin.computeFrameJacobian if d > 1 else _frame_jacobian_6x1)
+        #: ``(q, dq)`` arrays the last integration left in stage 1 of the workspace.
+        self._state_out: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
         # The frame Jacobian's rows of the task: a slice where it is all of them (spatial).
         task_rows = dynamics.task_rows
         self._task_rows: slice | list[int] = (slice(0, 6) if task_rows == tuple(range(6))
@@ -130,10 +134,8 @@ class VirtualEnvironment:
             return
         n = max(1, math.ceil(duration / self.internal_step - 1e-9))
         h = duration / n
-        dyn = self.dyn
-        model, data, frame, d = dyn.model, dyn.data, dyn.hand_frame, dyn.dof
+        model, data, frame, jacobian = self._pin
         aba = pin.aba
-        jacobian = pin.computeFrameJacobian if d > 1 else _frame_jacobian_6x1
         w6 = self._wrench6
         w6[self._task_rows] = wrench   # zero in the rows outside the task (planar)
         mul, add = np.multiply, np.add
@@ -141,8 +143,9 @@ class VirtualEnvironment:
         (q1, q2, q3, q4), (v1, v2, v3, v4), (a1, a2, a3, a4), (x1, x2, x3, x4), \
             (k1, k2, k3, _), derivs = self._views
         j6 = self._hand_now()[0]
-        q1[:] = self.q
-        v1[:] = self.dq
+        if self.q is not self._state_out[0] or self.dq is not self._state_out[1]:
+            q1[:] = self.q      # else stage 1 still holds the state the last call left
+            v1[:] = self.dq
         half = 0.5 * h
         sixth = h / 6.0
         # (ufuncs with a positional out and w6.dot(J): ~0.2-0.4 us less per call than the
@@ -170,7 +173,7 @@ class VirtualEnvironment:
         dq = v1.copy()
         q.flags.writeable = False
         dq.flags.writeable = False
-        self.q, self.dq = q, dq
+        self.q, self.dq = self._state_out = q, dq
         self.time += duration
 
     def push_input(self, seq: int, stamp: float, wrench: np.ndarray) -> None:
