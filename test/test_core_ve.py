@@ -31,12 +31,14 @@ def _linkage(name: str) -> LinkageDynamics:
 
 def _textbook_rk4(dyn: LinkageDynamics, q: np.ndarray, dq: np.ndarray, wrench: np.ndarray,
                   duration: float, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """RK4 of eq. 2 written out: ``qdd = ABA(q, dq, J_h^T F)``, k1..k4, h/6 (k1 + 2k2 + ...)."""
+    """RK4 of eq. 2 written out: ``qdd = ABA(q, dq, J_h^T F)``, k1..k4, h/6 (k1 + 2k2 + ...);
+    ABA in world coordinates as the VE runs it."""
     n = max(1, math.ceil(duration / step - 1e-9))
     h = duration / n
 
     def accel(q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        return dyn.forward_dynamics(q, dq, dyn.hand_jacobian(q).T @ wrench)
+        return pin.aba(dyn.model, dyn.data, q, dq, dyn.hand_jacobian(q).T @ wrench,
+                       pin.Convention.WORLD)
 
     for _ in range(n):
         k1q, k1v = dq, accel(q, dq)
@@ -128,3 +130,16 @@ def test_inverse_inertia_from_minverse_equals_cholesky(name: str) -> None:
         want = dyn.inverse_operational_inertia(q)
         got = dyn.inverse_operational_inertia_aba(q, dyn.hand_jacobian(q))
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+
+
+@pytest.mark.parametrize('name', ['table1_planar3', 'spatial_arm4', 'chain100_spatial'])
+def test_world_aba_equals_local_aba(name: str) -> None:
+    """The VE's ABA in world coordinates gives eq. 2's qdd of the local form (the one
+    ``forward_dynamics`` uses) to rounding."""
+    dyn = _linkage(name)
+    for _ in range(5):
+        q, dq = RNG.uniform(-1.5, 1.5, dyn.dof), RNG.uniform(-1.0, 1.0, dyn.dof)
+        tau = RNG.uniform(-0.1, 0.1, dyn.dof)
+        local = dyn.forward_dynamics(q, dq, tau)
+        world = pin.aba(dyn.model, dyn.data, q, dq, tau, pin.Convention.WORLD)
+        np.testing.assert_allclose(world, local, rtol=0, atol=1e-9 * np.abs(local).max())
