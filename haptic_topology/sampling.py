@@ -16,7 +16,6 @@ import atexit
 import os
 import sys
 import threading
-import time
 from collections import Counter
 from types import FrameType
 
@@ -59,4 +58,3 @@ def start_from_env() -> None:
 
     threading.Thread(target=sample, name='sampler', daemon=True).start()
     atexit.register(dump)
-    time.sleep(0)

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 from haptic_topology.device.hosted import HostedCycle, HostedStep
 from haptic_topology.device.loop import ns_to_seconds, period_ns
-from haptic_topology.device.pacing import DeadlinePacer
+from haptic_topology.device.pacing import DeadlinePacer, PacerFigures
 from haptic_topology.errors import ConfigError
 
 #: Outbox entries kept (4 s at 1 kHz): a publisher that falls further behind loses the oldest
@@ -129,7 +129,7 @@ class LoopRunner:
         self.missed_deadlines = 0        # skipped while engaged (wall clock)
         self.max_missed_deadlines = 0    # ... the most in a row
         self.lockstep_timeouts = 0
-        self.lockstep_waits = 0
+        self.lockstep_waits = 0          # lock-step states that waited for their update
 
     # -- executor thread ---------------------------------------------------------------------
     @property
@@ -253,11 +253,13 @@ class LoopRunner:
         return entry
 
     # -- figures (any thread; counters as they are) ------------------------------------------
-    def values(self) -> dict[str, str]:
-        """Pacing and hand-over figures as diagnostics key/values."""
-        out = self.pacer.figures().values('loop_')
+    def values(self, figures: PacerFigures | None = None) -> dict[str, str]:
+        """Pacing and hand-over figures as diagnostics key/values (``figures``: the pacer's,
+        if the caller has them already: their percentiles sort a minute of periods)."""
+        out = (figures or self.pacer.figures()).values('loop_')
         out.update(self.cycle.values())
         out.update({'outbox_dropped': str(self.outbox_dropped),
+                    'lockstep_waits': str(self.lockstep_waits),
                     'lockstep_timeouts': str(self.lockstep_timeouts)})
         return out
 

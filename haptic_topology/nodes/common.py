@@ -50,6 +50,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
@@ -409,9 +410,27 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
             close = getattr(n, 'close', None)
             if close is not None:
                 close()
+        # Everything the nodes own is closed (the recorder's bag is complete). rclpy's own
+        # teardown once hung for > 5 s after that in a loaded CI run (cause not found), which
+        # turned a clean stop into a SIGKILL: it gets a deadline.
+        guard = threading.Timer(TEARDOWN_LIMIT, _teardown_timeout, args=(prog, status))
+        guard.daemon = True
+        guard.start()
+        for n in nodes:
             n.destroy_node()
         rclpy.try_shutdown()
+        guard.cancel()
     return status
+
+
+#: Seconds rclpy's teardown (destroy_node, shutdown) may take after the nodes closed.
+TEARDOWN_LIMIT = 3.0
+
+
+def _teardown_timeout(prog: str, status: int) -> None:
+    print(f'{prog}: rclpy teardown did not finish within {TEARDOWN_LIMIT:g} s after the nodes '
+          'closed; exiting', file=sys.stderr, flush=True)
+    os._exit(status)
 
 
 def set_realtime_priority(priority: int) -> str | None:

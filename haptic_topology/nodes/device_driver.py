@@ -385,7 +385,7 @@ class DeviceDriver(LifecycleNode):
 def _hosted_values(runner: LoopRunner) -> dict[str, str]:
     """Hosted layout: the loop thread's pacing as the device's period figures."""
     f = runner.pacer.figures()
-    values = runner.values()
+    values = runner.values(f)
     values.update({'rate_hz': f'{1.0 / f.period_mean:.1f}' if f.period_mean > 0 else '0',
                    'period_p50_ms': f'{1e3 * f.period_p50:.3f}',
                    'period_p99_ms': f'{1e3 * f.period_p99:.3f}',
