@@ -50,7 +50,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
@@ -349,8 +348,12 @@ def _ros_args(argv: Sequence[str]) -> list[str]:
 
 def run_main(prog: str, build: Callable[[], Sequence[Node]],
              args: Sequence[str] | None = None,
-             params: Mapping[str, NodeParams | None] | None = None) -> int:
+             params: Mapping[str, NodeParams | None] | None = None,
+             exit_after_close: bool = False) -> int:
     """Init rclpy, build the node(s), spin, shut down cleanly; return the exit status.
+
+    ``exit_after_close``: end the process with the status once the nodes' ``close`` has run,
+    without rclpy's teardown (the recorder, see the comment at the end).
 
     ``params``: node name -> its declared parameters (None: unknown here), used to check the
     params files and ``-p`` overrides before rclpy reads them; ``prog`` is the node checked
@@ -410,27 +413,17 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
             close = getattr(n, 'close', None)
             if close is not None:
                 close()
-        # Everything the nodes own is closed (the recorder's bag is complete). rclpy's own
-        # teardown once hung for > 5 s after that in a loaded CI run (cause not found), which
-        # turned a clean stop into a SIGKILL: it gets a deadline.
-        guard = threading.Timer(TEARDOWN_LIMIT, _teardown_timeout, args=(prog, status))
-        guard.daemon = True
-        guard.start()
+        if exit_after_close:
+            # Everything the nodes own is closed (the recorder's bag is complete). In clean-
+            # clone CI runs the recorder hung in rclpy's teardown after that, holding the GIL
+            # (a timer thread could not run), until the bringup's SIGKILL (cause not found).
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(status)
         for n in nodes:
             n.destroy_node()
         rclpy.try_shutdown()
-        guard.cancel()
     return status
-
-
-#: Seconds rclpy's teardown (destroy_node, shutdown) may take after the nodes closed.
-TEARDOWN_LIMIT = 3.0
-
-
-def _teardown_timeout(prog: str, status: int) -> None:
-    print(f'{prog}: rclpy teardown did not finish within {TEARDOWN_LIMIT:g} s after the nodes '
-          'closed; exiting', file=sys.stderr, flush=True)
-    os._exit(status)
 
 
 def set_realtime_priority(priority: int) -> str | None:

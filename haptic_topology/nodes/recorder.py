@@ -202,7 +202,8 @@ class Recorder(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('recorder', lambda: [Recorder()], args, node_params.KNOWN)
+    return common.run_main('recorder', lambda: [Recorder()], args, node_params.KNOWN,
+                           exit_after_close=True)
 
 
 if __name__ == '__main__':
