@@ -219,6 +219,17 @@ BUILTIN_BACKENDS: dict[str, type[DeviceBackend]] = {
 }
 
 
+def zero_and_release(backend: DeviceBackend, dim: int) -> None:
+    """Write a zero wrench (``dim`` components), then :meth:`DeviceBackend.deactivate`: the
+    end of every active period (a device that refuses the write is released all the
+    same)."""
+    try:
+        backend.write(np.zeros(dim))
+    except DeviceError:
+        pass
+    backend.deactivate()
+
+
 def _import_class(spec: str) -> Any:
     module_name, _, attr = spec.partition(':')
     try:

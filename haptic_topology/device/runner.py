@@ -269,3 +269,22 @@ class LoopRunner:
         the answer comes within the cycle, so a late cycle is the only way to miss)."""
         d = self.cycle.device
         return d.answered, d.expected + self.missed_deadlines
+
+    def device_values(self) -> dict[str, str]:
+        """The device's period and answer figures as the separate layout's ``device_driver``
+        reports them, from the loop thread's pacing: the measured period as ``period_*``,
+        skipped deadlines as ``overruns`` and as cycles not answered in time; with
+        :meth:`values`."""
+        f = self.pacer.figures()
+        out = self.values(f)
+        answered, expected = self.answered_in_time()
+        out.update({'rate_hz': f'{1.0 / f.period_mean:.1f}' if f.period_mean > 0 else '0',
+                    'period_p50_ms': f'{1e3 * f.period_p50:.3f}',
+                    'period_p99_ms': f'{1e3 * f.period_p99:.3f}',
+                    'period_max_ms': f'{1e3 * f.period_max:.3f}',
+                    'overruns': str(self.missed_deadlines), 'cycles': str(f.cycles),
+                    'answered_fraction': f'{answered / expected:.5f}' if expected else 'nan',
+                    'answer_expected': str(expected),
+                    'max_consecutive_missed': str(max(self.cycle.device.max_missed_run,
+                                                      self.max_missed_deadlines))})
+        return out

@@ -51,11 +51,9 @@ import math
 import os
 import sys
 import time
-from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TypeVar
 
-import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -219,41 +217,6 @@ def declare_settings(node: Node, cls: type[S],
 
 
 # -- loop health -------------------------------------------------------------------------------
-class LoopStats:
-    """Periods of a periodic callback over a sliding window (default: the last second)."""
-
-    def __init__(self, nominal_period: float, window: int = 1000) -> None:
-        self.nominal = nominal_period
-        self.periods: deque[float] = deque(maxlen=window)
-        self.last: float | None = None
-        self.count = 0
-        self.overruns = 0
-
-    def tick(self, now: float) -> float | None:
-        """Record a tick at monotonic time ``now`` (s); return the measured period or None."""
-        self.count += 1
-        period = None if self.last is None else now - self.last
-        self.last = now
-        if period is not None:
-            self.periods.append(period)
-            if period > 1.5 * self.nominal:
-                self.overruns += 1
-        return period
-
-    def values(self, prefix: str = '') -> dict[str, str]:
-        if not self.periods:
-            return {f'{prefix}rate_hz': '0', f'{prefix}overruns': str(self.overruns)}
-        p = np.fromiter(self.periods, float)
-        return {
-            f'{prefix}rate_hz': f'{1.0 / float(p.mean()):.1f}',
-            f'{prefix}period_p50_ms': f'{1e3 * float(np.percentile(p, 50)):.3f}',
-            f'{prefix}period_p99_ms': f'{1e3 * float(np.percentile(p, 99)):.3f}',
-            f'{prefix}period_max_ms': f'{1e3 * float(p.max()):.3f}',
-            f'{prefix}overruns': str(self.overruns),
-            f'{prefix}cycles': str(self.count),
-        }
-
-
 def diagnostics(node: Node, name: str, values: dict[str, str], level: int = 0,
                 message: str = 'ok') -> DiagnosticArray:
     """A one-status :class:`DiagnosticArray` (level: DiagnosticStatus.OK/WARN/ERROR).
@@ -281,6 +244,17 @@ def matched(endpoints: Mapping[str, Any]) -> dict[str, str]:
              else ep.get_publisher_count())
         out[f'matched {key}'] = str(n)
     return out
+
+
+def log_notices(node: Node, notices: Any) -> None:
+    """Log each text of ``notices`` (a list or deque another thread appends to: the loop
+    thread's) as a warning of ``node``, oldest first, removing it."""
+    while notices:
+        try:
+            text = notices.pop(0) if isinstance(notices, list) else notices.popleft()
+        except IndexError:          # taken by another thread meanwhile
+            break
+        node.get_logger().warn(text)
 
 
 def monotonic() -> float:

@@ -1,4 +1,13 @@
-"""The publishing side of the hosted layout: a thread that drains the loop's outbox.
+"""The node side of the hosted layout: the loop thread's owner, and a thread that drains
+the loop's outbox.
+
+:class:`HostedLoop` is what a hosted ``device_driver`` runs instead of executor timers: a
+:class:`~haptic_topology.device.runner.LoopRunner` (the loop thread) stepping the driver's
+:class:`~haptic_topology.device.loop.DeviceLoop` with the hosted ``lmi_controller``'s
+:class:`~haptic_topology.control.loop.ControllerLoop`, an :class:`OutboxThread` publishing
+the cycles' states (the driver's publisher) and answers (the controller's), and
+:meth:`HostedLoop.check`, called by an executor timer: engagement permission, the loop
+thread's failures, the run's end.
 
 The hosted ``device_driver`` runs the 1 kHz cycle in a loop thread
 (:class:`~haptic_topology.device.runner.LoopRunner`) that never touches DDS. Everything the
@@ -13,10 +22,27 @@ batch).
 
 from __future__ import annotations
 
+import sys
 import threading
 from collections.abc import Callable
+from typing import Any
 
-from haptic_topology.device.runner import LoopRunner, Published
+from haptic_topology.device.hosted import HostedCycle
+from haptic_topology.device.maglev import DeviceStatus
+from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
+from haptic_topology.errors import DeviceError
+from haptic_topology.nodes.common import (
+    log_notices,
+    monotonic,
+    name_os_thread,
+    set_thread_realtime,
+)
+from haptic_topology.nodes.convert import CONTROLLER_ID, ns_to_stamp
+
+#: GIL switch interval (s) of a process that hosts the loop thread (CPython's default: 5 ms).
+SWITCH_INTERVAL = 2e-4
+#: Wall clock: the outbox thread publishes what the loop produced every this many s.
+PUBLISH_PERIOD = 0.002
 
 
 class OutboxThread:
@@ -66,8 +92,6 @@ class OutboxThread:
             self._thread = None
 
     def _body(self) -> None:
-        from haptic_topology.nodes.common import name_os_thread
-
         name_os_thread('device_publish')
         try:
             while True:
@@ -82,3 +106,108 @@ class OutboxThread:
                     return
         except BaseException as exc:  # reported by the node's check timer
             self.error = exc
+
+
+class HostedLoop:
+    """The hosted layout's loop, owned by the ``device_driver`` node ``driver`` (configured:
+    its ``loop`` exists) and run with the hosted ``lmi_controller`` node ``controller``.
+
+    Threads: :meth:`start`, :meth:`check`, :meth:`stop`, :meth:`close` and :meth:`values`
+    belong to the executor; the loop thread only steps the cycle; the outbox thread
+    publishes with ``driver.publish_state`` and ``controller.send``.
+    """
+
+    def __init__(self, driver: Any, controller: Any) -> None:
+        c = driver.cfg
+        if controller.cfg.scenario.name != c.scenario.name:
+            raise DeviceError(f'device_driver: hosted lmi_controller runs scenario '
+                              f'{controller.cfg.scenario.name}, the device '
+                              f'{c.scenario.name}: give both the same scenario')
+        self.driver, self.controller = driver, controller
+        self.runner = LoopRunner(
+            HostedCycle(driver.loop, controller.loop),
+            RunnerConfig(c.period, driver.lockstep, c.run_duration,
+                         controller.cfg.lockstep_wait),
+            wall_ns=lambda: driver.get_clock().now().nanoseconds)
+        # Lock-step: woken by every cycle (the VE waits on the hand inputs); wall clock: the
+        # outbox is drained every PUBLISH_PERIOD, so the loop thread pays no wake-up.
+        self.outbox = OutboxThread(
+            self.runner, self._observe, controller.flush_hand,
+            min(controller.flush_period, 1.0 if driver.lockstep else PUBLISH_PERIOD))
+        if driver.lockstep:
+            self.runner.wake = self.outbox.wake
+        controller.attach(self.runner)
+        self._problems: list[str] = []      # real-time settings refused (loop thread)
+        self._timer: Any = None
+
+    def start(self) -> None:
+        """Start the outbox thread (if not running) and the loop thread, with the driver's
+        real-time settings, and the executor timer of :meth:`check`."""
+        s = self.driver.cfg.settings
+        # The loop thread must get the GIL back within a fraction of its period when it
+        # wakes; CPython lets a thread keep it for up to the switch interval (5 ms).
+        sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
+        self.runner.may_engage = self.driver.may_engage()
+        self.outbox.start()
+
+        def on_start() -> None:     # in the loop thread
+            name_os_thread('device_loop')
+            self._problems.extend(set_thread_realtime(s.sched_priority, s.cpu_affinity,
+                                                      s.lock_memory))
+
+        self.runner.start(on_start=on_start)
+        self._timer = self.driver.create_timer(0.02, self.check)
+
+    def check(self) -> None:
+        """Executor timer: engagement permission; the loop thread's (or the outbox's)
+        failure is the driver's fault; at the end of the run (``run_duration`` reached and
+        every state of it published: tools take the driver's "inactive" as the end) the
+        driver deactivates."""
+        runner, d = self.runner, self.driver
+        runner.may_engage = d.may_engage()
+        while self._problems:
+            d.get_logger().warn(self._problems.pop(0))
+        error = runner.error or self.outbox.error
+        if error is not None:
+            d.fail(f'loop thread failed: {type(error).__name__}: {error}')
+            d.trigger_deactivate()
+        elif runner.finished and self.outbox.caught_up():
+            d.end_run()
+
+    def stop(self) -> None:
+        """Stop the loop thread; the outbox thread goes on (until :meth:`close`): it
+        publishes what the loop left and flushes the controller's last hand-input batch."""
+        if self._timer is not None:
+            self.driver.destroy_timer(self._timer)
+            self._timer = None
+        self.runner.stop()
+
+    def close(self) -> None:
+        self.outbox.stop()
+
+    @property
+    def running(self) -> bool:
+        """Whether states may still be published (the bringup's end-of-run check)."""
+        return self.runner.running or not self.outbox.caught_up()
+
+    def values(self) -> dict[str, str]:
+        """The loop thread's figures as the device's (:meth:`LoopRunner.device_values`)."""
+        # The hosted controller's commands are published with this process's id.
+        return {**self.runner.device_values(), 'controller_id': str(CONTROLLER_ID)}
+
+    def _observe(self, entries: list[Published]) -> None:
+        """Outbox thread: the cycles' states (and ``/clock``), then the controller's
+        commands and hand inputs."""
+        d, c = self.driver, self.controller
+        for e in entries:
+            d.publish_state(e.step.tick, e.stamp_ns, clock=d.lockstep)
+        now = monotonic()
+        for e in entries:
+            ans = e.step.answer
+            if ans is not None:
+                idle = e.step.tick.status & DeviceStatus.IDLE
+                c.send(c.port.answered(ans, e.stamp_ns, now,
+                                       None if idle else 1e-9 * e.stamp_ns),
+                       ns_to_stamp(e.stamp_ns))
+        log_notices(c, c.loop.notices)
+        log_notices(d, self.runner.notices)

@@ -49,6 +49,7 @@ from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
 
 from haptic_topology.control.lmi import LmiSnapshot
+from haptic_topology.device.pacing import LoopStats
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.nodes import common, node_params, viz
 from haptic_topology.nodes.convert import (
@@ -105,8 +106,8 @@ class VeSim(Node):
         self._silent_after = max(c.idle_period, 3.0 * sc.dt * self.update_period)
         self._last_snap: LmiSnapshot = self.ve.snapshot(seq=0)
         self.paths_sent = 0
-        self.stats = common.LoopStats(sc.dt * self.update_period)
-        self.update_stats = common.LoopStats(sc.dt * self.update_period)
+        self.stats = LoopStats(sc.dt * self.update_period)
+        self.update_stats = LoopStats(sc.dt * self.update_period)
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(min(self._idle_period, sc.dt * self.update_period),
                           self._publish_idle, clock=steady)

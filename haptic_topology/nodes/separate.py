@@ -1,0 +1,97 @@
+"""The node side of the separate layout: executor timers and the command callback step the
+device (``device_driver`` with ``host_controller: false``).
+
+:class:`SeparateLoop` is what a separate-layout ``device_driver`` runs instead of a loop
+thread: the core :class:`~haptic_topology.device.executor_loop.ExecutorLoop` decides when the
+device ticks and with which stamp; this class owns the timers (wall clock: one per device
+period; lock-step: the idle timer before engagement and the stall warning), takes the
+``DeviceCommand`` messages the driver subscribes to, and hands each state to
+``driver.publish_state``. Same interface as :class:`~haptic_topology.nodes.hosting.
+HostedLoop`: :meth:`start`, :meth:`stop`, :meth:`close`, :attr:`running`, :meth:`values`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
+from haptic_topology.nodes import common
+from haptic_topology.nodes.convert import MessageError, command_from_msg
+from haptic_topology_msgs.msg import DeviceCommand
+
+
+class SeparateLoop:
+    """The separate layout's loop, owned by the configured ``device_driver`` ``driver``."""
+
+    def __init__(self, driver: Any) -> None:
+        c = driver.cfg
+        self.driver = driver
+        self.stepper = ExecutorLoop(driver.loop, c.period, driver.lockstep, c.run_duration,
+                                    c.lockstep_warn_after)
+        self._timers: list[Any] = []
+
+    def start(self) -> None:
+        """The executor thread's real-time settings (``cpu_affinity``, ``lock_memory``;
+        ``sched_priority`` is the process's) and the loop's timers."""
+        d, c = self.driver, self.driver.cfg
+        for text in common.set_thread_realtime(0, c.settings.cpu_affinity,
+                                               c.settings.lock_memory):
+            d.get_logger().warn(text)
+        timers = [(c.period, self._tick_idle if d.lockstep else self._tick_wall)]
+        if d.lockstep:
+            timers.append((c.lockstep_warn_after, self._warn_stalled))
+            d.publish_clock(0)
+        self._timers = [d.create_timer(p, cb) for p, cb in timers]
+
+    def stop(self) -> None:
+        for t in self._timers:
+            self.driver.destroy_timer(t)
+        self._timers = []
+
+    def close(self) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return bool(self._timers)
+
+    def values(self) -> dict[str, str]:
+        """The measured period between device ticks."""
+        return self.stepper.stats.values()
+
+    def on_command(self, msg: DeviceCommand) -> None:
+        """A ``DeviceCommand`` from DDS (ignored while stopped)."""
+        d = self.driver
+        if not self._timers:
+            return
+        try:
+            state_seq, mode, wrench, cid = command_from_msg(msg, d.cfg.scenario.linkage.task)
+        except MessageError as exc:
+            d.rejected.add(exc)
+            d.get_logger().warn(f'command rejected: {exc}', throttle_duration_sec=1.0)
+            return
+        out = self.stepper.on_command(state_seq, mode, wrench, common.monotonic(),
+                                      d.may_engage(), cid)
+        if out.info:
+            d.get_logger().info(out.info)
+        if out.warning:
+            d.get_logger().warn(out.warning)
+        self._emit(out.emitted)
+
+    def _tick_wall(self) -> None:
+        self._emit(self.stepper.wall_tick(common.monotonic(),
+                                          self.driver.get_clock().now().nanoseconds))
+
+    def _tick_idle(self) -> None:
+        self._emit(self.stepper.idle_tick(common.monotonic()))
+
+    def _warn_stalled(self) -> None:
+        text = self.stepper.stalled(common.monotonic())
+        if text:
+            self.driver.get_logger().warn(text)
+
+    def _emit(self, e: Emitted | None) -> None:
+        if e is not None:
+            self.driver.publish_state(e.tick, e.stamp_ns, e.clock)
+            if e.ends_run:
+                self.driver.end_run()

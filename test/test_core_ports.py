@@ -1,0 +1,182 @@
+"""The separate layout's core objects, without ROS: ``ExecutorLoop`` (the device stepped by
+executor callbacks) and ``ControllerPort`` (the controller with hand batches, the lock-step
+hold and figures).
+
+* lock-step, with the messages in the worst order the graph can deliver them (the device's
+  next state before the VE's update), the two objects fed by the VE from the hand batches
+  reproduce ``simulate`` bit for bit: what the separate-layout lock-step graph runs;
+* a held state waits at most ``lockstep_wait``, then is answered from the local model;
+* wall clock: the device integrates over the measured period, clipped; ``run_duration``
+  marks the last state; a stalled lock-step answer is named; engagement and takeover lines;
+* live parameter changes apply all or none.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from haptic_topology.control.laws import ControlMode
+from haptic_topology.control.port import ControllerPort, live_change
+from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
+from haptic_topology.device.hosted import state_sample
+from haptic_topology.device.loop import CommandVerdict, ns_to_seconds, period_ns
+from haptic_topology.device.maglev import DeviceStatus
+from haptic_topology.sim.lockstep import (
+    build_controller_loop,
+    build_device_loop,
+    simulate,
+    virtual_environment,
+)
+from haptic_topology.sim.scenario import Scenario, load_scenario
+
+
+def _pair(sc: Scenario, mode: ControlMode, lockstep: bool = True,
+          lockstep_wait: float = 5.0) -> tuple[ExecutorLoop, ControllerPort]:
+    stepper = ExecutorLoop(build_device_loop(sc), sc.dt, lockstep, sc.duration)
+    port = ControllerPort(build_controller_loop(sc, mode, update_period=sc.update_period),
+                          sc.update_period, sc.linkage.task.dim, sc.dt, lockstep,
+                          lockstep_wait)
+    return stepper, port
+
+
+def _sample(e: Emitted) -> object:
+    return state_sample(e.tick, ns_to_seconds(e.stamp_ns))
+
+
+@pytest.mark.parametrize(('name', 'mode'), [('fig6', ControlMode.PENALTY),
+                                            ('fig8', ControlMode.ACCELERATION_ONLY)])
+def test_separate_lockstep_objects_equal_simulate(name: str, mode: ControlMode) -> None:
+    sc = replace(load_scenario(name), duration=0.5)
+    ref = simulate(sc, mode)
+    stepper, port = _pair(sc, mode)
+    ve = virtual_environment(sc)
+    port.on_update(ve.snapshot(seq=0), 0.0)
+    e = stepper.idle_tick(0.0)
+    assert e is not None and e.stamp_ns == 0 and e.tick.status & DeviceStatus.IDLE
+    queued = None         # the VE's update on its way to the controller
+    run: list[Emitted] = []
+    commands = []
+    inputs, update_seq, held = 0, 1, 0
+    while True:
+        out = port.on_state(_sample(e), e.stamp_ns, 0.0)   # type: ignore[arg-type]
+        if queued is not None:
+            # The update came after the device's next state (the worst order DDS can
+            # deliver them in): a state that needs it is held until it has come.
+            held += out is None
+            released = port.on_update(queued, 0.0)
+            out = out or released
+            queued = None
+        assert out is not None
+        ans = out.answer
+        if e.ends_run:
+            commands.append(ans.out.wrench)
+            break
+        if ans.hand is not None:
+            hand = ans.hand
+            ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
+            inputs += 1
+            if inputs % sc.update_period == 0:
+                queued = ve.snapshot(seq=update_seq)
+                update_seq += 1
+        res = stepper.on_command(ans.state_seq, int(ans.out.mode), ans.out.wrench, 0.0, True, 7)
+        assert res.verdict == CommandVerdict.APPLIED and res.emitted is not None
+        if run:
+            commands.append(ans.out.wrench)
+        e = res.emitted
+        assert e.clock                  # lock-step steps publish /clock first
+        run.append(e)
+    assert len(run) == ref.t.size
+    assert [x.stamp_ns for x in run] == [k * period_ns(sc.dt) for k in range(len(run))]
+    np.testing.assert_array_equal(np.array([x.tick.reading.pose for x in run]),
+                                  ref.columns['device_pose'])
+    np.testing.assert_array_equal(np.array(commands), ref.columns['command'])
+    assert held >= update_seq - 3 and port.lockstep_timeouts == 0     # nearly every update
+    assert port.commands == len(run) + 1       # the idle state's answer too
+
+
+def test_a_held_state_is_answered_from_the_local_model_after_lockstep_wait() -> None:
+    sc = replace(load_scenario('fig6'), duration=0.5)
+    stepper, port = _pair(sc, ControlMode.PENALTY, lockstep_wait=0.05)
+    port.on_update(virtual_environment(sc).snapshot(seq=0), 0.0)
+    e = stepper.idle_tick(0.0)
+    now = 0.0
+    held_at = None
+    for _ in range(3 * sc.update_period + 3):   # the VE is silent after its first update
+        assert e is not None
+        out = port.on_state(_sample(e), e.stamp_ns, now)    # type: ignore[arg-type]
+        if out is None:
+            held_at = now
+            assert port.check_wait(now + 0.049) is None     # not yet
+            out = port.check_wait(now + 0.05)
+            assert out is not None
+            break
+        e = stepper.on_command(out.answer.state_seq, int(out.answer.out.mode),
+                               out.answer.out.wrench, now, True, 7).emitted
+    assert held_at is not None, 'no state was held for its update'
+    assert port.lockstep_timeouts == 1
+    assert any('no LMI update for state' in n for n in port.loop.notices)
+    assert np.all(np.isfinite(out.answer.out.wrench))
+
+
+def test_wall_ticks_clip_the_period_and_mark_the_end_of_the_run() -> None:
+    sc = replace(load_scenario('fig6'), duration=0.003)
+    stepper, port = _pair(sc, ControlMode.PENALTY, lockstep=False)
+    port.on_update(virtual_environment(sc).snapshot(seq=0), 0.0)
+    t, ns = 10.0, 1_000_000_000
+    e = stepper.wall_tick(t, ns)
+    assert e.tick.status & DeviceStatus.IDLE and not e.clock and not e.ends_run
+    out = port.on_state(_sample(e), e.stamp_ns, t)          # type: ignore[arg-type]
+    assert out is not None
+    res = stepper.on_command(out.answer.state_seq, int(out.answer.out.mode),
+                             out.answer.out.wrench, t, True, 7)
+    assert res.info == 'controller 7 engaged at state 1' and res.emitted is None  # wall
+    ends = []
+    for k in range(1, 6):
+        # A 1 s stall of the executor counts as 20 periods, not as one 1 s step.
+        gap = 1.0 if k == 2 else sc.dt
+        t += gap
+        e = stepper.wall_tick(t, ns + round(1e9 * (t - 10.0)))
+        ends.append(e.ends_run)
+        if k == 2:
+            assert e.tick.run_index == 1
+    assert stepper.stats.periods[1] == pytest.approx(1.0)
+    assert ends.index(True) == 1           # the second engaged state is >= 3 ms after the first
+    assert stepper.stalled(t) == ''         # wall clock: never
+
+
+def test_lockstep_names_a_stalled_answer_and_a_takeover() -> None:
+    sc = replace(load_scenario('fig6'), duration=0.5)
+    stepper, port = _pair(sc, ControlMode.PENALTY)
+    port.on_update(virtual_environment(sc).snapshot(seq=0), 0.0)
+    e = stepper.idle_tick(0.0)
+    assert e is not None
+    out = port.on_state(_sample(e), e.stamp_ns, 0.0)        # type: ignore[arg-type]
+    assert out is not None
+    wrench = out.answer.out.wrench
+    res = stepper.on_command(out.answer.state_seq, int(out.answer.out.mode), wrench, 1.0,
+                             True, 7)
+    assert res.emitted is not None and stepper.idle_tick(1.0) is None   # engaged: no idle
+    assert stepper.stalled(1.0 + 4.9) == ''
+    assert stepper.stalled(1.0 + 5.0) == ('lock-step: no answer to state 2 for 5.0 s (is '
+                                          'lmi_controller running, and ve_sim?)')
+    # Another controller, after the followed one was silent for takeover_after.
+    seq = res.emitted.tick.seq
+    res = stepper.on_command(seq, int(ControlMode.PENALTY), wrench, 10.0, True, 9)
+    assert res.warning == 'controller 9 took over from the silent 7'
+    assert res.verdict == CommandVerdict.APPLIED and res.emitted is not None
+
+
+def test_live_changes_apply_all_or_none() -> None:
+    sc = load_scenario('fig6')
+    gains, mode = sc.gains, ControlMode.PENALTY
+    changed = live_change(gains, mode, [('k_tc', 500.0), ('mode', 'acceleration_only')])
+    assert not isinstance(changed, str)
+    assert changed[0].k_tc == 500.0 and changed[0].b_tc == gains.b_tc
+    assert changed[1] is ControlMode.ACCELERATION_ONLY
+    refused = live_change(gains, mode, [('k_tc', 500.0), ('b_tc', -1.0)])
+    assert isinstance(refused, str) and 'b_tc must be >= 0' in refused
+    assert live_change(gains, mode, [('mode', 'fast')]) == (
+        'mode must be one of penalty, acceleration_only, got \'fast\'')
