@@ -82,3 +82,19 @@ def ros_domain_env() -> Iterator[dict[str, str]]:
 def topic_prefix() -> str:
     """A topic namespace unique to one test."""
     return f'/test_{secrets.token_hex(4)}'
+
+
+#: Test files that start node graphs, longest first (pytest --durations, 2 cores): with
+#: ``-n 2 --dist loadfile`` (make test) each file runs in one worker, and starting the long
+#: ones first keeps one of them from being the last thing the session waits for.
+LONGEST_FIRST = ('test_node_graph.py', 'test_fault_injection.py', 'test_foreign_messages.py',
+                 'test_replay.py', 'test_recorder.py', 'test_hosted_layout.py')
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Run the files of :data:`LONGEST_FIRST` first, in that order; the rest keep theirs."""
+    def key(item: pytest.Item) -> int:
+        name = item.path.name
+        return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+
+    items.sort(key=key)
