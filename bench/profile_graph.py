@@ -6,7 +6,8 @@ Runs ``haptic-topology run SCENARIO --duration S --layout L`` with the sampling 
 run: the CPU (fraction of a core) of each thread (the hosted loop thread is ``device_loop``,
 its publisher ``device_publish``; DDS's threads have their own names). Then prints, per
 process, the innermost Python frames that took most samples, without the ones waiting
-(sleep, wait, spin). ``python bench/profile_graph.py [--layout hosted] [--duration 12]``.
+(sleep, wait, spin). ``python bench/profile_graph.py [--layout hosted] [--duration 12]
+[--clock wall|lockstep]``.
 """
 
 from __future__ import annotations
@@ -60,12 +61,14 @@ def main() -> int:
     ap.add_argument('--duration', type=float, default=12.0)
     ap.add_argument('--window', type=float, default=6.0)
     ap.add_argument('--top', type=int, default=12)
+    ap.add_argument('--clock', default='wall', choices=('wall', 'lockstep'))
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix='haptic_profile_'))
     env = dict(os.environ, HAPTIC_TOPOLOGY_PROFILE=str(tmp / 'stacks'))
     run = subprocess.Popen(
         [sys.executable, '-m', 'haptic_topology.cli', 'run', args.scenario, '--duration',
-         str(args.duration), '--layout', args.layout, '--no-plot', '--out', str(tmp / 'bag')],
+         str(args.duration), '--layout', args.layout, '--clock', args.clock, '--no-plot',
+         '--out', str(tmp / 'bag')],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 60.0
     pids: dict[str, int] = {}

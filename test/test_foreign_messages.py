@@ -13,7 +13,6 @@ Every wait is on a message, with a deadline; nothing is timed.
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 import time
@@ -24,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from procs import stop_process
 
 from haptic_topology.msgcheck import MAX_SEQ
 from haptic_topology.paths import config_dir
@@ -43,19 +43,6 @@ def _start(name: str, *extra: str) -> subprocess.Popen[bytes]:
         [sys.executable, '-m', f'haptic_topology.nodes.{name}', '--ros-args', '--params-file',
          str(PARAMS), '-p', 'scenario:=fig8', *extra],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> tuple[int | None, str]:
-    """SIGINT, then the exit status and output (None: it had died before)."""
-    alive = proc.poll() is None
-    if alive:
-        proc.send_signal(signal.SIGINT)
-    try:
-        out, _ = proc.communicate(timeout=15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-    return (proc.returncode if alive else None), out.decode(errors='replace')
 
 
 class Probe:
@@ -106,7 +93,7 @@ class Probe:
         deadline = time.monotonic() + timeout
         while not cond():
             for p in self.procs:
-                assert p.poll() is None, f'{what}: a node died:\n{_stop(p)[1][-3000:]}'
+                assert p.poll() is None, f'{what}: a node died:\n{stop_process(p)[1][-3000:]}'
             assert time.monotonic() < deadline, f'{what}: not within {timeout:g} s'
             if tick is not None:
                 tick()
@@ -213,7 +200,7 @@ def test_extreme_integers_are_rejected_and_nodes_keep_answering() -> None:
     finally:
         if probe is not None:
             probe.close()
-        results = [_stop(proc) for proc in procs]
+        results = [stop_process(proc) for proc in procs]
     for code, out in results:
         assert code == 0, out[-3000:]
         assert 'Traceback' not in out, out[-3000:]

@@ -13,7 +13,6 @@ messages, with a deadline; nothing is timed.
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from procs import stop_process
 
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.scenario import load_scenario
@@ -36,17 +36,6 @@ def _start(name: str) -> subprocess.Popen[bytes]:
         [sys.executable, '-m', f'haptic_topology.nodes.{name}', '--ros-args', '--params-file',
          str(PARAMS), '-p', 'scenario:=circle'],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> str:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        out, _ = proc.communicate(timeout=15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-    return out.decode(errors='replace')
 
 
 def test_commands_from_dds_never_reach_the_hosted_device() -> None:
@@ -87,7 +76,7 @@ def test_commands_from_dds_never_reach_the_hosted_device() -> None:
         deadline = time.monotonic() + WAIT
         while not cond():
             for p in procs:
-                assert p.poll() is None, f'{what}: a node died:\n{_stop(p)[-3000:]}'
+                assert p.poll() is None, f'{what}: a node died:\n{stop_process(p)[1][-3000:]}'
             assert time.monotonic() < deadline, f'{what}: not within {WAIT:g} s'
             executor.spin_once(timeout_sec=0.02)
 
@@ -102,7 +91,7 @@ def test_commands_from_dds_never_reach_the_hosted_device() -> None:
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
-        outs = [_stop(p) for p in procs]
+        outs = [stop_process(p)[1] for p in procs]
     assert all('Traceback' not in o for o in outs), outs
     assert len(after) >= 1000
     applied = np.array([s.applied_wrench for s in after])

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from procs import stop_process
 
 from haptic_topology.bag.graph_trace import GraphRun, read_graph_bag
 from haptic_topology.bringup.run import run_graph
@@ -181,18 +182,6 @@ def _start_node(name: str, *extra: str) -> subprocess.Popen[bytes]:
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
 
 
-def _stop(proc: subprocess.Popen[bytes]) -> tuple[int, str]:
-    import signal
-
-    proc.send_signal(signal.SIGINT)
-    try:
-        out, _ = proc.communicate(timeout=10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-    return proc.returncode, out.decode(errors='replace')
-
-
 @pytest.mark.parametrize('process', ['lmi_controller', 'device_driver'],
                          ids=['separate', 'hosted'])
 def test_live_k_tc_takes_effect_and_bad_values_are_refused(process: str) -> None:
@@ -259,7 +248,7 @@ def test_live_k_tc_takes_effect_and_bad_values_are_refused(process: str) -> None
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
-        code, out = _stop(proc)
+        code, out = stop_process(proc, timeout=10)
     assert code == 0, out
     assert 'Traceback' not in out
 

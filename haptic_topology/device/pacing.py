@@ -221,9 +221,14 @@ class LoopStats:
         return period
 
     def values(self, prefix: str = '') -> dict[str, str]:
-        if not self.periods:
+        """As diagnostics key/values. Any thread: the window is copied by one C call
+        (``tuple`` of the deque, atomic under the GIL) while another thread may
+        :meth:`tick` (the hosted controller's statistics are ticked by the publishing
+        thread and read by the diagnostics timer)."""
+        periods = tuple(self.periods)
+        if not periods:
             return {f'{prefix}rate_hz': '0', f'{prefix}overruns': str(self.overruns)}
-        p = np.fromiter(self.periods, float)
+        p = np.array(periods, dtype=float)
         return {
             f'{prefix}rate_hz': f'{1.0 / float(p.mean()):.1f}',
             f'{prefix}period_p50_ms': f'{1e3 * float(np.percentile(p, 50)):.3f}',
