@@ -32,7 +32,7 @@ def publish(node: Any, prefix: str, deadline: float) -> int:
     for name in MESSAGE_NAMES:
         msg = fill_rclpy(rclpy_type(name)(), sample_values(store, type_name(name)))
         pubs.append((node.create_publisher(rclpy_type(name), f'{prefix}/{name}', QOS), msg))
-    while time.monotonic() < deadline:
+    while rclpy.ok() and time.monotonic() < deadline:
         for pub, msg in pubs:
             if pub.get_subscription_count() > 0:
                 pub.publish(msg)
@@ -67,6 +67,12 @@ def main(argv: list[str]) -> int:
     try:
         return (publish if role == 'pub' else subscribe)(node, prefix, deadline)
     except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    except RuntimeError:        # rclpy's RCLError
+        if rclpy.ok():
+            raise
+        # The SIGINT that ends the publisher shut the context down in the middle of an rcl
+        # call ("publisher's context is invalid"): the stop asked for, not a failure.
         return 0
     finally:
         node.destroy_node()
