@@ -9,6 +9,7 @@ Every wait has a deadline and raises :class:`WaitTimeout` naming what did not ha
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -28,6 +29,36 @@ class WaitTimeout(HapticTopologyError):
     """Something the graph should have done within a deadline did not happen."""
 
 
+_TYPES_LOCK = threading.Lock()
+_types_imported = False
+
+
+def import_type_supports() -> None:
+    """Import the type support of every message and service a :class:`GraphWatcher` uses,
+    once per process, under a lock.
+
+    rosidl's generated ``__import_type_support__`` is not thread-safe: a service's type
+    support is set before its request's converters, so a thread that creates a client
+    meanwhile sends with a converter still None (``TypeError: Object of type 'NoneType' is
+    not an instance of 'capsule'`` in ``Client.call_async``). Seen once in a stress run of
+    the tests, which run eight graphs from eight threads of one process.
+    """
+    global _types_imported
+    with _TYPES_LOCK:
+        if _types_imported:
+            return
+        from diagnostic_msgs.msg import DiagnosticArray
+        from lifecycle_msgs.msg import Transition, TransitionEvent
+        from lifecycle_msgs.srv import ChangeState, GetState
+        from rclpy.type_support import check_for_type_support
+
+        for t in (DiagnosticArray, Transition, TransitionEvent, ChangeState,
+                  ChangeState.Request, ChangeState.Response, GetState, GetState.Request,
+                  GetState.Response):
+            check_for_type_support(t)
+        _types_imported = True
+
+
 class GraphWatcher:
     """An rclpy node of its own (own context) that watches the graph; use as a context
     manager. ``alive``: called while waiting, raises if a process of the graph has died."""
@@ -43,6 +74,7 @@ class GraphWatcher:
 
         from haptic_topology.nodes import common
 
+        import_type_supports()
         self._rclpy = rclpy
         self.context = rclpy.Context()
         if domain_id is None:

@@ -409,9 +409,9 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
             if close is not None:
                 close()
         if exit_after_close:
-            # Everything the nodes own is closed (the recorder's bag is complete). In clean-
-            # clone CI runs the recorder hung in rclpy's teardown after that, holding the GIL
-            # (a timer thread could not run), until the bringup's SIGKILL (cause not found).
+            # Everything the nodes own is closed (the recorder's bag is complete): nothing
+            # is left for rclpy's teardown to do. (Clean-clone CI runs had reported the
+            # recorder "hung" here; the cause found later was the lost SIGINT, see spin().)
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(status)
