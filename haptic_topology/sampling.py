@@ -17,6 +17,7 @@ import os
 import sys
 import threading
 from collections import Counter
+from collections.abc import Callable
 from types import FrameType
 
 ENV = 'HAPTIC_TOPOLOGY_PROFILE'
@@ -58,3 +59,17 @@ def start_from_env() -> None:
 
     threading.Thread(target=sample, name='sampler', daemon=True).start()
     atexit.register(dump)
+    _dumps.append(dump)
+
+
+#: The running sampler's dump (at most one): node processes end with ``os._exit``, which runs
+#: no ``atexit`` function, so they call :func:`dump_now` first.
+_dumps: list[Callable[[], None]] = []
+
+
+def dump_now() -> None:
+    """Write the samples now (once) if the sampler runs in this process."""
+    while _dumps:
+        fn = _dumps.pop()
+        atexit.unregister(fn)
+        fn()

@@ -47,6 +47,7 @@ and ignore SIGINT. ``executor: single_threaded`` is the fallback. The
 
 from __future__ import annotations
 
+import faulthandler
 import math
 import os
 import signal
@@ -270,6 +271,11 @@ def make_executor(kind: str) -> Any:
     return SingleThreadedExecutor()
 
 
+#: Seconds after SIGINT/SIGTERM at which a node still running dumps its threads' stacks (the
+#: bringup escalates to SIGTERM after 5 s).
+STOP_DUMP_AFTER = 4.0
+
+
 def spin(nodes: Sequence[Node], kind: str) -> None:
     """Spin ``nodes`` on one executor until SIGINT/SIGTERM (or rclpy's shutdown).
 
@@ -288,6 +294,10 @@ def spin(nodes: Sequence[Node], kind: str) -> None:
     stop: list[int] = []
 
     def request_stop(signum: int, frame: Any) -> None:
+        if not stop:
+            # A node that has not ended STOP_DUMP_AFTER s after the signal writes every
+            # thread's Python stack to stderr (its log): where a stop hangs, not a guess.
+            faulthandler.dump_traceback_later(STOP_DUMP_AFTER, exit=False)
         stop.append(signum)
 
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -348,7 +358,9 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
     """Init rclpy, build the node(s), spin, shut down cleanly; return the exit status.
 
     ``exit_after_close``: end the process with the status once the nodes' ``close`` has run,
-    without rclpy's teardown (the recorder, see the comment at the end).
+    without rclpy's teardown (the recorder, see the comment at the end). Called as a
+    program (``args`` None) the process always ends in this function, after rclpy's
+    shutdown and without the interpreter's finalization (see the end).
 
     ``params``: node name -> its declared parameters (None: unknown here), used to check the
     params files and ``-p`` overrides before rclpy reads them; ``prog`` is the node checked
@@ -412,13 +424,29 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
             # Everything the nodes own is closed (the recorder's bag is complete): nothing
             # is left for rclpy's teardown to do. (Clean-clone CI runs had reported the
             # recorder "hung" here; the cause found later was the lost SIGINT, see spin().)
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(status)
+            _end_process(status)
         for n in nodes:
             n.destroy_node()
         rclpy.try_shutdown()
+    if args is None:
+        # A node process (console script, python -m) ends here, without the interpreter's
+        # finalization: everything ROS is shut down above, and finalization only destroys
+        # rclpy's and Fast DDS's C++ objects once more. Measured: under load that took over
+        # 4 s after run_main had returned (faulthandler: the main thread with no Python
+        # frame), and the bringup's SIGTERM ended the process with -15.
+        _end_process(status)
     return status
+
+
+def _end_process(status: int) -> None:
+    """``os._exit(status)`` after the sampling profiler's dump and the stdio buffers (no
+    ``atexit`` function runs after it)."""
+    from haptic_topology.sampling import dump_now
+
+    dump_now()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def set_realtime_priority(priority: int) -> str | None:
