@@ -180,3 +180,14 @@ def test_live_changes_apply_all_or_none() -> None:
     assert isinstance(refused, str) and 'b_tc must be >= 0' in refused
     assert live_change(gains, mode, [('mode', 'fast')]) == (
         'mode must be one of penalty, acceleration_only, got \'fast\'')
+
+
+def test_the_update_age_is_never_negative() -> None:
+    """Hosted, the publishing thread's ``now`` may precede the arrival the executor thread
+    recorded: the age is then 0, never negative (a malformed ``update_age``)."""
+    sc = load_scenario('fig6')
+    stepper, port = _pair(sc, ControlMode.PENALTY)
+    assert port.update_age(1.0) == float('inf')
+    port.on_update(virtual_environment(sc).snapshot(seq=0), 5.0, apply=False)
+    assert port.update_age(4.9) == 0.0
+    assert port.update_age(5.25) == 0.25

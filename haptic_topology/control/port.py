@@ -159,8 +159,13 @@ class ControllerPort:
         return self.batcher.due(now)
 
     def update_age(self, now: float) -> float:
-        """Seconds since the newest LMI update arrived (inf before the first)."""
-        return math.inf if self._update_time is None else now - self._update_time
+        """Seconds since the newest LMI update arrived (inf before the first), >= 0.
+
+        Hosted, the publishing thread takes ``now`` once per batch of cycles while the
+        executor thread may record an update after it: such an update is 0 s old, not
+        negative (a negative ``DeviceCommand.update_age`` is malformed: the bag analysis
+        skipped two such commands of a spatial lock-step run)."""
+        return math.inf if self._update_time is None else max(0.0, now - self._update_time)
 
     def values(self, now: float) -> dict[str, str]:
         """Figures as diagnostics key/values (with the loop's)."""
