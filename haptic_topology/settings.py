@@ -334,9 +334,10 @@ class LmiControllerSettings(NodeSettings):
     clock: str = _clock('lockstep: simulated time (/clock from device_driver); a state is '
                         'answered only with the LMI update the offline simulation applies at '
                         'that step (see lockstep_wait)')
-    lockstep_wait: float = param(5.0, 'lock-step: longest wait (wall s) for the LMI update the '
-                                 'offline simulation applies at this step; then warn and '
-                                 'answer with the local model', lo=0.01, hi=600.0)
+    lockstep_wait: float = param(60.0, 'lock-step: longest wait (wall s) for the LMI update the '
+                                 'offline simulation applies at this step (a notice after '
+                                 '5 s); then warn and answer with the local model',
+                                 lo=0.01, hi=600.0)
     ack_updates: bool = param(False, 'publish the seq of every LMI update taken on '
                               'haptic/lmi/ack (std_msgs/UInt64), after it was taken: replay '
                               '--check-controller sends the next state only then')

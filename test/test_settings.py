@@ -74,7 +74,7 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
         ('resync_max_jump', 1.0, 0.0, 1e6, None, True),
         ('resync_ramp', 0.2, 1e-3, 10.0, None, True),
         ('clock', 'wall', None, None, ('wall', 'lockstep'), True),
-        ('lockstep_wait', 5.0, 0.01, 600.0, None, True),
+        ('lockstep_wait', 60.0, 0.01, 600.0, None, True),
         ('ack_updates', False, None, None, None, True)],
     VeSimSettings: [*_COMMON,
         ('update_period', 0, 0, 10000, None, True),
@@ -244,7 +244,7 @@ def test_controller_defaults_come_from_the_scenario(fig8: Scenario) -> None:
     assert (cfg.gains.k_tc, cfg.gains.b_tc) == (200.0, 50.0)
     np.testing.assert_array_equal(cfg.gains.k_pc, fig8.gains.k_pc)
     assert cfg.guard.degrade_after == 0.6 and cfg.guard.ramp_time == 0.2
-    assert cfg.cycle_time == fig8.dt and cfg.lockstep_wait == 5.0 and cfg.clock is Clock.WALL
+    assert cfg.cycle_time == fig8.dt and cfg.lockstep_wait == 60.0 and cfg.clock is Clock.WALL
     cfg = resolve_lmi_controller(LmiControllerSettings(
         mode='acceleration_only', k_tc=10.0, b_tc=7.0), fig8)
     assert cfg.mode is ControlMode.ACCELERATION_ONLY
@@ -311,7 +311,7 @@ def test_declare_settings_declares_every_field_on_a_node(fig8: Scenario) -> None
             settings = common.declare_settings(node, LmiControllerSettings,
                                                scenario_defaults(LmiControllerSettings, sc))
             assert (settings.mode, settings.k_tc, settings.b_tc) == (sc.mode.label, 30.0, 50.0)
-            assert settings.lockstep_wait == 5.0
+            assert settings.lockstep_wait == 60.0
             desc = node.describe_parameter('k_tc')
             assert not desc.read_only and desc.floating_point_range[0].to_value == 1e5
             assert node.describe_parameter('stale_after').read_only

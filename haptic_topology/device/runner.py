@@ -52,6 +52,10 @@ from haptic_topology.errors import ConfigError
 #: Outbox entries kept (4 s at 1 kHz): a publisher that falls further behind loses the oldest
 #: (wall clock) or holds the loop (lock-step).
 OUTBOX = 4096
+#: Lock-step: a state that has waited this long (wall s) for its LMI update gets a notice;
+#: the run goes on waiting up to ``lockstep_wait`` (a loaded machine runs slower, not
+#: differently: a stress run once had the VE's update 5 s late, under 8 graphs on 2 cores).
+LOCKSTEP_NOTICE_AFTER = 5.0
 #: Longest single wait of the loop thread for an update or for room in the outbox (s), so
 #: that submitted calls and a stop request are served meanwhile.
 _POLL = 0.01
@@ -67,7 +71,7 @@ class RunnerConfig:
     period: float
     lockstep: bool = False
     run_duration: float = 0.0
-    lockstep_wait: float = 5.0
+    lockstep_wait: float = 60.0
     outbox: int = OUTBOX
 
     def __post_init__(self) -> None:
@@ -211,10 +215,17 @@ class LoopRunner:
     def _lockstep_step(self) -> Published | None:
         started = self._clock()
         waited = False
+        noticed = False
         while self.cycle.waiting_for_update():
             self._run_calls()
             if self._stop.is_set():
                 return None
+            if not noticed and self._clock() - started >= LOCKSTEP_NOTICE_AFTER:
+                noticed = True
+                self.notices.append(
+                    f'lock-step: state {self.cycle.device.seq + 1} has waited '
+                    f'{LOCKSTEP_NOTICE_AFTER:g} s for its LMI update (a loaded machine, or '
+                    f've_sim not running?); waiting up to {self.cfg.lockstep_wait:g} s')
             if self._clock() - started >= self.cfg.lockstep_wait:
                 self.lockstep_timeouts += 1
                 self.notices.append(
