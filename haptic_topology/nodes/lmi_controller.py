@@ -179,7 +179,6 @@ class LmiController(Node):
                 self.host.cycle.apply_updates()
         if snap is not None:
             out = self.port.on_update(snap, common.monotonic(), self.host is None)
-            common.log_notices(self, self.loop.notices)
         if self.ack_pub is not None:
             self.ack_pub.publish(UInt64(data=int(msg.seq)))
         self.send(out)
