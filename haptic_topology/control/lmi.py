@@ -24,10 +24,10 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 
 from haptic_topology.dynamics.constraints import ConstraintDirections, task_scale
 from haptic_topology.dynamics.linkage_dynamics import DynamicsSnapshot
+from haptic_topology.dynamics.spd import spd_factor, spd_solve
 from haptic_topology.dynamics.taskspace import integrate_pose
 from haptic_topology.model.linkage import PenaltyDirection, TaskSpace
 
@@ -115,10 +115,10 @@ class LocalModel:
         """Re-sync to an update: take its matrices and state, replay the newer inputs."""
         if snap.task is not self.task:
             raise ValueError(f'task_dim must be {self.task.dim}, got {snap.task.dim}')
-        factor = cho_factor(snap.mass_matrix)
+        factor = spd_factor(snap.mass_matrix)
         j = snap.hand_jacobian
-        self._accel_map = cho_solve(factor, j.T)
-        self._accel_bias = (cho_solve(factor, snap.gravity) if self.model is LmiModel.EQ17
+        self._accel_map = spd_solve(factor, j.T)
+        self._accel_bias = (spd_solve(factor, snap.gravity) if self.model is LmiModel.EQ17
                             else np.zeros_like(snap.gravity))
         self._jacobian = j
         lam = j @ self._accel_map

@@ -12,13 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg import cho_factor, cho_solve
 
 from haptic_topology.dynamics.constraints import (
     ConstraintDirections,
     constraint_directions,
     joint_scale,
 )
+from haptic_topology.dynamics.spd import spd_factor, spd_solve
 from haptic_topology.dynamics.taskspace import pose_from_placement
 from haptic_topology.model.linkage import Linkage, LinkageModel, TaskSpace, build_model
 
@@ -142,6 +142,5 @@ def inverse_operational_inertia(jacobian: np.ndarray, mass_matrix: np.ndarray) -
 
     Uses a Cholesky solve of D, never an explicit inverse.
     """
-    factor = cho_factor(mass_matrix)
-    lam = jacobian @ cho_solve(factor, jacobian.T)
+    lam = jacobian @ spd_solve(spd_factor(mass_matrix), jacobian.T)
     return 0.5 * (lam + lam.T)

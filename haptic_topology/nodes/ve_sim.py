@@ -64,6 +64,11 @@ from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed, VirtualEnvironment
 from haptic_topology_msgs.msg import HandInputs, LmiUpdate, VtPath
 
+#: s, the shortest period of the silence check (path flush, idle keep-alive): at 1 kHz it
+#: cost an idle VE a tenth of a core for nothing, as silence is at least an idle period or
+#: three update periods long.
+IDLE_CHECK_MIN_PERIOD = 0.01
+
 
 class VeSim(Node):
     """The VE node (full dynamics at ``internal_step``, LMI updates at ~100 Hz)."""
@@ -109,8 +114,8 @@ class VeSim(Node):
         self.stats = LoopStats(sc.dt * self.update_period)
         self.update_stats = LoopStats(sc.dt * self.update_period)
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(min(self._idle_period, sc.dt * self.update_period),
-                          self._publish_idle, clock=steady)
+        self.create_timer(max(min(self._idle_period, sc.dt * self.update_period),
+                              IDLE_CHECK_MIN_PERIOD), self._publish_idle, clock=steady)
         self.create_timer(c.viz_period, self._publish_viz, clock=steady)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
 
