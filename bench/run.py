@@ -235,6 +235,11 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'max_links_at_100hz_spatial': core['max_links_at_100hz_spatial'],
         'fig8_live_to_offline_max_distance': res['fig8']['ratio'],
         'simulate_realtime_factor_fig8': res['simulate_speed']['fig8']['realtime_factor'],
+        've_update_p99_us_3_links_spatial': next(
+            r['update_total_p99_us'] for r in core['ve_update']
+            if r['links'] == 3 and r['task'] == 'spatial'),
+        'max_links_within_30pct_planar': core['max_links_within_30pct_planar'],
+        'max_links_within_30pct_spatial': core['max_links_within_30pct_spatial'],
     }
     for key in ('hosted_fifo', 'separate_fifo'):
         if key in res:
@@ -266,10 +271,15 @@ def goals(head: dict[str, Any]) -> str:
          f'{h["rtt_p99_ratio_separate_to_baseline"]:.2f}x ({h["rtt_p99_us_separate"]:.0f} / '
          f'{h["baseline_rtt_p99_us"]:.0f} us)', '<= 1.3x',
          h['rtt_p99_ratio_separate_to_baseline'] <= 1.3),
-        ('VE update, 3 links / largest chain at 100 Hz',
-         f'{h["ve_update_p99_us_3_links"] / 1e3:.2f} ms / planar '
-         f'{h["max_links_at_100hz_planar"]}, spatial {h["max_links_at_100hz_spatial"]} links',
-         '<= 0.3 ms / 100 links within 30 % of 10 ms', h['ve_update_p99_us_3_links'] <= 300.0),
+        ('VE update p99, 3 links / largest chain within 30 % of 10 ms',
+         f'{h["ve_update_p99_us_3_links"] / 1e3:.2f} ms planar, '
+         f'{h["ve_update_p99_us_3_links_spatial"] / 1e3:.2f} ms spatial / planar '
+         f'{h["max_links_within_30pct_planar"]}, spatial {h["max_links_within_30pct_spatial"]}'
+         f' links (at 100 Hz: {h["max_links_at_100hz_planar"]}, '
+         f'{h["max_links_at_100hz_spatial"]})',
+         '<= 0.3 ms / 100 links within 30 % of 10 ms',
+         max(h['ve_update_p99_us_3_links'], h['ve_update_p99_us_3_links_spatial']) <= 300.0
+         and min(h['max_links_within_30pct_planar'], h['max_links_within_30pct_spatial']) >= 100),
         ('controller compute p99', f'{h["controller_step_p99_us"]:.0f} us', '<= 30 us',
          h['controller_step_p99_us'] <= 30.0),
         ('recorder at 10x', f'{h["recorder_10x_msgs_per_s"]:.0f} msg/s, lost '

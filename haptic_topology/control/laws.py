@@ -147,14 +147,26 @@ def stable_hold(lambda_inv: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray) -> f
     explicitly: for ``x'' = -k x - b x'`` stepped that way the step is stable while
     ``k h^2 + 2 b h < 4``, with ``k``, ``b`` (1/s^2, 1/s) the largest eigenvalues of
     ``K^1/2 lambda_inv K^1/2`` and ``B^1/2 lambda_inv B^1/2``. inf when both are zero."""
-    lam = 0.5 * (lambda_inv + lambda_inv.T)
+    return StableHold(k_pc, b_pc)(lambda_inv)
 
-    def largest(gain: np.ndarray) -> float:
-        r = np.sqrt(np.maximum(np.asarray(gain, dtype=float), 0.0))
-        return max(float(np.linalg.eigvalsh(r[:, None] * lam * r[None, :]).max()), 0.0)
 
-    k, b = largest(k_pc), largest(b_pc)
-    if k <= 0.0 and b <= 0.0:
-        return math.inf
-    limit = (-b + math.sqrt(b * b + 4.0 * k)) / k if k > 0.0 else 2.0 / b
-    return 0.5 * limit
+class StableHold:
+    """:func:`stable_hold` for fixed gains ``K_pc``, ``B_pc`` (m values each, N/m and N m/rad,
+    N s/m and N m s/rad): their square roots are taken once, and both eigenvalue problems go
+    to LAPACK in one call (the VE evaluates this at every LMI update)."""
+
+    def __init__(self, k_pc: np.ndarray, b_pc: np.ndarray) -> None:
+        gains = np.stack([np.asarray(k_pc, dtype=float), np.asarray(b_pc, dtype=float)])
+        self._roots = np.sqrt(np.maximum(gains, 0.0))       # rows: K^1/2, B^1/2 diagonals
+        self._left = self._roots[:, :, None]
+        self._right = self._roots[:, None, :]
+
+    def __call__(self, lambda_inv: np.ndarray) -> float:
+        """The stable hold (s) at ``lambda_inv`` (m x m, eq. 19)."""
+        lam = 0.5 * (lambda_inv + lambda_inv.T)
+        top = np.linalg.eigvalsh(self._left * lam * self._right).max(axis=1)
+        k, b = max(float(top[0]), 0.0), max(float(top[1]), 0.0)
+        if k <= 0.0 and b <= 0.0:
+            return math.inf
+        limit = (-b + math.sqrt(b * b + 4.0 * k)) / k if k > 0.0 else 2.0 / b
+        return 0.5 * limit

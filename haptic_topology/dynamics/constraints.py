@@ -141,8 +141,10 @@ def constraint_directions(jacobian: np.ndarray, task: TaskSpace, settings: Const
     jw = w[:, None] * jacobian
     if column_scale is not None:
         jw = jw * column_scale[None, :]
-    u, s, _ = np.linalg.svd(jw, full_matrices=True)
-    ratio = np.ones(m) * 0.0
+    # U (m x m) is all that is used: the full V (d x d) is needed only to get a square U
+    # when d < m (numpy returns U, s bit for bit the same either way; V costs O(d^2)).
+    u, s, _ = np.linalg.svd(jw, full_matrices=d < m)
+    ratio = np.zeros(m)
     ratio[: s.size] = s / lc
     weights = penalty_weight(ratio, settings.rank_tolerance, settings.blend)
     # Rows beyond min(m, d) have no singular value: structurally constrained.

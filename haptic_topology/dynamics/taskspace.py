@@ -23,11 +23,11 @@ def wrap_angle(a: float) -> float:
 
 def pose_from_placement(placement: pin.SE3, task: TaskSpace) -> np.ndarray:
     """Task pose of an SE3 placement (world frame)."""
-    p = np.asarray(placement.translation, dtype=float)
-    r = np.asarray(placement.rotation, dtype=float)
+    h = placement.homogeneous   # [R p; 0 1], one conversion for rotation and translation
     if task is TaskSpace.PLANAR:
-        return np.array([p[0], p[1], math.atan2(r[1, 0], r[0, 0])])
-    return np.concatenate([p, pin.log3(r)])
+        r0, r1 = h[:2].tolist()  # Python floats: cheaper to index than numpy scalars
+        return np.array([r0[3], r1[3], math.atan2(r1[0], r0[0])])
+    return np.concatenate([h[:3, 3], pin.log3(h[:3, :3])])
 
 
 def pose_difference(a: np.ndarray, b: np.ndarray, task: TaskSpace) -> np.ndarray:
