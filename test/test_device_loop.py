@@ -143,3 +143,19 @@ def test_takeover_needs_a_command_that_would_be_applied() -> None:
     assert loop.controller_id == A and loop.takeovers == 0
     assert loop.on_command(3, PENALTY, np.ones(3), 0.05, controller_id=B) == APPLIED
     assert (loop.controller_id, loop.takeovers, loop.rejected_commands) == (B, 1, 2)
+
+
+def test_device_report_levels_and_rejected_counts() -> None:
+    """The driver's diagnostics: ERROR with a fault, WARN before configure, the loop's health
+    after; malformed commands (refused by the node) add to the loop's own refusals."""
+    from haptic_topology.device.loop import device_report
+    assert device_report(None, 0.0, '', 2, {})[:2] == (1, 'not configured')
+    assert device_report(None, 0.0, 'backend refused', 0, {})[:2] == (2,
+                                                                      'fault: backend refused')
+    loop, t = _engaged(A)
+    assert loop.on_command(2, PENALTY, np.zeros(3), t, controller_id=B) == FOREIGN
+    level, message, values = device_report(loop, t, '', 3, {'period_p99_ms': '1.000'})
+    assert (level, message) == loop.health() == (0, 'ok')
+    assert values['rejected_commands'] == '4'           # 3 malformed + 1 foreign
+    assert values['period_p99_ms'] == '1.000' and values['seq'] == str(loop.seq)
+    assert device_report(loop, t, 'backend lost', 0, {})[:2] == (2, 'fault: backend lost')

@@ -301,3 +301,20 @@ class DeviceLoop:
         if self.watchdog.active:
             return 1, 'watchdog: fading back in'
         return 0, 'ok'
+
+
+def device_report(loop: DeviceLoop | None, now: float, fault: str, rejected: int,
+                  layout_values: dict[str, str]) -> tuple[int, str, dict[str, str]]:
+    """The device side's diagnostics ``(level, message, values)``: ERROR with ``fault`` (a
+    failed transition), WARN while not configured (``loop`` None), else :meth:`DeviceLoop.
+    health`. ``rejected``: commands refused before the loop (malformed messages), added to the
+    loop's own refusals; ``layout_values``: the layout's figures (measured period)."""
+    level, message = (2, f'fault: {fault}') if fault else (1, 'not configured')
+    values = {'rejected_commands': str(rejected)}
+    if loop is not None:
+        values.update(loop.values(now))
+        values['rejected_commands'] = str(rejected + loop.rejected_commands)
+        values.update(layout_values)
+        if not fault:
+            level, message = loop.health()
+    return level, message, values

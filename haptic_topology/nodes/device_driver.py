@@ -46,12 +46,12 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from haptic_topology.device.backend import DeviceBackend, create_backend, zero_and_release
-from haptic_topology.device.loop import DeviceLoop, DeviceTick
+from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
 from haptic_topology.nodes import common, node_params
 from haptic_topology.nodes.convert import RejectCounter, ns_to_stamp, state_msg
-from haptic_topology.nodes.hosting import HostedLoop
+from haptic_topology.nodes.hosting import HostedLoop, driver_layout
 from haptic_topology.nodes.separate import SeparateLoop
 from haptic_topology.resolve import resolve_device_driver
 from haptic_topology.settings import Clock, DeviceDriverSettings
@@ -110,14 +110,7 @@ class DeviceDriver(LifecycleNode):
             self.loop = DeviceLoop(self.backend, c.wrench_limit,
                                    CommandWatchdog(c.watchdog, c.task_dim), c.period,
                                    c.takeover_after)
-            if not c.settings.host_controller:
-                self.layout = SeparateLoop(self)
-            elif self.hosted is None:
-                raise DeviceError('host_controller is true but no lmi_controller is hosted '
-                                  '(start the node with its main, or set host_controller '
-                                  'false and run lmi_controller)')
-            else:
-                self.layout = HostedLoop(self, self.hosted)
+            self.layout = driver_layout(self, self.hosted)
         except HapticTopologyError as exc:
             return self.fail(str(exc))
         return SUCCESS
@@ -192,19 +185,14 @@ class DeviceDriver(LifecycleNode):
         self.clock_pub.publish(self._clock_msg)
 
     def _publish_diagnostics(self) -> None:
-        loop, layout = self.loop, self.layout
+        layout = self.layout
+        level, message, loop_values = device_report(
+            self.loop, common.monotonic(), self.fault, self.rejected.total,
+            layout.values() if layout is not None else {})
         values = {'backend': self.cfg.backend, 'clock': self.cfg.clock.value,
                   'loop_running': str(layout is not None and layout.running).lower(),
                   f'sent {common.TOPIC_STATE}': str(self.states_sent),
-                  'rejected_commands': str(self.rejected.total), **self.rejected.values(),
-                  **common.matched(self._endpoints)}
-        level, message = (2, f'fault: {self.fault}') if self.fault else (1, 'not configured')
-        if loop is not None and layout is not None:
-            values.update(loop.values(common.monotonic()))
-            values['rejected_commands'] = str(self.rejected.total + loop.rejected_commands)
-            values.update(layout.values())
-            if not self.fault:
-                level, message = loop.health()
+                  **self.rejected.values(), **common.matched(self._endpoints), **loop_values}
         self.diag_pub.publish(common.diagnostics(self, 'device_driver: loop', values, level,
                                                  message))
 

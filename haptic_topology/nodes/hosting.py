@@ -38,6 +38,7 @@ from haptic_topology.nodes.common import (
     set_thread_realtime,
 )
 from haptic_topology.nodes.convert import CONTROLLER_ID, ns_to_stamp
+from haptic_topology.nodes.separate import SeparateLoop
 
 #: GIL switch interval (s) of a process that hosts the loop thread (CPython's default: 5 ms).
 SWITCH_INTERVAL = 2e-4
@@ -211,3 +212,15 @@ class HostedLoop:
                        ns_to_stamp(e.stamp_ns))
         log_notices(c, c.loop.notices)
         log_notices(d, self.runner.notices)
+
+
+def driver_layout(driver: Any, hosted: Any) -> HostedLoop | SeparateLoop:
+    """The configured ``driver``'s layout: :class:`HostedLoop` around the ``lmi_controller``
+    node ``hosted`` with ``host_controller``, else :class:`SeparateLoop`."""
+    if not driver.cfg.settings.host_controller:
+        return SeparateLoop(driver)
+    if hosted is None:
+        raise DeviceError('host_controller is true but no lmi_controller is hosted (start the '
+                          'node with its main, or set host_controller false and run '
+                          'lmi_controller)')
+    return HostedLoop(driver, hosted)
