@@ -23,12 +23,15 @@ a file as it is.
 from __future__ import annotations
 
 import os
+import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
 import yaml
+from mcap.opcode import Opcode
+from mcap.records import MessageIndex
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rosbags.interfaces import (
@@ -211,6 +214,64 @@ class BagWriter:
         c.end_ns = max(c.end_ns, log_time_ns)
         c.per_topic[index] = seq + 1
 
+    def write_many(self, items: Sequence[tuple[int, int, bytes]]) -> None:
+        """:meth:`write` for each ``(index, log_time_ns, data)`` of ``items``, in order.
+
+        The same MCAP bytes as ``write`` one by one (tested), at a fifth of the cost: one
+        ``struct.pack`` per message straight into mcap's chunk buffer instead of ~15 Python
+        calls (mcap's ``add_message`` is ~15 us a message here, and the recorder takes up to
+        30,000 a second). It updates the writer's statistics, the chunk's time range and
+        message index as ``add_message`` does, through mcap 1.x's private attributes (the
+        version is pinned in requirements.lock); without them it falls back to ``write``.
+        """
+        fast = _mcap_internals(self._mcap)
+        if fast is None or not items:
+            for index, log_time_ns, data in items:
+                self.write(index, log_time_ns, data)
+            return
+        stats, chunk, chunk_size, finalize = fast
+        c = self._counts
+        per_topic, channel_ids = c.per_topic, self.channel_ids
+        counts = stats.channel_message_counts
+        first = not any(per_topic)
+        for index, ns, data in items:
+            channel = channel_ids[index]
+            seq = per_topic[index]
+            if stats.message_count == 0:
+                stats.message_start_time = ns
+            elif ns < stats.message_start_time:
+                stats.message_start_time = ns
+            if ns > stats.message_end_time:
+                stats.message_end_time = ns
+            counts[channel] += 1
+            stats.message_count += 1
+            if chunk.num_messages == 0:
+                chunk.message_start_time = ns
+            elif ns < chunk.message_start_time:
+                chunk.message_start_time = ns
+            if ns > chunk.message_end_time:
+                chunk.message_end_time = ns
+            buffer = chunk.record_writer._buffer
+            indices = chunk.message_indices.get(channel)
+            if not indices:
+                indices = chunk.message_indices[channel] = MessageIndex(channel_id=channel,
+                                                                        records=[])
+            indices.records.append((ns, buffer.tell()))
+            chunk.num_messages += 1
+            buffer.write(_MESSAGE_HEADER.pack(Opcode.MESSAGE, 22 + len(data), channel,
+                                              seq & 0xFFFFFFFF, ns, ns))
+            buffer.write(data)
+            if buffer.tell() > chunk_size:
+                finalize()
+            if first:
+                c.start_ns = c.end_ns = ns
+                first = False
+            if ns < c.start_ns:
+                c.start_ns = ns
+            if ns > c.end_ns:
+                c.end_ns = ns
+            per_topic[index] = seq + 1
+
     def flush(self, force: bool = False) -> None:
         """Close the current chunk, hand the file to the OS, rewrite ``metadata.yaml``; a
         no-op when nothing was written since the last flush (an idle recorder flushes every
@@ -249,3 +310,20 @@ class BagWriter:
         self._file.close()
         self._write_metadata(c.per_topic)
 
+
+#: An MCAP Message record's opcode, length and fixed fields (channel id, sequence, log and
+#: publish time), little-endian, as mcap's ``Message.write`` lays them out.
+_MESSAGE_HEADER = struct.Struct('<BQHIQQ')
+
+
+def _mcap_internals(writer: Any) -> tuple[Any, Any, int, Any] | None:
+    """mcap 1.x Writer's statistics, chunk builder, chunk size and chunk finalizer, or None
+    (another mcap version, or a writer without chunks)."""
+    try:
+        chunk = writer._Writer__chunk_builder
+        found = (writer._Writer__statistics, chunk, int(writer._Writer__chunk_size),
+                 writer._Writer__finalize_chunk)
+        chunk.record_writer._buffer.tell()
+    except AttributeError:
+        return None
+    return found if chunk is not None else None
