@@ -8,18 +8,20 @@ receive time. The haptic_topology_msgs schemas embedded in the bag are the .msg 
 their dependencies, so ``ros2 bag``, ``rosbags`` or any MCAP tool decodes them without our
 package.
 
-The subscription callbacks only append ``(topic, receive time, bytes)`` to a queue (about
-2 us); a writer thread empties it every 10 ms into the MCAP chunks, closes a chunk every
-``flush_period`` (0.2 s) and rewrites ``metadata.yaml`` with the running counts. So the
-1 kHz callbacks never wait for the disk, a clean stop (SIGINT/SIGTERM) finalises the bag,
-and a SIGKILL leaves a file that reads back up to the last flush (``haptic-topology bag
-repair`` completes it for other readers). QoS mirrors each publisher's reliability with a
+No executor callback runs per message: a writer thread takes what DDS holds for each topic
+every 10 ms (:class:`~haptic_topology.nodes.take.BatchTaker`: serialized, with DDS's receive
+time, about 4 us a message), writes it into the MCAP chunks in receive order, closes a chunk
+every ``flush_period`` (0.2 s) and rewrites ``metadata.yaml`` with the running counts. So the
+recorder costs a fraction of a core at 30,000 msg/s, a clean stop (SIGINT/SIGTERM) finalises
+the bag, and a SIGKILL leaves a file that reads back up to the last flush (``haptic-topology
+bag repair`` completes it for other readers). Drops are counted and reported in its status
+(``lost``: samples DDS never delivered, or gaps in a publisher's sequence numbers). QoS
+mirrors each publisher's reliability with a
 deep queue (see :mod:`haptic_topology.nodes.common`).
 """
 
 from __future__ import annotations
 
-import queue
 import threading
 import time
 from collections.abc import Sequence
@@ -35,7 +37,8 @@ from haptic_topology import resolve
 from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
 from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
 from haptic_topology.nodes import common, node_params
-from haptic_topology.settings import RecorderSettings
+from haptic_topology.nodes.take import BatchTaker
+from haptic_topology.settings import Clock, RecorderSettings
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate, VtPath
 
 #: Topic -> (rclpy type, type name in the bag).
@@ -54,7 +57,9 @@ RECORDED: dict[str, tuple[Any, str]] = {
 CONNECT_TOPICS = (common.TOPIC_COMMAND, common.TOPIC_HAND_INPUTS, common.TOPIC_LMI,
                   common.TOPIC_VT_PATH)
 LOOP_TOPICS = (common.TOPIC_STATE, common.TOPIC_COMMAND)
-_STOP = None
+#: s between two takes of everything DDS holds (the readers' histories hold 1,000-10,000
+#: messages per topic: at the graph's rates at 10x, a second or more).
+DRAIN_PERIOD = 0.01
 
 
 def select_topics(names: Sequence[str], regex: str) -> list[str]:
@@ -64,6 +69,12 @@ def select_topics(names: Sequence[str], regex: str) -> list[str]:
 
 def _bag_qos(qos: QoSProfile) -> Any:
     return make_qos(qos.reliability == ReliabilityPolicy.RELIABLE, int(qos.depth))
+
+
+def _record_qos(topic: str, clock: Clock) -> QoSProfile:
+    """The recorder's deep queue with the reliability of ``topic``'s publisher."""
+    reliable = common.publisher_qos(topic, clock).reliability == ReliabilityPolicy.RELIABLE
+    return common.QOS_RECORD_RELIABLE if reliable else common.QOS_RECORD_BEST_EFFORT
 
 
 class Recorder(Node):
@@ -83,20 +94,14 @@ class Recorder(Node):
                                 compression=config.compression,
                                 custom={'recorded_by': 'haptic_topology recorder',
                                         'scenario': settings.scenario})
-        self.received = [0] * len(topics)
-        self._queue: queue.SimpleQueue[tuple[int, int, bytes] | None] = queue.SimpleQueue()
         self._error: BaseException | None = None
+        self.taker = BatchTaker(self, [(self.resolve_topic_name(t), RECORDED[t][0],
+                                        _record_qos(t, config.clock)) for t in topics])
+        self.subscriptions_by_topic = dict(zip(topics, self.taker.subscriptions, strict=True))
+        self._stop = threading.Event()
         self._thread = threading.Thread(target=self._write_loop, name='bag-writer',
                                         daemon=True)
         self._thread.start()
-        self.subscriptions_by_topic: dict[str, Any] = {}
-        for i, topic in enumerate(topics):
-            pub_qos = common.publisher_qos(topic, config.clock)
-            qos = (common.QOS_RECORD_RELIABLE
-                   if pub_qos.reliability == ReliabilityPolicy.RELIABLE
-                   else common.QOS_RECORD_BEST_EFFORT)
-            self.subscriptions_by_topic[topic] = self.create_subscription(
-                RECORDED[topic][0], topic, self._callback(i), qos, raw=True)
         self._open = True
         self._connect = [t for t in CONNECT_TOPICS if t in self.subscriptions_by_topic]
         self.connected = False
@@ -107,45 +112,25 @@ class Recorder(Node):
         self.get_logger().info(f'recording to {self.path}')
         print(f'recording to {self.path}', flush=True)
 
-    def _callback(self, index: int) -> Any:
-        put = self._queue.put
-        received = self.received
-
-        def on_message(data: bytes) -> None:
-            put((index, time.time_ns(), data))
-            received[index] += 1
-        return on_message
-
     def _write_loop(self) -> None:
-        """Writer thread: every 10 ms drain the queue into the MCAP, flush every
-        ``flush_period``, until the stop mark.
+        """Writer thread: every ``DRAIN_PERIOD`` take what DDS holds into the MCAP, flush every
+        ``flush_period``; after the stop mark, take the rest once more.
 
-        Draining in batches instead of waking per message keeps the thread off the GIL
-        between batches; with all nodes in one process (``--composed``) waking per message
-        cut the device's answered fraction from ~98 % to ~89 %.
+        One thread wakes 100 times a second whatever the message rate, instead of the
+        executor waking once per message: at 30,000 msg/s that is the difference between
+        more than two cores and a fraction of one, and with all nodes in one process
+        (``--composed``) it keeps the recorder off the GIL between batches.
         """
-        get = self._queue.get_nowait
-        write = self.writer.write
+        drain, write = self.taker.drain, self.writer.write_many
         next_flush = time.monotonic() + self.flush_period
         try:
-            while True:
-                time.sleep(0.01)
-                stop = False
-                while True:
-                    try:
-                        item = get()
-                    except queue.Empty:
-                        break
-                    if item is _STOP:
-                        stop = True
-                        break
-                    write(*item)
-                if stop:
-                    break
+            while not self._stop.wait(DRAIN_PERIOD):
+                drain(write)
                 now = time.monotonic()
                 if now >= next_flush:
                     self.writer.flush()
                     next_flush = now + self.flush_period
+            drain(write)
         except OSError as exc:  # disk full, ...: reported by close(); flushed data stays
             self._error = exc
 
@@ -168,8 +153,11 @@ class Recorder(Node):
         publishers matched on the state and command topics (the bringup activates the device
         driver once its state publisher is matched here, so the bag holds the run's first
         state)."""
+        lost = dict(zip(self.subscriptions_by_topic, self.taker.lost, strict=True))
         values = {'path': str(self.path), 'connected': str(self.connected).lower(),
                   **{f'received {t}': str(n) for t, n in self.counts.items()},
+                  'lost': str(sum(lost.values())),
+                  **{f'lost {t}': str(n) for t, n in lost.items() if n},
                   **{f'publishers {t}': str(sub.get_publisher_count())
                      for t, sub in self.subscriptions_by_topic.items()
                      if t in LOOP_TOPICS}}
@@ -179,26 +167,25 @@ class Recorder(Node):
     @property
     def counts(self) -> dict[str, int]:
         """Messages received so far, per topic."""
-        return dict(zip(self.subscriptions_by_topic, self.received, strict=True))
+        return dict(zip(self.subscriptions_by_topic, self.taker.taken, strict=True))
 
     def close(self) -> None:
         """Drain the queue, finalise the bag (summary, metadata.yaml); idempotent."""
         if not self._open:
             return
         self._open = False
-        for sub in self.subscriptions_by_topic.values():
-            self.destroy_subscription(sub)
-        self._queue.put(_STOP)
+        self._stop.set()
         self._thread.join(timeout=30.0)
+        self.taker.destroy()
         if self._error is not None:
             print(f'recorder: error: writing {self.path} failed: {self._error}', flush=True)
             return
         self.writer.close()
         written = self.writer.counts
-        lost = sum(self.received) - sum(written.values())
+        unwritten = sum(self.taker.taken) - sum(written.values())
         summary = ', '.join(f'{t}: {n}' for t, n in written.items())
-        print(f'bag written: {self.path} ({summary}; received but not written: {lost})',
-              flush=True)
+        print(f'bag written: {self.path} ({summary}; received but not written: {unwritten}; '
+              f'lost before the recorder: {sum(self.taker.lost)})', flush=True)
 
 
 def main(args: Sequence[str] | None = None) -> int:
