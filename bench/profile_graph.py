@@ -105,8 +105,8 @@ def main() -> int:
                 continue
             counts[f'{frames[0]}: {inner}'] += int(n)
         print(f'\n{name}: top innermost frames (samples, 1 ms each; waits left out)')
-        for frame, n in counts.most_common(args.top):
-            print(f'  {n:6d}  {frame}')
+        for frame, samples in counts.most_common(args.top):
+            print(f'  {samples:6d}  {frame}')
     return 0
 
 

@@ -13,7 +13,8 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    for the separate layout's round-trip ratio.
 2. Controller compute per cycle without ROS (eq. 14 + LMI step, and eq. 10).
 3. ``ve_sim`` cost per 100 Hz update for chains of 3-200 links, planar and spatial.
-4. The recorder at the graph's rate and at 10x with a synthetic publisher
+4. The recorder at the graph's rate and at ``RECORDER_HIGH`` x (over 30,000 msg/s) with a
+   synthetic publisher
    (``bench/recorder_load.py``), ``--recorder-duration`` s each (default 60).
 5. The live fig8 eq. 14 run against ``simulate`` (largest device-VT distance), and the
    offline ``simulate``'s speed (simulated s per wall s).
@@ -159,6 +160,11 @@ def _machine() -> dict[str, Any]:
 
 
 #: The loop runs: (key, layout, SCHED_FIFO).
+#: The recorder's high load: the graph's topics at 14x their rates, 30,842 msg/s nominal (the
+#: goal's 30,000 msg/s; 10x was ~31,000 msg/s while hand inputs went at 1 kHz, 22,029 since
+#: they go in batches).
+RECORDER_HIGH = 14.0
+RECORDER_HIGH_KEY = f'recorder_{RECORDER_HIGH:g}x'
 LOOP_RUNS = (('hosted', 'hosted', False), ('separate', 'separate', False),
              ('hosted_fifo', 'hosted', True), ('separate_fifo', 'separate', True))
 
@@ -201,7 +207,7 @@ def run(loop_duration: float, recorder_duration: float) -> dict[str, Any]:
                    'ratio': live['max_distance_m'] / off['max_distance_m']}
     res['simulate_speed'] = {name: offline(name, 'penalty')
                              for name in ('fig8', 'fig6')}
-    for factor in (1.0, 10.0):
+    for factor in (1.0, RECORDER_HIGH):
         print(f'== recorder at {factor:g}x the graph rate, {recorder_duration:g} s ...',
               flush=True)
         res[f'recorder_{factor:g}x'] = recorder_load.run(recorder_duration, factor)
@@ -245,11 +251,12 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         if key in res:
             out[f'answered_fraction_{key}'] = res[key]['answered_fraction']
             out[f'period_p99_us_{key}'] = res[key]['period_p99_us']
-    r10 = res.get('recorder_10x', {})
-    out['recorder_10x_msgs_per_s'] = r10.get('recorded_msgs_per_s', 0.0)
-    out['recorder_10x_lost'] = r10.get('lost')
-    out['recorder_10x_cpu'] = r10.get('cpu_fraction')
-    lossless = [res[k]['recorded_msgs_per_s'] for k in ('recorder_1x', 'recorder_10x')
+    high = res.get(RECORDER_HIGH_KEY, {})
+    out['recorder_high_published_msgs_per_s'] = high.get('published_msgs_per_s', 0.0)
+    out['recorder_high_msgs_per_s'] = high.get('recorded_msgs_per_s', 0.0)
+    out['recorder_high_lost'] = high.get('lost')
+    out['recorder_high_cpu'] = high.get('cpu_fraction')
+    lossless = [res[k]['recorded_msgs_per_s'] for k in ('recorder_1x', RECORDER_HIGH_KEY)
                 if k in res and res[k].get('lossless')]
     out['recorder_lossless_msgs_per_s'] = max(lossless) if lossless else 0.0
     return out
@@ -282,10 +289,11 @@ def goals(head: dict[str, Any]) -> str:
          and min(h['max_links_within_30pct_planar'], h['max_links_within_30pct_spatial']) >= 100),
         ('controller compute p99', f'{h["controller_step_p99_us"]:.0f} us', '<= 30 us',
          h['controller_step_p99_us'] <= 30.0),
-        ('recorder at 10x', f'{h["recorder_10x_msgs_per_s"]:.0f} msg/s, lost '
-         f'{h["recorder_10x_lost"]}, {h["recorder_10x_cpu"] or float("nan"):.2f} core',
+        (f'recorder at {RECORDER_HIGH:g}x', f'{h["recorder_high_msgs_per_s"]:.0f} of '
+         f'{h["recorder_high_published_msgs_per_s"]:.0f} msg/s, lost '
+         f'{h["recorder_high_lost"]}, {h["recorder_high_cpu"] or float("nan"):.2f} core',
          '30,000 msg/s lossless within 0.5 core',
-         h['recorder_lossless_msgs_per_s'] >= 30000 and (h['recorder_10x_cpu'] or 9) <= 0.5),
+         h['recorder_lossless_msgs_per_s'] >= 30000 and (h['recorder_high_cpu'] or 9) <= 0.5),
         ('live fig8 eq. 14 max distance / offline',
          f'{h["fig8_live_to_offline_max_distance"]:.3f}', 'within 10 % (0.9-1.1)',
          abs(h['fig8_live_to_offline_max_distance'] - 1.0) <= 0.1),
@@ -316,7 +324,7 @@ def table(res: dict[str, Any]) -> str:
             f'{r["rtt_p50_us"]:6.0f}/{r["rtt_p99_us"]:6.0f}/{r["rtt_max_us"]:7.0f}   '
             f'{r["period_p50_us"]:6.0f}/{r["period_p99_us"]:6.0f}/{r["period_max_us"]:7.0f}   '
             f'{cpu}')
-    for key in ('recorder_1x', 'recorder_10x'):
+    for key in ('recorder_1x', RECORDER_HIGH_KEY):
         if key in res:
             r = res[key]
             lines.append(f'{key}: {r["recorded_msgs_per_s"]:.0f} msg/s recorded of '
