@@ -234,6 +234,8 @@ class BagWriter:
         per_topic, channel_ids = c.per_topic, self.channel_ids
         counts = stats.channel_message_counts
         first = not any(per_topic)
+        # The three time ranges (file statistics, chunk, metadata.yaml counts) are widened
+        # inline: a helper call each would cost more per message than the repetition.
         for index, ns, data in items:
             channel = channel_ids[index]
             seq = per_topic[index]
