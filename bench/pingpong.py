@@ -163,9 +163,7 @@ def run(duration: float = 30.0, rate_hz: float = 1000.0, priority: int = 0,
     lmi_controller get them (0: normal scheduling).
     """
     env = dict(os.environ)
-    from haptic_topology.nodes.common import localhost_discovery_default
-    localhost_discovery_default(env)     # DDS as the graph's nodes use it by default
-    os.environ.update(env)               # this process is the device side
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     echo = subprocess.Popen([sys.executable, __file__, '--role', 'echo', '--duration',
                              str(duration + 8.0), '--sched-priority', str(echo_priority)],
                             env=env, stdout=subprocess.PIPE, text=True)

@@ -223,14 +223,10 @@ class _Lines:
 
 
 def _env() -> dict[str, str]:
-    env = dict(os.environ, PYTHONUNBUFFERED='1',
+    env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                ROS_DOMAIN_ID=str(random.SystemRandom().randint(1, 100)),
                RMW_IMPLEMENTATION='rmw_fastrtps_cpp')
-    for key in ('ROS_LOCALHOST_ONLY', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
-                'FASTRTPS_DEFAULT_PROFILES_FILE'):
-        env.pop(key, None)
-    from haptic_topology.nodes.common import localhost_discovery_default
-    localhost_discovery_default(env)     # DDS as the nodes use it by default
+    env.pop('ROS_LOCALHOST_ONLY', None)  # deprecated; conflicts with the discovery range
     return env
 
 

@@ -55,8 +55,7 @@ DEVICE_PRIORITY, CONTROLLER_PRIORITY = 50, 49
 def _env() -> dict[str, str]:
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(random.randint(120, 200))
-    from haptic_topology.nodes.common import localhost_discovery_default
-    localhost_discovery_default(env)     # DDS as the nodes use it by default
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     return env
 
 

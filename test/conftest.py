@@ -53,19 +53,17 @@ def _lock_domain() -> tuple[int, int]:
 def ros_domain_env() -> Iterator[dict[str, str]]:
     """Environment for ROS processes of this session; also applied to ``os.environ``.
 
-    Domain ids 1-100 keep Fast DDS's ports below Linux's ephemeral range. DDS stays on this
-    host, over UDP on the loopback (the nodes' default, set here for the test processes too).
-    The session holds an exclusive lock on its domain id for its lifetime, so two test
-    sessions on one machine (CI and a developer, or parallel jobs) never share a domain and
-    never see each other's nodes.
+    Domain ids 1-100 keep Fast DDS's ports below Linux's ephemeral range. The session holds
+    an exclusive lock on its domain id for its lifetime, so two test sessions on one machine
+    (CI and a developer, or parallel jobs) never share a domain and never see each other's
+    nodes.
     """
-    from haptic_topology.nodes.common import localhost_discovery_default
-
     lock = _lock_domain()
-    overrides = {'ROS_DOMAIN_ID': str(lock[0]), 'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp'}
-    # DDS on this host over UDP on the loopback, as the nodes run by default (the
-    # project's Fast DDS profile; see localhost_discovery_default).
-    assert localhost_discovery_default(overrides) == 'LOCALHOST'
+    overrides = {
+        'ROS_DOMAIN_ID': str(lock[0]),
+        'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+        'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp',
+    }
     saved = {k: os.environ.get(k) for k in [*overrides, 'ROS_LOCALHOST_ONLY']}
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated; conflicts with the range above
     os.environ.update(overrides)

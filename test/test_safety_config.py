@@ -4,8 +4,6 @@ linkage files; and the default DDS discovery range."""
 
 from __future__ import annotations
 
-import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -151,43 +149,8 @@ def test_node_refuses_inconsistent_guard_times() -> None:
 def test_discovery_defaults_to_localhost_unless_the_user_chose() -> None:
     env: dict[str, str] = {}
     assert localhost_discovery_default(env) == 'LOCALHOST'
-    assert env == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SYSTEM_DEFAULT',
-                   'FASTRTPS_DEFAULT_PROFILES_FILE': str(config_dir() /
-                                                         'fastdds_localhost_udp.xml')}
-    assert Path(env['FASTRTPS_DEFAULT_PROFILES_FILE']).is_file()
+    assert env == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
     env = {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}
-    assert localhost_discovery_default(env) == 'SUBNET' and len(env) == 1
+    assert localhost_discovery_default(env) == 'SUBNET'
     env = {'ROS_LOCALHOST_ONLY': '0'}
     assert localhost_discovery_default(env) == 'SUBNET' and len(env) == 1
-    env = {'FASTRTPS_DEFAULT_PROFILES_FILE': '/lab/dds.xml'}
-    assert localhost_discovery_default(env) == 'SUBNET' and len(env) == 1
-    env = {'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'}      # not Fast DDS: the rmw's own
-    assert localhost_discovery_default(env) == 'LOCALHOST'
-    assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
-
-
-@pytest.mark.graph
-def test_node_processes_use_no_shared_memory_transport(tmp_path: Path) -> None:
-    """A node started as a user would (the session's environment is the default one) talks
-    over UDP only: Fast DDS starts no shared-memory receive thread (``dds.shm.*``), whose
-    transport can leave a killed and restarted process deaf (config/fastdds_localhost_udp.xml).
-    The check that the setting takes effect: with rmw_fastrtps's own LOCALHOST range the same
-    process has ``dds.shm`` threads, whatever FASTDDS_BUILTIN_TRANSPORTS says."""
-    def threads(env: dict[str, str]) -> set[str]:
-        code = ('import json, os, rclpy\n'
-                'from haptic_topology.nodes import common\n'
-                'common.localhost_discovery_default(os.environ)\n'
-                'rclpy.init(); n = rclpy.create_node("transport_probe")\n'
-                'print(json.dumps(sorted({open(f"/proc/self/task/{t}/comm").read().strip()\n'
-                '                         for t in os.listdir("/proc/self/task")})))\n')
-        out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
-                             text=True, timeout=60, check=True).stdout
-        return set(json.loads(out.strip().splitlines()[-1]))
-
-    default = threads(dict(os.environ))
-    assert any(t.startswith('dds.udp') for t in default), default
-    assert not any(t.startswith('dds.shm') for t in default), default
-    localhost = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-                     FASTDDS_BUILTIN_TRANSPORTS='UDPv4')
-    localhost.pop('FASTRTPS_DEFAULT_PROFILES_FILE')
-    assert any(t.startswith('dds.shm') for t in threads(localhost))

@@ -54,7 +54,6 @@ import signal
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 from typing import Any, TypeVar
 
 import rclpy
@@ -317,35 +316,18 @@ def spin(nodes: Sequence[Node], kind: str) -> None:
 
 
 DISCOVERY_ENV = 'ROS_AUTOMATIC_DISCOVERY_RANGE'
-#: Fast DDS's XML profile file, and the project's: DDS on this host over UDP on the loopback,
-#: no shared memory (``config/fastdds_localhost_udp.xml`` says why).
-FASTDDS_PROFILES_ENV = 'FASTRTPS_DEFAULT_PROFILES_FILE'
-LOCALHOST_UDP_PROFILE = 'fastdds_localhost_udp.xml'
-_USER_DDS_CHOICES = (DISCOVERY_ENV, 'ROS_LOCALHOST_ONLY', FASTDDS_PROFILES_ENV)
 
 
 def localhost_discovery_default(env: dict[str, str] | os._Environ[str]) -> str:
-    """Keep DDS on this host unless the user chose otherwise; return the discovery range.
+    """Keep DDS discovery on this host unless the user chose otherwise; return the range.
 
-    When none of ``ROS_AUTOMATIC_DISCOVERY_RANGE``, ``ROS_LOCALHOST_ONLY`` and
-    ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set, sets the range to ``SYSTEM_DEFAULT`` and the
-    profile file to :data:`LOCALHOST_UDP_PROFILE`: discovery and data on the loopback over
-    UDP only. (With ``LOCALHOST`` rmw_fastrtps adds a shared-memory transport that a killed
-    and restarted process can be left deaf on; with another RMW the range is ``LOCALHOST``.)
-    To run nodes on several machines set ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` (or
-    ``LOCALHOST`` and list the other hosts in ``ROS_STATIC_PEERS``) and the same
-    ``ROS_DOMAIN_ID`` on every machine.
+    Sets ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` in ``env`` when neither it nor the
+    deprecated ``ROS_LOCALHOST_ONLY`` is set. To run nodes on several machines set
+    ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` (or keep LOCALHOST and list the other hosts in
+    ``ROS_STATIC_PEERS``) and the same ``ROS_DOMAIN_ID`` on every machine.
     """
-    if not any(k in env for k in _USER_DDS_CHOICES):
-        if env.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp') == 'rmw_fastrtps_cpp':
-            from haptic_topology.paths import config_dir
-            env[DISCOVERY_ENV] = 'SYSTEM_DEFAULT'
-            env[FASTDDS_PROFILES_ENV] = str(config_dir() / LOCALHOST_UDP_PROFILE)
-            return 'LOCALHOST'
+    if DISCOVERY_ENV not in env and 'ROS_LOCALHOST_ONLY' not in env:
         env[DISCOVERY_ENV] = 'LOCALHOST'
-    if FASTDDS_PROFILES_ENV in env and env.get(DISCOVERY_ENV) == 'SYSTEM_DEFAULT':
-        return 'LOCALHOST' if Path(env[FASTDDS_PROFILES_ENV]).name == LOCALHOST_UDP_PROFILE \
-            else 'SYSTEM_DEFAULT'
     return env.get(DISCOVERY_ENV, 'LOCALHOST' if env.get('ROS_LOCALHOST_ONLY') == '1'
                    else 'SUBNET')
 
