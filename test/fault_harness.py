@@ -317,27 +317,11 @@ class Injector:
         self.rclpy.shutdown(context=self.context)
 
 
-#: The fault run's DDS transport. Fast DDS 2.14's shared-memory transport can stop delivering
-#: to the surviving processes after a participant is SIGKILLed (eProsima/Fast-DDS#5469, open;
-#: seen here: the test process received nothing more after the driver was killed), so the
-#: processes of this run, the injector's included, talk over UDP on the loopback.
-TRANSPORT_ENV = {'FASTDDS_BUILTIN_TRANSPORTS': 'UDPv4'}
-
-
 def run_faults(out: Path) -> FaultRun:
     """The fault sequence of the module doc. Each step waits for the graph to be back (the
     nodes' ``/diagnostics`` and the device's running states), with a generous deadline, so a
     slow machine runs the sequence slower, never differently."""
-    saved = {k: os.environ.get(k) for k in TRANSPORT_ENV}
-    os.environ.update(TRANSPORT_ENV)
-    try:
-        return _run_faults(out)
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    return _run_faults(out)
 
 
 def _run_faults(out: Path) -> FaultRun:

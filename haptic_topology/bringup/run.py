@@ -150,7 +150,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     state is ``inactive``. ``domain_id``: run in this ROS domain instead of the
     environment's (several graphs at once on one machine).
     """
-    from haptic_topology.bringup.watch import GraphWatcher
+    from haptic_topology.bringup.watch import GraphWatcher, WaitTimeout
     from haptic_topology.nodes.common import TOPIC_STATE
 
     if layout not in LAYOUTS:
@@ -213,8 +213,12 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                     cpu[p.name] = round((c1 - c0) / wall, 4)
             # The loop has stopped; the recorder must take everything it sent while every
             # writer is still there to resend (checked on the nodes' own counts).
-            watch.wait(lambda: watch.recorder_has_the_run(clock == 'lockstep'),
-                       startup_timeout, 'recorder has every message of the run')
+            try:
+                watch.wait(lambda: watch.recorder_has_the_run(clock == 'lockstep'),
+                           startup_timeout, 'recorder has every message of the run')
+            except WaitTimeout as exc:
+                raise WaitTimeout(f'{exc}; the nodes\' last reports: '
+                                  f'{watch.run_counts()}') from None
     finally:
         # Device first, recorder last (it keeps every message until then).
         codes.update(stop([p for p in reversed(procs) if p.name not in codes]))

@@ -192,6 +192,13 @@ class GraphWatcher:
         return all(n is not None and n.isdigit()
                    and received.get(t.lstrip('/'), -1) >= int(n) for t, n in sent.items())
 
+    def run_counts(self) -> dict[str, dict[str, str]]:
+        """What :meth:`recorder_has_the_run` compares, as the nodes last reported it."""
+        keys = ('loop_running', 'seq', 'hand_pending', 'last_state_seq', 'path_pending')
+        return {name: {k: v for k, v in values.items()
+                       if k in keys or k.startswith(('sent ', 'received '))}
+                for name, values in self.status.items()}
+
     def recorder_sees(self, topic: str) -> bool:
         """The recorder reports a publisher matched on ``topic`` (state or command)."""
         status = self.status.get(RECORDER_STATUS, {})
