@@ -162,8 +162,10 @@ def run(duration: float = 30.0, rate_hz: float = 1000.0, priority: int = 0,
     ``priority``/``echo_priority``: SCHED_FIFO priorities as the graph's device_driver and
     lmi_controller get them (0: normal scheduling).
     """
+    from haptic_topology.nodes.common import localhost_discovery_default
+
+    localhost_discovery_default(os.environ)   # both sides on the nodes' DDS transport
     env = dict(os.environ)
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     echo = subprocess.Popen([sys.executable, __file__, '--role', 'echo', '--duration',
                              str(duration + 8.0), '--sched-priority', str(echo_priority)],
                             env=env, stdout=subprocess.PIPE, text=True)

@@ -223,10 +223,13 @@ class _Lines:
 
 
 def _env() -> dict[str, str]:
+    from haptic_topology.nodes.common import localhost_discovery_default
+
     env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                ROS_DOMAIN_ID=str(random.SystemRandom().randint(1, 100)),
                RMW_IMPLEMENTATION='rmw_fastrtps_cpp')
     env.pop('ROS_LOCALHOST_ONLY', None)  # deprecated; conflicts with the discovery range
+    localhost_discovery_default(env)     # the nodes' DDS transport (Fast DDS profile)
     return env
 
 

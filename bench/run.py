@@ -55,7 +55,9 @@ DEVICE_PRIORITY, CONTROLLER_PRIORITY = 50, 49
 def _env() -> dict[str, str]:
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(random.randint(120, 200))
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    from haptic_topology.nodes.common import localhost_discovery_default
+
+    localhost_discovery_default(env)     # what the nodes set for themselves
     return env
 
 

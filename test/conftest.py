@@ -53,18 +53,27 @@ def _lock_domain() -> tuple[int, int]:
 def ros_domain_env() -> Iterator[dict[str, str]]:
     """Environment for ROS processes of this session; also applied to ``os.environ``.
 
-    Domain ids 1-100 keep Fast DDS's ports below Linux's ephemeral range. The session holds
+    Domain ids 1-100 keep Fast DDS's ports below Linux's ephemeral range. DDS stays on this
+    host with the nodes' default transport (``localhost_discovery_default``). The session holds
     an exclusive lock on its domain id for its lifetime, so two test sessions on one machine
     (CI and a developer, or parallel jobs) never share a domain and never see each other's
     nodes.
     """
+    from haptic_topology.nodes.common import FASTDDS_PROFILES_ENV, localhost_discovery_default
+
     lock = _lock_domain()
     overrides = {
         'ROS_DOMAIN_ID': str(lock[0]),
         'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
         'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp',
     }
-    saved = {k: os.environ.get(k) for k in [*overrides, 'ROS_LOCALHOST_ONLY']}
+    # DDS on this host as the nodes run by default: the project's Fast DDS profile (user data
+    # over UDP on the loopback), for the test processes too, unless the user set a profile.
+    if FASTDDS_PROFILES_ENV in os.environ:
+        overrides[FASTDDS_PROFILES_ENV] = os.environ[FASTDDS_PROFILES_ENV]
+    localhost_discovery_default(overrides)
+    saved = {k: os.environ.get(k) for k in [*overrides, 'ROS_LOCALHOST_ONLY', 'ROS_STATIC_PEERS']}
+    os.environ.pop('ROS_STATIC_PEERS', None)  # this session's nodes are on this host only
     os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated; conflicts with the range above
     os.environ.update(overrides)
     try:

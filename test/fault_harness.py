@@ -621,7 +621,8 @@ def main() -> None:
 
     out = Path(tempfile.mkdtemp(prefix='faults_'))
     os.environ.setdefault('ROS_DOMAIN_ID', str(np.random.default_rng().integers(1, 100)))
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    from haptic_topology.nodes.common import localhost_discovery_default
+    localhost_discovery_default(os.environ)     # as the nodes do: DDS on this host
     run = run_faults(out)
     print(f'bags: {run.bags}; exit codes {run.exit_codes}; truncated {run.truncated}')
     print(f'states {len(run.states)} commands {len(run.commands)} hands {len(run.hands)}')

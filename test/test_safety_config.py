@@ -1,9 +1,11 @@
 """Bad configuration refuses to start with one message naming the file, the key and what was
 expected: params files (checked before rclpy reads them), ``-p`` overrides, scenario and
-linkage files; and the default DDS discovery range."""
+linkage files; and the default DDS discovery range and transport."""
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -147,10 +149,60 @@ def test_node_refuses_inconsistent_guard_times() -> None:
 
 
 def test_discovery_defaults_to_localhost_unless_the_user_chose() -> None:
+    profile = str(config_dir() / 'fastdds_localhost.xml')
     env: dict[str, str] = {}
     assert localhost_discovery_default(env) == 'LOCALHOST'
-    assert env == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    assert env == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+                   'FASTRTPS_DEFAULT_PROFILES_FILE': profile}
+    assert Path(profile).is_file()
+    env = {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}       # chosen: the profile still
+    assert localhost_discovery_default(env) == 'LOCALHOST'
+    assert env['FASTRTPS_DEFAULT_PROFILES_FILE'] == profile
     env = {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}
-    assert localhost_discovery_default(env) == 'SUBNET'
+    assert localhost_discovery_default(env) == 'SUBNET' and len(env) == 1
     env = {'ROS_LOCALHOST_ONLY': '0'}
     assert localhost_discovery_default(env) == 'SUBNET' and len(env) == 1
+    env = {'FASTRTPS_DEFAULT_PROFILES_FILE': '/lab/dds.xml'}  # the user's own profile
+    assert localhost_discovery_default(env) == 'LOCALHOST'
+    assert env['FASTRTPS_DEFAULT_PROFILES_FILE'] == '/lab/dds.xml'
+    env = {'ROS_STATIC_PEERS': '192.168.1.20'}       # other hosts: their data is not loopback
+    assert localhost_discovery_default(env) == 'LOCALHOST'
+    assert 'FASTRTPS_DEFAULT_PROFILES_FILE' not in env
+    env = {'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'}      # not Fast DDS: the rmw's own
+    assert localhost_discovery_default(env) == 'LOCALHOST'
+    assert 'FASTRTPS_DEFAULT_PROFILES_FILE' not in env
+
+
+@pytest.mark.graph
+def test_node_processes_open_no_shared_memory_port(tmp_path: Path) -> None:
+    """A node process set up as :func:`localhost_discovery_default` does it (as ``run_main``
+    does) receives over UDP only: Fast DDS starts no shared-memory receive thread
+    (``dds.shm.<port>``; the transport's watchdog ``dds.shm.wdog`` opens no port), so a killed
+    and restarted process cannot be left on a dead port segment (config/fastdds_localhost.xml).
+    The check that the setting takes effect: without the profile the same process under the
+    same LOCALHOST range has shared-memory receive threads."""
+    def threads(env: dict[str, str]) -> set[str]:
+        code = ('import json, os, rclpy\n'
+                'from haptic_topology.nodes import common\n'
+                'common.localhost_discovery_default(os.environ)\n'
+                'rclpy.init(); n = rclpy.create_node("transport_probe")\n'
+                'print(json.dumps(sorted({open(f"/proc/self/task/{t}/comm").read().strip()\n'
+                '                         for t in os.listdir("/proc/self/task")})))\n')
+        out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
+                             text=True, timeout=60, check=True).stdout
+        return set(json.loads(out.strip().splitlines()[-1]))
+
+    def shm_ports(names: set[str]) -> set[str]:
+        return {t for t in names if t.startswith('dds.shm.') and t != 'dds.shm.wdog'}
+
+    env = {k: v for k, v in os.environ.items() if k != 'FASTRTPS_DEFAULT_PROFILES_FILE'}
+    default = threads(env)
+    assert any(t.startswith('dds.udp') for t in default), default
+    assert not shm_ports(default), default
+    own = tmp_path / 'lab_profile.xml'      # a user's profile that leaves transports alone
+    own.write_text('<?xml version="1.0" encoding="UTF-8" ?>\n<dds xmlns="http://www.eprosima.com/'
+                   'XMLSchemas/fastRTPS_Profiles"><profiles/></dds>\n')
+    plain = dict(env, FASTRTPS_DEFAULT_PROFILES_FILE=str(own))
+    assert shm_ports(threads(plain))
+
+

@@ -397,7 +397,10 @@ class _Spinner:
         import rclpy
         from rclpy.experimental import EventsExecutor
 
+        from haptic_topology.nodes.common import localhost_discovery_default
+
         self._rclpy = rclpy
+        localhost_discovery_default(os.environ)     # the nodes' DDS setup (run_main)
         self.context = rclpy.Context()
         rclpy.init(args=[], context=self.context)
         self.node = rclpy.create_node(name, context=self.context)

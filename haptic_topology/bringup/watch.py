@@ -9,6 +9,7 @@ Every wait has a deadline and raises :class:`WaitTimeout` naming what did not ha
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -76,6 +77,7 @@ class GraphWatcher:
 
         import_type_supports()
         self._rclpy = rclpy
+        common.localhost_discovery_default(os.environ)   # the nodes' DDS setup (run_main)
         self.context = rclpy.Context()
         if domain_id is None:
             rclpy.init(context=self.context, args=args)
