@@ -96,3 +96,23 @@ def test_messages_taken_in_order_and_overflow_counted_as_lost(pair: Any) -> None
     assert seqs == sorted(seqs) and len(seqs) >= DEPTH
     assert taker.taken[0] + taker.lost[0] == 35        # every message taken or counted lost
     assert taker.lost[0] == 35 - 5 - len(seqs) >= 1, (seqs, taker.lost)
+
+
+def test_udp_receive_buffers_are_enlarged_up_to_the_kernel_limit() -> None:
+    """Every UDP socket of the process gets the asked receive buffer (Linux doubles the value
+    and caps it at ``net.core.rmem_max``); other sockets are left alone."""
+    import socket
+    from pathlib import Path
+
+    from haptic_topology.nodes.take import enlarge_udp_receive_buffers
+
+    rmem_max = int(Path('/proc/sys/net/core/rmem_max').read_text())
+    size = 1 << 20
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp, \
+            socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
+        tcp_before = tcp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        granted = enlarge_udp_receive_buffers(size)
+        assert udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) == 2 * min(size, rmem_max)
+        assert udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) in granted
+        assert tcp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) == tcp_before

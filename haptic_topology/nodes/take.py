@@ -17,6 +17,8 @@ topic has one publisher (with several, their numbers interleave and only DDS's c
 
 from __future__ import annotations
 
+import os
+import socket
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -36,6 +38,40 @@ def _receive_time(item: tuple[int, int, bytes]) -> int:
 
 def _never_called(_: Any) -> None:  # the reader node is never spun
     raise AssertionError('BatchTaker subscriptions are taken, not spun')
+
+
+#: Receive buffer asked for the recorder's DDS sockets (bytes; Linux caps it at
+#: ``net.core.rmem_max`` and doubles it for its bookkeeping)
+RECEIVE_BUFFER = 4 << 20
+
+
+def enlarge_udp_receive_buffers(size: int = RECEIVE_BUFFER) -> list[int]:
+    """Ask for ``size``-byte receive buffers on every UDP socket of this process; return the
+    sizes Linux granted.
+
+    Over UDP (the nodes' DDS transport, ``config/fastdds_localhost.xml``) a burst larger than
+    the socket's receive buffer is dropped by the kernel (``RcvbufErrors``; DDS then reports
+    the best-effort samples lost). rmw_fastrtps's ``LOCALHOST`` setup builds its own UDP
+    transport with the kernel's default buffer (``net.core.rmem_default``, 212,992 bytes
+    here), which a recorder taking 30,000 msg/s overflows; the profile's socket sizes apply
+    to Fast DDS's built-in transports only. Called once the participant exists.
+    """
+    granted = []
+    for name in os.listdir('/proc/self/fd'):
+        try:
+            fd = int(name)
+            if not os.readlink(f'/proc/self/fd/{name}').startswith('socket:'):
+                continue
+            sock = socket.socket(fileno=os.dup(fd))
+        except (OSError, ValueError):
+            continue
+        with sock:
+            if sock.type == socket.SOCK_DGRAM and sock.family in (socket.AF_INET,
+                                                                   socket.AF_INET6):
+                if sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) < size:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+                granted.append(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    return granted
 
 
 class BatchTaker:
@@ -58,6 +94,7 @@ class BatchTaker:
                         sub.handle, QoSSubscriptionEventType.RCL_SUBSCRIPTION_MESSAGE_LOST))
             except _rclpy.UnsupportedEventTypeError:
                 self._lost_events.append(None)
+        self.receive_buffers = enlarge_udp_receive_buffers()
         n = len(topics)
         self.taken = [0] * n
         self.lost_dds = [0] * n
