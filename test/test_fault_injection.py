@@ -34,13 +34,18 @@ def test_every_node_survived_and_stopped_cleanly(run: fh.FaultRun) -> None:
 
 
 def test_applied_wrench_finite_and_within_limits_at_every_cycle(run: fh.FaultRun) -> None:
-    n = 0
-    for bag in run.states:
-        for s in fh.sessions(bag):
-            assert np.all(np.isfinite(s.applied))
-            assert np.all(np.abs(s.applied) <= fh.LIMIT + 1e-9), np.abs(s.applied).max(axis=0)
-            n += len(s.seqs)
-    assert n > 15000
+    sess = [s for bag in run.states for s in fh.sessions(bag)]
+    for s in sess:
+        assert len(s.seqs) > 0
+        assert np.all(np.isfinite(s.applied))
+        assert np.all(np.abs(s.applied) <= fh.LIMIT + 1e-9), np.abs(s.applied).max(axis=0)
+    # The check saw the device during every fault (how many states the bags hold depends on
+    # how fast the machine restarts the recorder; that the recorded ones span each fault
+    # does not). The killed recorder records nothing while it is dead: left out.
+    t = np.concatenate([s.t for s in sess])
+    for name, (t0, t1) in run.events.items():
+        if name != 'kill_recorder':
+            assert np.any((t >= t0) & (t <= t1)), name
     # The injected 1e9 N commands with the followed controller's id copied (those that came
     # before the controller's answer to the same state; how many did depends on scheduling)
     # were clamped to the limit, not passed on. How many of those with another id reach the

@@ -46,6 +46,24 @@ LAYOUTS = {'hosted': ('recorder', 've_sim', 'device_driver'), 'separate': NODES,
            'composed': ('composed',)}
 
 
+def loop_readers(layout: str) -> dict[tuple[str, str], int]:
+    """``(status name, topic) -> readers``: the DDS readers each publisher of the run's
+    recorded topics has in ``layout`` (``hosted`` or ``separate``), the recorder's included.
+
+    The LMI updates go to the controller (hosted: in the device driver's process) and the
+    recorder, the VE's path to the recorder, the hand inputs to the VE and the recorder, the
+    commands to the recorder and, in the separate layout, to the device driver (hosted, it
+    takes none from DDS). The device's states are covered by ``min_subscribers``.
+    """
+    from haptic_topology.bringup.watch import CONTROLLER_STATUS as ctl
+    from haptic_topology.bringup.watch import VE_STATUS as ve
+    from haptic_topology.nodes import common
+
+    return {(ve, common.TOPIC_LMI): 2, (ve, common.TOPIC_VT_PATH): 1,
+            (ctl, common.TOPIC_HAND_INPUTS): 2,
+            (ctl, common.TOPIC_COMMAND): 2 if layout == 'separate' else 1}
+
+
 class BringupError(HapticTopologyError):
     """A node of the graph failed to start, or the loop never closed."""
 
@@ -198,6 +216,9 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                            'recorder connected to the loop topics')
                 watch.wait(lambda: watch.recorder_sees(TOPIC_STATE), startup_timeout,
                            'recorder matched to the device state publisher')
+                readers = loop_readers(layout)
+                watch.wait(lambda: watch.writers_matched(readers), startup_timeout,
+                           f'publishers matched to their readers ({readers})')
                 for transition in ('configure', 'activate'):
                     watch.change_state('device_driver', transition, startup_timeout)
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),

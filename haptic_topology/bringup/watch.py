@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from haptic_topology.errors import HapticTopologyError
@@ -20,6 +20,8 @@ from haptic_topology.errors import HapticTopologyError
 #: ``/diagnostics`` status names of the graph's nodes.
 RECORDER_STATUS = 'recorder: bag'
 DEVICE_STATUS = 'device_driver: loop'
+VE_STATUS = 've_sim: loop'
+CONTROLLER_STATUS = 'lmi_controller: loop'
 
 
 #: Consecutive equal recorder reports that count as settled (0.25 s apart).
@@ -148,6 +150,17 @@ class GraphWatcher:
     # -- what to wait for --------------------------------------------------------------------
     def recorder_connected(self) -> bool:
         return self.status.get(RECORDER_STATUS, {}).get('connected') == 'true'
+
+    def writers_matched(self, readers: Mapping[tuple[str, str], int]) -> bool:
+        """Every publisher ``(status name, topic)`` of ``readers`` reports (``matched <topic>``
+        in its node's ``/diagnostics``) at least that many DDS readers matched to it.
+
+        The recorder's ``connected`` says its readers matched the writers; DDS matches the two
+        sides separately (each on the other's announcement), and a reliable writer sends only
+        to the readers it has matched, so a loop started on the recorder's side alone could
+        lose the run's first messages of a topic in the bag."""
+        return all(int(self.status.get(name, {}).get(f'matched {topic}', '0')) >= n
+                   for (name, topic), n in readers.items())
 
     def recorder_settled(self) -> bool:
         """The recorder reported the same counts of the run's topics ``SETTLE_REPORTS`` times

@@ -96,7 +96,8 @@ class VeSim(Node):
                                               common.QOS_DIAGNOSTICS)
         hand_sub = self.create_subscription(HandInputs, common.TOPIC_HAND_INPUTS,
                                             self._on_hand, common.hand_inputs_qos(c.clock))
-        self._endpoints = {common.TOPIC_HAND_INPUTS: hand_sub, common.TOPIC_LMI: self.lmi_pub}
+        self._endpoints = {common.TOPIC_HAND_INPUTS: hand_sub, common.TOPIC_LMI: self.lmi_pub,
+                           common.TOPIC_VT_PATH: self.path_pub}
         self._lmi = LmiUpdate()
         self._path = VtPath()
         self._update_seq = 0
