@@ -94,7 +94,7 @@ class BatchTaker:
                         sub.handle, QoSSubscriptionEventType.RCL_SUBSCRIPTION_MESSAGE_LOST))
             except _rclpy.UnsupportedEventTypeError:
                 self._lost_events.append(None)
-        self.receive_buffers = enlarge_udp_receive_buffers()
+        enlarge_udp_receive_buffers()
         n = len(topics)
         self.taken = [0] * n
         self.lost_dds = [0] * n
