@@ -29,7 +29,8 @@ class CycleOutput:
 
     ``wrench`` u for the device (eq. 14 / eq. 10); ``coupling`` F_pc; ``vt_wrench`` the wrench
     on the VT at the hand (``F_h - F_pc`` with VT coupling, else ``F_h``); ``vt_pose``/
-    ``vt_twist`` the LMI's VT hand at this state; ``constraint_count`` t.
+    ``vt_twist`` the LMI's VT hand at this state; ``constraint_count`` t; ``env_wrench``
+    ``F_env`` of eqs. 10 and 14 (the LMI's contacts as a wrench at the hand; None: zero).
     """
 
     wrench: np.ndarray
@@ -39,6 +40,7 @@ class CycleOutput:
     vt_twist: np.ndarray
     constraint_count: int
     mode: ControlMode
+    env_wrench: np.ndarray | None = None
 
 
 class HapticController:
@@ -93,9 +95,11 @@ class HapticController:
         lmi.advance(seq, dt)
         f_pc = coordination_wrench(lmi.x_vt, lmi.xd_vt, x_h, xd_h, self.gains.k_pc,
                                    self.gains.b_pc, self.task)
+        f_env = lmi.env_wrench
         u = control_wrench(self.mode, lmi.lambda_inv, self.m_d, self.c_d, f_h, f_pc, x_h,
-                           xd_h, lmi.x_vt, lmi.xd_vt, lmi.projector, self.gains, self.task)
+                           xd_h, lmi.x_vt, lmi.xd_vt, lmi.projector, self.gains, self.task,
+                           f_env)
         f_vt = f_h - f_pc if self.vt_coupling else f_h.copy()
         lmi.record_input(seq, f_vt)
         return CycleOutput(u, f_pc, f_vt, lmi.x_vt.copy(), lmi.xd_vt.copy(),
-                           lmi.constraint_count, self.mode)
+                           lmi.constraint_count, self.mode, f_env.copy())

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from haptic_topology.dynamics.constraints import ConstraintDirections, task_scale
+from haptic_topology.dynamics.contacts import LocalContacts
 from haptic_topology.dynamics.linkage_dynamics import DynamicsSnapshot
 from haptic_topology.dynamics.spd import spd_factor, spd_solve
 from haptic_topology.dynamics.taskspace import integrate_pose
@@ -60,14 +61,19 @@ class LmiSnapshot:
     hand_twist: np.ndarray          # m
     # Not in LmiUpdate (yet): the receiver's linkage setting decides it (see sync).
     penalty_direction: PenaltyDirection = PenaltyDirection.NULLSPACE
+    #: The contacts within the margin at the update (eq. 17's ``J_i``, ``F_i``); None: the
+    #: scenario has no obstacles.
+    contacts: LocalContacts | None = None
 
     @classmethod
     def from_dynamics(cls, snap: DynamicsSnapshot, task: TaskSpace, characteristic_length: float,
-                      seq: int, hand_input_seq: int) -> LmiSnapshot:
+                      seq: int, hand_input_seq: int,
+                      contacts: LocalContacts | None = None) -> LmiSnapshot:
         c = snap.constraints
         return cls(seq, hand_input_seq, task, snap.q, snap.dq, snap.mass_matrix, snap.gravity,
                    snap.hand_jacobian, c.singular_values, c.left_vectors, c.weights, c.count,
-                   characteristic_length, snap.hand_pose, snap.hand_twist, c.direction)
+                   characteristic_length, snap.hand_pose, snap.hand_twist, c.direction,
+                   contacts)
 
     def constraints(self) -> ConstraintDirections:
         """The VE's directions of topological constraint (eq. 18) with this update's
@@ -86,7 +92,16 @@ class _Input:
 
 
 class LocalModel:
-    """The LMI: frozen-matrix VT dynamics stepped once per device cycle (eqs. 17-20)."""
+    """The LMI: frozen-matrix VT dynamics stepped once per device cycle (eqs. 17-20).
+
+    With contacts in the update (:class:`~haptic_topology.dynamics.contacts.LocalContacts`)
+    each step adds their joint torques ``sum_i J_i^T F_i`` of eq. 17, evaluated at the LMI's
+    own state every cycle (or held at the update's values when the update says
+    ``local: False``), and :attr:`env_wrench` is ``F_env`` of eqs. 10 and 14: the wrench at
+    the hand that gives the hand the acceleration the contacts give it,
+    ``Lambda_h^-1 F_env = J_h D^-1 sum_i J_i^T F_i`` (eq. 11), i.e.
+    ``F_env = Lambda_h^+ J_h D^-1 tau_c`` with the pseudo-inverse where ``Lambda_h^-1`` is
+    singular (no hand acceleration, hence no ``F_env``, along a constrained direction)."""
 
     def __init__(self, task: TaskSpace, model: LmiModel = LmiModel.EQ17,
                  history: int = 1024) -> None:
@@ -106,6 +121,13 @@ class LocalModel:
         self._accel_map = np.zeros((0, m))   # D^-1 J^T
         self._accel_bias = np.zeros(0)       # D^-1 G (eq. 17) or 0 (eq. 20)
         self._jacobian = np.zeros((m, 0))
+        self._contacts: LocalContacts | None = None
+        self._held_torques: np.ndarray | None = None
+        self._lambda_pinv: np.ndarray = np.zeros((m, m))
+        self._factor = np.zeros((0, 0))    # Cholesky factor of D^ (for D^-1 J_i^T F_i)
+        self.contact_torques = np.zeros(0)
+        #: ``F_env`` (m) at the current state (zero without contacts).
+        self.env_wrench = np.zeros(m)
 
     @property
     def synced(self) -> bool:
@@ -115,7 +137,7 @@ class LocalModel:
         """Re-sync to an update: take its matrices and state, replay the newer inputs."""
         if snap.task is not self.task:
             raise ValueError(f'task_dim must be {self.task.dim}, got {snap.task.dim}')
-        factor = spd_factor(snap.mass_matrix)
+        factor = self._factor = spd_factor(snap.mass_matrix)
         j = snap.hand_jacobian
         self._accel_map = spd_solve(factor, j.T)
         self._accel_bias = (spd_solve(factor, snap.gravity) if self.model is LmiModel.EQ17
@@ -131,7 +153,27 @@ class LocalModel:
         self.xd_vt = snap.hand_twist.copy()
         self.snapshot = snap
         self.consumed = snap.hand_input_seq
+        contacts = snap.contacts if snap.contacts is not None and len(snap.contacts) else None
+        self._contacts = contacts
+        self._held_torques = None
+        if contacts is not None:
+            self._lambda_pinv = np.linalg.pinv(self.lambda_inv, rcond=1e-10, hermitian=True)
+            if not contacts.local:
+                self._held_torques = contacts.torques(self.q, self.dq)
+        self._update_contacts()
         self._replay(None)
+
+    def _update_contacts(self) -> None:
+        """Contact torques and ``F_env`` at the current state."""
+        c = self._contacts
+        if c is None:
+            self.contact_torques = np.zeros(self.q.size)
+            self.env_wrench = np.zeros(self.task.dim)
+            return
+        tau = self._held_torques if self._held_torques is not None else c.torques(self.q,
+                                                                                  self.dq)
+        self.contact_torques = tau
+        self.env_wrench = self._lambda_pinv @ (self._accel_map.T @ tau)
 
     def record_input(self, seq: int, wrench: np.ndarray) -> None:
         """Remember the VT wrench computed at device state ``seq`` (used from then on)."""
@@ -166,12 +208,17 @@ class LocalModel:
             self.consumed = rec.seq
 
     def _step(self, wrench: np.ndarray, dt: float) -> None:
-        """Semi-implicit Euler step of eq. 17 / eq. 20 with the frozen matrices."""
+        """Semi-implicit Euler step of eq. 17 / eq. 20 with the frozen matrices (and the
+        contact torques at the state before the step)."""
         qdd = self._accel_map @ wrench - self._accel_bias
+        if self._contacts is not None:
+            qdd = qdd + spd_solve(self._factor, self.contact_torques)
         self.dq = self.dq + qdd * dt
         self.q = self.q + self.dq * dt
         self.xd_vt = self._jacobian @ self.dq
         self.x_vt = integrate_pose(self.x_vt, self.xd_vt, dt, self.task)
+        if self._contacts is not None:
+            self._update_contacts()
 
 
 @dataclass(frozen=True)

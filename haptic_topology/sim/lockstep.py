@@ -34,6 +34,7 @@ from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
 from haptic_topology.device.hosted import HostedCycle
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, ns_to_seconds, period_ns
 from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
+from haptic_topology.dynamics.contacts import ContactModel
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.sim.scenario import Scenario
 from haptic_topology.sim.trace import Trace
@@ -75,8 +76,11 @@ def build_device_loop(sc: Scenario) -> DeviceLoop:
 
 def virtual_environment(sc: Scenario) -> VirtualEnvironment:
     """The VE of scenario ``sc`` at its initial state, as ``simulate`` runs it."""
-    return VirtualEnvironment(LinkageDynamics(sc.linkage), sc.q0, sc.dq0, sc.internal_step,
-                              coupling=sc.coupling_gains())
+    dyn = LinkageDynamics(sc.linkage)
+    contacts = (None if sc.contacts is None
+                else ContactModel(dyn.model, sc.linkage, sc.contacts))
+    return VirtualEnvironment(dyn, sc.q0, sc.dq0, sc.internal_step,
+                              coupling=sc.coupling_gains(), contacts=contacts)
 
 
 def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
@@ -101,7 +105,12 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     # Engagement: one idle state, answered in the controller's mode.
     step(0.0)
     n = int(round(sc.duration / sc.dt)) + 1
-    trace = Trace.empty(n, task.dim, dyn.dof, mode=mode.label, scenario=sc.name, dt=sc.dt)
+    trace = Trace.empty(n, task.dim, dyn.dof, sc.contacts is not None, mode=mode.label,
+                        scenario=sc.name, dt=sc.dt)
+    contacts = None
+    if sc.contacts is not None:
+        # A separate workspace for the trace's penetration (the VE's own stays untouched).
+        contacts = ContactModel(ve_check.model, sc.linkage, sc.contacts)
     vt_pose = dyn.hand_pose(ve.q)
     inputs = 0
     update_seq = 1
@@ -123,6 +132,9 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
                      vt_pose=vt_pose, lmi_pose=ans.out.vt_pose, q=ve.q,
                      constraint_count=ve_check.constraints(ve.q).count,
                      lmi_constraint_count=ans.out.constraint_count, status=int(tick.status))
+        if contacts is not None:
+            trace.record_contacts(k, ans.out.env_wrench, contacts.detect(ve.q, 0.0, False).gaps,
+                                  ve.contact_energy_balance())
         if hand is not None and inputs % sc.update_period == 0:
             # Applied at the start of the next step, before its state: as the graph does.
             cycle.offer_update(ve.snapshot(seq=update_seq))

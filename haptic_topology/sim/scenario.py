@@ -21,13 +21,18 @@ Layout (``config/scenarios/fig6.yaml``)::
       control: {k_pc: [...], b_pc: [...], k_tc: 10, b_tc: 7}
       lmi: {model: eq17, update_period: 1}       # device cycles per LMI update
       ve: {internal_step: 0.001, vt_coupling: true}      # RK4 step (s)
+      contacts:                                  # optional: obstacles (eqs. 1, 17, F_env)
+        stiffness: 2000                          # N/m; damping N s/m, friction, margin m
+        link_radius: 0.004                       # m, every link's capsule
+        obstacles: [{type: half_plane, point: [0.1, 0], normal: [-1, 0]}]
 
 This module reads the top level; each block is parsed by its owner:
 :func:`~haptic_topology.device.maglev.device_from_config` (``device``),
 :func:`~haptic_topology.device.users.user_from_config` (``user``),
 :meth:`ControlGains.from_config <haptic_topology.control.laws.ControlGains.from_config>`
 (``control``), :class:`~haptic_topology.control.lmi.LmiSettings` (``lmi``),
-:class:`~haptic_topology.sim.ve.VeSettings` (``ve``).
+:class:`~haptic_topology.sim.ve.VeSettings` (``ve``),
+:class:`~haptic_topology.dynamics.contacts.ContactSettings` (``contacts``).
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ from haptic_topology.control.laws import ControlGains, ControlMode
 from haptic_topology.control.lmi import LmiModel, LmiSettings
 from haptic_topology.device.maglev import DeviceParams, device_from_config
 from haptic_topology.device.users import user_from_config
+from haptic_topology.dynamics.contacts import ContactSettings
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage, load_linkage
 from haptic_topology.paths import resolve_config
@@ -76,6 +82,8 @@ class Scenario:
     internal_step: float
     vt_coupling: bool
     source: str
+    #: Obstacles and contact model; None: a VE without objects (F_env = 0).
+    contacts: ContactSettings | None = None
 
     def with_linkage(self, linkage: Linkage) -> Scenario:
         """Same scenario on another linkage (the initial state must fit its dof)."""
@@ -85,7 +93,10 @@ class Scenario:
         q0, dq0 = self.q0, self.dq0
         if linkage.dof != self.linkage.dof:
             q0, dq0 = np.zeros(linkage.dof), np.zeros(linkage.dof)
-        return replace(self, linkage=linkage, q0=q0, dq0=dq0)
+        contacts = self.contacts
+        if contacts is not None and linkage.dof != self.linkage.dof:
+            contacts = replace(contacts, radii=(contacts.radii[0],) * linkage.dof)
+        return replace(self, linkage=linkage, q0=q0, dq0=dq0, contacts=contacts)
 
     @property
     def lmi(self) -> LmiSettings:
@@ -112,7 +123,7 @@ def load_scenario(name_or_path: str) -> Scenario:
     w = f'{src}: scenario'
     raw = check_keys(top['scenario'], w, required=('linkage', 'q0', 'duration'), optional=(
         'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'device', 'user', 'control', 'lmi',
-        've'))
+        've', 'contacts'))
     link_ref = as_str(raw['linkage'], f'{w}.linkage')
     link_path = Path(link_ref)
     if not link_path.is_absolute() and (path.parent / link_path).is_file():
@@ -143,5 +154,8 @@ def load_scenario(name_or_path: str) -> Scenario:
                           'VE integrates; expected eq17, or scenario.gravity: [0, 0, 0]')
     ve = VeSettings.from_config(raw.get('ve', {}), f'{w}.ve', dt)
     name = as_str(raw.get('name', path.stem), f'{w}.name')
+    contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage)
+                if 'contacts' in raw else None)
     return Scenario(name, linkage, q0, dq0, duration, dt, mode, device, offset, dict(user),
-                    gains, lmi.model, lmi.update_period, ve.internal_step, ve.vt_coupling, src)
+                    gains, lmi.model, lmi.update_period, ve.internal_step, ve.vt_coupling, src,
+                    contacts)

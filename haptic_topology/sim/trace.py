@@ -6,6 +6,12 @@ constraint counts. It is written as CSV with a one-line JSON comment header (met
 
 Drift (the paper's Fig. 6 / Fig. 8 measure): the translational distance (m) between the
 device and the VT's grasp point in the VE at the same instant.
+
+A run with obstacles (``meta['contacts']``) has three more columns: ``env_wrench`` (``F_env``
+of eqs. 10 and 14 as the controller rendered it, m entries), ``penetration`` (m, the deepest
+contact of the VE's linkage, 0 when none) and ``contact_energy`` (J, the contacts' work on the
+VT plus their elastic energy minus at the start, see
+:mod:`haptic_topology.dynamics.contacts`).
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from haptic_topology.errors import ConfigError
 _VECTORS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'applied', 'vt_pose',
             'lmi_pose')
 _SCALARS = ('constraint_count', 'lmi_constraint_count', 'status')
+_CONTACT_FLOATS = ('penetration', 'contact_energy')
 
 
 @dataclass
@@ -36,13 +43,32 @@ class Trace:
     meta: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def empty(cls, n: int, m: int, dof: int, **meta: Any) -> Trace:
+    def empty(cls, n: int, m: int, dof: int, contacts: bool = False, **meta: Any) -> Trace:
         cols: dict[str, np.ndarray] = {name: np.full((n, m), np.nan) for name in _VECTORS}
         cols['q'] = np.full((n, dof), np.nan)
         for name in _SCALARS:
             cols[name] = np.zeros(n, dtype=int)
+        if contacts:
+            cols['env_wrench'] = np.full((n, m), np.nan)
+            for name in _CONTACT_FLOATS:
+                cols[name] = np.full(n, np.nan)
         meta = dict(meta, task_dim=m, dof=dof)
+        if contacts:
+            meta['contacts'] = True
         return cls(np.zeros(n), np.arange(n), cols, meta)
+
+    @property
+    def has_contacts(self) -> bool:
+        return bool(self.meta.get('contacts'))
+
+    def record_contacts(self, k: int, env_wrench: np.ndarray | None, gaps: np.ndarray,
+                        energy: float) -> None:
+        """Row ``k``'s contact columns: ``F_env`` (None: zero), the VE's candidate ``gaps``
+        (m) and the contact energy balance (J)."""
+        c = self.columns
+        c['env_wrench'][k] = 0.0 if env_wrench is None else env_wrench
+        c['penetration'][k] = max(0.0, -float(gaps.min())) if gaps.size else 0.0
+        c['contact_energy'][k] = energy
 
     def record(self, k: int, t: float, **values: Any) -> None:
         self.t[k] = t
@@ -89,7 +115,28 @@ class Trace:
             # When the device first reported a workspace stop (s from the first row), or None.
             'first_limit_s': float(t[at_limit[0]] - t[0]) if at_limit.size else None,
             'max_abs_wrench': float(np.nanmax(np.abs(applied))) if applied.size else 0.0,
+            **self._contact_summary(ok, dt),
         }
+
+    def _contact_summary(self, ok: np.ndarray, dt: float) -> dict[str, Any]:
+        """Penetration max/RMS (over the rows in contact), time in contact and the energy the
+        contact model injected (the largest positive contact energy balance; J); None for a
+        run without obstacles."""
+        keys = ('max_penetration_m', 'rms_penetration_m', 'contact_time_s',
+                'energy_injected_j', 'energy_dissipated_j')
+        if not self.has_contacts:
+            return dict.fromkeys(keys)
+        depth = self.columns['penetration'][ok]
+        depth = depth[np.isfinite(depth)]
+        inside = depth[depth > 0.0]
+        energy = self.columns['contact_energy'][ok]
+        energy = energy[np.isfinite(energy)]
+        return dict(zip(keys, (
+            float(depth.max()) if depth.size else 0.0,
+            float(math.sqrt(float(np.mean(inside * inside)))) if inside.size else 0.0,
+            float(inside.size * dt),
+            max(0.0, float(energy.max())) if energy.size else 0.0,
+            max(0.0, -float(energy[-1])) if energy.size else 0.0), strict=True))
 
     # -- CSV ---------------------------------------------------------------------------------
     def header(self) -> list[str]:
@@ -99,6 +146,8 @@ class Trace:
             names += [f'{name}_{i}' for i in range(m)]
         names += [f'q_{i}' for i in range(int(self.meta['dof']))]
         names += list(_SCALARS)
+        if self.has_contacts:
+            names += [f'env_wrench_{i}' for i in range(m)] + list(_CONTACT_FLOATS)
         return names
 
     def to_csv(self, path: str | Path) -> None:
@@ -110,12 +159,15 @@ class Trace:
             blocks += [self.columns[n] for n in _VECTORS]
             blocks += [self.columns['q']]
             blocks += [self.columns[n][:, None] for n in _SCALARS]
+            first_scalar = sum(b.shape[1] for b in blocks) - len(_SCALARS)
+            end_scalar = first_scalar + len(_SCALARS)
+            if self.has_contacts:
+                blocks += [self.columns['env_wrench']]
+                blocks += [self.columns[n][:, None] for n in _CONTACT_FLOATS]
             table = np.hstack([b.astype(float) for b in blocks])
-            ints = {0: False, 1: True}
-            first_scalar = table.shape[1] - len(_SCALARS)
             for row in table:
-                w.writerow([int(v) if (ints.get(i) or i >= first_scalar) else repr(float(v))
-                            for i, v in enumerate(row)])
+                w.writerow([int(v) if (i == 1 or first_scalar <= i < end_scalar)
+                            else repr(float(v)) for i, v in enumerate(row)])
 
     @classmethod
     def from_csv(cls, path: str | Path) -> Trace:
@@ -134,7 +186,8 @@ class Trace:
         header, body = rows[0], rows[1:]
         table = np.array(body, dtype=float) if body else np.zeros((0, len(header)))
         m, dof = int(meta.pop('task_dim')), int(meta.pop('dof'))
-        trace = cls.empty(len(body), m, dof, **meta)
+        contacts = bool(meta.pop('contacts', False))
+        trace = cls.empty(len(body), m, dof, contacts, **meta)
         col = {name: i for i, name in enumerate(header)}
         trace.t = table[:, col['t']]
         trace.seq = table[:, col['seq']].astype(int)
@@ -143,6 +196,10 @@ class Trace:
         trace.columns['q'] = table[:, [col[f'q_{i}'] for i in range(dof)]]
         for name in _SCALARS:
             trace.columns[name] = table[:, col[name]].astype(int)
+        if contacts:
+            trace.columns['env_wrench'] = table[:, [col[f'env_wrench_{i}'] for i in range(m)]]
+            for name in _CONTACT_FLOATS:
+                trace.columns[name] = table[:, col[name]]
         return trace
 
 

@@ -20,6 +20,7 @@ import pinocchio as pin
 from haptic_topology.control.laws import StableHold
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.constraints import task_scale
+from haptic_topology.dynamics.contacts import ContactModel
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.validate import as_bool, as_float, check_keys
@@ -57,7 +58,8 @@ class VeSettings:
 
 
 class VirtualEnvironment:
-    """Full VT simulation (eq. 2, no contacts) with RK4 at ``internal_step`` seconds.
+    """Full VT simulation (eq. 2, with the contacts of ``contacts`` when given) with RK4 at
+    ``internal_step`` seconds.
 
     :attr:`q` (rad / m) and :attr:`dq` (rad/s / m/s) are replaced by new arrays when the VE
     moves, never changed in place; the arrays the VE makes itself are read-only.
@@ -65,7 +67,8 @@ class VirtualEnvironment:
 
     def __init__(self, dynamics: LinkageDynamics, q0: np.ndarray, dq0: np.ndarray,
                  internal_step: float = 2.5e-4, max_gap: float = 0.05,
-                 coupling: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 coupling: tuple[np.ndarray, np.ndarray] | None = None,
+                 contacts: ContactModel | None = None) -> None:
         d = dynamics.dof
         if np.shape(q0) != (d,) or np.shape(dq0) != (d,):
             raise ValueError(f'q0 and dq0 must have {d} entries, got {np.shape(q0)} and '
@@ -111,6 +114,19 @@ class VirtualEnvironment:
         #: ``q`` (identity: one of the VE's own read-only arrays), for the next integration's
         #: first stage, the path and the snapshot.
         self._hand: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        #: Contacts with the obstacles (eq. 1's ``sum J_i^T F_i``), None: no obstacles.
+        self.contacts = contacts
+        #: Work of the contact forces on the VT since the start (J), integrated by RK4.
+        self.contact_work = 0.0
+        self._potential0 = 0.0 if contacts is None else contacts.potential(self.q)
+
+    def contact_energy_balance(self) -> float:
+        """``W + U - U(0)`` (J): the contacts' work on the VT plus their elastic energy now
+        minus at the start; <= 0 for the passive contact model up to integration error
+        (:mod:`haptic_topology.dynamics.contacts`)."""
+        if self.contacts is None:
+            return 0.0
+        return self.contact_work + self.contacts.potential(self.q) - self._potential0
 
     def _hand_now(self) -> tuple[np.ndarray, np.ndarray]:
         """The grasp frame's 6 x d Jacobian and task pose at the current :attr:`q`."""
@@ -139,6 +155,10 @@ class VirtualEnvironment:
             return
         n = max(1, math.ceil(duration / self.internal_step - 1e-9))
         h = duration / n
+        if self.contacts is not None:
+            self._integrate_contacts(wrench, n, h)
+            self.time += duration
+            return
         model, data, frame, jacobian = self._pin
         aba = pin.aba
         w6 = self._wrench6
@@ -183,6 +203,40 @@ class VirtualEnvironment:
         dq.flags.writeable = False
         self.q, self.dq = self._state_out = q, dq
         self.time += duration
+
+    def _integrate_contacts(self, wrench: np.ndarray, n: int, h: float) -> None:
+        """``n`` RK4 steps of ``h`` s of eq. 2 with the contacts,
+        ``qdd = D^-1 (sum_i J_i^T F_i + J_h^T F - B - G)``, and of the contacts' work
+        ``W`` (``Wdot = sum_i F_i^T v_i``) with the same stages."""
+        model, data, frame, jacobian = self._pin
+        contacts = self.contacts
+        assert contacts is not None
+        w6 = self._wrench6
+        w6[self._task_rows] = wrench
+        q, dq = np.array(self.q), np.array(self.dq)
+        work = 0.0
+
+        def deriv(qs: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, float]:
+            tau_c, power = contacts.torques(qs, vs)
+            tau = w6.dot(jacobian(model, data, qs, frame, _LWA)) + tau_c
+            return np.array(pin.aba(model, data, qs, vs, tau, _ABA_FRAME)), power
+
+        for _ in range(n):
+            a1, p1 = deriv(q, dq)
+            q2, v2 = q + 0.5 * h * dq, dq + 0.5 * h * a1
+            a2, p2 = deriv(q2, v2)
+            q3, v3 = q + 0.5 * h * v2, dq + 0.5 * h * a2
+            a3, p3 = deriv(q3, v3)
+            q4, v4 = q + h * v3, dq + h * a3
+            a4, p4 = deriv(q4, v4)
+            q = q + h / 6.0 * (dq + 2.0 * v2 + 2.0 * v3 + v4)
+            dq = dq + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            work += h / 6.0 * (p1 + 2.0 * p2 + 2.0 * p3 + p4)
+        self.contact_work += work
+        q.flags.writeable = False
+        dq.flags.writeable = False
+        self.q, self.dq = q, dq
+        self._state_out = (None, None)
 
     def push_input(self, seq: int, stamp: float, wrench: np.ndarray) -> None:
         """Take the hand input of device state ``seq`` at time ``stamp`` (s).
@@ -250,7 +304,9 @@ class VirtualEnvironment:
         snap = self.dyn.snapshot(self.q, self.dq, (j6, pose.copy()))
         out = LmiSnapshot.from_dynamics(snap, self.dyn.task,
                                         self.dyn.linkage.constraints.characteristic_length,
-                                        seq, self.hand_input_seq)
+                                        seq, self.hand_input_seq,
+                                        None if self.contacts is None
+                                        else self.contacts.local(self.q))
         if self._stable_hold is not None:
             lambda_inv = self.dyn.inverse_operational_inertia_aba(self.q, out.hand_jacobian)
             self.hold_limit = min(self.max_gap, self._stable_hold(lambda_inv))

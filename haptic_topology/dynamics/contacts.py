@@ -1,0 +1,271 @@
+"""Contacts between the linkage and static obstacles: the ``sum_i J_i^T F_i`` of eqs. 1, 2, 17.
+
+**Geometry.** Each link is a capsule around its axis, from its joint's origin to the next
+joint's origin (the last link: ``length`` along its x axis), radius ``contacts.link_radius``
+(m; per link ``contacts.links.<name>.radius``); obstacles are static shapes in the world frame
+(:mod:`haptic_topology.model.obstacles`). A contact candidate is a point ``p_i`` on a link's
+axis with its signed gap ``g_i`` to an obstacle (m, negative: penetration depth
+``delta_i = -g_i``) and the obstacle's normal ``n_i`` (unit, world, from the obstacle towards
+the link). Against a half-plane or plane the candidates are the axis ends (the gap is linear
+along the axis, so a link lying flat is held at both ends); a joint shared by two links counts
+once (as the tip of the proximal link). Against the other shapes each link has one candidate,
+its closest point; where two links' closest points are both their common joint, that point
+is held by both (stiffer there, still passive).
+
+**Contact model** (penalty with damping and regularized Coulomb friction), per candidate with
+``delta_i > 0``, ``v_i = J_i qdot`` the velocity of the contact point (m/s, world)::
+
+    f_n = max(0, k delta_i - b gdot_i),       gdot_i = n_i^T v_i
+    f_t = -mu f_n v_t / sqrt(|v_t|^2 + v_s^2), v_t = v_i - gdot_i n_i
+    F_i = (f_n n_i + f_t, 0)                   (a force at p_i, no torque: eq. 1)
+
+``k`` (N/m) ``stiffness``, ``b`` (N s/m) ``damping``, ``mu`` ``friction``, ``v_s`` (m/s)
+``slip_velocity``. It is passive: with ``U = sum_i k delta_i^2 / 2`` the contacts' power on the
+VT is ``P = sum_i F_i^T v_i = -dU/dt - b gdot^2 + f_t^T v_t`` while ``f_n > 0`` (and
+``-dU/dt - k delta gdot`` with ``gdot > 0`` while the max clips it), so
+``W(t) + U(t) - U(0) <= 0`` for the work ``W = int P dt``: the VE integrates ``W`` with the
+same RK4 stages as ``q`` and reports the largest positive excess as the energy the contact
+model injected (integration error only; ``test_core_contacts``).
+
+``J_i`` (3 x d) is the linear velocity Jacobian of the link point ``p_i`` (Pinocchio's joint
+Jacobian, world-aligned at the joint, shifted to ``p_i``). Units SI, world frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from haptic_topology.errors import ConfigError
+from haptic_topology.model.linkage import Linkage, TaskSpace
+from haptic_topology.model.obstacles import (
+    Obstacle,
+    ObstacleKind,
+    capsule_gaps,
+    obstacles_from_config,
+)
+from haptic_topology.validate import as_bool, as_float, check_keys
+
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
+
+
+@dataclass(frozen=True)
+class ContactParams:
+    """Penalty contact model (see module doc): ``stiffness`` k (N/m), ``damping`` b (N s/m),
+    ``friction`` mu, ``slip_velocity`` v_s (m/s), and ``margin`` (m): candidates whose gap is
+    below it at an update are sent to the LMI (eq. 17), so it renders the contacts that start
+    before the next update."""
+
+    stiffness: float = 2000.0
+    damping: float = 20.0
+    friction: float = 0.0
+    slip_velocity: float = 1e-3
+    margin: float = 0.005
+
+
+@dataclass(frozen=True)
+class ContactSettings:
+    """The scenario's ``contacts:`` block: model, obstacles, one capsule radius per link (m),
+    and whether the LMI computes the contacts every cycle (``lmi_local``; False: it holds the
+    VE's contact forces of the update, contacts at the VE's rate only)."""
+
+    params: ContactParams
+    obstacles: tuple[Obstacle, ...]
+    radii: tuple[float, ...]
+    lmi_local: bool = True
+
+    @classmethod
+    def from_config(cls, raw: Any, where: str, linkage: Linkage) -> ContactSettings:
+        """Parse the block (``where``: its path); link names are ``linkage``'s."""
+        c = check_keys(raw, where, required=('obstacles',), optional=(
+            'stiffness', 'damping', 'friction', 'slip_velocity', 'margin', 'link_radius',
+            'links', 'lmi_local'))
+        params = ContactParams(
+            stiffness=as_float(c.get('stiffness', 2000.0), f'{where}.stiffness', lo=0.0,
+                               lo_open=True),
+            damping=as_float(c.get('damping', 20.0), f'{where}.damping', lo=0.0),
+            friction=as_float(c.get('friction', 0.0), f'{where}.friction', lo=0.0),
+            slip_velocity=as_float(c.get('slip_velocity', 1e-3), f'{where}.slip_velocity',
+                                   lo=0.0, lo_open=True),
+            margin=as_float(c.get('margin', 0.005), f'{where}.margin', lo=0.0))
+        default = as_float(c.get('link_radius', 0.005), f'{where}.link_radius', lo=0.0)
+        radii = [default] * linkage.dof
+        links = check_keys(c.get('links', {}), f'{where}.links',
+                           optional=linkage.link_names)
+        for name, spec in links.items():
+            w = f'{where}.links.{name}'
+            s = check_keys(spec, w, required=('radius',))
+            radii[linkage.link_names.index(name)] = as_float(s['radius'], f'{w}.radius',
+                                                             lo=0.0)
+        obstacles = obstacles_from_config(c['obstacles'], f'{where}.obstacles', linkage.task)
+        return cls(params, obstacles, tuple(radii),
+                   as_bool(c.get('lmi_local', True), f'{where}.lmi_local'))
+
+
+@dataclass(frozen=True)
+class ContactSet:
+    """Contact candidates at one configuration (c of them): ``links`` (c,) link index,
+    ``obstacles`` (c,) obstacle index, ``points`` (c x 3, m, world, on the link axes),
+    ``normals`` (c x 3, unit, from the obstacle towards the link), ``gaps`` (c,) m (negative:
+    penetration), ``jacobians`` (c x 3 x d): linear velocity of each point, ``v_i = J_i qdot``."""
+
+    links: np.ndarray
+    obstacles: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    gaps: np.ndarray
+    jacobians: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.gaps.size)
+
+
+def contact_forces(params: ContactParams, gaps: np.ndarray, normals: np.ndarray,
+                   velocities: np.ndarray) -> np.ndarray:
+    """Forces ``F_i`` (c x 3, N, world) on the link points of the candidates with ``gaps``
+    (c,), ``normals`` (c x 3) and point ``velocities`` (c x 3, m/s): the model of the module
+    doc (zero where ``gap >= 0``)."""
+    depth = np.maximum(-gaps, 0.0)
+    rate = np.einsum('ij,ij->i', normals, velocities)
+    f_n = np.where(depth > 0.0, np.maximum(params.stiffness * depth - params.damping * rate,
+                                           0.0), 0.0)
+    forces = f_n[:, None] * normals
+    if params.friction > 0.0:
+        v_t = velocities - rate[:, None] * normals
+        slip = np.sqrt(np.einsum('ij,ij->i', v_t, v_t) + params.slip_velocity ** 2)
+        forces -= (params.friction * f_n / slip)[:, None] * v_t
+    return forces
+
+
+def contact_potential(params: ContactParams, gaps: np.ndarray) -> float:
+    """``U = sum_i k delta_i^2 / 2`` (J) of the penetrating candidates."""
+    depth = np.maximum(-gaps, 0.0)
+    return 0.5 * params.stiffness * float(depth @ depth)
+
+
+class ContactModel:
+    """Detection and contact torques of a linkage's capsules against the obstacles (eqs. 1-2).
+
+    Holds its own Pinocchio ``Data`` (the VE's workspace stays untouched)."""
+
+    def __init__(self, model: pin.Model, linkage: Linkage, settings: ContactSettings) -> None:
+        if len(settings.radii) != linkage.dof:
+            raise ConfigError(f'contacts: {len(settings.radii)} link radii for a linkage of '
+                              f'{linkage.dof} links')
+        self.model = model
+        self.data = model.createData()
+        self.settings = settings
+        self.params = settings.params
+        self.dof = linkage.dof
+        self.task = linkage.task
+        # Each link's axis in its own frame: joint origin -> next joint origin (or tip).
+        tips = []
+        for i, link in enumerate(linkage.links):
+            if i + 1 < linkage.dof:
+                tips.append(np.array(model.jointPlacements[i + 2].translation, dtype=float))
+            else:
+                tips.append(np.array([link.length, 0.0, 0.0]))
+        self._tips = tips
+
+    def detect(self, q: np.ndarray, margin: float = 0.0,
+               jacobians: bool = True) -> ContactSet:
+        """Candidates with ``gap < margin`` at ``q`` (see module doc), with their Jacobians
+        when ``jacobians``."""
+        model, data = self.model, self.data
+        if jacobians:
+            pin.computeJointJacobians(model, data, q)   # also the joint placements
+        else:
+            pin.forwardKinematics(model, data, q)
+        rows: list[tuple[int, int, np.ndarray, np.ndarray, float]] = []
+        radii = self.settings.radii
+        for i in range(self.dof):
+            placement = data.oMi[i + 1]
+            p0 = np.array(placement.translation)
+            p1 = placement.act(self._tips[i])
+            for k, obs in enumerate(self.settings.obstacles):
+                for gap, s, normal in capsule_gaps(obs, p0, p1, radii[i]):
+                    if gap >= margin or (i > 0 and s == 0.0 and obs.kind in _PLANES):
+                        continue  # (a plane's candidate at a shared joint: the proximal link's)
+                    rows.append((i, k, p0 + s * (p1 - p0), normal, gap))
+        c = len(rows)
+        jac = np.zeros((c, 3, self.dof))
+        if jacobians:
+            for r, (i, _, point, _, _) in enumerate(rows):
+                j6 = pin.getJointJacobian(model, data, i + 1, _LWA).reshape(6, self.dof)
+                arm = point - data.oMi[i + 1].translation
+                # v_p = v_o + w x (p - o) = J_v qdot - [p - o]x J_w qdot
+                jac[r] = j6[:3] + np.cross(j6[3:].T, arm).T
+        if not rows:
+            return ContactSet(np.zeros(0, dtype=int), np.zeros(0, dtype=int),
+                              np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), jac)
+        return ContactSet(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
+                          np.array([r[2] for r in rows]), np.array([r[3] for r in rows]),
+                          np.array([r[4] for r in rows]), jac)
+
+    def torques(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, float]:
+        """``sum_i J_i^T F_i`` (d, N m / N) at ``(q, dq)`` and the contacts' power on the VT
+        ``sum_i F_i^T v_i`` (W)."""
+        cs = self.detect(q, 0.0)
+        if not len(cs):
+            return np.zeros(self.dof), 0.0
+        vel = cs.jacobians @ dq
+        forces = contact_forces(self.params, cs.gaps, cs.normals, vel)
+        return np.einsum('cid,ci->d', cs.jacobians, forces), float(np.sum(forces * vel))
+
+    def potential(self, q: np.ndarray) -> float:
+        """``U`` (J) at ``q`` (see module doc)."""
+        return contact_potential(self.params, self.detect(q, 0.0, jacobians=False).gaps)
+
+    def local(self, q: np.ndarray, lmi_local: bool | None = None) -> LocalContacts:
+        """The LMI's contacts for an update at ``q``: the candidates within ``margin``."""
+        cs = self.detect(q, self.params.margin)
+        return LocalContacts(self.params, np.array(q, dtype=float), cs.points, cs.normals,
+                             cs.gaps, cs.jacobians,
+                             self.settings.lmi_local if lmi_local is None else lmi_local)
+
+
+@dataclass(frozen=True)
+class LocalContacts:
+    """Contacts frozen at an LMI update (eq. 17): the candidates of :meth:`ContactModel.local`
+    at configuration ``q`` (d). Between updates the LMI evaluates them linearised,
+    ``g_i(q) = g_i + n_i^T J_i (q - q_update)``, ``v_i = J_i qdot``, with the same contact
+    model as the VE (:func:`contact_forces`): at the update's ``(q, qdot)`` the two agree.
+    ``local`` False: the LMI holds the forces of the update instead (contacts at the VE's
+    rate only)."""
+
+    params: ContactParams
+    q: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    gaps: np.ndarray
+    jacobians: np.ndarray
+    local: bool = True
+    _nj: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, '_nj', np.einsum('ci,cid->cd', self.normals,
+                                                  self.jacobians))
+
+    def __len__(self) -> int:
+        return int(self.gaps.size)
+
+    def gaps_at(self, q: np.ndarray) -> np.ndarray:
+        """Linearised gaps (c,) at ``q`` (m)."""
+        return self.gaps + self._nj @ (q - self.q)
+
+    def torques(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """``sum_i J_i^T F_i`` (d) at ``(q, dq)`` with the frozen contacts."""
+        if not self.gaps.size:
+            return np.zeros(self.q.size)
+        vel = self.jacobians @ dq
+        forces = contact_forces(self.params, self.gaps_at(q), self.normals, vel)
+        return np.einsum('cid,ci->d', self.jacobians, forces)
+
+
+def contact_task(task: TaskSpace) -> slice:
+    """Rows of a 3-vector that a ``task`` moves (planar: x, y)."""
+    return slice(0, 2) if task is TaskSpace.PLANAR else slice(0, 3)
