@@ -177,7 +177,52 @@ def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray, int]:
     check_stamp(msg)
     array(msg, 'vt_pose', dim, finite=False)
     array(msg, 'vt_twist', dim, finite=False)
+    env_wrench(msg, dim)
     return state_seq, mode, wrench, controller_id
+
+
+def env_wrench(msg: Any, dim: int) -> np.ndarray | None:
+    """``msg.env_wrench`` (``DeviceCommand``/``DeviceState``): None when empty (no obstacles,
+    or recorded before the field existed), else ``dim`` finite entries."""
+    if len(getattr(msg, 'env_wrench', ())) == 0:
+        return None
+    return array(msg, 'env_wrench', dim)
+
+
+#: Most contacts one LmiUpdate may carry (a scenario's capsule-obstacle candidates within the
+#: margin; far more than any linkage the VE keeps at 100 Hz).
+MAX_CONTACTS = 4096
+
+
+def check_update_contacts(msg: Any, dof: int
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The contact fields of an ``LmiUpdate``: None when ``contact_stiffness`` is 0 (no
+    obstacles; then every contact array must be empty), else ``(points c x 3, normals c x 3,
+    gaps c, jacobians c x 3 x dof)``: sizes from ``contact_count`` (<= MAX_CONTACTS), every
+    value finite, normals unit, model parameters in range (stiffness > 0, damping, friction
+    >= 0, slip velocity > 0). Fields missing (a bag recorded before them): None."""
+    if not hasattr(msg, 'contact_stiffness'):
+        return None
+    k = finite_scalar(msg, 'contact_stiffness')
+    c = check_int(msg, 'contact_count', 0, MAX_CONTACTS)
+    if k == 0.0:
+        check_range(c == 0, msg, f'contact_count must be 0 when contact_stiffness is 0, got {c}')
+    check_range(k >= 0.0, msg, f'contact_stiffness must be >= 0, got {k}')
+    points = array(msg, 'contact_points', 3 * c).reshape(c, 3)
+    normals = array(msg, 'contact_normals', 3 * c).reshape(c, 3)
+    gaps = array(msg, 'contact_gaps', c)
+    jac = array(msg, 'contact_jacobians', 3 * c * dof).reshape(c, 3, dof)
+    finite_scalar(msg, 'contact_energy')
+    if k == 0.0:
+        return None
+    check_range(bool(np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-9)), msg,
+                'contact_normals must be unit vectors')
+    for name in ('contact_damping', 'contact_friction'):
+        v = finite_scalar(msg, name)
+        check_range(v >= 0.0, msg, f'{name} must be >= 0, got {v}')
+    v_s = finite_scalar(msg, 'contact_slip_velocity')
+    check_range(v_s > 0.0, msg, f'contact_slip_velocity must be > 0, got {v_s}')
+    return points, normals, gaps, jac
 
 
 def check_hand_inputs(msg: Any, dim: int, max_wrench: float

@@ -22,8 +22,8 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(scope='session')
 def spare_domains(ros_domain_env: dict[str, str]) -> Iterator[list[int]]:
-    """Eight more domain ids held by this session, for graphs that run at the same time."""
-    locks = [_lock_domain() for _ in range(8)]
+    """Ten more domain ids held by this session, for graphs that run at the same time."""
+    locks = [_lock_domain() for _ in range(10)]
     try:
         yield [d for d, _ in locks]
     finally:

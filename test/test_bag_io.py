@@ -19,7 +19,7 @@ from rosbags.highlevel import AnyReader
 
 from haptic_topology.bag.analyze import analyze
 from haptic_topology.bag.graph_trace import read_graph_bag
-from haptic_topology.bag.reader import decoder, iter_messages, open_bag
+from haptic_topology.bag.reader import decoder, field_default, iter_messages, open_bag
 from haptic_topology.bag.repair import repair_bag
 from haptic_topology.bag.writer import BagWriter, TopicSpec, _mcap_internals, make_qos
 from haptic_topology.cli import main as cli_main
@@ -40,20 +40,24 @@ CID = 4242
 
 def _as_current(msg: Any, msgtype: str) -> Any:
     """``msg`` (decoded from a bag, maybe with an older definition of its type) as an object
-    of the current definition: fields it lacks (``controller_id``) get :data:`CID`."""
+    of the current definition: fields it lacks get :data:`CID` (``controller_id``) or their
+    defaults (the contact fields: empty, zero)."""
     ts = typestore_with_haptic_msgs()
-    names = [name for name, _ in ts.fielddefs[msgtype][1]]
-    if all(hasattr(msg, n) for n in names):
+    fields = ts.fielddefs[msgtype][1]
+    if all(hasattr(msg, n) for n, _ in fields):
         return msg
-    return ts.types[msgtype](**{n: getattr(msg, n, CID) for n in names})
+    return ts.types[msgtype](**{
+        n: getattr(msg, n) if hasattr(msg, n) else CID if n == 'controller_id'
+        else field_default(t)[1] for n, t in fields})
 
 
 def _current_bytes(m: Any, msg: Any) -> bytes:
     """The CDR of the bag message ``m`` (decoded: ``msg``) under the current definition."""
-    if m.msgtype != COMMAND or hasattr(msg, 'controller_id'):
-        return bytes(m.data)
     ts = typestore_with_haptic_msgs()
-    return bytes(ts.serialize_cdr(_as_current(msg, COMMAND), COMMAND))
+    if not m.msgtype.startswith('haptic_topology_msgs/') or all(
+            hasattr(msg, n) for n, _ in ts.fielddefs[m.msgtype][1]):
+        return bytes(m.data)
+    return bytes(ts.serialize_cdr(_as_current(msg, m.msgtype), m.msgtype))
 
 
 def _state_bytes(seq: int) -> bytes:
@@ -62,7 +66,7 @@ def _state_bytes(seq: int) -> bytes:
     header = ts.types['std_msgs/msg/Header'](ts.types['builtin_interfaces/msg/Time'](1, 2),
                                              'base')
     v = np.array([0.1, 0.2, 0.3])
-    return bytes(ts.serialize_cdr(cls(header, seq, 3, v, v, v, v, 0), STATE))
+    return bytes(ts.serialize_cdr(cls(header, seq, 3, v, v, v, v, 0, np.zeros(0)), STATE))
 
 
 def _write(path: Path, n: int, flush_at: int | None = None) -> BagWriter:
@@ -262,6 +266,7 @@ def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
         w.write(index[raw.topic], log_time, bytes(ts.serialize_cdr(msg, raw.msgtype)))
 
     rm, st = running_state
+    st = _as_current(st, STATE)
     t = rm.log_time + 1
     hostile_states = [
         dc_replace(st, pose=np.zeros(4)),                       # the issue's (4,) into (3,)
@@ -281,9 +286,14 @@ def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
                 dc_replace(cmd, wrench=np.array([-13.25, 11.5, 1.125]))):  # duplicate
         add('command', msg, cm.log_time + 1)
     um, upd = first['update']
+    upd = _as_current(upd, type_name('LmiUpdate'))
     for msg in (dc_replace(upd, dof=4), dc_replace(upd, seq=2 ** 64 - 1),
                 dc_replace(upd, hand_input_seq=2 ** 63 - 1),
-                dc_replace(upd, hand_pose=np.array([np.inf, 0.0, 0.0]))):
+                dc_replace(upd, hand_pose=np.array([np.inf, 0.0, 0.0])),
+                # a contact announced but not sent, a non-finite contact energy
+                dc_replace(upd, contact_stiffness=1000.0, contact_slip_velocity=1e-3,
+                           contact_count=1),
+                dc_replace(upd, contact_energy=np.nan)):
         add('update', msg, um.log_time + 1)
     path_type = type_name('VtPath')
     path = ts.types[path_type](upd.header, 1, 3, np.array([2 ** 63 - 1], dtype=np.uint64),
@@ -298,7 +308,7 @@ def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
             'state_duplicate': 1, 'state_foreign_seq': 1, 'state_decode': 1,
             'command_non_finite': 1, 'command_task_dim': 1, 'command_range': 1,
             'command_duplicate': 2, 'update_dof': 1, 'update_range': 2,
-            'update_non_finite': 1, 'path_range': 1, 'path_size': 1}
+            'update_non_finite': 2, 'update_size': 1, 'path_range': 1, 'path_size': 1}
 
 
 def test_foreign_and_malformed_messages_in_a_bag_are_skipped_and_counted(
@@ -330,15 +340,31 @@ def test_foreign_and_malformed_messages_in_a_bag_are_skipped_and_counted(
 
 
 def test_bags_recorded_before_controller_id_decode_with_their_own_definition() -> None:
-    """The reference bag holds ``DeviceCommand`` without ``controller_id``: its bytes do not
-    decode with the current definition, so the reader takes the bag's stored one for it (and
-    the current one for the other types), and plain replay leaves the topic out."""
-    from haptic_topology.bag.reader import outdated_types
+    """The reference bag holds ``DeviceCommand`` without ``controller_id`` (and, like
+    ``DeviceState`` and ``LmiUpdate``, without the contact fields): its bytes do not decode
+    with the current definition, so the reader takes the bag's stored one for it, and plain
+    replay leaves the topic out. States and updates, whose fields were only appended since,
+    are replayed re-serialised as the installed types (the new fields empty or zero)."""
+    from haptic_topology.bag.reader import outdated_types, upgraders
     from haptic_topology.bag.replay import left_out, plan
 
     bag = open_bag(REFERENCE)
-    assert outdated_types(bag) == {COMMAND}
+    lmi = type_name('LmiUpdate')
+    assert outdated_types(bag) == {COMMAND, STATE, lmi}
+    assert set(upgraders(bag)) == {STATE, lmi}
     assert left_out(bag) == {'/haptic/device/command': COMMAND}
+    current = decoder()
+    for topic, kind in (('/haptic/device/state', STATE), ('/haptic/lmi/update', lmi)):
+        raw = next(iter_messages(bag, [topic]))
+        old = decoder(bag=bag)(raw)
+        new = current(replace(raw, data=upgraders(bag)[kind](raw.data)))
+        assert int(new.seq) == int(old.seq) and new.header.stamp == old.header.stamp
+        if kind == STATE:
+            np.testing.assert_array_equal(new.pose, old.pose)
+            assert new.env_wrench.size == 0
+        else:
+            np.testing.assert_array_equal(new.mass_matrix, old.mass_matrix)
+            assert new.contact_count == 0 and new.contact_stiffness == 0.0
     decode = decoder(bag=bag)
     msgs = list(iter_messages(bag, ['/haptic/device/command']))
     commands = [decode(m) for m in msgs]
@@ -346,7 +372,7 @@ def test_bags_recorded_before_controller_id_decode_with_their_own_definition() -
     assert commands[0].task_dim == 3 and commands[0].wrench.shape == (3,)
     with pytest.raises(BagError, match='cannot decode haptic_topology_msgs/msg/DeviceCommand'):
         decoder()(msgs[0])
-    # States decode with the current (unchanged) definition from the same store.
+    # States decode with their stored definition from the same store.
     state = decode(next(iter_messages(bag, ['/haptic/device/state'])))
     assert state.task_dim == 3
     assert {it.topic for it in plan(bag)} == set(bag.metadata_topics()) - {

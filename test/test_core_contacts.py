@@ -308,3 +308,41 @@ def test_contacts_block_errors_name_the_field(tmp_path) -> None:
                                                        f'linkage: {TABLE1}'))
         with pytest.raises(ConfigError, match=expected.replace('[', r'\[').replace(']', r'\]')):
             load_scenario(str(path))
+
+
+def test_vectorised_candidates_equal_the_geometry_pair_by_pair() -> None:
+    """:meth:`ContactModel.candidates` (planes, discs, spheres for all links at once) gives the
+    candidates :func:`capsule_gaps` gives link by link, joint points once."""
+    from haptic_topology.model.obstacles import capsule_gaps
+    cases = (
+        (load_linkage(TABLE1), TaskSpace.PLANAR, WALL + [
+            {'type': 'disc', 'center': [0.06, 0.025], 'radius': 0.008},
+            {'type': 'half_plane', 'point': [0.0, -0.01], 'normal': [0.0, 1.0]},
+            {'type': 'segment', 'a': [0.02, 0.04], 'b': [0.09, 0.05], 'radius': 0.001}]),
+        (serial_chain(5, TaskSpace.SPATIAL), TaskSpace.SPATIAL, [
+            {'type': 'plane', 'point': [0.0, 0.0, -0.02], 'normal': [0.1, 0.2, 1.0]},
+            {'type': 'sphere', 'center': [0.1, 0.05, 0.0], 'radius': 0.02},
+            {'type': 'box', 'center': [0.15, -0.05, 0.0], 'half_extents': [0.02, 0.03, 0.04],
+             'rpy': [0.1, 0.2, 0.3]}]))
+    rng = np.random.default_rng(5)
+    for linkage, task, obstacles in cases:
+        _, cm = _model(obstacles, task, linkage)
+        for _ in range(20):
+            q = rng.uniform(-1.0, 1.0, linkage.dof)
+            p0, p1 = cm._axes(q)
+            links, obs, s, gaps, normals = cm.candidates(p0, p1)
+            expected = []
+            for k, ob in enumerate(cm.settings.obstacles):
+                for i in range(linkage.dof):
+                    for gap, s_i, n_i in capsule_gaps(ob, p0[i], p1[i], 0.003):
+                        if i > 0 and s_i == 0.0 and ob.kind.value in ('half_plane', 'plane'):
+                            continue
+                        expected.append((k, i, s_i, gap, tuple(n_i)))
+            got = sorted(zip(obs.tolist(), links.tolist(), s.tolist(), gaps.tolist(),
+                             map(tuple, normals.tolist()), strict=True))
+            expected.sort()
+            assert len(got) == len(expected)
+            for a, b in zip(got, expected, strict=True):
+                assert a[:2] == b[:2]
+                np.testing.assert_allclose(a[2:4], b[2:4], rtol=1e-12, atol=1e-15)
+                np.testing.assert_allclose(a[4], b[4], atol=1e-12)

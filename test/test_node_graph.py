@@ -48,12 +48,13 @@ def _graph_run(tmp_path: Path, scenario: str, mode: str, duration: float,
 
 
 LOCKSTEP_RUNS = (('fig6', 'penalty'), ('fig6', 'acceleration_only'), ('fig8', 'penalty'),
-                 ('fig8', 'acceleration_only'))
+                 ('fig8', 'acceleration_only'), ('wall', 'penalty'))
 #: Also in the pool: the spatial scenario (0.5 s) and the swapped backend (1 s).
 SPATIAL, SPATIAL_DURATION = ('panda_link4', 'penalty'), 0.5
 SWAPPED, SWAPPED_DURATION = ('fig8', 'fake_backend'), 1.0
 #: The same in the separate-process layout (the others run hosted, the default).
-SEPARATE_RUNS = (('fig6', 'penalty', 'separate'), ('fig8', 'acceleration_only', 'separate'))
+SEPARATE_RUNS = (('fig6', 'penalty', 'separate'), ('fig8', 'acceleration_only', 'separate'),
+                 ('wall', 'penalty', 'separate'))
 
 
 @pytest.fixture(scope='module')
@@ -111,6 +112,22 @@ def _assert_equals_offline(graph: Trace, scenario: str, mode: str, duration: flo
     g, o = graph.summary(), offline.summary()
     for key in ('final_distance_m', 'max_distance_m', 'rms_distance_m'):
         assert g[key] == pytest.approx(o[key], rel=1e-9, abs=0.0), key
+    assert graph.has_contacts == offline.has_contacts
+    if offline.has_contacts:
+        # F_env as the controller rendered it (DeviceCommand.env_wrench) at every cycle; the
+        # VE's deepest contact and contact energy as each LmiUpdate reported them, which are
+        # the offline trace's values at the rows the updates describe.
+        assert np.abs(offline.columns['env_wrench']).max() > 0.1
+        np.testing.assert_allclose(graph.columns['env_wrench'], offline.columns['env_wrench'],
+                                   rtol=0.0, atol=1e-9)
+        energy = graph.columns['contact_energy']
+        rows = np.nonzero(np.diff(energy))[0] + 1
+        rows = rows[np.isfinite(energy[rows])]
+        assert rows.size > 10
+        for col in ('penetration', 'contact_energy'):
+            np.testing.assert_allclose(graph.columns[col][rows], offline.columns[col][rows],
+                                       rtol=0.0, atol=1e-12, err_msg=col)
+        assert g['energy_injected_j'] == o['energy_injected_j'] == 0.0
 
 
 @pytest.mark.parametrize(('scenario', 'mode'), LOCKSTEP_RUNS)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from types import SimpleNamespace
@@ -116,6 +117,37 @@ def _weights_out() -> list[float]:
     return [0.0, 2.0, 0.0]
 
 
+def _contact_update(**fields: Any) -> LmiUpdate:
+    """An update of the ``wall`` scenario pressed against its wall (two contacts), then
+    ``fields`` replaced."""
+    from haptic_topology.sim.lockstep import virtual_environment
+    ve = virtual_environment(load_scenario('wall'))
+    for _ in range(400):
+        ve.integrate(np.array([0.4, 0.0, 0.0]), 1e-3)
+    msg = lmi_msg(LmiUpdate(), ve.snapshot(3), seconds_to_stamp(1.0))
+    for k, v in fields.items():
+        setattr(msg, k, v)
+    return msg
+
+
+def test_contacts_round_trip_through_lmi_update() -> None:
+    from haptic_topology.sim.lockstep import virtual_environment
+    ve = virtual_environment(load_scenario('wall'))
+    for _ in range(400):
+        ve.integrate(np.array([0.4, 0.0, 0.0]), 1e-3)
+    snap = ve.snapshot(3)
+    assert snap.contacts is not None and len(snap.contacts) >= 1
+    back = lmi_from_msg(lmi_msg(LmiUpdate(), snap, seconds_to_stamp(1.0)), TASK, DOF)
+    assert back.contacts is not None and back.contacts.params == dataclasses.replace(
+        snap.contacts.params, margin=back.contacts.params.margin)
+    for name in ('q', 'points', 'normals', 'gaps', 'jacobians'):
+        np.testing.assert_array_equal(getattr(back.contacts, name),
+                                      getattr(snap.contacts, name), err_msg=name)
+    assert back.contacts.local and back.contact_energy == snap.contact_energy
+    # A scenario without obstacles: no contacts on either side.
+    assert lmi_from_msg(_update(), TASK, DOF).contacts is None
+
+
 CASES: list[tuple[str, Callable[[], Any], str, str]] = [
     ('lmi', lambda: _update(dof=4), 'dof', 'LmiUpdate.dof must be 3, got 4'),
     ('lmi', lambda: _update(task_dim=6), 'task_dim', 'LmiUpdate.task_dim must be 3, got 6'),
@@ -127,6 +159,28 @@ CASES: list[tuple[str, Callable[[], Any], str, str]] = [
     ('lmi', lambda: _update(constraint_weights=_weights_out()), 'range', 'in [0, 1]'),
     ('lmi', lambda: _update(constraint_count=4), 'range',
      'constraint_count must be in [0, 3], got 4'),
+    ('lmi', lambda: _contact_update(contact_gaps=[0.0] * 7), 'size',
+     'LmiUpdate.contact_gaps must have'),
+    ('lmi', lambda: _contact_update(
+        contact_normals=[2.0] * len(_contact_update().contact_normals)), 'range',
+     'LmiUpdate.contact_normals must be unit vectors'),
+    ('lmi', lambda: _contact_update(contact_stiffness=-5.0), 'range',
+     'LmiUpdate.contact_stiffness must be >= 0, got -5.0'),
+    ('lmi', lambda: _contact_update(contact_slip_velocity=0.0), 'range',
+     'LmiUpdate.contact_slip_velocity must be > 0, got 0.0'),
+    ('lmi', lambda: _contact_update(contact_friction=math.nan), 'non_finite',
+     'LmiUpdate.contact_friction is not finite'),
+    ('lmi', lambda: _contact_update(contact_count=10 ** 6), 'range',
+     'LmiUpdate.contact_count must be in [0, 4096]'),
+    ('lmi', lambda: _update(contact_count=2), 'range',
+     'contact_count must be 0 when contact_stiffness is 0, got 2'),
+    ('lmi', lambda: _contact_update(
+        contact_jacobians=[math.inf] * len(_contact_update().contact_jacobians)),
+     'non_finite', 'LmiUpdate.contact_jacobians has non-finite'),
+    ('command', lambda: _command(env_wrench=[math.nan, 0.0, 0.0]), 'non_finite',
+     'DeviceCommand.env_wrench has non-finite'),
+    ('command', lambda: _command(env_wrench=[1.0]), 'size',
+     'DeviceCommand.env_wrench must have 3'),
     ('state', lambda: _state(pose=[math.inf, 0.0, 0.0]), 'non_finite', 'DeviceState.pose'),
     ('state', lambda: _state(twist=[0.0] * 6), 'size', 'DeviceState.twist must have 3'),
     ('state', lambda: _state(task_dim=6), 'task_dim', 'DeviceState.task_dim must be 3'),

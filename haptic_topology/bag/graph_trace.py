@@ -58,8 +58,10 @@ from haptic_topology.msgcheck import (
     array,
     check_command,
     check_state,
+    check_update_contacts,
     check_update_header,
     check_vt_path,
+    env_wrench,
 )
 from haptic_topology.msgdefs import type_name
 from haptic_topology.sim.trace import Trace
@@ -198,7 +200,8 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
     first = states[k0]
     modes = [int(c.mode) for s, c in commands.items() if s >= k0]
     mode = max(set(modes), key=modes.count) if modes else 2
-    trace = Trace.empty(len(seqs), m, dof, mode=_MODE_LABELS.get(mode, str(mode)),
+    contacts = any(float(getattr(u, 'contact_stiffness', 0.0)) > 0.0 for u in updates)
+    trace = Trace.empty(len(seqs), m, dof, contacts, mode=_MODE_LABELS.get(mode, str(mode)),
                         scenario=scenario, dt=0.001, source='graph', bag=str(p),
                         truncated=bool(bag.truncated))
     t0 = _stamp(first.header)
@@ -212,6 +215,9 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         if cmd is not None:
             values.update(command=cmd.wrench, lmi_pose=cmd.vt_pose,
                           lmi_constraint_count=int(cmd.constraint_count))
+            if contacts:
+                env = env_wrench(cmd, m)
+                values['env_wrench'] = np.zeros(m) if env is None else env
         trace.record(i, t=_stamp(st.header) - t0, **values)
         trace.seq[i] = int(s)
     # VE samples at known rows, interpolated in time between them.
@@ -242,6 +248,16 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         counts = np.array([int(known[r].constraint_count) for r in rows])
         idx = np.searchsorted(rows, np.arange(len(seqs)), side='right') - 1
         trace.columns['constraint_count'][:] = np.where(idx >= 0, counts[np.maximum(idx, 0)], 0)
+        if contacts:
+            # The VE's deepest contact and energy balance at each update, held until the next
+            # one (the VE reports them at its rate), NaN after the last.
+            depth = np.array([max(0.0, -min(known[r].contact_gaps, default=0.0))
+                              for r in rows])
+            energy = np.array([float(known[r].contact_energy) for r in rows])
+            held = (idx >= 0) & (np.arange(len(seqs)) <= last)
+            at = np.maximum(idx, 0)
+            trace.columns['penetration'][:] = np.where(held, depth[at], np.nan)
+            trace.columns['contact_energy'][:] = np.where(held, energy[at], np.nan)
     figures = loop_figures(states, commands, seqs, diags)
     figures['ve_update_rate_hz'] = _update_rate(trace.t, sorted(known))
     return GraphRun(trace, figures, diags, skipped)
@@ -261,10 +277,11 @@ def _most_common(values: list[int]) -> int:
 
 
 def _check_update(msg: Any, m: int, dof: int) -> None:
-    """The fields of an ``LmiUpdate`` the trace uses: integers, VT hand pose and q."""
+    """The fields of an ``LmiUpdate`` the trace uses: integers, VT hand pose, q, contacts."""
     check_update_header(msg, m, dof)
     array(msg, 'hand_pose', m)
     array(msg, 'q', dof)
+    check_update_contacts(msg, dof)
 
 
 def _foreign_seqs(states: dict[int, Any]) -> list[int]:

@@ -27,13 +27,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
 import yaml
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
+from rosbags.interfaces import Nodetype
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
+from zstandard import ZstdError
 
 from haptic_topology import MSGS_PACKAGE_NAME
 from haptic_topology.errors import BagError
@@ -157,7 +160,8 @@ def iter_records(path: Path, stream: IO[bytes]) -> Iterator[Any]:
             if isinstance(record, Chunk):
                 try:
                     yield from breakup_chunk(record, validate_crc=True)
-                except (EndOfFile, struct.error) as exc:
+                except (EndOfFile, struct.error, ZstdError, RuntimeError) as exc:
+                    # (zstd data corrupted; lz4 reports its errors as RuntimeError)
                     raise BagError(f'{path}: corrupt chunk at byte {stream.tell()} '
                                    f'({exc or type(exc).__name__})') from None
             else:
@@ -255,6 +259,55 @@ def outdated_types(bag: Bag) -> set[str]:
     parse counts as current (ours is used)."""
     stored = _stored_definitions(bag)
     return set(_outdated(stored)) & {t for t, _ in stored}
+
+
+#: Defaults of primitive fields appended to a message since a bag was recorded.
+_BASE_DEFAULTS: dict[str, Any] = {'bool': False, 'string': '', 'float32': 0.0, 'float64': 0.0}
+
+
+def field_default(fieldtype: Any) -> tuple[bool, Any]:
+    """``(ok, value)``: the default of an appended field (0, 0.0, False, '', an empty
+    sequence of a primitive); ok False for other types (nested messages, fixed arrays)."""
+    node, detail = fieldtype
+    if node == Nodetype.BASE:
+        return True, _BASE_DEFAULTS.get(detail[0], 0)
+    if node == Nodetype.SEQUENCE and detail[0][0] == Nodetype.BASE:
+        base = detail[0][1][0]
+        return True, [] if base in ('string', 'bool') else np.array([], dtype=np.dtype(base))
+    return False, None
+
+
+def upgraders(bag: Bag) -> dict[str, Callable[[bytes], bytes]]:
+    """Type -> a function re-serialising a recorded message of that type as the installed
+    definition, for the :func:`outdated_types` whose stored definition is a prefix of the
+    installed one (fields only appended since, e.g. ``LmiUpdate`` before its contact fields):
+    the recorded fields keep their values, the appended ones get their defaults (empty,
+    zero, false). Types changed otherwise (a field inserted or retyped) have none."""
+    stored = _stored_definitions(bag)
+    old_store = _store_with(stored)
+    ours = typestore_with_haptic_msgs()
+    out: dict[str, Callable[[bytes], bytes]] = {}
+    for msgtype in outdated_types(bag):
+        old, new = _fields(old_store.fielddefs[msgtype]), _fields(ours.fielddefs[msgtype])
+        if old is None or new is None or new[:len(old)] != old:
+            continue
+        extra = [field_default(t) for _, t in new[len(old):]]
+        if not all(ok for ok, _ in extra):
+            continue
+        defaults = [v for _, v in extra]
+        cls = ours.types[msgtype]
+
+        def upgrade(data: bytes, msgtype: str = msgtype, n: int = len(old),
+                    defaults: list[Any] = defaults, cls: Any = cls) -> bytes:
+            msg = old_store.deserialize_cdr(data, msgtype)
+            values = [getattr(msg, name) for name, _ in _fields(
+                old_store.fielddefs[msgtype])[:n]]
+            fresh = [np.array(v) if isinstance(v, np.ndarray) else
+                     (list(v) if isinstance(v, list) else v) for v in defaults]
+            return bytes(ours.serialize_cdr(cls(*values, *fresh), msgtype))
+
+        out[msgtype] = upgrade
+    return out
 
 
 def _stored_definitions(bag: Bag) -> tuple[tuple[str, str], ...]:

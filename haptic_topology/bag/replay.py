@@ -6,9 +6,12 @@ recorded receive times scaled by ``1 / --rate``, from ``--start-offset`` seconds
 bag, once or ``--loop``. Each topic gets the QoS its publishers offered (the bag's
 ``offered_qos_profiles``), so e.g. recorded device states and LMI updates drive a live
 ``lmi_controller`` exactly as the device and the VE did. A topic whose type the bag holds in
-an older definition than the installed one (``DeviceCommand`` before ``controller_id``,
-:func:`~haptic_topology.bag.reader.outdated_types`) is left out, and named in the summary
-line: its bytes would be misread as the current type; naming it in ``--topics`` is an error.
+an older definition than the installed one is re-serialised as the installed type when
+fields were only appended since (``LmiUpdate`` and ``DeviceState`` before their contact
+fields: the new fields empty or zero, :func:`~haptic_topology.bag.reader.upgraders`), and
+left out, and named in the summary line, when the definition changed otherwise
+(``DeviceCommand`` before ``controller_id``, a field inserted in the middle): its bytes would
+be misread as the current type; naming it in ``--topics`` is an error.
 
 ``--check-controller`` is the controller's regression check: it starts ``lmi_controller``
 itself (in its own namespace, with the bag's scenario and the recorded control law), feeds
@@ -69,6 +72,7 @@ from haptic_topology.bag.reader import (
     outdated_types,
     read_channels,
     require_types,
+    upgraders,
 )
 from haptic_topology.errors import BagError, HapticTopologyError
 from haptic_topology.msgdefs import type_name
@@ -144,7 +148,9 @@ def plan(bag: Bag, topics: Iterable[str] | None = None, start_offset: float = 0.
     if not msgs:
         raise BagError(f'{bag.path}: no messages to replay')
     t0 = min(m.log_time for m in msgs) + int(start_offset * 1e9)
-    items = [Item((m.log_time - t0) * 1e-9, m.topic, m.msgtype, m.data)
+    upgrade = upgraders(bag)
+    items = [Item((m.log_time - t0) * 1e-9, m.topic, m.msgtype,
+                  upgrade[m.msgtype](m.data) if m.msgtype in upgrade else m.data)
              for m in msgs if m.log_time >= t0]
     if not items:
         raise BagError(f'{bag.path}: --start-offset {start_offset:g} s is past the bag\'s end')
@@ -154,8 +160,8 @@ def plan(bag: Bag, topics: Iterable[str] | None = None, start_offset: float = 0.
 
 def left_out(bag: Bag) -> dict[str, str]:
     """Topic -> type of the topics plain replay leaves out: their type is recorded in an older
-    definition than the installed one (module doc)."""
-    old = outdated_types(bag)
+    definition than the installed one, changed other than by appended fields (module doc)."""
+    old = outdated_types(bag) - set(upgraders(bag))
     return {t: ch['type'] for t, ch in read_channels(bag).items() if ch['type'] in old}
 
 
@@ -227,6 +233,11 @@ def controller_plan(bag: Bag) -> ControllerPlan:
         groups[first] = min(groups[first], got)  # least compute time: closest to receipt
         prev_age, prev_got = age, got
     first_group = min(groups, default=-1)
+    upgrade = upgraders(bag)
+
+    def data(m: BagMessage) -> bytes:    # as the installed type (fields appended since)
+        return upgrade[m.msgtype](m.data) if m.msgtype in upgrade else m.data
+
     items: list[Item] = []
     applied = -1  # index of the last update placed so far
     t_first = states[0][0].log_time if states else 0
@@ -249,9 +260,9 @@ def controller_plan(bag: Bag) -> ControllerPlan:
         target = min(target, len(updates) - 1)
         for j in range(applied + 1, target + 1):
             u = updates[j][0]
-            items.append(Item(max(t - 2e-4, 0.0), u.topic, u.msgtype, u.data))
+            items.append(Item(max(t - 2e-4, 0.0), u.topic, u.msgtype, data(u)))
         applied = max(applied, target)
-        items.append(Item(t, m.topic, m.msgtype, m.data, seq))
+        items.append(Item(t, m.topic, m.msgtype, data(m), seq))
     return ControllerPlan(items, {s: c for s, c in commands.items()
                                   if s in {int(st.seq) for _, st in answered_states}},
                           scenario, mode, len(groups), len(updates))

@@ -301,7 +301,8 @@ def run(args: argparse.Namespace) -> int:
             from haptic_topology.sim.plots import plot_trace
 
             plot_trace(trace, bag / 'plot.png', sc.linkage,
-                       title=f'{sc.name} {mode} (ROS graph)')
+                       title=f'{sc.name} {mode} (ROS graph)',
+                       obstacles=sc.contacts.obstacles if sc.contacts else ())
             print(f'plot: {bag / "plot.png"}')
         print(f'bag: {bag}', flush=True)
         summaries.append(summary)

@@ -64,16 +64,18 @@ class LmiSnapshot:
     #: The contacts within the margin at the update (eq. 17's ``J_i``, ``F_i``); None: the
     #: scenario has no obstacles.
     contacts: LocalContacts | None = None
+    #: The VE's contact energy balance at the update (J, recorded for the analysis).
+    contact_energy: float = 0.0
 
     @classmethod
     def from_dynamics(cls, snap: DynamicsSnapshot, task: TaskSpace, characteristic_length: float,
-                      seq: int, hand_input_seq: int,
-                      contacts: LocalContacts | None = None) -> LmiSnapshot:
+                      seq: int, hand_input_seq: int, contacts: LocalContacts | None = None,
+                      contact_energy: float = 0.0) -> LmiSnapshot:
         c = snap.constraints
         return cls(seq, hand_input_seq, task, snap.q, snap.dq, snap.mass_matrix, snap.gravity,
                    snap.hand_jacobian, c.singular_values, c.left_vectors, c.weights, c.count,
                    characteristic_length, snap.hand_pose, snap.hand_twist, c.direction,
-                   contacts)
+                   contacts, contact_energy)
 
     def constraints(self) -> ConstraintDirections:
         """The VE's directions of topological constraint (eq. 18) with this update's
@@ -122,9 +124,10 @@ class LocalModel:
         self._accel_bias = np.zeros(0)       # D^-1 G (eq. 17) or 0 (eq. 20)
         self._jacobian = np.zeros((m, 0))
         self._contacts: LocalContacts | None = None
-        self._held_torques: np.ndarray | None = None
-        self._lambda_pinv: np.ndarray = np.zeros((m, m))
-        self._factor = np.zeros((0, 0))    # Cholesky factor of D^ (for D^-1 J_i^T F_i)
+        self._held_forces: np.ndarray | None = None
+        self._contact_map = (np.zeros((0, 0)), np.zeros((0, 0)))
+        self._env_map = np.zeros((m, 0))
+        self._contact_accel: np.ndarray | None = None
         self.contact_torques = np.zeros(0)
         #: ``F_env`` (m) at the current state (zero without contacts).
         self.env_wrench = np.zeros(m)
@@ -137,7 +140,7 @@ class LocalModel:
         """Re-sync to an update: take its matrices and state, replay the newer inputs."""
         if snap.task is not self.task:
             raise ValueError(f'task_dim must be {self.task.dim}, got {snap.task.dim}')
-        factor = self._factor = spd_factor(snap.mass_matrix)
+        factor = spd_factor(snap.mass_matrix)
         j = snap.hand_jacobian
         self._accel_map = spd_solve(factor, j.T)
         self._accel_bias = (spd_solve(factor, snap.gravity) if self.model is LmiModel.EQ17
@@ -155,25 +158,35 @@ class LocalModel:
         self.consumed = snap.hand_input_seq
         contacts = snap.contacts if snap.contacts is not None and len(snap.contacts) else None
         self._contacts = contacts
-        self._held_torques = None
+        self._held_forces = None
         if contacts is not None:
-            self._lambda_pinv = np.linalg.pinv(self.lambda_inv, rcond=1e-10, hermitian=True)
+            # Per contact force F (3c, flattened): joint torques J^T F, joint accelerations
+            # D^-1 J^T F (eq. 17) and F_env = Lambda^+ J_h D^-1 J^T F, as three matrices.
+            jt = contacts.stacked_jacobian.T
+            self._contact_map = (jt, spd_solve(factor, jt))
+            lambda_pinv = np.linalg.pinv(self.lambda_inv, rcond=1e-10, hermitian=True)
+            self._env_map = lambda_pinv @ (j @ self._contact_map[1])
             if not contacts.local:
-                self._held_torques = contacts.torques(self.q, self.dq)
+                self._held_forces = contacts.forces(self.q, self.dq)
         self._update_contacts()
         self._replay(None)
 
     def _update_contacts(self) -> None:
-        """Contact torques and ``F_env`` at the current state."""
+        """Contact forces, their torques, accelerations and ``F_env`` at the current state."""
         c = self._contacts
-        if c is None:
+        forces = None
+        if c is not None:
+            forces = c.forces(self.q, self.dq) if c.local else self._held_forces
+        if forces is None:
             self.contact_torques = np.zeros(self.q.size)
+            self._contact_accel = None
             self.env_wrench = np.zeros(self.task.dim)
             return
-        tau = self._held_torques if self._held_torques is not None else c.torques(self.q,
-                                                                                  self.dq)
-        self.contact_torques = tau
-        self.env_wrench = self._lambda_pinv @ (self._accel_map.T @ tau)
+        f = forces.ravel()
+        jt, accel = self._contact_map
+        self.contact_torques = jt @ f
+        self._contact_accel = accel @ f
+        self.env_wrench = self._env_map @ f
 
     def record_input(self, seq: int, wrench: np.ndarray) -> None:
         """Remember the VT wrench computed at device state ``seq`` (used from then on)."""
@@ -211,8 +224,8 @@ class LocalModel:
         """Semi-implicit Euler step of eq. 17 / eq. 20 with the frozen matrices (and the
         contact torques at the state before the step)."""
         qdd = self._accel_map @ wrench - self._accel_bias
-        if self._contacts is not None:
-            qdd = qdd + spd_solve(self._factor, self.contact_torques)
+        if self._contact_accel is not None:
+            qdd = qdd + self._contact_accel
         self.dq = self.dq + qdd * dt
         self.q = self.q + self.dq * dt
         self.xd_vt = self._jacobian @ self.dq

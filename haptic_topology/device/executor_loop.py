@@ -87,13 +87,15 @@ class ExecutorLoop:
         return self._emit(self.loop.tick(now, self.period), 0, now)
 
     def on_command(self, state_seq: int, mode: int, wrench: np.ndarray, now: float,
-                   may_engage: bool, controller_id: int) -> CommandOutcome:
+                   may_engage: bool, controller_id: int,
+                   env_wrench: np.ndarray | None = None) -> CommandOutcome:
         """A command of ``controller_id`` answering ``state_seq`` arrived at ``now``
         (:meth:`DeviceLoop.on_command`); in lock-step, an applied answer to the newest
         state steps the loop one period."""
         loop = self.loop
         was_engaged, followed = loop.engaged, loop.controller_id
-        verdict = loop.on_command(state_seq, mode, wrench, now, may_engage, controller_id)
+        verdict = loop.on_command(state_seq, mode, wrench, now, may_engage, controller_id,
+                                  env_wrench)
         info = warning = ''
         if loop.engaged and not was_engaged:
             info = f'controller {controller_id} engaged at state {state_seq}'

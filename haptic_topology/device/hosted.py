@@ -141,7 +141,7 @@ class HostedCycle:
         verdict = None
         if ans is not None:
             verdict = self.device.on_command(ans.state_seq, int(ans.out.mode), ans.out.wrench,
-                                             now, may_engage)
+                                             now, may_engage, env_wrench=ans.out.env_wrench)
         return HostedStep(tick, stamp, ans, verdict, updates)
 
     def values(self) -> dict[str, str]:

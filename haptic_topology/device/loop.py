@@ -104,6 +104,9 @@ class DeviceTick:
     reading: DeviceReading
     applied: np.ndarray
     status: DeviceStatus
+    #: F_env (eqs. 10, 14) of the command applied this cycle, as its controller computed it
+    #: (None: no command applied, or the command carried none).
+    env_wrench: np.ndarray | None = None
 
 
 class DeviceLoop:
@@ -128,6 +131,7 @@ class DeviceLoop:
         self.engaged_seq = 0          # the idle state whose answer engaged the device
         self.run_index = -1
         self._cmd = np.zeros(m)
+        self._cmd_env: np.ndarray | None = None
         self._cmd_seq = 0
         self._twist = np.zeros(m)
         self._publish_times = np.zeros(_KEEP)
@@ -153,12 +157,14 @@ class DeviceLoop:
 
     # -- commands ----------------------------------------------------------------------------
     def on_command(self, state_seq: int, mode: int, wrench: np.ndarray, now: float,
-                   may_engage: bool = True, controller_id: int = 0) -> str:
+                   may_engage: bool = True, controller_id: int = 0,
+                   env_wrench: np.ndarray | None = None) -> str:
         """Take a command of controller ``controller_id`` answering state ``state_seq`` that
         arrived at ``now`` (s, the clock of :meth:`tick`); ``may_engage``: whether a non-ZERO
         mode may engage the device now (e.g. enough subscribers see the state). Once engaged,
-        only the followed controller's commands are taken (module doc). Returns a
-        :class:`CommandVerdict` value."""
+        only the followed controller's commands are taken (module doc). ``env_wrench``: the
+        command's F_env, reported with the states it is applied in (never applied itself: it
+        is part of ``wrench``). Returns a :class:`CommandVerdict` value."""
         other = self.engaged and controller_id != self.controller_id
         if other and now - self._heard < self.takeover_after:
             self.foreign_commands += 1
@@ -182,6 +188,7 @@ class DeviceLoop:
             self.controller_id = controller_id
             self._heard = now
         self._cmd = wrench
+        self._cmd_env = env_wrench
         self._cmd_seq = state_seq
         return CommandVerdict.APPLIED
 
@@ -212,6 +219,7 @@ class DeviceLoop:
         state to publish (see module doc)."""
         status = DeviceStatus.OK
         u = np.zeros(self.limit.size)
+        env = None
         if not self.engaged:
             reading = self.backend.idle(dt)
             status |= DeviceStatus.WATCHDOG | DeviceStatus.IDLE
@@ -241,13 +249,14 @@ class DeviceLoop:
                 status |= DeviceStatus.SATURATED
                 self.saturated_cycles += 1
             np.maximum(self.max_applied, np.abs(u), out=self.max_applied)
+            env = self._cmd_env
             self.backend.write(u)
             reading = self.backend.read(dt)
         self._twist = reading.twist
         self.seq += 1
         self._publish_times[self.seq % _KEEP] = now
         return DeviceTick(self.seq, self.run_index if self.engaged else -1, reading, u,
-                          DeviceStatus(status | reading.status))
+                          DeviceStatus(status | reading.status), env)
 
     # -- statistics --------------------------------------------------------------------------
     def figures(self) -> dict[str, float]:

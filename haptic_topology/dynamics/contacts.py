@@ -42,6 +42,7 @@ import pinocchio as pin
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage, TaskSpace
 from haptic_topology.model.obstacles import (
+    EPS,
     Obstacle,
     ObstacleKind,
     capsule_gaps,
@@ -51,6 +52,7 @@ from haptic_topology.validate import as_bool, as_float, check_keys
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
+_ROUND = (ObstacleKind.DISC, ObstacleKind.SPHERE)
 
 
 @dataclass(frozen=True)
@@ -170,48 +172,130 @@ class ContactModel:
             else:
                 tips.append(np.array([link.length, 0.0, 0.0]))
         self._tips = tips
+        self._radii = radii = np.array(settings.radii, dtype=float)
+        d = linkage.dof
+        # Candidate layout (static): planes (row-major: end e = tips 0..d-1 then link 1's
+        # base, times plane), then discs/spheres (d each), then the others (their count per
+        # link and obstacle is fixed by capsule_gaps: 1).
+        obstacles = settings.obstacles
+        planes = [k for k, ob in enumerate(obstacles) if ob.kind in _PLANES]
+        self._round = [ob for ob in obstacles if ob.kind in _ROUND]
+        round_k = [k for k, ob in enumerate(obstacles) if ob.kind in _ROUND]
+        self._other = [ob for ob in obstacles if ob.kind not in _PLANES + _ROUND]
+        other_k = [k for k, ob in enumerate(obstacles) if ob.kind not in _PLANES + _ROUND]
+        self._plane_k = np.array(planes, dtype=int)
+        self._plane_n = np.array([obstacles[k].normal for k in planes]).reshape(-1, 3)
+        self._plane_offset = np.array([float(obstacles[k].normal @ obstacles[k].point)
+                                       for k in planes])
+        end_links = np.append(np.arange(d), 0)
+        self._plane_radii = np.repeat(radii[end_links], len(planes))
+        self._plane_s = np.repeat(np.append(np.ones(d), 0.0), len(planes))
+        self._plane_normals = np.tile(self._plane_n, (d + 1, 1))
+        self._links = np.concatenate([np.repeat(end_links, len(planes))]
+                                     + [np.arange(d)] * len(round_k)
+                                     + [np.arange(d)] * len(other_k)).astype(int)
+        self._obstacles = np.concatenate([np.tile(self._plane_k, d + 1)]
+                                         + [np.full(d, k) for k in round_k]
+                                         + [np.full(d, k) for k in other_k]).astype(int)
+
+    def _axes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World ends of every link's axis (d x 3 each) at ``q`` (forward kinematics)."""
+        model, data = self.model, self.data
+        pin.forwardKinematics(model, data, q)
+        p0 = np.empty((self.dof, 3))
+        p1 = np.empty((self.dof, 3))
+        for i in range(self.dof):
+            placement = data.oMi[i + 1]
+            p0[i] = placement.translation
+            p1[i] = placement.act(self._tips[i])
+        return p0, p1
+
+    def candidates(self, p0: np.ndarray, p1: np.ndarray, gaps_only: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every candidate of the module doc for link axes ``p0 -> p1`` (d x 3 each):
+        ``(links, obstacles, s, gaps, normals)`` (``gaps_only``: the gaps, the rest empty).
+        Planes and half-planes in one product for all links and planes, discs and spheres
+        for all links at once (the same numbers as
+        :func:`~haptic_topology.model.obstacles.capsule_gaps`, tested), segments and boxes
+        link by link through it."""
+        parts_gap: list[np.ndarray] = []
+        parts_s: list[np.ndarray] = []
+        parts_n: list[np.ndarray] = []
+        radii = self._radii
+        if self._plane_k.size:
+            # Every link's tip and link 1's base (each joint point once), against every plane.
+            ends = np.vstack((p1, p0[:1]))
+            parts_gap.append((ends @ self._plane_n.T - self._plane_offset).ravel()
+                             - self._plane_radii)
+            parts_s.append(self._plane_s)
+            parts_n.append(self._plane_normals)
+        for ob in self._round:
+            axis = p1 - p0
+            length2 = np.einsum('ij,ij->i', axis, axis)
+            along = np.einsum('ij,ij->i', ob.point - p0, axis)
+            s = np.clip(np.divide(along, length2, out=np.zeros(self.dof),
+                                  where=length2 > EPS * EPS), 0.0, 1.0)
+            v = p0 + s[:, None] * axis - ob.point
+            dist = np.sqrt(np.einsum('ij,ij->i', v, v))
+            gap = dist - ob.radius - radii
+            parts_gap.append(gap)
+            if not gaps_only:
+                normal = v / np.maximum(dist, EPS)[:, None]
+                for j in np.nonzero(dist <= EPS)[0].tolist():   # on the centre: fallback
+                    gap[j], s[j], normal[j] = capsule_gaps(ob, p0[j], p1[j], radii[j])[0]
+                parts_s.append(s)
+                parts_n.append(normal)
+        for ob in self._other:
+            for i in range(self.dof):
+                for gap_i, s_i, n_i in capsule_gaps(ob, p0[i], p1[i], radii[i]):
+                    parts_gap.append(np.array([gap_i]))
+                    parts_s.append(np.array([s_i]))
+                    parts_n.append(n_i[None, :])
+        if not parts_gap:
+            return (self._links, self._obstacles, np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+        gaps = np.concatenate(parts_gap)
+        if gaps_only:
+            return self._links, self._obstacles, np.zeros(0), gaps, np.zeros((0, 3))
+        return (self._links, self._obstacles, np.concatenate(parts_s), gaps,
+                np.concatenate(parts_n))
 
     def detect(self, q: np.ndarray, margin: float = 0.0,
                jacobians: bool = True) -> ContactSet:
         """Candidates with ``gap < margin`` at ``q`` (see module doc), with their Jacobians
-        when ``jacobians``."""
-        model, data = self.model, self.data
-        if jacobians:
-            pin.computeJointJacobians(model, data, q)   # also the joint placements
-        else:
-            pin.forwardKinematics(model, data, q)
-        rows: list[tuple[int, int, np.ndarray, np.ndarray, float]] = []
-        radii = self.settings.radii
-        for i in range(self.dof):
-            placement = data.oMi[i + 1]
-            p0 = np.array(placement.translation)
-            p1 = placement.act(self._tips[i])
-            for k, obs in enumerate(self.settings.obstacles):
-                for gap, s, normal in capsule_gaps(obs, p0, p1, radii[i]):
-                    if gap >= margin or (i > 0 and s == 0.0 and obs.kind in _PLANES):
-                        continue  # (a plane's candidate at a shared joint: the proximal link's)
-                    rows.append((i, k, p0 + s * (p1 - p0), normal, gap))
-        c = len(rows)
-        jac = np.zeros((c, 3, self.dof))
-        if jacobians:
-            for r, (i, _, point, _, _) in enumerate(rows):
-                j6 = pin.getJointJacobian(model, data, i + 1, _LWA).reshape(6, self.dof)
-                arm = point - data.oMi[i + 1].translation
-                # v_p = v_o + w x (p - o) = J_v qdot - [p - o]x J_w qdot
-                jac[r] = j6[:3] + np.cross(j6[3:].T, arm).T
-        if not rows:
-            return ContactSet(np.zeros(0, dtype=int), np.zeros(0, dtype=int),
-                              np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), jac)
-        return ContactSet(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
-                          np.array([r[2] for r in rows]), np.array([r[3] for r in rows]),
-                          np.array([r[4] for r in rows]), jac)
+        when ``jacobians`` (else zeros)."""
+        p0, p1 = self._axes(q)
+        return self._select(q, p0, p1, self.candidates(p0, p1), margin, jacobians)
+
+    def _select(self, q: np.ndarray, p0: np.ndarray, p1: np.ndarray,
+                cands: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                margin: float, jacobians: bool) -> ContactSet:
+        links, obs, s, gaps, normals = cands
+        keep = np.nonzero(gaps < margin)[0]
+        links, obs, s, gaps, normals = links[keep], obs[keep], s[keep], gaps[keep], normals[keep]
+        points = p0[links] + s[:, None] * (p1[links] - p0[links])
+        jac = np.zeros((keep.size, 3, self.dof))
+        if jacobians and keep.size:
+            model, data = self.model, self.data
+            pin.computeJointJacobians(model, data, q)
+            for r in range(keep.size):
+                joint = int(links[r]) + 1
+                j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, self.dof)
+                ax, ay, az = points[r] - data.oMi[joint].translation
+                # v_p = v_o + w x (p - o) = J_v qdot + [p - o]x^T J_w qdot
+                jac[r] = j6[:3] + np.array([[0.0, az, -ay], [-az, 0.0, ax],
+                                            [ay, -ax, 0.0]]) @ j6[3:]
+        return ContactSet(links, obs, points, np.array(normals), gaps, jac)
 
     def torques(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, float]:
         """``sum_i J_i^T F_i`` (d, N m / N) at ``(q, dq)`` and the contacts' power on the VT
-        ``sum_i F_i^T v_i`` (W)."""
-        cs = self.detect(q, 0.0)
-        if not len(cs):
+        ``sum_i F_i^T v_i`` (W). Called at every RK4 stage: without a penetrating candidate
+        it stops after the candidates' gaps."""
+        p0, p1 = self._axes(q)
+        cands = self.candidates(p0, p1, gaps_only=True)
+        gaps = cands[3]
+        if not gaps.size or gaps.min() >= 0.0:
             return np.zeros(self.dof), 0.0
+        cs = self._select(q, p0, p1, self.candidates(p0, p1), 0.0, True)
         vel = cs.jacobians @ dq
         forces = contact_forces(self.params, cs.gaps, cs.normals, vel)
         return np.einsum('cid,ci->d', cs.jacobians, forces), float(np.sum(forces * vel))
@@ -245,10 +329,26 @@ class LocalContacts:
     jacobians: np.ndarray
     local: bool = True
     _nj: np.ndarray = field(init=False, repr=False, compare=False)
+    _flat: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, '_nj', np.einsum('ci,cid->cd', self.normals,
                                                   self.jacobians))
+        object.__setattr__(self, '_flat', self.jacobians.reshape(-1, self.q.size))
+
+    @property
+    def stacked_jacobian(self) -> np.ndarray:
+        """The ``J_i`` stacked (3c x d): ``sum_i J_i^T F_i = stacked^T F`` for the forces
+        ``F`` (c x 3) flattened row by row."""
+        return self._flat
+
+    def forces(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray | None:
+        """``F_i`` (c x 3, N, world) at ``(q, dq)``; None when no contact penetrates."""
+        gaps = self.gaps + self._nj @ (q - self.q)
+        if not gaps.size or gaps.min() >= 0.0:
+            return None
+        vel = (self._flat @ dq).reshape(-1, 3)
+        return contact_forces(self.params, gaps, self.normals, vel)
 
     def __len__(self) -> int:
         return int(self.gaps.size)

@@ -32,6 +32,7 @@ from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
 from haptic_topology.dynamics.constraints import PenaltyDirection
+from haptic_topology.dynamics.contacts import ContactParams, LocalContacts
 from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.msgcheck import (
     MAX_CONTROLLER_ID,
@@ -45,6 +46,7 @@ from haptic_topology.msgcheck import (
     check_hand_inputs,
     check_range,
     check_state,
+    check_update_contacts,
     check_update_header,
     finite_scalar,
     new_controller_id,
@@ -78,7 +80,10 @@ assert set(MODES) == {DeviceCommand.MODE_PENALTY, DeviceCommand.MODE_ACCELERATIO
 
 # -- DeviceState ------------------------------------------------------------------------------
 def state_msg(msg: DeviceState, seq: int, stamp: Time, reading: DeviceReading,
-              applied: np.ndarray, status: int) -> DeviceState:
+              applied: np.ndarray, status: int,
+              env_wrench: np.ndarray | None = None) -> DeviceState:
+    """``msg`` filled with state ``seq``; ``env_wrench``: F_env of the command applied (None:
+    empty)."""
     msg.header.stamp = stamp
     msg.seq = seq
     msg.task_dim = int(reading.pose.size)
@@ -87,6 +92,7 @@ def state_msg(msg: DeviceState, seq: int, stamp: Time, reading: DeviceReading,
     msg.hand_wrench = reading.hand_wrench.tolist()
     msg.applied_wrench = np.asarray(applied, dtype=float).tolist()
     msg.status = int(status)
+    msg.env_wrench = [] if env_wrench is None else env_wrench.tolist()
     return msg
 
 
@@ -113,6 +119,7 @@ def command_msg(msg: DeviceCommand, state_seq: int, stamp: Time, out: CycleOutpu
     msg.vt_twist = out.vt_twist.tolist()
     msg.constraint_count = int(out.constraint_count)
     msg.update_age = float(update_age)
+    msg.env_wrench = [] if out.env_wrench is None else out.env_wrench.tolist()
     return msg
 
 
@@ -187,6 +194,27 @@ def lmi_msg(msg: LmiUpdate, snap: LmiSnapshot, stamp: Time) -> LmiUpdate:
     msg.characteristic_length = float(snap.characteristic_length)
     msg.hand_pose = snap.hand_pose.tolist()
     msg.hand_twist = snap.hand_twist.tolist()
+    c = snap.contacts
+    if c is None:
+        msg.contact_count = 0
+        msg.contact_points = msg.contact_normals = msg.contact_gaps = []
+        msg.contact_jacobians = []
+        msg.contact_stiffness = msg.contact_damping = msg.contact_friction = 0.0
+        msg.contact_slip_velocity = 0.0
+        msg.contact_local = False
+        msg.contact_energy = 0.0
+        return msg
+    msg.contact_count = len(c)
+    msg.contact_points = c.points.ravel().tolist()
+    msg.contact_normals = c.normals.ravel().tolist()
+    msg.contact_gaps = c.gaps.tolist()
+    msg.contact_jacobians = c.jacobians.ravel().tolist()
+    msg.contact_stiffness = float(c.params.stiffness)
+    msg.contact_damping = float(c.params.damping)
+    msg.contact_friction = float(c.params.friction)
+    msg.contact_slip_velocity = float(c.params.slip_velocity)
+    msg.contact_local = bool(c.local)
+    msg.contact_energy = float(snap.contact_energy)
     return msg
 
 
@@ -218,6 +246,14 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
            f'constraint_weights must be in [0, 1], got {weights.tolist()}')
     length = finite_scalar(msg, 'characteristic_length')
     check_range(length > 0.0, msg, f'characteristic_length must be > 0, got {length}')
+    contacts = None
+    fields = check_update_contacts(msg, dof)
+    if fields is not None:
+        points, normals, gaps, jac = fields
+        contacts = LocalContacts(
+            ContactParams(float(msg.contact_stiffness), float(msg.contact_damping),
+                          float(msg.contact_friction), float(msg.contact_slip_velocity)),
+            array(msg, 'q', dof), points, normals, gaps, jac, bool(msg.contact_local))
     return LmiSnapshot(
         seq=seq,
         hand_input_seq=hand_input_seq if hand_input_seq > 0 else -1,
@@ -232,7 +268,8 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
         constraint_count=int(msg.constraint_count),
         characteristic_length=length,
         hand_pose=array(msg, 'hand_pose', m), hand_twist=array(msg, 'hand_twist', m),
-        penalty_direction=penalty_direction)
+        penalty_direction=penalty_direction, contacts=contacts,
+        contact_energy=float(getattr(msg, 'contact_energy', 0.0)))
 
 
 __all__ = ['CONTROLLER_ID', 'MAX_CONTROLLER_ID', 'MAX_SEQ', 'REASONS', 'MessageError',

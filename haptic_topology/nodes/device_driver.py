@@ -177,7 +177,7 @@ class DeviceDriver(LifecycleNode):
         if clock:
             self.publish_clock(ns)
         self.state_pub.publish(state_msg(self._msg, tick.seq, ns_to_stamp(ns), tick.reading,
-                                         tick.applied, int(tick.status)))
+                                         tick.applied, int(tick.status), tick.env_wrench))
         self.states_sent += 1
 
     def publish_clock(self, ns: int) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import Any
 
 from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
+from haptic_topology.msgcheck import env_wrench
 from haptic_topology.nodes import common
 from haptic_topology.nodes.convert import MessageError, command_from_msg
 from haptic_topology_msgs.msg import DeviceCommand
@@ -66,12 +67,13 @@ class SeparateLoop:
             return
         try:
             state_seq, mode, wrench, cid = command_from_msg(msg, d.cfg.scenario.linkage.task)
+            env = env_wrench(msg, d.cfg.scenario.linkage.task.dim)
         except MessageError as exc:
             d.rejected.add(exc)
             d.get_logger().warn(f'command rejected: {exc}', throttle_duration_sec=1.0)
             return
         out = self.stepper.on_command(state_seq, mode, wrench, common.monotonic(),
-                                      d.may_engage(), cid)
+                                      d.may_engage(), cid, env)
         if out.info:
             d.get_logger().info(out.info)
         if out.warning:

@@ -60,8 +60,9 @@ from haptic_topology.nodes.convert import (
 )
 from haptic_topology.resolve import resolve_ve_sim
 from haptic_topology.settings import Clock, VeSimSettings
+from haptic_topology.sim.lockstep import virtual_environment
 from haptic_topology.sim.scenario import Scenario, load_scenario
-from haptic_topology.sim.ve import HandFeed, VirtualEnvironment
+from haptic_topology.sim.ve import HandFeed
 from haptic_topology_msgs.msg import HandInputs, LmiUpdate, VtPath
 
 #: s, the shortest period of the silence check (path flush, idle keep-alive): at 1 kHz it
@@ -82,9 +83,8 @@ class VeSim(Node):
         self.update_period = c.update_period
         self.max_hand_wrench = c.max_hand_wrench
         self.task = sc.linkage.task
-        self.dyn = LinkageDynamics(sc.linkage)
-        self.ve = VirtualEnvironment(self.dyn, sc.q0, sc.dq0, sc.internal_step,
-                                     coupling=sc.coupling_gains())
+        self.ve = virtual_environment(sc)     # as `simulate` builds it (contacts included)
+        self.dyn = self.ve.dyn
         self._viz_dyn = LinkageDynamics(sc.linkage)     # separate Pinocchio workspace
 
         self.lmi_pub = self.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)

@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     trace.to_csv(out / 'trace.csv')
-    plot_trace(trace, out / 'plot.png', scenario.linkage)
+    plot_trace(trace, out / 'plot.png', scenario.linkage,
+               obstacles=scenario.contacts.obstacles if scenario.contacts else ())
     summary = trace.summary()
     summary['linkage'] = scenario.linkage.name
     (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n', encoding='utf-8')

@@ -306,7 +306,8 @@ class VirtualEnvironment:
                                         self.dyn.linkage.constraints.characteristic_length,
                                         seq, self.hand_input_seq,
                                         None if self.contacts is None
-                                        else self.contacts.local(self.q))
+                                        else self.contacts.local(self.q),
+                                        self.contact_energy_balance())
         if self._stable_hold is not None:
             lambda_inv = self.dyn.inverse_operational_inertia_aba(self.q, out.hand_jacobian)
             self.hold_limit = min(self.max_gap, self._stable_hold(lambda_inv))
