@@ -326,7 +326,11 @@ def test_vectorised_candidates_equal_the_geometry_pair_by_pair() -> None:
             {'type': 'plane', 'point': [0.0, 0.0, -0.02], 'normal': [0.1, 0.2, 1.0]},
             {'type': 'sphere', 'center': [0.1, 0.05, 0.0], 'radius': 0.02},
             {'type': 'box', 'center': [0.15, -0.05, 0.0], 'half_extents': [0.02, 0.03, 0.04],
-             'rpy': [0.1, 0.2, 0.3]}]))
+             'rpy': [0.1, 0.2, 0.3]}]),
+        # more links than the scalar path takes: the array form of discs
+        (serial_chain(12, TaskSpace.PLANAR), TaskSpace.PLANAR, [
+            {'type': 'disc', 'center': [0.2, 0.1], 'radius': 0.05},
+            {'type': 'half_plane', 'point': [0.3, 0.0], 'normal': [-1.0, 0.2]}]))
     rng = np.random.default_rng(5)
     for linkage, task, obstacles in cases:
         _, cm = _model(obstacles, task, linkage)

@@ -54,6 +54,8 @@ from haptic_topology.validate import as_bool, as_float, check_keys
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
 _ROUND = (ObstacleKind.DISC, ObstacleKind.SPHERE)
+#: Chains up to this many links take discs and spheres in scalar arithmetic.
+_SCALAR_LINKS = 8
 
 
 @dataclass(frozen=True)
@@ -245,19 +247,22 @@ class ContactModel:
             parts_s.append(self._plane_s)
             parts_n.append(self._plane_normals)
         for ob in self._round:
-            axis = p1 - p0
-            length2 = np.einsum('ij,ij->i', axis, axis)
-            along = np.einsum('ij,ij->i', ob.point - p0, axis)
-            s = np.clip(np.divide(along, length2, out=np.zeros(self.dof),
-                                  where=length2 > EPS * EPS), 0.0, 1.0)
-            v = p0 + s[:, None] * axis - ob.point
-            dist = np.sqrt(np.einsum('ij,ij->i', v, v))
-            gap = dist - ob.radius - radii
-            parts_gap.append(gap)
-            if not gaps_only:
+            if self.dof <= _SCALAR_LINKS:
+                gap, s, normal = self._round_scalar(ob, p0, p1)
+            else:
+                axis = p1 - p0
+                length2 = np.einsum('ij,ij->i', axis, axis)
+                along = np.einsum('ij,ij->i', ob.point - p0, axis)
+                s = np.clip(np.divide(along, length2, out=np.zeros(self.dof),
+                                      where=length2 > EPS * EPS), 0.0, 1.0)
+                v = p0 + s[:, None] * axis - ob.point
+                dist = np.sqrt(np.einsum('ij,ij->i', v, v))
+                gap = dist - ob.radius - radii
                 normal = v / np.maximum(dist, EPS)[:, None]
                 for j in np.nonzero(dist <= EPS)[0].tolist():   # on the centre: fallback
                     gap[j], s[j], normal[j] = capsule_gaps(ob, p0[j], p1[j], radii[j])[0]
+            parts_gap.append(gap)
+            if not gaps_only:
                 parts_s.append(s)
                 parts_n.append(normal)
         for ob in self._other:
@@ -273,6 +278,33 @@ class ContactModel:
             return self._links, self._obstacles, np.zeros(0), gaps, np.zeros((0, 3))
         return (self._links, self._obstacles, np.concatenate(parts_s), gaps,
                 np.concatenate(parts_n))
+
+    def _round_scalar(self, ob: Obstacle, p0: np.ndarray, p1: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Disc/sphere candidates of a short chain in scalar arithmetic (the numbers of the
+        array form in :meth:`candidates`, a fifth of its cost for a few links)."""
+        cx, cy, cz = ob.point.tolist()
+        gaps, ss, normals = [], [], []
+        for i, ((ax, ay, az), (bx, by, bz), r) in enumerate(zip(
+                p0.tolist(), p1.tolist(), self._radii.tolist(), strict=True)):
+            dx, dy, dz = bx - ax, by - ay, bz - az
+            length2 = dx * dx + dy * dy + dz * dz
+            s = 0.0
+            if length2 > EPS * EPS:
+                s = min(max(((cx - ax) * dx + (cy - ay) * dy + (cz - az) * dz) / length2, 0.0),
+                        1.0)
+            vx, vy, vz = ax + s * dx - cx, ay + s * dy - cy, az + s * dz - cz
+            dist = math.sqrt(vx * vx + vy * vy + vz * vz)
+            if dist <= EPS:     # on the centre: its own fallback
+                gap, s, n = capsule_gaps(ob, p0[i], p1[i], r)[0]
+                gaps.append(gap)
+                ss.append(s)
+                normals.append(n.tolist())
+                continue
+            gaps.append(dist - ob.radius - r)
+            ss.append(s)
+            normals.append([vx / dist, vy / dist, vz / dist])
+        return np.array(gaps), np.array(ss), np.array(normals)
 
     def detect(self, q: np.ndarray, margin: float = 0.0,
                jacobians: bool = True) -> ContactSet:
