@@ -41,7 +41,7 @@ import numpy as np
 import pinocchio as pin
 
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import Linkage, TaskSpace
+from haptic_topology.model.linkage import Linkage
 from haptic_topology.model.obstacles import (
     EPS,
     Obstacle,
@@ -180,7 +180,6 @@ class ContactModel:
         self.settings = settings
         self.params = settings.params
         self.dof = linkage.dof
-        self.task = linkage.task
         # Each link's axis in its own frame: joint origin -> next joint origin (or tip).
         tips = []
         for i, link in enumerate(linkage.links):
@@ -367,12 +366,11 @@ class ContactModel:
         return contact_potential(self.params,
                                  self.candidates(*self._axes(q), gaps_only=True)[3])
 
-    def local(self, q: np.ndarray, lmi_local: bool | None = None) -> LocalContacts:
+    def local(self, q: np.ndarray) -> LocalContacts:
         """The LMI's contacts for an update at ``q``: the candidates within ``margin``."""
         cs = self.detect(q, self.params.margin)
         return LocalContacts(self.params, np.array(q, dtype=float), cs.points, cs.normals,
-                             cs.gaps, cs.jacobians,
-                             self.settings.lmi_local if lmi_local is None else lmi_local)
+                             cs.gaps, cs.jacobians, self.settings.lmi_local)
 
 
 @dataclass(frozen=True)
@@ -415,20 +413,3 @@ class LocalContacts:
 
     def __len__(self) -> int:
         return int(self.gaps.size)
-
-    def gaps_at(self, q: np.ndarray) -> np.ndarray:
-        """Linearised gaps (c,) at ``q`` (m)."""
-        return self.gaps + self._nj @ (q - self.q)
-
-    def torques(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        """``sum_i J_i^T F_i`` (d) at ``(q, dq)`` with the frozen contacts."""
-        if not self.gaps.size:
-            return np.zeros(self.q.size)
-        vel = self.jacobians @ dq
-        forces = contact_forces(self.params, self.gaps_at(q), self.normals, vel)
-        return np.einsum('cid,ci->d', self.jacobians, forces)
-
-
-def contact_task(task: TaskSpace) -> slice:
-    """Rows of a 3-vector that a ``task`` moves (planar: x, y)."""
-    return slice(0, 2) if task is TaskSpace.PLANAR else slice(0, 3)
