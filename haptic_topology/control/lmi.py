@@ -128,7 +128,7 @@ class LocalModel:
         self._contact_map = (np.zeros((0, 0)), np.zeros((0, 0)))
         self._env_map = np.zeros((m, 0))
         self._contact_accel: np.ndarray | None = None
-        self.contact_torques = np.zeros(0)
+        self._forces: np.ndarray | None = None     # F_i at the current state, flattened
         #: ``F_env`` (m) at the current state (zero without contacts).
         self.env_wrench = np.zeros(m)
 
@@ -172,21 +172,25 @@ class LocalModel:
         self._replay(None)
 
     def _update_contacts(self) -> None:
-        """Contact forces, their torques, accelerations and ``F_env`` at the current state."""
+        """Contact forces, their accelerations and ``F_env`` at the current state."""
         c = self._contacts
         forces = None
         if c is not None:
             forces = c.forces(self.q, self.dq) if c.local else self._held_forces
         if forces is None:
-            self.contact_torques = np.zeros(self.q.size)
-            self._contact_accel = None
+            self._forces = self._contact_accel = None
             self.env_wrench = np.zeros(self.task.dim)
             return
-        f = forces.ravel()
-        jt, accel = self._contact_map
-        self.contact_torques = jt @ f
-        self._contact_accel = accel @ f
+        f = self._forces = forces.ravel()
+        self._contact_accel = self._contact_map[1] @ f
         self.env_wrench = self._env_map @ f
+
+    @property
+    def contact_torques(self) -> np.ndarray:
+        """``sum_i J_i^T F_i`` (d) at the current state (eq. 17; zero without contacts)."""
+        if self._forces is None:
+            return np.zeros(self.q.size)
+        return self._contact_map[0] @ self._forces
 
     def record_input(self, seq: int, wrench: np.ndarray) -> None:
         """Remember the VT wrench computed at device state ``seq`` (used from then on)."""

@@ -363,8 +363,11 @@ class ContactModel:
 
     def potential(self, q: np.ndarray) -> float:
         """``U`` (J) at ``q`` (see module doc)."""
-        return contact_potential(self.params,
-                                 self.candidates(*self._axes(q), gaps_only=True)[3])
+        return contact_potential(self.params, self.gaps(q))
+
+    def gaps(self, q: np.ndarray) -> np.ndarray:
+        """Every candidate's gap (m) at ``q``, without normals or Jacobians."""
+        return self.candidates(*self._axes(q), gaps_only=True)[3]
 
     def local(self, q: np.ndarray) -> LocalContacts:
         """The LMI's contacts for an update at ``q``: the candidates within ``margin``."""

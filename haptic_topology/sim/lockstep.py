@@ -107,10 +107,6 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
     n = int(round(sc.duration / sc.dt)) + 1
     trace = Trace.empty(n, task.dim, dyn.dof, sc.contacts is not None, mode=mode.label,
                         scenario=sc.name, dt=sc.dt)
-    contacts = None
-    if sc.contacts is not None:
-        # A separate workspace for the trace's penetration (the VE's own stays untouched).
-        contacts = ContactModel(ve_check.model, sc.linkage, sc.contacts)
     vt_pose = dyn.hand_pose(ve.q)
     inputs = 0
     update_seq = 1
@@ -132,8 +128,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
                      vt_pose=vt_pose, lmi_pose=ans.out.vt_pose, q=ve.q,
                      constraint_count=ve_check.constraints(ve.q).count,
                      lmi_constraint_count=ans.out.constraint_count, status=int(tick.status))
-        if contacts is not None:
-            trace.record_contacts(k, ans.out.env_wrench, contacts.detect(ve.q, 0.0, False).gaps,
+        if ve.contacts is not None:
+            trace.record_contacts(k, ans.out.env_wrench, ve.contacts.gaps(ve.q),
                                   ve.contact_energy_balance())
         if hand is not None and inputs % sc.update_period == 0:
             # Applied at the start of the next step, before its state: as the graph does.
