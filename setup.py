@@ -15,7 +15,8 @@ setup(
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', sorted(glob('config/*.yaml') + glob('config/*.xml'))),
-        (f'share/{PACKAGE}/config/linkages', sorted(glob('config/linkages/*.yaml'))),
+        (f'share/{PACKAGE}/config/linkages', sorted(glob('config/linkages/*.yaml')
+                                                     + glob('config/linkages/*.urdf'))),
         (f'share/{PACKAGE}/config/scenarios', sorted(glob('config/scenarios/*.yaml'))),
     ],
     install_requires=['setuptools'],

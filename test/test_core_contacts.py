@@ -44,8 +44,7 @@ def _model(obstacles: list[dict], task: TaskSpace = TaskSpace.PLANAR, linkage=No
     lk = linkage or load_linkage(TABLE1)
     dyn = LinkageDynamics(lk)
     settings = ContactSettings(ContactParams(**params),
-                               obstacles_from_config(obstacles, 'test', task),
-                               (0.003,) * lk.dof)
+                               obstacles_from_config(obstacles, 'test', task), 0.003)
     return dyn, ContactModel(dyn.model, lk, settings)
 
 

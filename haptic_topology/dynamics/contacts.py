@@ -1,16 +1,24 @@
 """Contacts between the linkage and static obstacles: the ``sum_i J_i^T F_i`` of eqs. 1, 2, 17.
 
-**Geometry.** Each link is a capsule around its axis, from its joint's origin to the next
-joint's origin (the last link: ``length`` along its x axis), radius ``contacts.link_radius``
-(m; per link ``contacts.links.<name>.radius``); obstacles are static shapes in the world frame
-(:mod:`haptic_topology.model.obstacles`). A contact candidate is a point ``p_i`` on a link's
-axis with its signed gap ``g_i`` to an obstacle (m, negative: penetration depth
-``delta_i = -g_i``) and the obstacle's normal ``n_i`` (unit, world, from the obstacle towards
-the link). Against a half-plane or plane the candidates are the axis ends (the gap is linear
-along the axis, so a link lying flat is held at both ends); a joint shared by two links counts
-once (as the tip of the proximal link). Against the other shapes each link has one candidate,
-its closest point; where two links' closest points are both their common joint, that point
-is held by both (stiffer there, still passive).
+**Geometry.** Each link carries capsules (a sphere is a capsule of zero length); obstacles
+are static shapes in the world frame (:mod:`haptic_topology.model.obstacles`). By default a
+link is one capsule around its axis, from its joint's origin to the next joint's origin (the
+last link: ``length`` along its x axis), radius ``contacts.link_radius`` (m). A link read from a
+URDF takes the URDF's ``<collision>`` shapes instead, where they are spheres or capsules
+(``<capsule radius length>``, axis along the collision frame's z), which are modelled exactly;
+a URDF link without ``<collision>`` does not collide. A cylinder, box or mesh cannot be
+modelled as capsules without approximating it, so such a link is refused unless
+``contacts.links.<name>`` says what to do: ``radius: r`` (the default capsule along the link,
+also for YAML links) or ``collide: false`` (the link does not collide).
+A contact candidate is a point ``p_i`` on a capsule's axis with its signed gap ``g_i`` to an
+obstacle (m, negative: penetration depth ``delta_i = -g_i``) and the obstacle's normal ``n_i``
+(unit, world, from the obstacle towards the link). Against a half-plane or plane the
+candidates are the axis ends (the gap is linear along the axis, so a link lying flat is held
+at both ends); a joint shared by two default capsules counts once (as the tip of the proximal
+link). Against the other shapes each capsule has one candidate, its closest point; where two
+links' closest points are both their common joint, that point is held by both (stiffer there,
+still passive). In a planar task the capsules are projected onto the xy plane (the planar
+obstacles extend along z).
 
 **Contact model** (penalty with damping and regularized Coulomb friction), per candidate with
 ``delta_i > 0``, ``v_i = J_i qdot`` the velocity of the contact point (m/s, world)::
@@ -41,7 +49,7 @@ import numpy as np
 import pinocchio as pin
 
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import Linkage
+from haptic_topology.model.linkage import Linkage, TaskSpace
 from haptic_topology.model.obstacles import (
     EPS,
     Obstacle,
@@ -73,19 +81,36 @@ class ContactParams:
 
 
 @dataclass(frozen=True)
+class LinkCapsule:
+    """One capsule of link ``link`` (index): axis ``a -> b`` ((3,) m, in the link's joint
+    frame; ``a == b``: a sphere) and ``radius`` (m). ``chained``: the default capsule of a link
+    whose parent link also has its default capsule, so ``a`` is the parent's ``b``."""
+
+    link: int
+    a: np.ndarray
+    b: np.ndarray
+    radius: float
+    chained: bool = False
+
+
+@dataclass(frozen=True)
 class ContactSettings:
-    """The scenario's ``contacts:`` block: model, obstacles, one capsule radius per link (m),
-    and whether the LMI computes the contacts every cycle (``lmi_local``; False: it holds the
-    VE's contact forces of the update, contacts at the VE's rate only)."""
+    """The scenario's ``contacts:`` block: model, obstacles, the default capsule radius
+    ``link_radius`` (m), per-link choices ``links`` (name -> radius in m, or None: the link
+    does not collide), and whether the LMI computes the contacts every cycle (``lmi_local``;
+    False: it holds the VE's contact forces of the update, contacts at the VE's rate only)."""
 
     params: ContactParams
     obstacles: tuple[Obstacle, ...]
-    radii: tuple[float, ...]
+    link_radius: float = 0.005
+    links: tuple[tuple[str, float | None], ...] = ()
     lmi_local: bool = True
+    where: str = 'contacts'
 
     @classmethod
     def from_config(cls, raw: Any, where: str, linkage: Linkage) -> ContactSettings:
-        """Parse the block (``where``: its path); link names are ``linkage``'s."""
+        """Parse the block (``where``: its path) and check it against ``linkage`` (link
+        names, collision shapes it can model: :meth:`capsules`)."""
         c = check_keys(raw, where, required=('obstacles',), optional=(
             'stiffness', 'damping', 'friction', 'slip_velocity', 'margin', 'link_radius',
             'links', 'lmi_local'))
@@ -98,17 +123,69 @@ class ContactSettings:
                                    lo=0.0, lo_open=True),
             margin=as_float(c.get('margin', 0.005), f'{where}.margin', lo=0.0))
         default = as_float(c.get('link_radius', 0.005), f'{where}.link_radius', lo=0.0)
-        radii = [default] * linkage.dof
+        choices: list[tuple[str, float | None]] = []
         links = check_keys(c.get('links', {}), f'{where}.links',
                            optional=linkage.link_names)
         for name, spec in links.items():
             w = f'{where}.links.{name}'
-            s = check_keys(spec, w, required=('radius',))
-            radii[linkage.link_names.index(name)] = as_float(s['radius'], f'{w}.radius',
-                                                             lo=0.0)
+            s = check_keys(spec, w, optional=('radius', 'collide'))
+            collide = as_bool(s.get('collide', True), f'{w}.collide')
+            if collide != ('radius' in s):
+                raise ConfigError(f'{w}: give either radius (m, a capsule along the link) '
+                                  f'or collide: false')
+            choices.append((name, as_float(s['radius'], f'{w}.radius', lo=0.0)
+                            if collide else None))
         obstacles = obstacles_from_config(c['obstacles'], f'{where}.obstacles', linkage.task)
-        return cls(params, obstacles, tuple(radii),
-                   as_bool(c.get('lmi_local', True), f'{where}.lmi_local'))
+        settings = cls(params, obstacles, default, tuple(choices),
+                       as_bool(c.get('lmi_local', True), f'{where}.lmi_local'), where)
+        settings.capsules(linkage)
+        return settings
+
+    def capsules(self, linkage: Linkage) -> tuple[LinkCapsule, ...]:
+        """Every link's capsules (see module doc), in link order. Raises ConfigError for a
+        choice naming a link ``linkage`` lacks, and for a URDF collision shape that is not a
+        sphere or capsule on a link without a choice."""
+        chosen = dict(self.links)
+        unknown = sorted(set(chosen) - set(linkage.link_names))
+        if unknown:
+            raise ConfigError(f'{self.where}.links: unknown link(s) {", ".join(unknown)} '
+                              f'(expected: {", ".join(linkage.link_names)})')
+        out: list[LinkCapsule] = []
+        default_prev = False
+        for i, link in enumerate(linkage.links):
+            w = f'{self.where}.links.{link.name}'
+            if link.name in chosen or link.collision is None:
+                radius = chosen.get(link.name, self.link_radius)
+                if radius is None:
+                    default_prev = False
+                    continue
+                if i + 1 < linkage.dof:
+                    nxt = linkage.links[i + 1].origin_xyz
+                    tip = (np.array(nxt, dtype=float) if nxt is not None
+                           else np.array([link.length, 0.0, 0.0]))
+                else:
+                    tip = np.array([link.length, 0.0, 0.0])
+                out.append(LinkCapsule(i, np.zeros(3), tip, radius,
+                                       chained=default_prev and i > 0))
+                default_prev = True
+                continue
+            default_prev = False
+            for shape in link.collision:
+                centre = np.array(shape.xyz, dtype=float)
+                if shape.kind == 'sphere':
+                    out.append(LinkCapsule(i, centre, centre.copy(), shape.size[0]))
+                elif shape.kind == 'capsule':
+                    half = 0.5 * shape.size[1] * np.array(shape.rotation).reshape(3, 3)[:, 2]
+                    out.append(LinkCapsule(i, centre - half, centre + half, shape.size[0]))
+                else:
+                    raise ConfigError(
+                        f'{w}: the URDF gives link {link.name!r} a {shape.kind} collision '
+                        f'shape (on {shape.urdf_link!r}, {linkage.urdf_path}); contacts model '
+                        f'spheres and capsules exactly and would have to approximate a '
+                        f'{shape.kind}: set links.{link.name}.radius (m) in this contacts '
+                        f'block for a capsule along the link, or links.{link.name}.collide: '
+                        f'false to leave the link out')
+        return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -172,27 +249,23 @@ class ContactModel:
     Holds its own Pinocchio ``Data`` (the VE's workspace stays untouched)."""
 
     def __init__(self, model: pin.Model, linkage: Linkage, settings: ContactSettings) -> None:
-        if len(settings.radii) != linkage.dof:
-            raise ConfigError(f'contacts: {len(settings.radii)} link radii for a linkage of '
-                              f'{linkage.dof} links')
         self.model = model
         self.data = model.createData()
         self.settings = settings
         self.params = settings.params
         self.dof = linkage.dof
-        # Each link's axis in its own frame: joint origin -> next joint origin (or tip).
-        tips = []
-        for i, link in enumerate(linkage.links):
-            if i + 1 < linkage.dof:
-                tips.append(np.array(model.jointPlacements[i + 2].translation, dtype=float))
-            else:
-                tips.append(np.array([link.length, 0.0, 0.0]))
-        self._tips = tips
-        self._radii = radii = np.array(settings.radii, dtype=float)
-        d = linkage.dof
-        # Candidate layout (static): planes (row-major: end e = tips 0..d-1 then link 1's
-        # base, times plane), then discs/spheres (d each), then the others (their count per
-        # link and obstacle is fixed by capsule_gaps: 1).
+        self._planar = linkage.task is TaskSpace.PLANAR
+        caps = settings.capsules(linkage)
+        self._cap_a = [c.a for c in caps]
+        self._cap_b = [c.b for c in caps]
+        self._cap_joint = [c.link + 1 for c in caps]
+        self._cap_link = cap_link = np.array([c.link for c in caps], dtype=int)
+        self._radii = radii = np.array([c.radius for c in caps], dtype=float)
+        n = self._ncaps = len(caps)
+        # Candidate layout (static), by capsule: planes (row-major: end e times plane; the
+        # ends are every capsule's b, then the a of every capsule that is neither a sphere nor
+        # chained to its parent's b), then discs/spheres (n each), then the others (their
+        # count per capsule and obstacle is fixed by capsule_gaps: 1).
         obstacles = settings.obstacles
         planes = [k for k, ob in enumerate(obstacles) if ob.kind in _PLANES]
         self._round = [ob for ob in obstacles if ob.kind in _ROUND]
@@ -203,56 +276,65 @@ class ContactModel:
         self._plane_n = np.array([obstacles[k].normal for k in planes]).reshape(-1, 3)
         self._plane_offset = np.array([float(obstacles[k].normal @ obstacles[k].point)
                                        for k in planes])
-        end_links = np.append(np.arange(d), 0)
-        self._plane_radii = np.repeat(radii[end_links], len(planes))
-        self._plane_s = np.repeat(np.append(np.ones(d), 0.0), len(planes))
-        self._plane_normals = np.tile(self._plane_n, (d + 1, 1))
-        self._links = np.concatenate([np.repeat(end_links, len(planes))]
-                                     + [np.arange(d)] * len(round_k)
-                                     + [np.arange(d)] * len(other_k)).astype(int)
-        self._obstacles = np.concatenate([np.tile(self._plane_k, d + 1)]
-                                         + [np.full(d, k) for k in round_k]
-                                         + [np.full(d, k) for k in other_k]).astype(int)
+        bases = [c for c, cap in enumerate(caps)
+                 if not cap.chained and not np.array_equal(cap.a, cap.b)]
+        self._bases = np.array(bases, dtype=int)
+        end_caps = np.append(np.arange(n), self._bases).astype(int)
+        self._plane_radii = np.repeat(radii[end_caps], len(planes))
+        self._plane_s = np.repeat(np.append(np.ones(n), np.zeros(len(bases))), len(planes))
+        self._plane_normals = np.tile(self._plane_n, (end_caps.size, 1))
+        self._caps = np.concatenate([np.repeat(end_caps, len(planes))]
+                                    + [np.arange(n)] * len(round_k)
+                                    + [np.arange(n)] * len(other_k)).astype(int)
+        self._obstacles = np.concatenate([np.tile(self._plane_k, end_caps.size)]
+                                         + [np.full(n, k) for k in round_k]
+                                         + [np.full(n, k) for k in other_k]).astype(int)
+        self._links = cap_link[self._caps]
 
     def _axes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World ends of every link's axis (d x 3 each) at ``q`` (forward kinematics)."""
+        """World ends of every capsule's axis (n x 3 each) at ``q`` (forward kinematics;
+        planar: on the xy plane)."""
         model, data = self.model, self.data
         pin.forwardKinematics(model, data, q)
-        p0 = np.empty((self.dof, 3))
-        p1 = np.empty((self.dof, 3))
-        for i in range(self.dof):
-            placement = data.oMi[i + 1]
-            p0[i] = placement.translation
-            p1[i] = placement.act(self._tips[i])
+        p0 = np.empty((self._ncaps, 3))
+        p1 = np.empty((self._ncaps, 3))
+        for c, (joint, a, b) in enumerate(zip(self._cap_joint, self._cap_a, self._cap_b,
+                                              strict=True)):
+            placement = data.oMi[joint]
+            p0[c] = placement.act(a)
+            p1[c] = placement.act(b)
+        if self._planar:
+            p0[:, 2] = 0.0
+            p1[:, 2] = 0.0
         return p0, p1
 
     def candidates(self, p0: np.ndarray, p1: np.ndarray, gaps_only: bool = False
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Every candidate of the module doc for link axes ``p0 -> p1`` (d x 3 each):
-        ``(links, obstacles, s, gaps, normals)`` (``gaps_only``: the gaps, the rest empty).
-        Planes and half-planes in one product for all links and planes, discs and spheres
-        for all links at once (the same numbers as
+        """Every candidate of the module doc for capsule axes ``p0 -> p1`` (n x 3 each):
+        ``(capsules, obstacles, s, gaps, normals)`` (``gaps_only``: the gaps, the rest
+        empty). Planes and half-planes in one product for all capsule ends and planes, discs
+        and spheres for all capsules at once (the same numbers as
         :func:`~haptic_topology.model.obstacles.capsule_gaps`, tested), segments and boxes
-        link by link through it."""
+        capsule by capsule through it."""
         parts_gap: list[np.ndarray] = []
         parts_s: list[np.ndarray] = []
         parts_n: list[np.ndarray] = []
         radii = self._radii
         if self._plane_k.size:
-            # Every link's tip and link 1's base (each joint point once), against every plane.
-            ends = np.vstack((p1, p0[:1]))
+            # Every capsule's b and the a's not shared (each point once), against every plane.
+            ends = np.vstack((p1, p0[self._bases]))
             parts_gap.append((ends @ self._plane_n.T - self._plane_offset).ravel()
                              - self._plane_radii)
             parts_s.append(self._plane_s)
             parts_n.append(self._plane_normals)
         for ob in self._round:
-            if self.dof <= _SCALAR_LINKS:
+            if self._ncaps <= _SCALAR_LINKS:
                 gap, s, normal = self._round_scalar(ob, p0, p1)
             else:
                 axis = p1 - p0
                 length2 = np.einsum('ij,ij->i', axis, axis)
                 along = np.einsum('ij,ij->i', ob.point - p0, axis)
-                s = np.clip(np.divide(along, length2, out=np.zeros(self.dof),
+                s = np.clip(np.divide(along, length2, out=np.zeros(self._ncaps),
                                       where=length2 > EPS * EPS), 0.0, 1.0)
                 v = p0 + s[:, None] * axis - ob.point
                 dist = np.sqrt(np.einsum('ij,ij->i', v, v))
@@ -265,17 +347,17 @@ class ContactModel:
                 parts_s.append(s)
                 parts_n.append(normal)
         for ob in self._other:
-            for i in range(self.dof):
+            for i in range(self._ncaps):
                 for gap_i, s_i, n_i in capsule_gaps(ob, p0[i], p1[i], radii[i]):
                     parts_gap.append(np.array([gap_i]))
                     parts_s.append(np.array([s_i]))
                     parts_n.append(n_i[None, :])
         if not parts_gap:
-            return (self._links, self._obstacles, np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+            return (self._caps, self._obstacles, np.zeros(0), np.zeros(0), np.zeros((0, 3)))
         gaps = np.concatenate(parts_gap)
         if gaps_only:
-            return self._links, self._obstacles, np.zeros(0), gaps, np.zeros((0, 3))
-        return (self._links, self._obstacles, np.concatenate(parts_s), gaps,
+            return self._caps, self._obstacles, np.zeros(0), gaps, np.zeros((0, 3))
+        return (self._caps, self._obstacles, np.concatenate(parts_s), gaps,
                 np.concatenate(parts_n))
 
     def _round_scalar(self, ob: Obstacle, p0: np.ndarray, p1: np.ndarray
@@ -315,10 +397,11 @@ class ContactModel:
     def _select(self, q: np.ndarray, p0: np.ndarray, p1: np.ndarray,
                 cands: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
                 margin: float, jacobians: bool) -> ContactSet:
-        links, obs, s, gaps, normals = cands
+        caps, obs, s, gaps, normals = cands
         keep = np.nonzero(gaps < margin)[0]
-        links, obs, s, gaps, normals = links[keep], obs[keep], s[keep], gaps[keep], normals[keep]
-        points = p0[links] + s[:, None] * (p1[links] - p0[links])
+        caps, obs, s, gaps, normals = caps[keep], obs[keep], s[keep], gaps[keep], normals[keep]
+        points = p0[caps] + s[:, None] * (p1[caps] - p0[caps])
+        links = self._cap_link[caps]
         jac = np.zeros((keep.size, 3, self.dof))
         if jacobians and keep.size:
             model, data = self.model, self.data
@@ -340,7 +423,7 @@ class ContactModel:
         ``J^T (F, a x F)`` (the same numbers as ``J_i^T F_i`` with :meth:`detect`'s
         ``J_i``)."""
         p0, p1 = self._axes(q)
-        links, _, s, gaps, normals = self.candidates(p0, p1)
+        caps, _, s, gaps, normals = self.candidates(p0, p1)
         active = np.flatnonzero(gaps < 0.0)
         tau = np.zeros(self.dof)
         if not active.size:
@@ -349,9 +432,11 @@ class ContactModel:
         pin.computeJointJacobians(model, data, q)
         power = 0.0
         for i in active.tolist():
-            link = int(links[i])
-            j6 = pin.getJointJacobian(model, data, link + 1, _LWA).reshape(6, self.dof)
-            ax, ay, az = (s[i] * (p1[link] - p0[link])).tolist()
+            c = int(caps[i])
+            joint = self._cap_joint[c]
+            j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, self.dof)
+            ax, ay, az = (p0[c] + s[i] * (p1[c] - p0[c])
+                          - data.oMi[joint].translation).tolist()
             vx, vy, vz, wx, wy, wz = (j6 @ dq).tolist()
             vx, vy, vz = vx + wy * az - wz * ay, vy + wz * ax - wx * az, vz + wx * ay - wy * ax
             nx, ny, nz = normals[i].tolist()

@@ -1,6 +1,7 @@
 """Linkage description (YAML or URDF) -> Pinocchio model with a grasp frame."""
 
 from haptic_topology.model.linkage import (
+    CollisionShape,
     ConstraintSettings,
     JointType,
     Linkage,
@@ -16,6 +17,7 @@ from haptic_topology.model.linkage import (
     to_dict,
 )
 
-__all__ = ['ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage', 'LinkageModel',
+__all__ = ['CollisionShape', 'ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage',
+           'LinkageModel',
            'PenaltyDirection', 'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage',
            'reach', 'serial_chain', 'to_dict']

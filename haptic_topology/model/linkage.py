@@ -99,6 +99,24 @@ class JointType(enum.Enum):
 
 
 @dataclass(frozen=True)
+class CollisionShape:
+    """One ``<collision>`` element of a URDF link, placed in the frame of the chain link that
+    carries it (after fixed joints are merged and side branches locked).
+
+    ``kind``: ``sphere`` (``size = (radius,)``), ``capsule`` (``(radius, length)``, axis along
+    the placement's z, as ``<capsule radius length>`` in Drake/Gazebo URDFs), ``cylinder``
+    (``(radius, length)``), ``box`` (``(x, y, z)`` full sizes) or ``mesh`` (``()``);
+    ``xyz`` (m) and ``rotation`` (3 x 3, row-major) place its centre in the link frame;
+    ``urdf_link`` names the URDF link it was declared on. SI units."""
+
+    kind: str
+    size: tuple[float, ...]
+    xyz: tuple[float, ...]
+    rotation: tuple[float, ...]
+    urdf_link: str
+
+
+@dataclass(frozen=True)
 class LinkSpec:
     """One link and the joint that moves it (SI units, link frame at the joint)."""
 
@@ -112,6 +130,9 @@ class LinkSpec:
     origin_xyz: np.ndarray | None = None  # (3,) m in the previous link frame; None = default
     origin_rpy: np.ndarray = field(default_factory=lambda: np.zeros(3))
     joint_name: str = ''                # '' = joint_<name>; URDF joints keep their own names
+    #: The URDF's collision geometry on this link (None: not a URDF link, the contacts'
+    #: default capsule applies; ``()``: a URDF link without ``<collision>``).
+    collision: tuple[CollisionShape, ...] | None = None
 
     @property
     def joint_label(self) -> str:
@@ -525,7 +546,7 @@ def _links_from_urdf(path: Path, grasp_link: str | None, locked: dict[str, float
                      locked_where: str) -> tuple[tuple[LinkSpec, ...], tuple[str, ...]]:
     """Read the serial chain of a URDF into LinkSpecs (plus a one-line note of what was locked).
 
-    Fixed joints are merged by Pinocchio (``buildModelFromUrdf``). Joints off the chain
+    Fixed joints are merged by Pinocchio (``buildModelFromXML``). Joints off the chain
     (:func:`_serial_chain_ids`) are locked at ``locked`` (default 0) with
     ``buildReducedModel``, which keeps their bodies' mass and inertia on the chain link that
     carries them.
@@ -533,8 +554,14 @@ def _links_from_urdf(path: Path, grasp_link: str | None, locked: dict[str, float
     if not path.is_file():
         raise LinkageError(f'{path}: file not found')
     try:
-        full = pin.buildModelFromUrdf(str(path))
-    except (RuntimeError, ValueError) as exc:
+        # Kinematics and inertia only: the <collision> elements are read by _urdf_collisions
+        # (urdfdom does not know <capsule> and would print an error for it).
+        root = ET.parse(path).getroot()
+        for link in root.findall('link'):
+            for col in link.findall('collision'):
+                link.remove(col)
+        full = pin.buildModelFromXML(ET.tostring(root, encoding='unicode'))
+    except (RuntimeError, ValueError, ET.ParseError) as exc:
         raise LinkageError(f'{path}: not a valid URDF ({exc})') from None
     for j in range(1, full.njoints):
         _urdf_joint_kind(full, j, path)
@@ -566,6 +593,7 @@ def _links_from_urdf(path: Path, grasp_link: str | None, locked: dict[str, float
         locks = ', '.join(f'{n}={locked.get(n, 0.0):g}' for n in off_names)
         notes = (f'{path}: kept the serial chain {chain_names}; locked {len(off)} side-branch '
                  f'joint(s) at {locks} (rad or m), their mass kept',)
+    collisions = _urdf_collisions(path, model)
     links: list[LinkSpec] = []
     for j in range(1, model.njoints):
         if model.parents[j] != j - 1:  # pragma: no cover - the reduced model is a chain
@@ -590,8 +618,77 @@ def _links_from_urdf(path: Path, grasp_link: str | None, locked: dict[str, float
             com=np.array(inertia.lever).reshape(3), inertia=inertia_c, axis=axis,
             origin_xyz=np.array(placement.translation).reshape(3),
             origin_rpy=np.array(pin.rpy.matrixToRpy(placement.rotation)).reshape(3),
-            joint_name=str(model.names[j])))
+            joint_name=str(model.names[j]), collision=tuple(collisions.get(j, ()))))
     return tuple(links), notes
+
+
+def _urdf_geometry(geom: ET.Element, where: str) -> tuple[str, tuple[float, ...]]:
+    """Kind and sizes (m) of a URDF ``<geometry>`` element (see :class:`CollisionShape`)."""
+    shapes = list(geom)
+    if len(shapes) != 1:
+        raise LinkageError(f'{where}: <geometry> must hold exactly one shape, got '
+                           f'{len(shapes)}')
+    shape = shapes[0]
+    kind = shape.tag
+    attrs = {'sphere': ('radius',), 'capsule': ('radius', 'length'),
+             'cylinder': ('radius', 'length'), 'box': ('size',), 'mesh': ()}
+    if kind not in attrs:
+        raise LinkageError(f'{where}: unknown geometry <{kind}> (expected one of: '
+                           f'{", ".join(attrs)})')
+    sizes: list[float] = []
+    for attr in attrs[kind]:
+        text = shape.get(attr)
+        if text is None:
+            raise LinkageError(f'{where}: <{kind}> needs the attribute {attr}')
+        try:
+            values = [float(v) for v in text.split()]
+        except ValueError:
+            raise LinkageError(f'{where}: <{kind} {attr}="{text}">: expected numbers') from None
+        expected = 3 if attr == 'size' else 1
+        if len(values) != expected or not all(math.isfinite(v) and v > 0.0 for v in values):
+            raise LinkageError(f'{where}: <{kind} {attr}="{text}">: expected {expected} '
+                               f'finite number(s) > 0 (m)')
+        sizes.extend(values)
+    return kind, tuple(sizes)
+
+
+def _urdf_collisions(path: Path, model: pin.Model) -> dict[int, list[CollisionShape]]:
+    """The URDF's ``<collision>`` elements per joint of the (reduced) chain ``model``, each
+    placed in that joint's frame: a link merged by a fixed joint or carried by a locked side
+    branch gives its shapes to the chain link that carries it (its Pinocchio body frame).
+    Shapes on the root link (joint 0) are static and left out: the contacts are between the
+    moving links and the scenario's obstacles."""
+    root = ET.parse(path).getroot()
+    out: dict[int, list[CollisionShape]] = {}
+    for link in root.findall('link'):
+        name = link.get('name', '')
+        elements = link.findall('collision')
+        if not elements or not model.existFrame(name, pin.FrameType.BODY):
+            continue
+        frame = model.frames[model.getFrameId(name, pin.FrameType.BODY)]
+        if frame.parentJoint == 0:
+            continue
+        for k, col in enumerate(elements):
+            where = f'{path}: link {name!r} <collision> {k + 1}'
+            geom = col.find('geometry')
+            if geom is None:
+                raise LinkageError(f'{where}: missing <geometry>')
+            kind, size = _urdf_geometry(geom, where)
+            origin = col.find('origin')
+            xyz = rpy = np.zeros(3)
+            if origin is not None:
+                try:
+                    xyz = np.array([float(v) for v in origin.get('xyz', '0 0 0').split()])
+                    rpy = np.array([float(v) for v in origin.get('rpy', '0 0 0').split()])
+                except ValueError:
+                    raise LinkageError(f'{where}: <origin>: expected numbers') from None
+                if xyz.shape != (3,) or rpy.shape != (3,):
+                    raise LinkageError(f'{where}: <origin>: xyz and rpy take 3 numbers each')
+            placement = frame.placement * pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
+            out.setdefault(frame.parentJoint, []).append(CollisionShape(
+                kind, size, tuple(np.asarray(placement.translation, dtype=float).tolist()),
+                tuple(np.asarray(placement.rotation, dtype=float).ravel().tolist()), name))
+    return out
 
 
 @dataclass(frozen=True)
@@ -677,7 +774,8 @@ def to_dict(linkage: Linkage) -> dict[str, Any]:
                         'penalty_direction': c.penalty_direction.value}}}
 
 
-__all__ = ['ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage', 'LinkageModel',
+__all__ = ['CollisionShape', 'ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage',
+           'LinkageModel',
            'PenaltyDirection', 'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage',
            'reach', 'serial_chain', 'to_dict']
 

@@ -261,16 +261,21 @@ def _forces_panel(ax: plt.Axes, trace: Trace, name: str, others: list[plt.Axes])
     ax.grid(alpha=0.3)
 
 
+#: Obstacles drawn as a boundary line with the obstacle side hatched.
+_FLAT = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
+
+
 def _draw_obstacles(ax: plt.Axes, obstacles: Sequence[Obstacle], planar: bool, widen: bool,
                     axes: tuple[int, int] = (0, 1)) -> None:
     """Draw ``obstacles`` (mm) on a hand-path panel projected on the world plane ``axes``:
-    planar half-planes, segments and discs (``planar``) or spatial spheres; other kinds are
-    skipped. ``widen``: extend the view to show them (else keep the panel's view and skip
-    those outside it)."""
+    planar half-planes, segments and discs (``planar``) or spatial spheres, and planes
+    perpendicular to the panel (drawn as half-planes); other kinds are skipped. ``widen``:
+    extend the view to show them (else keep the panel's view and skip those outside it)."""
     kinds = ((ObstacleKind.HALF_PLANE, ObstacleKind.SEGMENT, ObstacleKind.DISC) if planar
-             else (ObstacleKind.SPHERE,))
+             else (ObstacleKind.SPHERE, ObstacleKind.PLANE))
     i, j = axes
-    shown = [o for o in obstacles if o.kind in kinds]
+    shown = [o for o in obstacles if o.kind in kinds and (
+        o.kind is not ObstacleKind.PLANE or abs(float(np.hypot(*o.normal[[i, j]])) - 1.0) < 1e-9)]
     if not widen:
         x0, x1 = sorted(ax.get_xlim())
         y0, y1 = sorted(ax.get_ylim())
@@ -284,7 +289,7 @@ def _draw_obstacles(ax: plt.Axes, obstacles: Sequence[Obstacle], planar: bool, w
         must: list[np.ndarray] = []
         for o in shown:
             p = o.point[[i, j]] * 1000.0
-            if o.kind is ObstacleKind.HALF_PLANE:
+            if o.kind in _FLAT:
                 nrm = o.normal[[i, j]]
                 foot = centre - float(nrm @ (centre - p)) * nrm
                 must += [foot, foot - 0.1 * span * nrm]
@@ -302,7 +307,7 @@ def _draw_obstacles(ax: plt.Axes, obstacles: Sequence[Obstacle], planar: bool, w
     for o in shown:
         p = o.point[[i, j]] * 1000.0
         label = f'{o.name} ({o.kind.value.replace("_", "-")})'
-        if o.kind is ObstacleKind.HALF_PLANE:
+        if o.kind in _FLAT:
             nrm = o.normal[[i, j]]
             foot = centre - float(nrm @ (centre - p)) * nrm
             along = np.array([-nrm[1], nrm[0]]) * 20.0 * span
@@ -330,7 +335,7 @@ def _in_view(o: Obstacle, axes: tuple[int, int],
     i, j = axes
     x0, x1, y0, y1 = view
     p = o.point[[i, j]] * 1000.0
-    if o.kind is ObstacleKind.HALF_PLANE:
+    if o.kind in _FLAT:
         corners = np.array([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
         return bool(np.any((corners - p) @ o.normal[[i, j]] < 0.0))
     if o.kind is ObstacleKind.SEGMENT:

@@ -23,7 +23,7 @@ Layout (``config/scenarios/fig6.yaml``)::
       ve: {internal_step: 0.001, vt_coupling: true}      # RK4 step (s)
       contacts:                                  # optional: obstacles (eqs. 1, 17, F_env)
         stiffness: 2000                          # N/m; damping N s/m, friction, margin m
-        link_radius: 0.004                       # m, every link's capsule
+        link_radius: 0.004                       # m, every link's default capsule
         obstacles: [{type: half_plane, point: [0.1, 0], normal: [-1, 0]}]
 
 This module reads the top level; each block is parsed by its owner:
@@ -93,10 +93,9 @@ class Scenario:
         q0, dq0 = self.q0, self.dq0
         if linkage.dof != self.linkage.dof:
             q0, dq0 = np.zeros(linkage.dof), np.zeros(linkage.dof)
-        contacts = self.contacts
-        if contacts is not None and linkage.dof != self.linkage.dof:
-            contacts = replace(contacts, radii=(contacts.radii[0],) * linkage.dof)
-        return replace(self, linkage=linkage, q0=q0, dq0=dq0, contacts=contacts)
+        if self.contacts is not None:
+            self.contacts.capsules(linkage)     # the per-link choices must fit it
+        return replace(self, linkage=linkage, q0=q0, dq0=dq0)
 
     @property
     def lmi(self) -> LmiSettings:
