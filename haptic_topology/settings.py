@@ -212,8 +212,8 @@ class DeviceDriverSettings(NodeSettings):
                                 'normal scheduling. Needs CAP_SYS_NICE (root or an rtprio '
                                 'limit): without it one warning and normal scheduling',
                                 lo=0, hi=99)
-    backend: str = param('sim_maglev', 'device backend: sim_maglev, hardware, module:Class, '
-                         'or an entry point of haptic_topology.device_backends')
+    backend: str = param('sim_maglev', 'device backend: sim_maglev, ros_topics, network, '
+                         'module:Class, or an entry point of haptic_topology.device_backends')
     backend_options: str = param('', "backend settings as a YAML/JSON mapping (e.g. '{port: "
                                  "/dev/ttyUSB0}'); empty for none")
     rate_hz: float = param(0.0, 'device cycle rate (Hz); 0.0 = 1/scenario dt. A nonzero '
@@ -376,9 +376,11 @@ class VeSimSettings(NodeSettings):
                                        'so a controller can sync', lo=0.1, hi=1000.0)
     max_hand_wrench: float = param(1000.0, 'hand inputs with a hand or coupling wrench entry '
                                    'beyond this (N, N m) are rejected', lo=1e-3, hi=1e9)
-    viz_rate_hz: float = param(30.0, 'rate of joint states and markers (Hz)', lo=0.1,
+    viz_rate_hz: float = param(30.0, 'rate of /tf, joint states, markers and the Pose/Twist/'
+                               'Wrench mirrors (Hz)', lo=0.1,
                                hi=200.0)
-    frame_id: str = param('world', 'frame of the markers')
+    frame_id: str = param('world', 'the world frame: root of /tf, frame of the markers, '
+                          'the LMI updates, the VT path and the VT hand mirrors')
     clock: str = _clock('lockstep: simulated time (/clock from device_driver); no keep-alive '
                         'updates once hand inputs flow, so updates come at the offline '
                         "simulation's steps")
@@ -411,3 +413,31 @@ class RecorderSettings(NodeSettings):
             re.compile(self.topic_regex)
         except re.error as exc:
             raise ConfigError(f'recorder: parameter topic_regex: {exc}') from None
+
+
+# -- foxglove_bridge ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FoxgloveBridgeSettings(NodeSettings):
+    """Parameters of ``foxglove_bridge`` (the graph's topics on the Foxglove WebSocket
+    protocol, :mod:`haptic_topology.nodes.foxglove_bridge`)."""
+
+    NODE: ClassVar[str] = 'foxglove_bridge'
+
+    scenario: str = param('fig8', 'scenario name (only named in the server name; accepted so '
+                          "that the graph's common -p scenario:=... applies)")
+    executor: str = _executor()
+    host: str = param('127.0.0.1', 'address the WebSocket server listens on (0.0.0.0: every '
+                      'interface, for a Foxglove app on another machine)')
+    port: int = param(8765, 'TCP port of the WebSocket server (0: any free port; the port '
+                      'taken is in the /diagnostics status)', lo=0, hi=65535)
+    topics: tuple[str, ...] = param([''], 'topics to serve (empty: every topic of the '
+                                    'graph, haptic_topology.nodes.common.TOPIC_QOS)')
+    forward_period: float = param(0.02, 'the serialized messages DDS holds are taken and '
+                                  'forwarded this often (s)', lo=0.001, hi=1.0)
+    clock: str = param('wall', "the graph's clock: with lockstep the state and command topics "
+                       'are reliable, and are subscribed so',
+                       choices=tuple(c.value for c in Clock))
+
+    def check(self) -> None:
+        if not self.host.strip():
+            raise ConfigError('foxglove_bridge: parameter host: expected an address, got ""')

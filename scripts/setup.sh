@@ -7,6 +7,8 @@
 #   1. <venv> from python3.11, if missing
 #   2. pip install --no-deps -r requirements.lock                (stamp: hash of the lock)
 #   3. build msg_schemas/ with cmake, install into the venv prefix (stamp: msg_schemas/ + lock)
+#      + msg_schemas/third_party/<pkg> (tf2_msgs) the same way, only where the wheels lack it
+#        (`import <pkg>.msg` fails)                (stamp: its files + lock)
 #   4. pip install -e . (editable: Python edits need no reinstall)  (stamp: packaging files)
 #      + share/haptic_topology/{package.xml,config} as symlinks, ament index marker
 #   5. <site-packages>/haptic_topology_env.pth: AMENT_PREFIX_PATH for every venv process
@@ -61,30 +63,35 @@ if ! stamp_ok lock "$lock_hash"; then
   "$vpy" -m pip install -qq "$pip_pin"
   "$vpy" -m pip install -qq --no-deps -r "$root/requirements.lock"
   "$vpy" -m pip check
-  rm -f "$venv/.stamp-msgs"  # wheels changed: their cmake files need the include fix again
+  # wheels changed: their cmake files need the include fix again, the messages a rebuild
+  rm -f "$venv/.stamp-msgs"
+  for f in "$venv"/.stamp-iface-*; do
+    if [[ -f "$f" ]]; then printf 'rebuild\n' > "$f"; fi
+  done
   stamp_set lock "$lock_hash"
 fi
 
-# --- 3. haptic_topology_msgs -----------------------------------------------------------------
-mapfile -t msg_files < <(find "$root/msg_schemas" -type f)
-msgs_hash=$(hash_files "${msg_files[@]}" "$root/requirements.lock")
-if ! stamp_ok msgs "$msgs_hash"; then
+# --- 3. haptic_topology_msgs (and stand-ins for interface packages the wheels lack) ----------
+fix_wheel_cmake() {
   # The wheels' exported CMake files carry their build machine's Python and numpy include dirs
   # (/opt/python/cp311-cp311/...); cmake then fails with "Imported target ... includes
-  # non-existent path". Point them at this venv's dirs.
+  # non-existent path". Point them at this venv's dirs (a no-op once done).
+  local py_inc np_inc bogus=/opt/python/cp311-cp311 bad
   read -r py_inc np_inc < <("$vpy" -c \
     'import sysconfig, numpy; print(sysconfig.get_paths()["include"], numpy.get_include())')
-  bogus=/opt/python/cp311-cp311
   mapfile -t bad < <(grep -rl --include='*.cmake' "$bogus" "$venv/share" || true)
   if ((${#bad[@]})); then
     say "fixing build-machine include paths in ${#bad[@]} wheel cmake files"
     sed -i -e "s|$bogus/lib/python3.11/site-packages/numpy/_core/include|$np_inc|g" \
            -e "s|$bogus/include/python3.11|$py_inc|g" "${bad[@]}"
   fi
-  build="$venv/build/haptic_topology_msgs"
-  say "building msg_schemas/ (haptic_topology_msgs) in $build"
+}
+build_interfaces() { # build_interfaces NAME SOURCE_DIR: cmake build + install into the venv
+  local name=$1 src=$2 build="$venv/build/$1"
+  fix_wheel_cmake
+  say "building ${src#"$root"/} ($name) in $build"
   rm -rf "$build" && mkdir -p "$build"
-  AMENT_PREFIX_PATH="$venv" cmake -S "$root/msg_schemas" -B "$build" \
+  AMENT_PREFIX_PATH="$venv" cmake -S "$src" -B "$build" \
     -DCMAKE_BUILD_TYPE=Release \
     -DCMAKE_INSTALL_PREFIX="$venv" \
     -DCMAKE_PREFIX_PATH="$venv" \
@@ -95,10 +102,34 @@ if ! stamp_ok msgs "$msgs_hash"; then
     || { tail -40 "$build.build.log" >&2; die "msg build failed (log: $build.build.log)"; }
   cmake --install "$build" > "$build.install.log" 2>&1 \
     || { tail -40 "$build.install.log" >&2; die "msg install failed (log: $build.install.log)"; }
-  "$vpy" -c 'import haptic_topology_msgs.msg' \
-    || die "haptic_topology_msgs built but does not import"
+  "$vpy" -c "import $name.msg" || die "$name built but does not import"
+}
+
+# msg_schemas/ without third_party/ (its packages have stamps of their own, below).
+mapfile -t msg_files < <(find "$root/msg_schemas" -path "$root/msg_schemas/third_party" -prune \
+  -o -type f -print)
+msgs_hash=$(hash_files "${msg_files[@]}" "$root/requirements.lock")
+if ! stamp_ok msgs "$msgs_hash"; then
+  build_interfaces haptic_topology_msgs "$root/msg_schemas"
   stamp_set msgs "$msgs_hash"
 fi
+
+# msg_schemas/third_party/<pkg>: upstream definitions of interface packages the wheels lack
+# (tf2_msgs for /tf). Built only where `import <pkg>.msg` fails and no earlier run of this
+# script built it; rebuilt when its files or the lock change.
+for src in "$root"/msg_schemas/third_party/*/; do
+  src=${src%/}
+  name=$(basename "$src")
+  [[ -f "$src/package.xml" ]] || continue
+  mapfile -t pkg_files < <(find "$src" -type f)
+  pkg_hash=$(hash_files "${pkg_files[@]}" "$root/requirements.lock")
+  stamp_ok "iface-$name" "$pkg_hash" && continue
+  if [[ ! -f "$venv/.stamp-iface-$name" ]] && "$vpy" -c "import $name.msg" 2>/dev/null; then
+    continue  # the wheels (or the system) provide it: use theirs
+  fi
+  build_interfaces "$name" "$src"
+  stamp_set "iface-$name" "$pkg_hash"
+done
 
 # --- 4. haptic_topology itself ---------------------------------------------------------------
 pkg_hash=$(hash_files "$root/setup.py" "$root/setup.cfg" "$root/pyproject.toml" \

@@ -1,10 +1,11 @@
-"""A device backend test double, selected as ``backend:=fake_backend:CircleBackend``.
+"""Device backend test doubles, selected as ``backend:=fake_backend:CircleBackend`` (or
+``fake_backend:FaultBackend``, the simulated maglev with a fault switch, at the end).
 
-It lives only in ``test/`` (on PYTHONPATH for the node processes) and is a plain subclass of
-:class:`~haptic_topology.device.backend.DeviceBackend`: selecting it needs no change in the
-driver, controller, VE or recorder. Kinematic: the "device" moves on a circle of ``radius``
-(option, m) around its initial pose with period ``period`` (option, s), ignores the commanded
-wrench (it only counts writes) and measures no hand wrench.
+They live only in ``test/`` (on PYTHONPATH for the node processes) and are plain subclasses
+of :class:`~haptic_topology.device.backend.DeviceBackend`: selecting one needs no change in the
+driver, controller, VE or recorder. ``CircleBackend`` is kinematic: the "device" moves on a
+circle of ``radius`` (option, m) around its initial pose with period ``period`` (option, s),
+ignores the commanded wrench (it only counts writes) and measures no hand wrench.
 """
 
 from __future__ import annotations
@@ -13,7 +14,13 @@ import math
 
 import numpy as np
 
-from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
+from haptic_topology.device.backend import (
+    BackendConfig,
+    DeviceBackend,
+    DeviceReading,
+    SimMaglevBackend,
+)
+from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.errors import DeviceError
 
 
@@ -68,3 +75,43 @@ class CircleBackend(DeviceBackend):
 
 class NotABackend:
     """Selecting this must fail with a clear message."""
+
+
+class FaultBackend(SimMaglevBackend):
+    """The simulated maglev with a fault switch, selected as ``fake_backend:FaultBackend``.
+
+    While :attr:`fault` holds a reason (set by the test) every reading carries
+    ``DeviceStatus.FAULT`` and :meth:`fault_reason` returns it. Every wrench written is kept in
+    :attr:`writes` (N, N m), so a test sees exactly what would have reached the device. Its
+    :attr:`hardware_id` names a unit, as a real device's backend would.
+    """
+
+    name = 'fault_test_double'
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.fault = ''
+        self.writes: list[np.ndarray] = []
+
+    @property
+    def hardware_id(self) -> str:
+        return f'{self.name} unit 7'
+
+    def fault_reason(self) -> str:
+        return self.fault
+
+    def write(self, wrench: np.ndarray) -> None:
+        self.writes.append(np.array(wrench, dtype=float))
+        super().write(wrench)
+
+    def _flag(self, reading: DeviceReading) -> DeviceReading:
+        if not self.fault:
+            return reading
+        return DeviceReading(reading.pose, reading.twist, reading.hand_wrench,
+                             reading.status | DeviceStatus.FAULT)
+
+    def read(self, dt: float) -> DeviceReading:
+        return self._flag(super().read(dt))
+
+    def idle(self, dt: float) -> DeviceReading:
+        return self._flag(super().idle(dt))

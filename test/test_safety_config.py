@@ -24,7 +24,8 @@ PARAMS = config_dir() / 'haptic_topology.yaml'
 
 def test_shipped_params_file_is_valid() -> None:
     doc = check_params_file(PARAMS, KNOWN)
-    assert set(doc) == {'device_driver', 'lmi_controller', 've_sim', 'recorder'}
+    assert set(doc) == {'device_driver', 'lmi_controller', 've_sim', 'recorder',
+                        'foxglove_bridge'}
 
 
 @pytest.mark.parametrize(('text', 'expected'), [
@@ -46,8 +47,8 @@ def test_shipped_params_file_is_valid() -> None:
     ('ve_sim:\n  ros__parameters:\n    update_period: ten\n',
      'update_period: expected an integer, got string'),
     ('device_drver:\n  ros__parameters:\n    rate_hz: 1000.0\n',
-     'device_drver: unknown node (expected one of device_driver, lmi_controller, recorder, '
-     've_sim'),
+     'device_drver: unknown node (expected one of device_driver, foxglove_bridge, '
+     'lmi_controller, recorder, ve_sim'),
     ('device_driver:\n  rate_hz: 1000.0\n',
      'device_driver: expected a mapping with the one key ros__parameters'),
     ('/**:\n  ros__parameters:\n    scenario: 6\n',

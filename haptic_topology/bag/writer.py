@@ -64,12 +64,15 @@ class TopicSpec:
     qos: tuple[Qos, ...] = ()
 
 
-def make_qos(reliable: bool, depth: int) -> Qos:
-    """A rosbags :class:`Qos` (keep last ``depth``, volatile) as our publishers offer it."""
+def make_qos(reliable: bool, depth: int, transient_local: bool = False) -> Qos:
+    """A rosbags :class:`Qos` (keep last ``depth``, volatile unless ``transient_local``) as
+    our publishers offer it (``ros2 bag play`` offers a transient-local topic so again, e.g.
+    ``/robot_description`` to a late RViz)."""
     zero = QosTime(0, 0)
     return Qos(QosHistory.KEEP_LAST, depth,
                QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
-               QosDurability.VOLATILE, zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+               QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
 
 
 def schema_text(typestore: Typestore, msgtype: str,

@@ -20,6 +20,15 @@ were. Commands enter through :meth:`DeviceLoop.on_command`, already checked for 
 finiteness by the caller (``nodes.convert``); a command that answers a state this loop never
 published, or an older one than the command held, is not applied.
 
+**Device faults.** While the newest reading of the backend carries ``DeviceStatus.FAULT``
+(the device reports a fault, :mod:`haptic_topology.device.backend`), every cycle writes a zero
+wrench whatever the command, and the state is flagged ``FAULT`` (from the reading) and
+``WATCHDOG`` (the output is not the command); once a reading comes without the bit, the
+output fades back to the command over the watchdog's ``ramp_time`` (``CommandWatchdog.cut``).
+:meth:`DeviceLoop.health` is ERROR while the fault lasts, with the backend's
+``fault_reason()``; ``device_faults`` counts its onsets and ``fault_cycles`` the cycles written
+as zero because of it.
+
 **Which controller.** Every command carries the id of the controller that sent it
 (``DeviceCommand.controller_id``, drawn at random once per controller process; ``0`` in the
 offline simulation and for a controller hosted in the driver's process, whose commands never
@@ -64,6 +73,9 @@ from haptic_topology.device.watchdog import CommandWatchdog
 
 #: Publish times kept for the command age and the round trip (states).
 _KEEP = 4096
+#: ``DeviceStatus.FAULT`` as a plain int: tested on every reading (an ``IntFlag`` operation
+#: costs ~0.7 us, ``int(status) & _FAULT_BIT`` ~0.07 us).
+_FAULT_BIT = int(DeviceStatus.FAULT)
 #: Round-trip samples kept for the run's percentiles (10 min at 1 kHz).
 _RTT_KEEP = 600_000
 #: Default silence (s) of the followed controller after which another controller's command
@@ -150,6 +162,9 @@ class DeviceLoop:
         self.takeovers = 0            # times another controller took over after silence
         self.saturated_cycles = 0
         self.max_applied = np.zeros(m)
+        self.fault_active = False     # the newest reading carries DeviceStatus.FAULT
+        self.device_faults = 0        # onsets of such readings
+        self.fault_cycles = 0         # engaged cycles written as zero because of a fault
 
     @property
     def engaged(self) -> bool:
@@ -237,21 +252,32 @@ class DeviceLoop:
                 self.max_missed_run = max(self.max_missed_run, self.missed_run)
             if self._cmd_seq >= self.seq - 1:
                 self.answered_previous += 1
-            cmd, saturated = saturate(self._cmd, self.limit)
-            # The fade advances by at most two nominal periods per tick, so one late tick
-            # cannot step the output by more than 2 * limit * period / ramp_time.
-            u = self.watchdog.step(cmd, self.command_age(now), self._twist,
-                                   min(dt, 2.0 * self.period))
-            u, saturated_out = saturate(u, self.limit)
+            if self.fault_active:
+                # The device reported a fault: u stays zero (no command is applied) and the
+                # output fades back in once a reading comes without it (module doc).
+                self.watchdog.cut()
+                self.fault_cycles += 1
+                saturated = saturated_out = False
+            else:
+                cmd, saturated = saturate(self._cmd, self.limit)
+                # The fade advances by at most two nominal periods per tick, so one late tick
+                # cannot step the output by more than 2 * limit * period / ramp_time.
+                u = self.watchdog.step(cmd, self.command_age(now), self._twist,
+                                       min(dt, 2.0 * self.period))
+                u, saturated_out = saturate(u, self.limit)
+                env = self._cmd_env
             if self.watchdog.active:
                 status |= DeviceStatus.WATCHDOG
             if saturated or saturated_out:
                 status |= DeviceStatus.SATURATED
                 self.saturated_cycles += 1
             np.maximum(self.max_applied, np.abs(u), out=self.max_applied)
-            env = self._cmd_env
             self.backend.write(u)
             reading = self.backend.read(dt)
+        fault = int(reading.status) & _FAULT_BIT != 0
+        if fault and not self.fault_active:
+            self.device_faults += 1
+        self.fault_active = fault
         self._twist = reading.twist
         self.seq += 1
         self._publish_times[self.seq % _KEEP] = now
@@ -297,12 +323,18 @@ class DeviceLoop:
             'watchdog_cycles': str(self.watchdog.stale_cycles),
             'watchdog_scale': f'{self.watchdog.scale:.3f}',
             'saturated_cycles': str(self.saturated_cycles),
+            'device_fault': self.backend.fault_reason() if self.fault_active else '',
+            'device_faults': str(self.device_faults),
+            'fault_cycles': str(self.fault_cycles),
             'max_abs_applied': ' '.join(f'{v:.4g}' for v in self.max_applied),
             'wrench_limit': ' '.join(f'{v:.4g}' for v in self.limit),
         }
 
     def health(self) -> tuple[int, str]:
-        """``(level, message)`` for diagnostics (0 OK, 1 WARN)."""
+        """``(level, message)`` for diagnostics (0 OK, 1 WARN, 2 ERROR): ERROR while the device
+        reports a fault (engaged or not), else WARN while idle or while the watchdog acts."""
+        if self.fault_active:
+            return 2, f'device fault: {self.backend.fault_reason()}'
         if not self.engaged:
             return 1, 'idle: no controller engaged yet'
         if self.watchdog.stale:
@@ -312,16 +344,26 @@ class DeviceLoop:
         return 0, 'ok'
 
 
+def hardware_id(backend: DeviceBackend | None, backend_name: str) -> str:
+    """``DiagnosticStatus.hardware_id`` of the device side: the backend's
+    :attr:`~haptic_topology.device.backend.DeviceBackend.hardware_id` (backend and device,
+    e.g. ``'sim_maglev planar'``), or ``backend_name`` (the ``backend`` parameter) while no
+    backend is created."""
+    return backend.hardware_id if backend is not None else backend_name
+
+
 def device_report(loop: DeviceLoop | None, now: float, fault: str, rejected: int,
                   layout_values: dict[str, str]) -> tuple[int, str, dict[str, str]]:
     """The device side's diagnostics ``(level, message, values)``: ERROR with ``fault`` (a
-    failed transition), WARN while not configured (``loop`` None), else :meth:`DeviceLoop.
-    health`. ``rejected``: commands refused before the loop (malformed messages), added to the
-    loop's own refusals; ``layout_values``: the layout's figures (measured period)."""
+    failed transition or loop), WARN while not configured (``loop`` None), else
+    :meth:`DeviceLoop.health` (ERROR while the device reports a fault). ``rejected``: commands
+    refused before the loop (malformed messages), added to the loop's own refusals;
+    ``layout_values``: the layout's figures (measured period)."""
     level, message = (2, f'fault: {fault}') if fault else (1, 'not configured')
     values = {'rejected_commands': str(rejected)}
     if loop is not None:
         values.update(loop.values(now))
+        values.update(loop.backend.values())
         values['rejected_commands'] = str(rejected + loop.rejected_commands)
         values.update(layout_values)
         if not fault:

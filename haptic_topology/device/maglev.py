@@ -49,7 +49,7 @@ class DeviceStatus(enum.IntFlag):
     WORKSPACE_LIMIT = 1
     SATURATED = 2
     WATCHDOG = 4    # output is not the plain command: none yet, stale, or fading in/out
-    FAULT = 8
+    FAULT = 8       # the backend reports a device fault: the driver writes zero while it lasts
     IDLE = 16       # not engaged yet (always with WATCHDOG): controllers integrate nothing
 
 

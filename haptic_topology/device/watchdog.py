@@ -88,6 +88,12 @@ class CommandWatchdog:
         """True while the output is not the plain command (stale, or fading either way)."""
         return self.stale or self.scale < 1.0
 
+    def cut(self) -> None:
+        """The caller wrote zero instead of this cycle's output (the device reported a fault):
+        the fade starts again from the fallback, so once :meth:`step` runs again the output
+        fades back to the command over ``ramp_time`` instead of stepping to it."""
+        self.scale = 0.0
+
     def fallback(self, twist: np.ndarray) -> np.ndarray:
         if self.config.fallback is WatchdogFallback.DAMPING:
             tw = np.where(np.isfinite(twist), twist, 0.0)

@@ -20,7 +20,11 @@ topic                         QoS                               why
 ``haptic/ve/path``                                              the VT hand at every cycle
 ``/clock``                    best effort, keep last 1          lock-step only: simulated time
 ``haptic/joint_states``,      reliable, keep last 5             visualisation, ~30 Hz
-``haptic/markers``
+``haptic/markers``,
+``haptic/viz/...`` mirrors
+``/tf``                       reliable, keep last 100           as tf2_ros broadcasts it
+``/robot_description``        reliable, transient local,        once; a late subscriber gets it
+                              keep last 1                       (as robot_state_publisher)
 ``/diagnostics``              reliable, keep last 10            1 Hz loop health
 ============================  ================================  ===================================
 
@@ -90,6 +94,20 @@ TOPIC_DIAGNOSTICS = '/diagnostics'
 TOPIC_VT_PATH = 'haptic/ve/path'
 TOPIC_LMI_ACK = 'haptic/lmi/ack'
 TOPIC_CLOCK = '/clock'
+# The linkage as a robot and standard mirrors, published by ve_sim (frames:
+# haptic_topology.frames; messages: haptic_topology.nodes.viz).
+TOPIC_ROBOT_DESCRIPTION = '/robot_description'
+TOPIC_TF = '/tf'
+TOPIC_DEVICE_POSE = 'haptic/viz/device/pose'
+TOPIC_DEVICE_TWIST = 'haptic/viz/device/twist'
+TOPIC_VT_POSE = 'haptic/viz/vt_hand/pose'
+TOPIC_VT_TWIST = 'haptic/viz/vt_hand/twist'
+TOPIC_WRENCH_APPLIED = 'haptic/viz/wrench/applied'
+TOPIC_WRENCH_HAND = 'haptic/viz/wrench/hand'
+TOPIC_WRENCH_COUPLING = 'haptic/viz/wrench/coupling'
+#: The standard mirrors (geometry_msgs/*Stamped), at viz_rate_hz.
+MIRROR_TOPICS = (TOPIC_DEVICE_POSE, TOPIC_DEVICE_TWIST, TOPIC_VT_POSE, TOPIC_VT_TWIST,
+                 TOPIC_WRENCH_APPLIED, TOPIC_WRENCH_HAND, TOPIC_WRENCH_COUPLING)
 
 
 def _qos(reliable: bool, depth: int) -> QoSProfile:
@@ -111,6 +129,13 @@ QOS_HAND_INPUTS = _qos(True, 500)   # 100 Hz batches
 QOS_HAND_INPUTS_LOCKSTEP = _qos(True, 10000)
 QOS_LMI = _qos(True, 5000)
 QOS_VIZ = _qos(True, 5)
+#: /tf as tf2_ros's TransformBroadcaster offers it (reliable, volatile, keep last 100).
+QOS_TF = _qos(True, 100)
+#: /robot_description as robot_state_publisher offers it: a late subscriber (RViz started
+#: later) still gets the one message (reliable, transient local, keep last 1).
+QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 QOS_DIAGNOSTICS = _qos(True, 10)
 #: The recorder's readers: what DDS holds between two of its takes (every 10 ms) and through
 #: a stall of its writer thread; at the graph's rates at 14x (14,000 states/s) 10,000 is
@@ -123,8 +148,33 @@ TOPIC_QOS: dict[str, QoSProfile] = {
     TOPIC_STATE: QOS_LOOP, TOPIC_COMMAND: QOS_LOOP, TOPIC_HAND_INPUTS: QOS_HAND_INPUTS,
     TOPIC_LMI: QOS_LMI, TOPIC_VT_PATH: QOS_LMI,
     TOPIC_JOINTS: QOS_VIZ, TOPIC_MARKERS: QOS_VIZ, TOPIC_DIAGNOSTICS: QOS_DIAGNOSTICS,
+    TOPIC_ROBOT_DESCRIPTION: QOS_LATCHED, TOPIC_TF: QOS_TF,
+    **{t: QOS_VIZ for t in MIRROR_TOPICS},
 }
 
+
+#: Topic (a key of :data:`TOPIC_QOS`) -> full type name of its messages: what a tool that
+#: subscribes by topic alone (``foxglove_bridge``) serves it as. Every topic of
+#: :data:`TOPIC_QOS` has one (test/test_foxglove.py checks it).
+TOPIC_TYPES: dict[str, str] = {
+    TOPIC_STATE: 'haptic_topology_msgs/msg/DeviceState',
+    TOPIC_COMMAND: 'haptic_topology_msgs/msg/DeviceCommand',
+    TOPIC_HAND_INPUTS: 'haptic_topology_msgs/msg/HandInputs',
+    TOPIC_LMI: 'haptic_topology_msgs/msg/LmiUpdate',
+    TOPIC_VT_PATH: 'haptic_topology_msgs/msg/VtPath',
+    TOPIC_JOINTS: 'sensor_msgs/msg/JointState',
+    TOPIC_MARKERS: 'visualization_msgs/msg/MarkerArray',
+    TOPIC_DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
+    TOPIC_ROBOT_DESCRIPTION: 'std_msgs/msg/String',
+    TOPIC_TF: 'tf2_msgs/msg/TFMessage',
+    TOPIC_DEVICE_POSE: 'geometry_msgs/msg/PoseStamped',
+    TOPIC_DEVICE_TWIST: 'geometry_msgs/msg/TwistStamped',
+    TOPIC_VT_POSE: 'geometry_msgs/msg/PoseStamped',
+    TOPIC_VT_TWIST: 'geometry_msgs/msg/TwistStamped',
+    TOPIC_WRENCH_APPLIED: 'geometry_msgs/msg/WrenchStamped',
+    TOPIC_WRENCH_HAND: 'geometry_msgs/msg/WrenchStamped',
+    TOPIC_WRENCH_COUPLING: 'geometry_msgs/msg/WrenchStamped',
+}
 
 def loop_qos(clock: Clock) -> QoSProfile:
     """QoS of the 1 kHz state/command topics under ``clock`` (see the table above)."""
@@ -223,16 +273,20 @@ def declare_settings(node: Node, cls: type[S],
 
 # -- loop health -------------------------------------------------------------------------------
 def diagnostics(node: Node, name: str, values: dict[str, str], level: int = 0,
-                message: str = 'ok') -> DiagnosticArray:
+                message: str = 'ok', hardware_id: str | None = None) -> DiagnosticArray:
     """A one-status :class:`DiagnosticArray` (level: DiagnosticStatus.OK/WARN/ERROR).
 
-    Every status carries ``pid``: the reporting process, so a tool that restarts a node can
-    tell the new process's reports from late ones of the process it replaced."""
+    ``hardware_id``: the hardware the status is about (the device driver: backend and device,
+    :func:`haptic_topology.device.loop.hardware_id`); None for a node that drives no hardware,
+    which reports its fully qualified node name. Every status carries ``pid``: the reporting
+    process, so a tool that restarts a node can tell the new process's reports from late ones
+    of the process it replaced."""
     values = {**values, 'pid': str(os.getpid())}
     arr = DiagnosticArray()
     arr.header.stamp = node.get_clock().now().to_msg()
     status = DiagnosticStatus(level=bytes([level]), name=name, message=message,
-                              hardware_id=node.get_fully_qualified_name())
+                              hardware_id=(node.get_fully_qualified_name() if hardware_id is None
+                                           else hardware_id))
     status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
     arr.status = [status]
     return arr

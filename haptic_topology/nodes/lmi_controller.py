@@ -46,6 +46,7 @@ from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.loop import StateSample
 from haptic_topology.control.port import ControllerPort, Outgoing, live_change
 from haptic_topology.device.runner import LoopRunner
+from haptic_topology.frames import DEVICE_BASE
 from haptic_topology.nodes import common, node_params
 from haptic_topology.nodes.convert import (
     CONTROLLER_ID,
@@ -99,6 +100,8 @@ class LmiController(Node):
         self.ack_pub = (self.create_publisher(UInt64, common.TOPIC_LMI_ACK, common.QOS_LMI)
                         if s.ack_updates else None)
         self._cmd, self._hand = DeviceCommand(), HandInputs()
+        # set once (the messages are reused): device-side quantities
+        self._cmd.header.frame_id = self._hand.header.frame_id = DEVICE_BASE
         self.rejected = RejectCounter()
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)

@@ -16,19 +16,21 @@ from haptic_topology.settings import (
     GAIN_MAX,
     MODES,
     DeviceDriverSettings,
+    FoxgloveBridgeSettings,
     LmiControllerSettings,
     RecorderSettings,
     VeSimSettings,
     param_specs,
 )
 
-__all__ = ['DEVICE_DRIVER', 'EXECUTORS', 'FALLBACKS', 'GAIN_MAX', 'KNOWN', 'LMI_CONTROLLER',
-           'MODES', 'RECORDER', 'SCHED_PRIORITY', 'VE_SIM']
+__all__ = ['DEVICE_DRIVER', 'EXECUTORS', 'FALLBACKS', 'FOXGLOVE_BRIDGE', 'GAIN_MAX', 'KNOWN',
+           'LMI_CONTROLLER', 'MODES', 'RECORDER', 'SCHED_PRIORITY', 'VE_SIM']
 
 DEVICE_DRIVER: NodeParams = param_specs(DeviceDriverSettings)
 LMI_CONTROLLER: NodeParams = param_specs(LmiControllerSettings)
 VE_SIM: NodeParams = param_specs(VeSimSettings)
 RECORDER: NodeParams = param_specs(RecorderSettings)
+FOXGLOVE_BRIDGE: NodeParams = param_specs(FoxgloveBridgeSettings)
 
 #: Real-time scheduling of the whole process (every thread, DDS's included).
 SCHED_PRIORITY = DEVICE_DRIVER['sched_priority']
@@ -39,4 +41,5 @@ KNOWN: dict[str, NodeParams | None] = {
     'lmi_controller': LMI_CONTROLLER,
     've_sim': VE_SIM,
     'recorder': RECORDER,
+    'foxglove_bridge': FOXGLOVE_BRIDGE,
 }

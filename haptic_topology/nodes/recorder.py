@@ -28,9 +28,12 @@ from collections.abc import Sequence
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from haptic_topology import resolve
@@ -51,6 +54,15 @@ RECORDED: dict[str, tuple[Any, str]] = {
     common.TOPIC_JOINTS: (JointState, 'sensor_msgs/msg/JointState'),
     common.TOPIC_MARKERS: (MarkerArray, 'visualization_msgs/msg/MarkerArray'),
     common.TOPIC_DIAGNOSTICS: (DiagnosticArray, 'diagnostic_msgs/msg/DiagnosticArray'),
+    common.TOPIC_ROBOT_DESCRIPTION: (String, 'std_msgs/msg/String'),
+    common.TOPIC_TF: (TFMessage, 'tf2_msgs/msg/TFMessage'),
+    common.TOPIC_DEVICE_POSE: (PoseStamped, 'geometry_msgs/msg/PoseStamped'),
+    common.TOPIC_DEVICE_TWIST: (TwistStamped, 'geometry_msgs/msg/TwistStamped'),
+    common.TOPIC_VT_POSE: (PoseStamped, 'geometry_msgs/msg/PoseStamped'),
+    common.TOPIC_VT_TWIST: (TwistStamped, 'geometry_msgs/msg/TwistStamped'),
+    common.TOPIC_WRENCH_APPLIED: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
+    common.TOPIC_WRENCH_HAND: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
+    common.TOPIC_WRENCH_COUPLING: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
 }
 
 #: Topics whose publishers must be matched before the loop starts (see _check_connected).
@@ -67,13 +79,23 @@ def select_topics(names: Sequence[str], regex: str) -> list[str]:
     return resolve.select_topics(names, regex, list(RECORDED))
 
 
+def _latched(qos: QoSProfile) -> bool:
+    return bool(qos.durability == DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 def _bag_qos(qos: QoSProfile) -> Any:
-    return make_qos(qos.reliability == ReliabilityPolicy.RELIABLE, int(qos.depth))
+    return make_qos(qos.reliability == ReliabilityPolicy.RELIABLE, int(qos.depth),
+                    _latched(qos))
 
 
 def _record_qos(topic: str, clock: Clock) -> QoSProfile:
-    """The recorder's deep queue with the reliability of ``topic``'s publisher."""
-    reliable = common.publisher_qos(topic, clock).reliability == ReliabilityPolicy.RELIABLE
+    """The recorder's deep queue with the reliability of ``topic``'s publisher; transient
+    local for a transient-local publisher (``/robot_description``: published once, maybe
+    before the recorder started)."""
+    offered = common.publisher_qos(topic, clock)
+    if _latched(offered):
+        return common.QOS_LATCHED
+    reliable = offered.reliability == ReliabilityPolicy.RELIABLE
     return common.QOS_RECORD_RELIABLE if reliable else common.QOS_RECORD_BEST_EFFORT
 
 

@@ -1,4 +1,6 @@
-"""Serialized messages taken in batches, off the executor: the recorder's input side.
+"""Messages taken off the executor: in batches (the recorder's input side, :class:`BatchTaker`)
+or the newest one on demand (``ve_sim``'s device state for the visualisation,
+:class:`LatestTaker`).
 
 A subscription spun by an executor costs one wake-up and one Python callback per message
 (a subscriber taking 1,000 msg/s on the EventsExecutor used 0.08 core on the 2-core machine
@@ -146,4 +148,39 @@ class BatchTaker:
                 ev.destroy_when_not_in_use()
         for sub in self.subscriptions:
             self.node.destroy_subscription(sub)
+        self.node.destroy_node()
+
+
+class LatestTaker:
+    """The newest message of one topic, taken when asked (e.g. at a visualisation rate) instead
+    of one executor callback per message.
+
+    Like :class:`BatchTaker`, the subscription belongs to a hidden helper node
+    (``_<node>_<suffix>``) that no executor spins; with a keep-last-1 QoS DDS holds only the
+    newest sample, and :meth:`take` deserialises that one. ``topic`` is resolved by ``owner``
+    (its namespace and remappings).
+    """
+
+    def __init__(self, owner: Node, topic: str, msg_type: Any, qos: QoSProfile,
+                 suffix: str = 'latest') -> None:
+        self.node = Node(f'_{owner.get_name()}_{suffix}', namespace=owner.get_namespace(),
+                         context=owner.context, start_parameter_services=False,
+                         enable_rosout=False)
+        self.subscription = self.node.create_subscription(
+            msg_type, owner.resolve_topic_name(topic), _never_called, qos)
+        self._type = msg_type
+        self.taken = 0
+
+    def take(self) -> Any:
+        """The newest message that came since the last call, or None."""
+        newest = None
+        handle = self.subscription.handle
+        with handle:
+            while (item := handle.take_message(self._type, False)) is not None:
+                newest = item[0]
+                self.taken += 1
+        return newest
+
+    def destroy(self) -> None:
+        self.node.destroy_subscription(self.subscription)
         self.node.destroy_node()

@@ -1,36 +1,232 @@
-"""Visualisation messages of the VE (``ve_sim``): joint states and the linkage as markers.
+"""Visualisation messages of the VE (``ve_sim``): the linkage as a robot, frames, markers and
+standard mirrors, for RViz, Foxglove and PlotJuggler with no plugin of ours.
 
-Markers in ``frame_id`` (the world frame of the linkage), metres: the linkage as a line
-through its joints and the distal link's end, the VT grasp point, the device point, and an
-arrow 20 mm long (times the penalty weight) along each direction of topological constraint
-``n_tc`` (eq. 13) at the grasp point, deleted while that direction is not constrained.
+Frames and what each header names: :mod:`haptic_topology.frames`. Topics (names and QoS in
+:mod:`haptic_topology.nodes.common`):
+
+* ``/robot_description`` (``std_msgs/String``, transient local, once): the URDF of
+  :func:`haptic_topology.model.urdf.robot_description`;
+* ``/tf`` (``tf2_msgs/TFMessage``): world -> root link -> every URDF link (parent -> child per
+  URDF joint) -> ``vt_hand``, and world -> ``device_base``, stamped with the time they are
+  published at (the VE's state then); ``device_base`` -> ``device`` with the stamp of the
+  device state it shows;
+* ``haptic/joint_states`` (``sensor_msgs/JointState``): named after the URDF's joints (the
+  chain's, then locked side-branch joints at their positions, zero velocity);
+* ``haptic/markers``: in the world frame: the linkage as a line through its joints, the VT
+  grasp point, the device as a translucent box with its orientation (the device ghost), an
+  arrow :data:`ARROW_LENGTH` long (times the penalty weight) along each direction of
+  topological constraint ``n_tc`` (eq. 13) at the grasp point (deleted while not
+  constrained), and force arrows :data:`FORCE_SCALE` m per N: ``F_h`` (the user's hand) and
+  ``u`` (applied by the device) at the device, ``F_pc`` (coordination, on the VT) and
+  ``F_env`` (the controller's contacts, eqs. 10 and 14) at the grasp point;
+* mirrors (``geometry_msgs``): ``PoseStamped``/``TwistStamped`` of the device (frame
+  ``device_base``; twist: the device point's velocity and the angular velocity, world axes)
+  and of the VT hand (world frame, same convention); ``WrenchStamped`` of the applied wrench
+  ``u`` and the hand wrench ``F_h`` in frame ``device``, and of the coupling wrench ``F_pc``
+  in frame ``vt_hand`` (components in that frame's axes, acting at its origin). The device
+  ones carry the stamp of the ``DeviceState`` (or ``HandInputs`` sample) they copy, the
+  coupling one that of its ``HandInputs`` sample, expressed in the VT hand's axes at that
+  sample (the VE's state after it).
+
+A planar task has no z: the device is drawn in the plane of the grasp point.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
-from geometry_msgs.msg import Point
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import (
+    Point,
+    PoseStamped,
+    TransformStamped,
+    TwistStamped,
+    WrenchStamped,
+)
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
+from haptic_topology import frames
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
-from haptic_topology.model.linkage import Linkage
+from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.model.urdf import LinkFrames, RobotDescription
+from haptic_topology.msgcheck import check_state, env_wrench
 
 #: Length (m) of a constraint-direction arrow at full penalty weight.
 ARROW_LENGTH = 0.02
+#: Length (m) of a force arrow per newton.
+FORCE_SCALE = 0.05
+#: Side (m) of the device ghost.
+DEVICE_SIZE = 0.008
 
 
-def joint_state(linkage: Linkage, q: np.ndarray, dq: np.ndarray, stamp: Any) -> JointState:
-    js = JointState()
-    js.header.stamp = stamp
-    js.name = list(linkage.link_names)
-    js.position = q.tolist()
-    js.velocity = dq.tolist()
-    return js
+@dataclass(frozen=True)
+class DeviceSample:
+    """The device at one cycle, as shown: from a ``DeviceState`` (``applied`` and ``env``
+    known) or a ``HandInputs`` sample (None). Task vectors, world axes."""
+
+    stamp: Time
+    pose: np.ndarray
+    twist: np.ndarray
+    hand_wrench: np.ndarray
+    applied: np.ndarray | None = None
+    env: np.ndarray | None = None
+
+    @property
+    def ns(self) -> int:
+        return int(self.stamp.sec) * 1_000_000_000 + int(self.stamp.nanosec)
+
+
+@dataclass(frozen=True)
+class CouplingSample:
+    """The coordination wrench ``F_pc`` of one ``HandInputs`` sample (world axes, at the grasp
+    point) and the VE's joint positions after that sample."""
+
+    stamp: Time
+    wrench: np.ndarray
+    q: np.ndarray
+
+    @property
+    def ns(self) -> int:
+        return int(self.stamp.sec) * 1_000_000_000 + int(self.stamp.nanosec)
+
+
+def device_sample(msg: Any, task: TaskSpace) -> DeviceSample:
+    """A checked ``DeviceState`` as a :class:`DeviceSample` (raises
+    :class:`~haptic_topology.msgcheck.MessageError` naming the bad field)."""
+    _, _, pose, twist, f_h, applied, _ = check_state(msg, task.dim)
+    return DeviceSample(msg.header.stamp, pose, twist, f_h, applied, env_wrench(msg, task.dim))
+
+
+def _set_transform(ts: TransformStamped, stamp: Time, row: list[float]) -> None:
+    ts.header.stamp = stamp
+    t, r = ts.transform.translation, ts.transform.rotation
+    t.x, t.y, t.z, r.x, r.y, r.z, r.w = row
+
+
+def _set_pose(msg: PoseStamped, stamp: Time, t: np.ndarray, quat: np.ndarray) -> None:
+    msg.header.stamp = stamp
+    p, o = msg.pose.position, msg.pose.orientation
+    p.x, p.y, p.z = t.tolist()
+    o.x, o.y, o.z, o.w = quat.tolist()
+
+
+def _set_twist(msg: TwistStamped, stamp: Time, v6: np.ndarray) -> None:
+    msg.header.stamp = stamp
+    lin, ang = msg.twist.linear, msg.twist.angular
+    lin.x, lin.y, lin.z, ang.x, ang.y, ang.z = v6.tolist()
+
+
+def _set_wrench(msg: WrenchStamped, stamp: Time, w6: np.ndarray) -> None:
+    msg.header.stamp = stamp
+    f, tau = msg.wrench.force, msg.wrench.torque
+    f.x, f.y, f.z, tau.x, tau.y, tau.z = w6.tolist()
+
+
+def _stamped(cls: Any, frame: str) -> Any:
+    msg = cls()
+    msg.header.frame_id = frame
+    return msg
+
+
+class RobotViz:
+    """The visualisation messages of one linkage, allocated once and filled per call.
+
+    ``dyn``: a Pinocchio workspace of its own (not the VE's); ``world``: the world frame
+    (``ve_sim`` parameter ``frame_id``).
+    """
+
+    def __init__(self, description: RobotDescription, dyn: LinkageDynamics,
+                 world: str) -> None:
+        self.description = description
+        self.dyn = dyn
+        self.task = dyn.task
+        self.world = world
+        self.frames = LinkFrames(description, world)
+        self.robot_description = String(data=description.urdf)
+        tf = self.tf_ve = TFMessage()
+        for parent, child in (*self.frames.edges, (world, frames.DEVICE_BASE)):
+            ts = _stamped(TransformStamped, parent)
+            ts.child_frame_id = child
+            tf.transforms.append(ts)
+        self._identity = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+        self.tf_device = TFMessage()
+        ts = _stamped(TransformStamped, frames.DEVICE_BASE)
+        ts.child_frame_id = frames.DEVICE
+        self.tf_device.transforms.append(ts)
+        self.joint_state = _stamped(JointState, description.root_link)
+        self.joint_state.name = list(description.joint_names)
+        self._zeros = np.zeros(len(description.locked))
+        self.vt_pose = _stamped(PoseStamped, world)
+        self.vt_twist = _stamped(TwistStamped, world)
+        self.device_pose = _stamped(PoseStamped, frames.DEVICE_BASE)
+        self.device_twist = _stamped(TwistStamped, frames.DEVICE_BASE)
+        self.applied_wrench = _stamped(WrenchStamped, frames.DEVICE)
+        self.hand_wrench = _stamped(WrenchStamped, frames.DEVICE)
+        self.coupling_wrench = _stamped(WrenchStamped, frames.VT_HAND)
+
+    def plane_z(self, q: np.ndarray) -> float:
+        """Height (m) of the grasp point: the plane a planar device pose is drawn in."""
+        return float(self.dyn.hand_placement(q).translation[2])
+
+    # -- the VE ----------------------------------------------------------------------------------
+    def ve(self, q: np.ndarray, dq: np.ndarray, stamp: Time
+           ) -> tuple[TFMessage, JointState, PoseStamped, TwistStamped]:
+        """``/tf`` of the links and ``vt_hand``, the joint state and the VT hand mirrors at the
+        VE state ``(q, dq)``."""
+        rows = self.frames.transforms(q).tolist() + [self._identity]
+        for ts, row in zip(self.tf_ve.transforms, rows, strict=True):
+            _set_transform(ts, stamp, row)
+        js = self.joint_state
+        js.header.stamp = stamp
+        js.position = self.description.positions(q).tolist()
+        js.velocity = np.concatenate([dq, self._zeros]).tolist()
+        hand = self.dyn.hand_placement(q)
+        _set_pose(self.vt_pose, stamp, np.asarray(hand.translation),
+                  frames.quaternion(hand.rotation))
+        _set_twist(self.vt_twist, stamp, frames.spatial(self.dyn.hand_twist(q, dq), self.task))
+        return self.tf_ve, js, self.vt_pose, self.vt_twist
+
+    # -- the device ------------------------------------------------------------------------------
+    def device(self, sample: DeviceSample, z: float
+               ) -> tuple[TFMessage, PoseStamped, TwistStamped, WrenchStamped,
+                          WrenchStamped | None]:
+        """``device_base -> device``, the device's pose and twist, its hand wrench and (from a
+        ``DeviceState``) the applied wrench, stamped with the sample's stamp; ``z``: the
+        plane of a planar pose."""
+        stamp, task = sample.stamp, self.task
+        t, quat = frames.pose_transform(sample.pose, task, z)
+        _set_transform(self.tf_device.transforms[0], stamp, t.tolist() + quat.tolist())
+        _set_pose(self.device_pose, stamp, t, quat)
+        _set_twist(self.device_twist, stamp, frames.spatial(sample.twist, task))
+        rot = frames.pose_rotation(sample.pose, task)
+        _set_wrench(self.hand_wrench, stamp, frames.wrench_in_frame(sample.hand_wrench, rot,
+                                                                    task))
+        applied = None
+        if sample.applied is not None:
+            applied = self.applied_wrench
+            _set_wrench(applied, stamp, frames.wrench_in_frame(sample.applied, rot, task))
+        return self.tf_device, self.device_pose, self.device_twist, self.hand_wrench, applied
+
+    def coupling(self, sample: CouplingSample) -> WrenchStamped:
+        """``F_pc`` in the ``vt_hand`` frame at the VE state after its sample."""
+        rot = self.dyn.hand_placement(sample.q).rotation
+        _set_wrench(self.coupling_wrench, sample.stamp,
+                    frames.wrench_in_frame(sample.wrench, rot, self.task))
+        return self.coupling_wrench
+
+    # -- markers ---------------------------------------------------------------------------------
+    def markers(self, q: np.ndarray, device: DeviceSample | None,
+                coupling: CouplingSample | None, snap: LmiSnapshot, stamp: Time
+                ) -> MarkerArray:
+        """The markers of the module doc at the VE's ``q``."""
+        return linkage_markers(self.dyn, q, device, coupling, snap, self.world, stamp)
 
 
 def joint_points(dyn: LinkageDynamics, q: np.ndarray) -> np.ndarray:
@@ -47,14 +243,15 @@ def _point(p: np.ndarray) -> Point:
     return Point(x=float(p[0]), y=float(p[1]), z=float(p[2]) if p.size > 2 else 0.0)
 
 
-def linkage_markers(dyn: LinkageDynamics, q: np.ndarray, device_pose: np.ndarray | None,
-                    snap: LmiSnapshot, frame: str, stamp: Any) -> MarkerArray:
+def linkage_markers(dyn: LinkageDynamics, q: np.ndarray, device: DeviceSample | None,
+                    coupling: CouplingSample | None, snap: LmiSnapshot, frame: str,
+                    stamp: Time) -> MarkerArray:
     """The markers of the module doc (``dyn``: a Pinocchio workspace of its own)."""
     task = dyn.task
-    hand = dyn.hand_placement(q).translation
+    hand = np.asarray(dyn.hand_placement(q).translation)
 
     def marker(mid: int, ns: str, kind: int, rgb: tuple[float, float, float],
-               scale: float) -> Marker:
+               scale: float, alpha: float = 1.0) -> Marker:
         mk = Marker()
         mk.header.stamp = stamp
         mk.header.frame_id = frame
@@ -62,7 +259,17 @@ def linkage_markers(dyn: LinkageDynamics, q: np.ndarray, device_pose: np.ndarray
         mk.pose.orientation.w = 1.0
         mk.scale.x = mk.scale.y = mk.scale.z = scale
         mk.color.r, mk.color.g, mk.color.b = rgb
-        mk.color.a = 1.0
+        mk.color.a = alpha
+        return mk
+
+    def arrow(mid: int, ns: str, rgb: tuple[float, float, float], start: np.ndarray,
+              vector: np.ndarray | None) -> Marker:
+        mk = marker(mid, ns, Marker.ARROW, rgb, 0.002)
+        if vector is None or float(np.linalg.norm(vector)) < 1e-9:
+            mk.action = Marker.DELETE
+            return mk
+        mk.points = [_point(start), _point(start + vector)]
+        mk.scale.y = mk.scale.z = 0.004
         return mk
 
     link = marker(0, 'linkage', Marker.LINE_STRIP, (0.2, 0.4, 0.9), 0.004)
@@ -71,21 +278,37 @@ def linkage_markers(dyn: LinkageDynamics, q: np.ndarray, device_pose: np.ndarray
     grasp.pose.position = _point(hand)
     markers = MarkerArray()
     markers.markers = [link, grasp]
-    if device_pose is not None:
-        dev = marker(2, 'device', Marker.SPHERE, (0.9, 0.2, 0.2), 0.006)
-        dev.pose.position = _point(device_pose[:3] if task.dim == 6 else device_pose[:2])
-        markers.markers.append(dev)
+    dev_point = None
+    if device is not None:
+        ghost = marker(2, 'device', Marker.CUBE, (0.9, 0.2, 0.2), DEVICE_SIZE, alpha=0.5)
+        t, quat = frames.pose_transform(device.pose, task, float(hand[2]))
+        dev_point = t
+        ghost.pose.position = _point(t)
+        o = ghost.pose.orientation
+        o.x, o.y, o.z, o.w = quat.tolist()
+        markers.markers.append(ghost)
     rows = task.translation_rows
     for i in range(snap.left_vectors.shape[1]):
-        arrow = marker(10 + i, 'constraint', Marker.ARROW, (1.0, 0.6, 0.0), 0.002)
         direction = snap.left_vectors[rows, i]
         norm = float(np.linalg.norm(direction))
-        if snap.weights[i] <= 0.0 or norm < 1e-9:
-            arrow.action = Marker.DELETE
-        else:
-            tip = hand.copy()
-            tip[: direction.size] += ARROW_LENGTH * float(snap.weights[i]) * direction / norm
-            arrow.points = [_point(hand), _point(tip)]
-            arrow.scale.y = arrow.scale.z = 0.004
-        markers.markers.append(arrow)
+        vec = None
+        if snap.weights[i] > 0.0 and norm >= 1e-9:
+            vec = np.zeros(3)
+            vec[: direction.size] = ARROW_LENGTH * float(snap.weights[i]) * direction / norm
+        markers.markers.append(arrow(10 + i, 'constraint', (1.0, 0.6, 0.0), hand, vec))
+
+    def force(w: np.ndarray | None) -> np.ndarray | None:
+        return None if w is None else FORCE_SCALE * frames.spatial(w, task)[0:3]
+
+    at_device = dev_point if dev_point is not None else hand
+    markers.markers += [
+        arrow(20, 'F_h', (0.1, 0.7, 0.1), at_device,
+              force(None if device is None else device.hand_wrench)),
+        arrow(21, 'u', (0.9, 0.1, 0.1), at_device,
+              force(None if device is None else device.applied)),
+        arrow(22, 'F_pc', (0.7, 0.1, 0.8), hand,
+              force(None if coupling is None else coupling.wrench)),
+        arrow(23, 'F_env', (0.5, 0.35, 0.2), hand,
+              force(None if device is None else device.env)),
+    ]
     return markers

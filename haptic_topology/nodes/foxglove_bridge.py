@@ -1,0 +1,170 @@
+"""``foxglove_bridge``: the graph's live topics on the Foxglove WebSocket protocol.
+
+For a Foxglove app (desktop or browser) without a ROS install: the node serves every topic of
+the graph's vocabulary (:data:`~haptic_topology.nodes.common.TOPIC_QOS`, or those named in
+``topics``) with the WebSocket server of the Foxglove SDK (``foxglove-sdk`` on PyPI;
+subprotocol ``foxglove.sdk.v1``, the successor name of ``foxglove.websocket.v1``) on
+``host:port`` (default ``127.0.0.1:8765``). In the app: *Open connection* -> *Foxglove
+WebSocket* -> ``ws://127.0.0.1:8765``; ``docs/foxglove_layout.json`` is a layout for it.
+
+Each topic is one channel: message encoding ``cdr``, schema encoding ``ros2msg``, schema name
+the ROS type (:data:`~haptic_topology.nodes.common.TOPIC_TYPES`) and schema text the
+concatenated .msg definitions rosbag2 writes into MCAP files (the ones the recorder's bags
+carry, :func:`haptic_topology.bag.writer.schema_text`). The serialized CDR bytes are forwarded
+as DDS delivered them, never deserialised: as the recorder, the node takes what DDS holds in
+each reader every ``forward_period`` (:class:`~haptic_topology.nodes.take.BatchTaker`, one
+thread, no executor callback per message) and logs it on the channel, timestamped with the
+DDS receive time. A channel without a subscribed client costs the take only.
+
+Off the deadline path: its own process (``haptic-topology run ... --foxglove``), reading the
+topics with the reliability and durability their publishers offer (best effort state and
+command in real time; ``/robot_description`` transient local, so a late bridge still gets it).
+
+Diagnostics (``foxglove_bridge: server``, 1 Hz): ``url``, ``port`` (the one taken: with
+``port`` 0 the OS chooses), ``channels``, and per topic ``forwarded <topic>`` and
+``lost <topic>`` (see :class:`~haptic_topology.nodes.take.BatchTaker`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+import foxglove
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile
+
+from haptic_topology.bag.writer import schema_text
+from haptic_topology.errors import ConfigError
+from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
+from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes.take import BatchTaker
+from haptic_topology.settings import Clock, FoxgloveBridgeSettings
+
+#: Messages each reader holds between two takes (1 kHz topics: 20 per default period).
+READER_DEPTH = 200
+#: What ``ros2msg`` schemas and ``cdr`` messages are called in the Foxglove protocol.
+SCHEMA_ENCODING = 'ros2msg'
+MESSAGE_ENCODING = 'cdr'
+
+
+def served_topics(names: Sequence[str]) -> list[str]:
+    """Topics of the vocabulary to serve: all if ``names`` is empty, else ``names`` (with or
+    without the leading '/'), which must be in the vocabulary."""
+    known = list(common.TOPIC_QOS)
+    if not names:
+        return known
+    by_name = {t.lstrip('/'): t for t in known}
+    unknown = [n for n in names if n.lstrip('/') not in by_name]
+    if unknown:
+        raise ConfigError(f'foxglove_bridge: parameter topics: unknown {", ".join(unknown)}; '
+                          f'known: {", ".join(known)}')
+    return [by_name[n.lstrip('/')] for n in names]
+
+
+def message_class(type_name: str) -> Any:
+    """The rclpy message class of ``pkg/msg/Name``."""
+    pkg, _, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{pkg}.msg'), name)
+
+
+def reader_qos(topic: str, clock: Clock) -> QoSProfile:
+    """The bridge's reader of ``topic``: reliability and durability as the graph's publisher
+    offers them under ``clock``, keep last :data:`READER_DEPTH`."""
+    pub = common.publisher_qos(topic, clock)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=READER_DEPTH,
+                      reliability=pub.reliability, durability=pub.durability)
+
+
+class FoxgloveBridge(Node):
+    """Serves the graph's topics to Foxglove clients (see module doc)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('foxglove_bridge', **kwargs)
+        self.settings = s = common.declare_settings(self, FoxgloveBridgeSettings)
+        clock = Clock.parse(s.clock)
+        topics = served_topics([n for n in s.topics if n])
+        store = typestore_with_haptic_msgs()
+        sources = message_definitions()
+        self.context_fg = foxglove.Context()
+        self.channels: list[foxglove.Channel] = []
+        self.topics: list[str] = []
+        readers = []
+        for topic in topics:
+            type_name = common.TOPIC_TYPES[topic]
+            try:
+                cls = message_class(type_name)
+            except (ImportError, AttributeError) as exc:
+                self.get_logger().warn(f'{topic}: {type_name} not importable ({exc}); '
+                                       'not served')
+                continue
+            name = self.resolve_topic_name(topic)
+            schema = foxglove.Schema(name=type_name, encoding=SCHEMA_ENCODING,
+                                     data=schema_text(store, type_name, sources).encode())
+            self.channels.append(foxglove.Channel(name, schema=schema,
+                                                  message_encoding=MESSAGE_ENCODING,
+                                                  context=self.context_fg))
+            self.topics.append(topic)
+            readers.append((name, cls, reader_qos(topic, clock)))
+        try:
+            self.server = foxglove.start_server(name=f'haptic_topology ({s.scenario})',
+                                                host=s.host, port=s.port,
+                                                context=self.context_fg)
+        except RuntimeError as exc:     # the SDK's error for an address in use, ...
+            raise ConfigError(f'foxglove_bridge: cannot serve on {s.host}:{s.port}: '
+                              f'{exc}') from None
+        self.port = int(self.server.port)
+        self.url = f'ws://{s.host}:{self.port}'
+        self.taker = BatchTaker(self, readers)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._forward_loop, name='foxglove-forward',
+                                        daemon=True)
+        self._thread.start()
+        self._open = True
+        self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
+                                              common.QOS_DIAGNOSTICS)
+        self.create_timer(1.0, self._publish_status)
+        self.get_logger().info(f'serving {len(self.channels)} topics on {self.url}')
+
+    def _forward(self, items: list[tuple[int, int, bytes]]) -> None:
+        channels = self.channels
+        wanted = [c.has_sinks() for c in channels]
+        for i, t_ns, data in items:
+            if wanted[i]:
+                channels[i].log(data, log_time=t_ns)
+
+    def _forward_loop(self) -> None:
+        """Thread: every ``forward_period`` take what DDS holds and log it on the channels."""
+        period = self.settings.forward_period
+        while not self._stop.wait(period):
+            self.taker.drain(self._forward)
+
+    def _publish_status(self) -> None:
+        values = {'url': self.url, 'port': str(self.port), 'channels': str(len(self.channels)),
+                  **{f'forwarded {t}': str(n) for t, n in zip(self.topics, self.taker.taken,
+                                                               strict=True)},
+                  **{f'lost {t}': str(n) for t, n in zip(self.topics, self.taker.lost,
+                                                          strict=True) if n}}
+        self.diag_pub.publish(common.diagnostics(self, 'foxglove_bridge: server', values, 0,
+                                                 f'serving on {self.url}'))
+
+    def close(self) -> None:
+        """Stop forwarding and the server; idempotent."""
+        if not getattr(self, '_open', False):
+            return
+        self._open = False
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self.taker.destroy()
+        self.server.stop()
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    return common.run_main('foxglove_bridge', lambda: [FoxgloveBridge()], args,
+                           node_params.KNOWN)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
