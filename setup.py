@@ -18,11 +18,12 @@ setup(
         (f'share/{PACKAGE}/config/linkages', sorted(glob('config/linkages/*.yaml')
                                                      + glob('config/linkages/*.urdf'))),
         (f'share/{PACKAGE}/config/scenarios', sorted(glob('config/scenarios/*.yaml'))),
+        (f'share/{PACKAGE}/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools'],
     zip_safe=False,
-    maintainer='haptic-dev',
-    maintainer_email='dev@haptic.local',
+    maintainer='haptic_topology maintainers',
+    maintainer_email='maintainers@users.noreply.h-seed-de0d75a8.example',
     description='Haptic rendering of topological constraints of serial virtual linkages',
     license='Apache-2.0',
     python_requires='>=3.11',
@@ -33,6 +34,10 @@ setup(
             'lmi_controller = haptic_topology.nodes.lmi_controller:main',
             've_sim = haptic_topology.nodes.ve_sim:main',
             'recorder = haptic_topology.nodes.recorder:main',
+            # the live topics for the Foxglove app (haptic-topology run --foxglove)
+            'foxglove_bridge = haptic_topology.nodes.foxglove_bridge:main',
+            # the four nodes in one process (launch/haptic_lab.launch.py layout:=composed)
+            'composed = haptic_topology.nodes.composed:main',
         ],
     },
 )

@@ -19,6 +19,7 @@ from haptic_topology.bag import analyze as analyze_command
 from haptic_topology.bag import repair as bag_command
 from haptic_topology.bag import replay as replay_command
 from haptic_topology.bringup import run as run_command
+from haptic_topology.device import server_command as device_server_command
 from haptic_topology.errors import HapticTopologyError
 from haptic_topology.sim import command as simulate_command
 
@@ -99,6 +100,9 @@ COMMANDS: tuple[Command, ...] = (
             'controller against a recording', replay_command.add_arguments, replay_command.run),
     Command('analyze', 'drift and loop health of bags and simulate traces: table, plots, '
             'summary.json', analyze_command.add_arguments, analyze_command.run),
+    Command('device-server', "serve the simulated maglev over UDP (the network backend's "
+            'protocol) at its own clock, in this process', device_server_command.add_arguments,
+            device_server_command.run),
     Command('bag', 'bag tools: info, repair (a bag whose recorder was killed)',
             bag_command.add_arguments, bag_command.run),
 )

@@ -1,4 +1,5 @@
-"""Device backends: registry by name, module:Class, the hardware stub, the simulated maglev."""
+"""Device backends: registry by name (built-in, lazily imported built-in, module:Class), the
+simulated maglev."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import numpy as np
 import pytest
 
 from haptic_topology.device.backend import (
+    BUILTIN_BACKENDS,
     BackendConfig,
-    HardwareBackend,
     SimMaglevBackend,
     backend_class,
     create_backend,
@@ -31,8 +32,14 @@ def _config(options: dict[str, object] | None = None) -> BackendConfig:
 
 
 def test_builtin_names_resolve() -> None:
+    """``sim_maglev`` is in the registry; ``ros_topics`` and ``network`` are named there as
+    ``module:Class`` and imported when selected (the ROS one needs rclpy, which the core does
+    not import: test_core_imports.py)."""
     assert backend_class('sim_maglev') is SimMaglevBackend
-    assert backend_class('hardware') is HardwareBackend
+    assert BUILTIN_BACKENDS['ros_topics'] == 'haptic_topology.nodes.topic_backend:RosTopicBackend'
+    for name in ('ros_topics', 'network'):
+        cls = backend_class(name)
+        assert cls.name == name and cls.__module__ == str(BUILTIN_BACKENDS[name]).split(':')[0]
 
 
 def test_module_class_resolves_a_backend_outside_the_package() -> None:
@@ -40,7 +47,9 @@ def test_module_class_resolves_a_backend_outside_the_package() -> None:
 
 
 @pytest.mark.parametrize(('name', 'text'), [
-    ('nope', "backend 'nope': unknown; expected one of hardware, sim_maglev"),
+    ('nope', "backend 'nope': unknown; expected one of network, ros_topics, sim_maglev"),
+    # the placeholder of earlier versions is gone (README: "Bring your own device")
+    ('hardware', "backend 'hardware': unknown; expected one of network, ros_topics, "),
     ('fake_backend:Missing', "module 'fake_backend' has no 'Missing'"),
     ('no_such_module_xyz:Thing', "cannot import module 'no_such_module_xyz'"),
     ('fake_backend:NotABackend', 'is not a subclass of DeviceBackend'),
@@ -48,17 +57,6 @@ def test_module_class_resolves_a_backend_outside_the_package() -> None:
 def test_bad_backend_names_are_refused_with_a_reason(name: str, text: str) -> None:
     with pytest.raises(DeviceError, match=re.escape(text)):
         backend_class(name)
-
-
-def test_hardware_stub_refuses_to_activate_and_says_what_to_implement() -> None:
-    hw = create_backend('hardware')
-    hw.configure(_config())
-    with pytest.raises(DeviceError) as err:
-        hw.activate()
-    msg = str(err.value)
-    for word in ('DeviceBackend', 'configure()', 'write(u)', 'read(dt)', 'deactivate()',
-                 'haptic_topology.device_backends'):
-        assert word in msg
 
 
 def test_sim_maglev_parks_until_engaged_then_follows_eq9() -> None:

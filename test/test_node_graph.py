@@ -273,7 +273,10 @@ def test_live_k_tc_takes_effect_and_bad_values_are_refused(process: str) -> None
 # -- configuration errors -------------------------------------------------------------------
 @pytest.mark.parametrize(('node', 'args', 'text'), [
     ('device_driver', ['-p', 'rate_hz:=5.0'], 'parameter rate_hz'),
-    ('device_driver', ['-p', 'backend:=hardware'], 'backend hardware: no device driver'),
+    ('device_driver', ['-p', 'backend:=ros_topics'],
+     'ros_topics: backend_options.pose_topic: expected a topic name (text), got None'),
+    ('device_driver', ['-p', 'backend:=network', '-p', 'clock:=lockstep'],
+     'backend network: the device runs on its own clock, so clock: lockstep cannot pace it'),
     ('lmi_controller', ['-p', 'scenario:=no_such_scenario'], 'no_such_scenario'),
     ('lmi_controller', ['-p', 'mode:=sideways'], 'parameter mode'),
     ('ve_sim', ['-p', 'update_period:=abc'], 'parameter update_period'),

@@ -18,6 +18,11 @@ timeout each), reads the bag back into a trace and writes ``trace.csv``, ``plot.
 ``summary.json`` next to the bag's files, and prints the drift summary (as ``simulate``) and
 the loop figures. Several ``--mode`` options run one after the other.
 
+``--foxglove [PORT]`` also starts ``foxglove_bridge`` (first; the device starts once it
+serves): the live topics on the Foxglove WebSocket protocol at ``ws://127.0.0.1:PORT``
+(default 8765; ``--foxglove-host`` for another address), for the Foxglove app without a ROS
+install (layout: ``docs/foxglove_layout.json``).
+
 The processes inherit the environment (``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE``).
 Their logs are kept in ``<bag>/logs/``.
 """
@@ -44,6 +49,13 @@ CLOCKS = ('wall', 'lockstep')
 #: Layout -> the processes it starts (node modules), in start order.
 LAYOUTS = {'hosted': ('recorder', 've_sim', 'device_driver'), 'separate': NODES,
            'composed': ('composed',)}
+
+
+#: Default port of ``--foxglove`` (the Foxglove app's default for a WebSocket connection).
+FOXGLOVE_PORT = 8765
+#: The bridge's process name and its ``/diagnostics`` status.
+FOXGLOVE_NODE = 'foxglove_bridge'
+FOXGLOVE_STATUS = 'foxglove_bridge: server'
 
 
 def loop_readers(layout: str) -> dict[tuple[str, str], int]:
@@ -76,6 +88,21 @@ class _Proc:
     handle: IO[bytes]
 
 
+def node_prefixes(items: list[str], layout: str) -> dict[str, list[str]]:
+    """``--node-prefix NODE=COMMAND`` values -> ``{NODE: argv}`` (NODE a process of
+    ``layout``; COMMAND split as a shell would, e.g. ``ip netns exec ht_ve``)."""
+    import shlex
+
+    out: dict[str, list[str]] = {}
+    for item in items:
+        node, sep, command = item.partition('=')
+        if not sep or node not in LAYOUTS.get(layout, ()) or not shlex.split(command):
+            raise ConfigError(f'--node-prefix: expected NODE=COMMAND with NODE one of '
+                              f'{", ".join(LAYOUTS.get(layout, ()))}, got {item!r}')
+        out[node] = shlex.split(command)
+    return out
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('scenario', help='scenario name (fig6, fig8) or a scenario YAML file')
     parser.add_argument('--mode', action='append', choices=('penalty', 'acceleration_only'),
@@ -99,6 +126,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--startup-timeout', type=float, default=30.0,
                         help='seconds to wait for the loop to close (default 30)')
     parser.add_argument('--no-plot', action='store_true', help='skip plot.png')
+    parser.add_argument('--node-prefix', action='append', default=[], metavar='NODE=COMMAND',
+                        help='start process NODE of the layout with COMMAND before its command '
+                        "line, e.g. 've_sim=ip netns exec ht_ve' (the VE on another network "
+                        'namespace: scripts/two_hosts.sh); repeatable')
+    parser.add_argument('--foxglove', type=int, nargs='?', const=FOXGLOVE_PORT, metavar='PORT',
+                        help='also serve the live topics to the Foxglove app on the Foxglove '
+                        f'WebSocket protocol (foxglove_bridge), on PORT (default {FOXGLOVE_PORT})'
+                        '; layout: docs/foxglove_layout.json')
+    parser.add_argument('--foxglove-host', default='127.0.0.1', metavar='HOST',
+                        help='address the Foxglove server listens on (default 127.0.0.1; '
+                        '0.0.0.0 for an app on another machine)')
 
 
 def _read(path: Path) -> str:
@@ -159,14 +197,20 @@ def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
 def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path,
               layout: str = 'hosted', backend: str | None = None,
               startup_timeout: float = 30.0, clock: str = 'wall',
-              domain_id: int | None = None) -> dict[str, int]:
+              domain_id: int | None = None,
+              foxglove: tuple[str, int] | None = None,
+              node_prefix: dict[str, list[str]] | None = None) -> dict[str, int]:
     """Run the graph once in ``layout`` (a key of :data:`LAYOUTS`), recording to ``bag``;
     return the processes' exit codes.
 
     ``device_driver`` runs the loop for ``duration`` s from engagement (simulated seconds with
     ``clock='lockstep'``) and then deactivates itself; the run is over when its lifecycle
     state is ``inactive``. ``domain_id``: run in this ROS domain instead of the
-    environment's (several graphs at once on one machine).
+    environment's (several graphs at once on one machine). ``foxglove``: ``(host, port)``
+    to also start ``foxglove_bridge`` there (first, so a connected app sees the whole run;
+    the device starts once it serves).
+    ``node_prefix``: process name -> argv put before its command (``--node-prefix``: e.g.
+    ``ip netns exec ht_ve`` for ``ve_sim``, which then keeps its pid and gets the signals).
     """
     from haptic_topology.bringup.watch import GraphWatcher, WaitTimeout
     from haptic_topology.nodes.common import TOPIC_STATE
@@ -202,11 +246,23 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
         env = {} if domain_id is None else {'ROS_DOMAIN_ID': str(domain_id)}
         with GraphWatcher('haptic_bringup', alive, domain_id=domain_id) as watch:
             py = [sys.executable, '-m']
+            if foxglove is not None:
+                host, port = foxglove
+                procs.append(_start(FOXGLOVE_NODE, py + [f'haptic_topology.nodes.{FOXGLOVE_NODE}']
+                                    + ros + ['-p', f'{FOXGLOVE_NODE}:host:={host}',
+                                             '-p', f'{FOXGLOVE_NODE}:port:={int(port)}'],
+                                    log_dir, env))
             for name in LAYOUTS[layout]:
                 argv = py + [f'haptic_topology.nodes.{name}'] + ros
                 if name == 'device_driver':
                     argv += ['-p', 'device_driver:autostart:=false']
+                argv = [*(node_prefix or {}).get(name, ()), *argv]   # --node-prefix
                 procs.append(_start(name, argv, log_dir, env))
+            if foxglove is not None:
+                watch.wait(lambda: FOXGLOVE_STATUS in watch.status, startup_timeout,
+                           'foxglove_bridge serving')
+                print(f'foxglove: {watch.status[FOXGLOVE_STATUS].get("url")} (Foxglove app: '
+                      'Open connection, Foxglove WebSocket)', flush=True)
             if not composed:
                 # As a lifecycle manager: the loop starts with the device, only once the
                 # recorder is matched to the controller's and the VE's publishers (discovery
@@ -256,6 +312,9 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
 
 def run(args: argparse.Namespace) -> int:
     """The ``run`` subcommand (see module doc)."""
+    from haptic_topology.msgs_package import require_msgs_package
+
+    require_msgs_package()      # before anything starts: one line if the messages are missing
     from haptic_topology.bag.graph_trace import format_loop, read_graph_bag
     from haptic_topology.paths import config_dir
     from haptic_topology.sim.scenario import load_scenario
@@ -281,7 +340,10 @@ def run(args: argparse.Namespace) -> int:
         print(f'running {sc.name} ({mode}) for {duration:g} s, {layout} layout ...',
               flush=True)
         run_graph(scenario_ref, mode, duration, bag, params, layout, args.backend,
-                  args.startup_timeout, args.clock)
+                  args.startup_timeout, args.clock,
+                  foxglove=None if args.foxglove is None else (args.foxglove_host,
+                                                               args.foxglove),
+                  node_prefix=node_prefixes(args.node_prefix, layout))
         result = read_graph_bag(bag, sc.name, sc.linkage.dof, task_dim=sc.linkage.task.dim)
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')

@@ -10,13 +10,32 @@ all ROS I/O; a backend does no ROS.
 
 Backends are selected by name (the ``backend`` parameter of ``device_driver``):
 
-* a built-in name: ``sim_maglev`` (:class:`SimMaglevBackend`), ``hardware``
-  (:class:`HardwareBackend`, a stub that explains what to implement);
+* a built-in name (:data:`BUILTIN_BACKENDS`): ``sim_maglev`` (:class:`SimMaglevBackend`),
+  ``ros_topics`` (:class:`~haptic_topology.nodes.topic_backend.RosTopicBackend`: a device with
+  a ROS 2 driver, read from ``PoseStamped``/``TwistStamped`` and commanded with
+  ``WrenchStamped``), ``network`` (:class:`~haptic_topology.device.network.NetworkBackend`: a
+  device controller on another computer, over UDP). The last two are imported only when
+  selected (the ROS one needs rclpy, which the core never imports);
 * ``package.module:ClassName``: any importable subclass of :class:`DeviceBackend`;
 * a name registered by an installed distribution in the entry point group
-  ``haptic_topology.device_backends`` (``name = package.module:ClassName``).
+  ``haptic_topology.device_backends`` (``name = package.module:ClassName``; a complete
+  example distribution is ``examples/my_device_backend``).
 
-So a new device is one class, and nothing else in the graph changes.
+So a new device is one class, and nothing else in the graph changes. What every backend
+must do (clamped wrenches only reach the device, a non-finite wrench never does, zero on
+``deactivate``, ``deactivate`` twice is harmless, ``activate`` again after it works, a fault
+of the device is a status bit) is checked for each backend by the same tests
+(``test/backend_conformance.py``).
+
+**Faults.** A backend reports a fault of its device (amplifier fault, lost encoder, an
+emergency stop pressed on the device, ...) by setting :attr:`DeviceStatus.FAULT` in the status
+of what :meth:`~DeviceBackend.read` (or ``idle``) returns, for as long as the fault lasts, and
+says why through :meth:`~DeviceBackend.fault_reason`. The driver then writes a zero wrench from
+the next cycle on until a reading comes without the bit, and fades the output back in over
+the watchdog ramp after it (:class:`~haptic_topology.device.loop.DeviceLoop`); the states carry
+``STATUS_FAULT`` and ``/diagnostics`` is at ERROR with the reason and
+:attr:`~DeviceBackend.hardware_id`. The wrench of the cycle in which the fault is first read
+was written before the read: a device that faults must not apply force by itself.
 """
 
 from __future__ import annotations
@@ -32,6 +51,7 @@ import numpy as np
 from haptic_topology.device.maglev import DeviceParams, DeviceStatus, MaglevModel, PositionSensor
 from haptic_topology.device.users import UserModel, user_from_config
 from haptic_topology.errors import DeviceError
+from haptic_topology.model.linkage import TaskSpace
 
 #: Entry point group through which other distributions can add backends.
 ENTRY_POINT_GROUP = 'haptic_topology.device_backends'
@@ -53,9 +73,16 @@ class BackendConfig:
     source: str = ''
 
 
+#: Task dimension -> its name in :attr:`DeviceBackend.hardware_id` (3 planar, 6 spatial).
+_TASK_NAMES = {t.dim: t.value for t in TaskSpace}
+
+
 @dataclass(frozen=True)
 class DeviceReading:
-    """One sample of the device: pose, twist, measured hand wrench ``F_h``, status bits."""
+    """One sample of the device: pose, twist, measured hand wrench ``F_h`` (task vectors, units
+    of :mod:`haptic_topology.device.maglev`), status bits. ``status`` may carry
+    ``WORKSPACE_LIMIT``, ``SATURATED`` and ``FAULT`` (the device reports a fault, see the
+    module doc); the driver adds ``WATCHDOG`` and ``IDLE`` itself."""
 
     pose: np.ndarray
     twist: np.ndarray
@@ -66,14 +93,20 @@ class DeviceReading:
 class DeviceBackend(ABC):
     """A haptic device as seen by ``device_driver`` (one instance per driver).
 
-    Lifecycle: ``configure`` once, then ``activate``; the driver then calls ``write(u)`` and
-    ``read(dt)`` once per cycle (or ``idle(dt)`` while no controller has engaged), and
-    ``deactivate`` on shutdown (also after a failed ``activate``). Errors are raised as
-    :class:`~haptic_topology.errors.DeviceError` with a message for the operator.
+    Lifecycle (ros2_control's): ``configure`` once, then ``activate``; the driver then calls
+    ``write(u)`` and ``read(dt)`` once per cycle (or ``idle(dt)`` while no controller has
+    engaged), ``deactivate`` (also after a failed ``activate``; ``activate`` may follow), and
+    ``cleanup`` on the lifecycle cleanup and at shutdown. Errors are raised as
+    :class:`~haptic_topology.errors.DeviceError` with a message for the operator; a fault the
+    device reports while running is a status bit instead (module doc, "Faults").
     """
 
-    #: Name used in logs and diagnostics.
+    #: Name used in logs and diagnostics (the ``backend`` parameter's built-in name).
     name: ClassVar[str] = 'backend'
+    #: Whether the device can follow the driver's simulated clock (``clock: lockstep``): it
+    #: advances only when read, by the ``dt`` it is given. False for a device that runs on its
+    #: own clock (a real one, a remote server): the driver refuses lock-step with it.
+    lockstep: ClassVar[bool] = True
 
     @abstractmethod
     def configure(self, config: BackendConfig) -> None:
@@ -95,6 +128,13 @@ class DeviceBackend(ABC):
     def read(self, dt: float) -> DeviceReading:
         """The device state ``dt`` s (measured) after the previous read."""
 
+    def cleanup(self) -> None:
+        """Release what ``configure`` and ``activate`` acquired and ``deactivate`` kept (a
+        connection, a ROS node): the driver's lifecycle cleanup and its shutdown, always after
+        ``deactivate``. Default: nothing to release. Safe to call more than once; a
+        ``configure`` may follow."""
+        return None
+
     def idle(self, dt: float) -> DeviceReading:
         """A cycle before any controller engaged: zero wrench. Simulations may park instead."""
         self.write(np.zeros(self.task_dim()))
@@ -103,6 +143,32 @@ class DeviceBackend(ABC):
     def task_dim(self) -> int:
         """m of the task vectors (3 planar, 6 spatial); valid after ``configure``."""
         raise DeviceError(f'{type(self).__name__} does not implement task_dim()')
+
+    @property
+    def hardware_id(self) -> str:
+        """The device this backend drives, as ``DiagnosticStatus.hardware_id`` of the driver's
+        diagnostics: ``'<name> <planar|spatial>'`` once configured (e.g. ``'sim_maglev
+        planar'``), ``'<name>'`` before. A backend of a real device overrides it with what
+        identifies the unit (model and serial number, port or address). Read from the
+        diagnostics thread at 1 Hz, never in the device cycle: return text, do no I/O."""
+        try:
+            dim = self.task_dim()
+        except DeviceError:
+            return self.name
+        return f'{self.name} {_TASK_NAMES.get(dim, f"{dim}-dof")}'
+
+    def values(self) -> dict[str, str]:
+        """The backend's own figures (counters, link round trip) as diagnostics key/values,
+        added to the driver's status. Called from the diagnostics thread at 1 Hz, never in the
+        device cycle: return what ``read``/``write`` counted, do no I/O. Default: none."""
+        return {}
+
+    def fault_reason(self) -> str:
+        """Why the newest reading carries :attr:`DeviceStatus.FAULT`, for the operator (the
+        diagnostics message at ERROR). Called from the diagnostics thread at 1 Hz while a fault
+        is active, never in the device cycle: return text kept by ``read``, do no I/O. Default:
+        a generic text; a backend that knows the cause overrides it."""
+        return f'{self.name}: the device reports a fault'
 
 
 class SimMaglevBackend(DeviceBackend):
@@ -127,6 +193,7 @@ class SimMaglevBackend(DeviceBackend):
         self._f_h = np.zeros(0)
         self._t = 0.0
         self._active = False
+        self._applied = np.zeros(0)     # the newest step's saturated wrench; 0 while parked
 
     def configure(self, config: BackendConfig) -> None:
         if config.options:
@@ -139,6 +206,7 @@ class SimMaglevBackend(DeviceBackend):
                                       self._model.pose)
         m = p.task.dim
         self._u = np.zeros(m)
+        self._applied = np.zeros(m)
         self._t = 0.0
         self._f_h = self._user.wrench(0.0, self._model.pose, self._model.twist)
 
@@ -159,10 +227,12 @@ class SimMaglevBackend(DeviceBackend):
     def activate(self) -> None:
         self._require()
         self._active = True
+        self._applied = np.zeros_like(self._u)
 
     def deactivate(self) -> None:
         self._active = False
         self._u = np.zeros_like(self._u)
+        self._applied = np.zeros_like(self._u)
 
     def write(self, wrench: np.ndarray) -> None:
         self._u = np.array(wrench, dtype=float)
@@ -172,50 +242,30 @@ class SimMaglevBackend(DeviceBackend):
         if not self._active:
             raise DeviceError(f'{self.name}: read() before activate()')
         status = model.step(self._u, self._f_h, dt)
+        self._applied = model.applied
         self._t += dt
         self._f_h = user.wrench(self._t, model.pose, model.twist)
         return self._reading(dt, status)
 
     def idle(self, dt: float) -> DeviceReading:
+        if self._applied.any():
+            self._applied = np.zeros_like(self._applied)
         return self._reading(dt)
 
-
-class HardwareBackend(DeviceBackend):
-    """Placeholder for a real device; refuses to activate and says what to implement."""
-
-    name = 'hardware'
-
-    def configure(self, config: BackendConfig) -> None:
-        self._m = config.params.task.dim
-
-    def task_dim(self) -> int:
-        return self._m
-
-    def activate(self) -> None:
-        raise DeviceError(
-            'backend hardware: no device driver is implemented in this package. To drive a '
-            'real device, write a subclass of haptic_topology.device.backend.DeviceBackend '
-            'implementing configure() (open/validate your connection from backend_options), '
-            'activate() (enable the output), write(u) (send the wrench, N and N m, task frame), '
-            'read(dt) (return pose, twist and measured hand wrench as DeviceReading) and '
-            'deactivate() (zero the output), then select it with the parameter '
-            "backend:='your.module:YourBackend' or register it in the entry point group "
-            f'{ENTRY_POINT_GROUP}.')
-
-    def deactivate(self) -> None:
-        pass
-
-    def write(self, wrench: np.ndarray) -> None:
-        raise DeviceError('backend hardware: not implemented (see activate())')
-
-    def read(self, dt: float) -> DeviceReading:
-        raise DeviceError('backend hardware: not implemented (see activate())')
+    @property
+    def applied(self) -> np.ndarray:
+        """The wrench the simulated device applies (N, N m, after its own saturation): that of
+        its newest step, zero while parked (``idle``) and once deactivated. What a test sees
+        reach the device."""
+        return self._applied.copy()
 
 
-#: Built-in backends by name.
-BUILTIN_BACKENDS: dict[str, type[DeviceBackend]] = {
+#: Built-in backends by name: the class, or ``'module:Class'`` of one imported only when it
+#: is selected (so that importing this module imports neither rclpy nor sockets' users).
+BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
     SimMaglevBackend.name: SimMaglevBackend,
-    HardwareBackend.name: HardwareBackend,
+    'ros_topics': 'haptic_topology.nodes.topic_backend:RosTopicBackend',
+    'network': 'haptic_topology.device.network:NetworkBackend',
 }
 
 
@@ -247,6 +297,8 @@ def backend_class(name: str) -> type[DeviceBackend]:
     """Resolve a backend name (built-in, ``module:Class`` or entry point; see module doc)."""
     if name in BUILTIN_BACKENDS:
         cls: Any = BUILTIN_BACKENDS[name]
+        if isinstance(cls, str):
+            cls = _import_class(cls)
     elif ':' in name:
         cls = _import_class(name)
     else:

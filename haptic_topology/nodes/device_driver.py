@@ -1,15 +1,16 @@
 """``device_driver``: the device side of the haptic loop, a lifecycle node (ROS I/O only).
 
 The loop policy is :class:`~haptic_topology.device.loop.DeviceLoop` (engagement, clamp ->
-watchdog -> clamp, statistics); this node converts messages, keeps the clock and publishes
-diagnostics. Lifecycle, as a ros2_control hardware component: configure ->
-``backend.configure``; activate -> ``backend.activate`` and the loop starts (idle until a
-controller engages); deactivate -> zero output, ``backend.deactivate``. With ``autostart``
-(default) the node configures and activates itself; a failing transition ends the process
-with one line naming the cause. After ``run_duration`` seconds of engaged loop (simulated
-seconds in lock-step) the node deactivates itself (measured on the states' stamps: wall
-time since the first engaged state, or simulated time in lock-step): tools see the run end as
-the lifecycle state ``inactive``.
+watchdog -> clamp, statistics, device faults); this node converts messages, keeps the clock
+and publishes diagnostics (``hardware_id``: the backend and its device, e.g. ``sim_maglev
+planar``; ERROR while the device reports a fault or after a failed transition). Lifecycle,
+as a ros2_control hardware component: configure -> ``backend.configure``; activate ->
+``backend.activate`` and the loop starts (idle until a controller engages); deactivate ->
+zero output, ``backend.deactivate``. With ``autostart`` (default) the node configures and
+activates itself; a failing transition ends the process with one line naming the cause.
+After ``run_duration`` seconds of engaged loop (simulated seconds in lock-step) the node
+deactivates itself (measured on the states' stamps: wall time since the first engaged state,
+or simulated time in lock-step): tools see the run end as the lifecycle state ``inactive``.
 
 Clocks (parameter ``clock``):
 
@@ -46,9 +47,10 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from haptic_topology.device.backend import DeviceBackend, create_backend, zero_and_release
-from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report
+from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, hardware_id
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
+from haptic_topology.frames import DEVICE_BASE
 from haptic_topology.nodes import common, node_params
 from haptic_topology.nodes.convert import RejectCounter, ns_to_stamp, state_msg
 from haptic_topology.nodes.hosting import HostedLoop, driver_layout
@@ -78,6 +80,7 @@ class DeviceDriver(LifecycleNode):
         self.states_sent = 0
         self._active = False          # between activate and deactivate
         self._msg, self._clock_msg = DeviceState(), ClockMsg()
+        self._msg.header.frame_id = DEVICE_BASE   # set once: the message is reused
         # Real-time settings go to the loop thread when hosting (run_main leaves the rest).
         self.process_sched_priority = 0 if s.host_controller else s.sched_priority
         qos = common.loop_qos(self.cfg.clock)
@@ -106,12 +109,19 @@ class DeviceDriver(LifecycleNode):
         c = self.cfg
         try:
             self.backend = create_backend(c.backend)
+            if self.lockstep and not self.backend.lockstep:
+                raise DeviceError(
+                    f'backend {c.backend}: the device runs on its own clock, so clock: '
+                    f'lockstep cannot pace it (expected clock: wall, or a backend that '
+                    f'advances only when read, such as sim_maglev)')
             self.backend.configure(c.backend_config())
             self.loop = DeviceLoop(self.backend, c.wrench_limit,
                                    CommandWatchdog(c.watchdog, c.task_dim), c.period,
                                    c.takeover_after)
             self.layout = driver_layout(self, self.hosted)
         except HapticTopologyError as exc:
+            # Not configured: diagnostics report the backend parameter, not a half-made backend.
+            self.loop = self.backend = None
             return self.fail(str(exc))
         return SUCCESS
 
@@ -139,6 +149,8 @@ class DeviceDriver(LifecycleNode):
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         if self.layout is not None:
             self.layout.close()
+        if self.backend is not None:
+            self.backend.cleanup()
         self.loop = self.backend = self.layout = None
         return SUCCESS
 
@@ -193,8 +205,9 @@ class DeviceDriver(LifecycleNode):
                   'loop_running': str(layout is not None and layout.running).lower(),
                   f'sent {common.TOPIC_STATE}': str(self.states_sent),
                   **self.rejected.values(), **common.matched(self._endpoints), **loop_values}
-        self.diag_pub.publish(common.diagnostics(self, 'device_driver: loop', values, level,
-                                                 message))
+        self.diag_pub.publish(common.diagnostics(
+            self, 'device_driver: loop', values, level, message,
+            hardware_id(self.backend, self.cfg.backend)))
 
     def close(self) -> None:
         """Zero and release the device (called on shutdown)."""
@@ -202,6 +215,8 @@ class DeviceDriver(LifecycleNode):
             self._stop_output()
         if self.layout is not None:
             self.layout.close()
+        if self.backend is not None:
+            self.backend.cleanup()
 
 
 def build() -> list[Any]:

@@ -81,10 +81,14 @@ class SeparateLoop:
         self._emit(out.emitted)
 
     def _tick_wall(self) -> None:
+        if not self._timers:      # a tick the executor had queued before stop(): the device
+            return                # is zeroed and released, it must not be written again
         self._emit(self.stepper.wall_tick(common.monotonic(),
                                           self.driver.get_clock().now().nanoseconds))
 
     def _tick_idle(self) -> None:
+        if not self._timers:
+            return
         self._emit(self.stepper.idle_tick(common.monotonic()))
 
     def _warn_stalled(self) -> None:

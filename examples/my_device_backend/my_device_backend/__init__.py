@@ -1,0 +1,120 @@
+"""A complete, minimal device backend for haptic_topology, in a distribution of its own.
+
+:class:`SpringBackend` stands in for a real device: a handle of mass ``mass`` on a spring of
+``stiffness`` and a damper ``damping`` around where it started, on every task axis, with an
+amplifier that saturates at ``max_force``. Replace the three marked places (open/enable,
+send, receive) with your device's API and keep the rest: option checks that name the field,
+a finite and saturated output, zero on ``deactivate``, a fault reported as a status bit.
+
+It is registered by ``pyproject.toml`` in the entry point group
+``haptic_topology.device_backends`` as ``my_spring``, so ``backend: my_spring`` selects it.
+haptic_topology's tests install this directory and run it through the same conformance checks
+as the built-in backends (``test/test_device_conformance.py``).
+
+Options (``backend_options``; all optional): ``mass`` (kg, > 0, default 0.2), ``stiffness``
+(N/m per axis, >= 0, default 50), ``damping`` (N s/m, >= 0, default 2), ``max_force`` (N,
+> 0, default 10: the amplifier's limit), ``travel`` (m, > 0, default 0.05: farther than this
+from the start on an axis, the device reports a fault until it is back).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
+from haptic_topology.device.maglev import DeviceStatus
+from haptic_topology.errors import DeviceError
+
+DEFAULTS = {'mass': 0.2, 'stiffness': 50.0, 'damping': 2.0, 'max_force': 10.0,
+            'travel': 0.05}
+
+
+def _option(options: dict[str, Any], key: str, positive: bool) -> float:
+    value = options.get(key, DEFAULTS[key])
+    ok = (isinstance(value, int | float) and not isinstance(value, bool)
+          and math.isfinite(value) and (value > 0.0 if positive else value >= 0.0))
+    if not ok:
+        raise DeviceError(f'my_spring: backend_options.{key}: expected a number '
+                          f'{"> 0" if positive else ">= 0"}, got {value!r}')
+    return float(value)
+
+
+class SpringBackend(DeviceBackend):
+    """A simulated spring-loaded handle (module doc)."""
+
+    name = 'my_spring'
+
+    def __init__(self) -> None:
+        self._x0 = np.zeros(0)
+        self._x = np.zeros(0)
+        self._v = np.zeros(0)
+        self._u = np.zeros(0)
+        self.applied = np.zeros(0)      # what the amplifier output in the newest step
+        self._active = False
+        self._reason = ''
+
+    def configure(self, config: BackendConfig) -> None:
+        unknown = sorted(set(config.options) - set(DEFAULTS))
+        if unknown:
+            raise DeviceError(f'my_spring: backend_options: unknown option {unknown[0]!r} '
+                              f'(expected some of: {", ".join(sorted(DEFAULTS))})')
+        opts = dict(config.options)
+        self.mass = _option(opts, 'mass', True)
+        self.stiffness = _option(opts, 'stiffness', False)
+        self.damping = _option(opts, 'damping', False)
+        self.max_force = _option(opts, 'max_force', True)
+        self.travel = _option(opts, 'travel', True)
+        self._x0 = np.array(config.initial_pose, dtype=float)
+        self._x = self._x0.copy()
+        self._v = np.zeros_like(self._x0)
+        self._u = np.zeros_like(self._x0)
+        self.applied = np.zeros_like(self._x0)
+
+    def task_dim(self) -> int:
+        if not self._x0.size:
+            raise DeviceError('my_spring: used before configure()')
+        return int(self._x0.size)
+
+    @property
+    def hardware_id(self) -> str:
+        return f'{super().hardware_id} (simulated spring, {self.stiffness:g} N/m)' \
+            if self._x0.size else super().hardware_id
+
+    def activate(self) -> None:
+        self.task_dim()
+        self._active = True           # <- open the device, enable the amplifiers
+
+    def deactivate(self) -> None:
+        self._u = np.zeros_like(self._u)
+        self.applied = np.zeros_like(self._u)   # <- send zero, disable the amplifiers
+        self._active = False
+
+    def write(self, wrench: np.ndarray) -> None:
+        if not self._active:
+            raise DeviceError('my_spring: write() before activate()')
+        u = np.asarray(wrench, dtype=float)
+        # Never a non-finite or out-of-range value to the amplifier (the driver clamps to
+        # its limits before; this is the device's own saturation).
+        self._u = np.clip(np.where(np.isfinite(u), u, 0.0), -self.max_force, self.max_force)
+
+    def read(self, dt: float) -> DeviceReading:
+        if not self._active:
+            raise DeviceError('my_spring: read() before activate()')
+        # <- on a real device: send self._u, receive pose and twist
+        self.applied = self._u.copy()
+        spring = -self.stiffness * (self._x - self._x0) - self.damping * self._v
+        self._v = self._v + (self.applied + spring) / self.mass * dt
+        self._x = self._x + self._v * dt
+        out = np.abs(self._x - self._x0) > self.travel
+        status = DeviceStatus.OK
+        if out.any():
+            status = DeviceStatus.FAULT
+            self._reason = (f'my_spring: out of travel on axis {int(np.argmax(out))} '
+                            f'(> {self.travel:g} m from the start)')
+        return DeviceReading(self._x.copy(), self._v.copy(), np.zeros_like(self._x), status)
+
+    def fault_reason(self) -> str:
+        return self._reason or super().fault_reason()
