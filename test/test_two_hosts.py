@@ -171,6 +171,48 @@ def test_ve_in_another_namespace_behind_a_delayed_link(prefix: str, tmp_path: Pa
         assert link['stage'] == 'netem' and link['delay_ms'] == 5
 
 
+@pytest.mark.graph
+@pytest.mark.timeout(240)
+def test_device_server_in_another_namespace_behind_a_lossy_link(prefix: str,
+                                                                tmp_path: Path) -> None:
+    """The network backend across the namespace pair (issue 15, item 2): the device server in
+    the far namespace behind 1 ms +-20 % with 1 % frame loss, the graph in the near one."""
+    from haptic_topology.sim.scenario import load_scenario
+    from haptic_topology.sim.trace import Trace
+
+    bag = tmp_path / 'bag'
+    env = dict(os.environ, HT_PREFIX=prefix, HT_STATE=str(tmp_path / 'state'), OUT=str(bag),
+               HT_LOSS='0.01')
+    done = subprocess.run(['bash', str(SCRIPT), 'run-device', 'fig8', '1', '--duration', '2',
+                           '--no-plot'], env=env, cwd=REPO, capture_output=True, text=True,
+                          timeout=200)
+    assert not {ns for ns in _namespaces() if ns.startswith(prefix)}, 'namespaces left'
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+
+    # The loop ran through the remote device; what it applied is finite and within limits.
+    assert json.loads((bag / 'summary.json').read_text())['samples'] > 0
+    trace = Trace.from_csv(bag / 'trace.csv')
+    applied = trace.columns['applied']
+    limit = np.asarray(load_scenario('fig8').device.wrench_limit)
+    assert np.all(np.isfinite(applied))
+    assert np.all(np.abs(applied) <= limit + 1e-9)
+
+    # The server took the driver's commands across the link, none of them malformed, and
+    # answered with states; one client session.
+    server = json.loads((bag / 'device_server.json').read_text())
+    assert server['commands'] > 0 and server['states_sent'] > 0
+    assert server['malformed'] == 0 and server['client_sessions'] == 1
+
+    link = json.loads((bag / 'link.json').read_text())
+    if link['stage'] == 'delay_bridge':
+        for d in link['directions'].values():      # commands one way, states the other
+            assert d['forwarded'] > 0
+            drawn = d['drawn_delay_ms']
+            assert 0.8 <= drawn['min'] and drawn['max'] <= 1.2    # 1 ms +-20 %
+    else:
+        assert link['stage'] == 'netem' and link['delay_ms'] == 1
+
+
 def test_without_root_every_command_is_skipped_in_one_line(tmp_path: Path) -> None:
     if os.geteuid() != 0:
         argv = ['bash', str(SCRIPT), 'up', '5']
