@@ -228,16 +228,26 @@ def check_clamping(bench: Bench, cycles: int = 600, seed: int = 15) -> None:
     bench.engage()
     for _ in range(cycles):
         bench.cycle(rng.uniform(-3.0, 3.0, bench.m) * bench.limit)
+    # Last, a command beyond the limit on every axis, repeated (a device on its own clock
+    # may take only some of the commands of a busy machine, and a best-effort sample may be
+    # lost), until the device holds its clamped value: so the device did get clamped
+    # commands, whatever the machine's load.
+    beyond = 3.0 * bench.limit * np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])[:bench.m]
+    mark = time.monotonic_ns()
+    for _ in range(20):
+        bench.cycle(beyond)
+    bench.settle(np.array(bench.written[-1]), mark)
     bench.release()
     written = np.array(bench.written)
     _finite_within(written, bench.limit, 'written')
     assert bench.loop.saturated_cycles > cycles // 2       # the clamp did act
+    np.testing.assert_array_equal(np.abs(written[-1]), bench.limit)
     assert np.all(np.isfinite(np.array(bench.readings))), 'a reading is not finite'
     _, dev = bench.device.log()
     _finite_within(dev, bench.limit, 'device')
     _rows_among(dev, np.vstack([written, np.zeros(bench.m)]), bench.limit)
-    at_limit = np.isclose(np.abs(dev), bench.limit, rtol=ROUND_TRIP, atol=0.0)
-    assert at_limit.sum() > cycles // 4, 'the device hardly got the clamped commands'
+    at_limit = np.isclose(np.abs(dev), bench.limit, rtol=ROUND_TRIP, atol=0.0).all(axis=1)
+    assert at_limit.any(), 'the device never got the clamped command'
 
 
 def check_nonfinite(bench: Bench) -> None:
