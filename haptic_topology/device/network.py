@@ -75,7 +75,6 @@ from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceR
 from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.device.protocol import (
     DEFAULT_PORT,
-    Arrival,
     CommandFlags,
     Malformed,
     MalformedCounts,
@@ -408,15 +407,12 @@ class NetworkBackend(DeviceBackend):
             assert isinstance(st, State)
             now_ns = self._clock_ns()
             now = now_ns * 1e-9
-            verdict = self._follower.check(st.session, now)
-            if verdict is SessionVerdict.FOREIGN or verdict is SessionVerdict.ENDED:
+            verdict = self._follower.take(st.session, st.seq, now)
+            if verdict is None:
                 continue
             if verdict is SessionVerdict.NEW:
                 self.server_session = st.session
                 self._rtt_seq = 0
-            if self._follower.tracker.arrive(st.seq) is not Arrival.NEW:
-                continue
-            self._follower.heard_from(now)
             self._state = st
             self._state_ns = now_ns
             if st.echo_stamp_ns and st.echo_seq > self._rtt_seq:

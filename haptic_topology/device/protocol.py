@@ -477,6 +477,19 @@ class SessionFollower:
         """A packet of the followed session was taken at ``now`` (s)."""
         self.heard = now
 
+    def take(self, session: int, seq: int, now: float) -> SessionVerdict | None:
+        """Whether a valid packet (``session``, ``seq``) arrived at ``now`` (s) is taken:
+        :meth:`check`, then the session's :class:`SeqTracker` (only a seq newer than every
+        one taken); ``CURRENT`` or ``NEW`` (a new session followed: the receiver resets what
+        it held of the old one) when taken, None when refused (counted)."""
+        verdict = self.check(session, now)
+        if verdict is SessionVerdict.FOREIGN or verdict is SessionVerdict.ENDED:
+            return None
+        if self.tracker.arrive(seq) is not Arrival.NEW:   # a new session's first is NEW
+            return None
+        self.heard = now
+        return verdict
+
     def end(self) -> None:
         """The followed session ended (released): forget it, refuse its packets from now."""
         if self.session:

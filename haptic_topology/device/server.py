@@ -56,7 +56,6 @@ from haptic_topology.device.maglev import DeviceStatus, saturate
 from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.device.protocol import (
     DEFAULT_PORT,
-    Arrival,
     Command,
     CommandFlags,
     MalformedCounts,
@@ -302,14 +301,11 @@ class DeviceServer:
                 self.malformed.add(err)
                 continue
             assert isinstance(cmd, Command)
-            verdict = follower.check(cmd.session, now)
-            if verdict is SessionVerdict.FOREIGN or verdict is SessionVerdict.ENDED:
+            verdict = follower.take(cmd.session, cmd.seq, now)
+            if verdict is None:
                 continue
             if verdict is SessionVerdict.NEW:
                 self._cmd = None          # nothing of the previous client applies
-            if follower.tracker.arrive(cmd.seq) is not Arrival.NEW:
-                continue
-            follower.heard_from(now)
             self._client = addr
             if cmd.flags & _RELEASE:
                 self.releases += 1
