@@ -19,6 +19,7 @@ import secrets
 import shutil
 import subprocess
 import sys
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -213,12 +214,21 @@ def test_device_server_in_another_namespace_behind_a_lossy_link(prefix: str,
         assert link['stage'] == 'netem' and link['delay_ms'] == 1
 
 
-def test_without_root_every_command_is_skipped_in_one_line(tmp_path: Path) -> None:
+def test_without_root_every_command_is_skipped_in_one_line(
+        tmp_path: Path, request: pytest.FixtureRequest) -> None:
     if os.geteuid() != 0:
         argv = ['bash', str(SCRIPT), 'up', '5']
     elif shutil.which('setpriv'):
+        # The checkout may sit in a directory only root can enter (a clone under mktemp -d):
+        # the unprivileged user runs a copy of the script from a directory it can read.
+        readable = Path(tempfile.mkdtemp(prefix='ht_two_hosts_'))
+        readable.chmod(0o755)
+        request.addfinalizer(lambda: shutil.rmtree(readable, ignore_errors=True))
+        script = readable / 'two_hosts.sh'
+        shutil.copy(SCRIPT, script)
+        script.chmod(0o644)
         argv = ['setpriv', '--reuid=65534', '--regid=65534', '--clear-groups',
-                'bash', str(SCRIPT), 'up', '5']
+                'bash', str(script), 'up', '5']
     else:
         pytest.skip('root without setpriv: cannot drop privileges to try')
     done = subprocess.run(argv, capture_output=True, text=True, cwd='/',
