@@ -1,7 +1,8 @@
 """Contacts with the URDF's collision geometry (issue 13 item 1): spheres and capsules read from
-``<collision>`` (merged fixed links included) are the links' contact shapes, exactly; other
-primitives are refused unless the scenario says what to do; the ``table`` scenario (6-D, URDF
-shapes) stops the tool on the table.
+``<collision>`` (merged fixed links included) are the links' contact shapes, exactly;
+meshes are refused unless the scenario says what to do (boxes and cylinders:
+``test_core_contacts_solids``); the ``table`` scenario (6-D, URDF shapes) stops the tool on the
+table.
 
 Expected capsule ends are computed by hand from the URDF's numbers (rotations about y), not
 with the code under test."""
@@ -146,14 +147,11 @@ def test_off_axis_shapes_jacobians_torques_and_energy(tmp_path: Path) -> None:
     np.testing.assert_allclose(tau0, -grad, rtol=1e-5, atol=1e-9)
 
 
-@pytest.mark.parametrize('geometry', ['<box size="0.1 0.02 0.02"/>',
-                                      '<cylinder radius="0.01" length="0.1"/>',
-                                      '<mesh filename="package://nowhere/l1.stl"/>'])
-def test_other_primitives_are_refused_unless_the_scenario_chooses(tmp_path: Path,
-                                                                  geometry: str) -> None:
-    kind = geometry[1:].split()[0]
-    linkage = load_linkage(_urdf(tmp_path, f'<collision><geometry>{geometry}</geometry>'
-                                           '</collision>'))
+def test_meshes_are_refused_unless_the_scenario_chooses(tmp_path: Path) -> None:
+    """(Boxes and cylinders are modelled: ``test_core_contacts_solids``.)"""
+    kind = 'mesh'
+    linkage = load_linkage(_urdf(tmp_path, '<collision><geometry><mesh filename="package://'
+                                           'nowhere/l1.stl"/></geometry></collision>'))
     with pytest.raises(ConfigError, match=(
             rf"test.links.l1: the URDF gives link 'l1' a {kind} collision shape .*"
             r'set links.l1.radius \(m\) in this contacts block for a capsule along the '

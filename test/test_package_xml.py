@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parent.parent
 #: python3-pytest, python3-pytest-timeout, python3-pytest-xdist, python3-hypothesis,
 #: python3-catkin-pkg-modules,
 #: python3-rosbags-pip, mcap-ros2-support) and the Jazzy distribution (ROS packages,
-#: pinocchio, example-robot-data). ``mcap`` and ``zstandard`` have no key of their own: the
+#: pinocchio, coal, example-robot-data). ``mcap`` and ``zstandard`` have no key of their own: the
 #: mcap-ros2-support key installs them (pip: mcap-ros2-support -> mcap -> zstandard).
 #: An import of a ROS interface package (``*_msgs``, ``*_interfaces``, ``*_srvs``) maps to
 #: the package of that name without being listed here.
@@ -37,6 +37,7 @@ IMPORT_KEYS = {
     'yaml': 'python3-yaml',
     'matplotlib': 'python3-matplotlib',
     'pinocchio': 'pinocchio',
+    'coal': 'coal',
     'rosbags': 'python3-rosbags-pip',
     'mcap': 'mcap-ros2-support',
     'mcap_ros2': 'mcap-ros2-support',

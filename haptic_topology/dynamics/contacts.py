@@ -4,12 +4,15 @@
 are static shapes in the world frame (:mod:`haptic_topology.model.obstacles`). By default a
 link is one capsule around its axis, from its joint's origin to the next joint's origin (the
 last link: ``length`` along its x axis), radius ``contacts.link_radius`` (m). A link read from a
-URDF takes the URDF's ``<collision>`` shapes instead, where they are spheres or capsules
-(``<capsule radius length>``, axis along the collision frame's z), which are modelled exactly;
-a URDF link without ``<collision>`` does not collide. A cylinder, box or mesh cannot be
-modelled as capsules without approximating it, so such a link is refused unless
-``contacts.links.<name>`` says what to do: ``radius: r`` (the default capsule along the link,
-also for YAML links) or ``collide: false`` (the link does not collide).
+URDF takes the URDF's ``<collision>`` shapes instead, all modelled exactly: spheres and
+capsules (``<capsule radius length>``, axis along the collision frame's z) as capsules, boxes
+and cylinders as solids (:mod:`haptic_topology.model.solids`; in a planar task a box, or a
+cylinder whose axis lies in the plane, as its projection, a convex polygon, and a cylinder
+along z as a disc); a URDF link without ``<collision>`` does not collide. A mesh, and in a
+planar task a cylinder tilted out of the plane (its projection has elliptic ends), cannot be
+modelled without approximating it, so such a link is refused unless ``contacts.links.<name>``
+says what to do: ``radius: r`` (the default capsule along the link, also for YAML links) or
+``collide: false`` (the link does not collide).
 A contact candidate is a point ``p_i`` on a capsule's axis with its signed gap ``g_i`` to an
 obstacle (m, negative: penetration depth ``delta_i = -g_i``) and the obstacle's normal ``n_i``
 (unit, world, from the obstacle towards the link). Against a half-plane or plane the
@@ -18,7 +21,9 @@ at both ends); a joint shared by two default capsules counts once (as the tip of
 link). Against the other shapes each capsule has one candidate, its closest point; where two
 links' closest points are both their common joint, that point is held by both (stiffer there,
 still passive). In a planar task the capsules are projected onto the xy plane (the planar
-obstacles extend along z).
+obstacles extend along z). A solid's candidates are those of :func:`~haptic_topology.model.
+solids.solid_gaps` (a box's corners and a cylinder's deepest rim points against planes, the
+closest or deepest point against the other shapes), each at its own point of the solid.
 
 **Contact model** (penalty with damping and regularized Coulomb friction), per candidate with
 ``delta_i > 0``, ``v_i = J_i qdot`` the velocity of the contact point (m/s, world)::
@@ -57,6 +62,16 @@ from haptic_topology.model.obstacles import (
     capsule_gaps,
     obstacles_from_config,
 )
+from haptic_topology.model.solids import (
+    CoalPair,
+    box_sdf,
+    box_vertices,
+    convex_hull_xy,
+    cylinder_rims,
+    polygon_segment_xy,
+    rectangle_of_cylinder,
+    solid_gaps,
+)
 from haptic_topology.validate import as_bool, as_float, check_keys
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
@@ -91,6 +106,28 @@ class LinkCapsule:
     b: np.ndarray
     radius: float
     chained: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class LinkSolid:
+    """A URDF box or cylinder on link ``link`` (index), placed in the link's joint frame:
+    ``kind`` ``box`` (``size``: half extents, m) or ``cylinder`` (``size``: radius, half
+    length, m; axis along ``rotation[:, 2]``) at ``centre`` ((3,) m) with ``rotation``
+    (link_R_solid); in a planar task ``kind`` ``polygon``: its projection on the link's xy
+    plane, ``vertices`` (k x 3, z = 0, counter-clockwise, link frame)."""
+
+    link: int
+    kind: str
+    centre: np.ndarray
+    rotation: np.ndarray
+    size: tuple[float, ...]
+    vertices: np.ndarray | None = None
+
+
+LinkShape = LinkCapsule | LinkSolid
+
+#: |z| of a planar cylinder's axis (link frame) within this of 1 or 0: along z or in the plane.
+_AXIS_TOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -138,19 +175,25 @@ class ContactSettings:
         obstacles = obstacles_from_config(c['obstacles'], f'{where}.obstacles', linkage.task)
         settings = cls(params, obstacles, default, tuple(choices),
                        as_bool(c.get('lmi_local', True), f'{where}.lmi_local'), where)
-        settings.capsules(linkage)
+        settings.shapes(linkage)
         return settings
 
     def capsules(self, linkage: Linkage) -> tuple[LinkCapsule, ...]:
-        """Every link's capsules (see module doc), in link order. Raises ConfigError for a
-        choice naming a link ``linkage`` lacks, and for a URDF collision shape that is not a
-        sphere or capsule on a link without a choice."""
+        """The capsules of :meth:`shapes`, in link order."""
+        return tuple(c for c in self.shapes(linkage) if isinstance(c, LinkCapsule))
+
+    def shapes(self, linkage: Linkage) -> tuple[LinkShape, ...]:
+        """Every link's contact shapes (see module doc), in link order. Raises ConfigError
+        for a choice naming a link ``linkage`` lacks, and for a URDF collision shape that
+        cannot be modelled exactly (a mesh; planar: a cylinder tilted out of the plane) on a
+        link without a choice."""
+        planar = linkage.task is TaskSpace.PLANAR
         chosen = dict(self.links)
         unknown = sorted(set(chosen) - set(linkage.link_names))
         if unknown:
             raise ConfigError(f'{self.where}.links: unknown link(s) {", ".join(unknown)} '
                               f'(expected: {", ".join(linkage.link_names)})')
-        out: list[LinkCapsule] = []
+        out: list[LinkShape] = []
         default_prev = False
         for i, link in enumerate(linkage.links):
             w = f'{self.where}.links.{link.name}'
@@ -172,20 +215,69 @@ class ContactSettings:
             default_prev = False
             for shape in link.collision:
                 centre = np.array(shape.xyz, dtype=float)
+                rot = np.array(shape.rotation, dtype=float).reshape(3, 3)
+                what = shape.kind
                 if shape.kind == 'sphere':
                     out.append(LinkCapsule(i, centre, centre.copy(), shape.size[0]))
-                elif shape.kind == 'capsule':
-                    half = 0.5 * shape.size[1] * np.array(shape.rotation).reshape(3, 3)[:, 2]
+                    continue
+                if shape.kind == 'capsule':
+                    half = 0.5 * shape.size[1] * rot[:, 2]
                     out.append(LinkCapsule(i, centre - half, centre + half, shape.size[0]))
-                else:
-                    raise ConfigError(
-                        f'{w}: the URDF gives link {link.name!r} a {shape.kind} collision '
-                        f'shape (on {shape.urdf_link!r}, {linkage.urdf_path}); contacts model '
-                        f'spheres and capsules exactly and would have to approximate a '
-                        f'{shape.kind}: set links.{link.name}.radius (m) in this contacts '
-                        f'block for a capsule along the link, or links.{link.name}.collide: '
-                        f'false to leave the link out')
+                    continue
+                if shape.kind == 'box':
+                    half_extents = 0.5 * np.array(shape.size)
+                    out.append(LinkSolid(i, 'polygon', centre, rot, tuple(half_extents.tolist()),
+                                         convex_hull_xy(box_vertices(centre, rot, half_extents)))
+                               if planar else
+                               LinkSolid(i, 'box', centre, rot, tuple(half_extents.tolist())))
+                    continue
+                if shape.kind == 'cylinder':
+                    radius, half_length = shape.size[0], 0.5 * shape.size[1]
+                    axis_z = abs(float(rot[2, 2]))
+                    if not planar:
+                        out.append(LinkSolid(i, 'cylinder', centre, rot, (radius, half_length)))
+                        continue
+                    if axis_z >= 1.0 - _AXIS_TOL:       # along z: projects to a disc
+                        out.append(LinkCapsule(i, centre, centre.copy(), radius))
+                        continue
+                    if axis_z <= _AXIS_TOL:             # in the plane: a rectangle
+                        out.append(LinkSolid(i, 'polygon', centre, rot, (radius, half_length),
+                                             rectangle_of_cylinder(centre, rot, radius,
+                                                                   half_length)))
+                        continue
+                    what = (f'cylinder tilted out of the plane (axis z = {rot[2, 2]:.6g} in the '
+                            f'link frame, whose projection has elliptic ends)')
+                raise ConfigError(
+                    f'{w}: the URDF gives link {link.name!r} a {what} collision shape (on '
+                    f'{shape.urdf_link!r}, {linkage.urdf_path}); contacts model spheres, '
+                    f'capsules, boxes and cylinders exactly and would have to approximate '
+                    f'it: set links.{link.name}.radius (m) in this contacts block for a '
+                    f'capsule along the link, or links.{link.name}.collide: false to leave '
+                    f'the link out')
         return tuple(out)
+
+
+def _bounding_sphere(solid: LinkSolid, corners: np.ndarray | None
+                     ) -> tuple[np.ndarray, float]:
+    """A sphere around ``solid`` (link frame): centre (3,) m and radius m. A box or polygon:
+    around its corners' mean; a cylinder: around its centre, ``hypot(r, h)``."""
+    if corners is None:
+        return solid.centre, math.hypot(solid.size[0], solid.size[1])
+    centre = corners.mean(axis=0)
+    return centre, float(np.max(np.linalg.norm(corners - centre, axis=1)))
+
+
+def _lower_bound(obstacle: Obstacle, point: np.ndarray) -> float:
+    """A lower bound (m) of the signed distance from ``point`` to ``obstacle``, exact for
+    every kind but the box (its sdf, also exact)."""
+    kind = obstacle.kind
+    if kind in _PLANES:
+        return float(obstacle.normal @ (point - obstacle.point))
+    if kind in _ROUND:
+        return float(np.linalg.norm(point - obstacle.point)) - obstacle.radius
+    if kind is ObstacleKind.SEGMENT:
+        return capsule_gaps(obstacle, point, point, 0.0)[0][0]
+    return box_sdf(point, obstacle.point, obstacle.rotation, obstacle.half_extents)[0]
 
 
 @dataclass(frozen=True)
@@ -255,7 +347,9 @@ class ContactModel:
         self.params = settings.params
         self.dof = linkage.dof
         self._planar = linkage.task is TaskSpace.PLANAR
-        caps = settings.capsules(linkage)
+        shapes = settings.shapes(linkage)
+        caps = [c for c in shapes if isinstance(c, LinkCapsule)]
+        self._solids = solids = [c for c in shapes if isinstance(c, LinkSolid)]
         self._cap_a = [c.a for c in caps]
         self._cap_b = [c.b for c in caps]
         self._cap_joint = [c.link + 1 for c in caps]
@@ -290,6 +384,19 @@ class ContactModel:
                                          + [np.full(n, k) for k in round_k]
                                          + [np.full(n, k) for k in other_k]).astype(int)
         self._links = cap_link[self._caps]
+        # Solid candidates (after the capsules'), solid by solid, obstacle by obstacle; a pair
+        # whose bounding-sphere distance is at least the query's limit is skipped (its gaps are
+        # at least that). A box obstacle's coal query objects are made once.
+        self._pairs_of = [[(k, CoalPair(sol.kind, sol.size, ob)
+                            if ob.kind is ObstacleKind.BOX else None)
+                           for k, ob in enumerate(obstacles)] for sol in solids]
+        self._plane_of = {k: (float(ob.normal @ ob.point), ob.normal.tolist())
+                          for k, ob in enumerate(obstacles) if ob.kind in _PLANES}
+        self._corners_local = [
+            None if sol.kind == 'cylinder' else sol.vertices if sol.vertices is not None
+            else box_vertices(sol.centre, sol.rotation, np.array(sol.size)) for sol in solids]
+        self._bounds = [_bounding_sphere(sol, corners)
+                        for sol, corners in zip(solids, self._corners_local, strict=True)]
 
     def _axes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World ends of every capsule's axis (n x 3 each) at ``q`` (forward kinematics;
@@ -320,6 +427,8 @@ class ContactModel:
         parts_s: list[np.ndarray] = []
         parts_n: list[np.ndarray] = []
         radii = self._radii
+        if not self._ncaps:
+            return (self._caps, self._obstacles, np.zeros(0), np.zeros(0), np.zeros((0, 3)))
         if self._plane_k.size:
             # Every capsule's b and the a's not shared (each point once), against every plane.
             ends = np.vstack((p1, p0[self._bases]))
@@ -387,26 +496,103 @@ class ContactModel:
             normals.append([vx / dist, vy / dist, vz / dist])
         return np.array(gaps), np.array(ss), np.array(normals)
 
+    def _solid_hits(self, limit: float) -> tuple[list[int], list[int], list[list[float]],
+                                                  list[float], list[list[float]]]:
+        """The solid candidates with ``gap < limit`` (``limit >= 0``) at the placements of the
+        last :meth:`_axes`: ``(links, obstacles, points, gaps, normals)``, solid by solid and
+        obstacle by obstacle, each pair's candidates in the order of
+        :func:`~haptic_topology.model.solids.solid_gaps` (the same numbers, tested). A pair is
+        skipped when a lower bound of its gaps, the obstacle's distance to the solid's bounding
+        sphere, is at least ``limit``: then the two are apart by at least that much (the
+        bound is the distance of every point of the solid, and the signed distance of two
+        disjoint shapes is their distance). Runs at every RK4 stage."""
+        links: list[int] = []
+        obs: list[int] = []
+        points: list[list[float]] = []
+        gaps: list[float] = []
+        normals: list[list[float]] = []
+        oMi = self.data.oMi
+        obstacles = self.settings.obstacles
+        for j, sol in enumerate(self._solids):
+            placement = oMi[sol.link + 1]
+            rot, origin = placement.rotation, placement.translation
+            bound_centre, bound_radius = self._bounds[j]
+            centre_b = rot @ bound_centre + origin
+            if self._planar:
+                centre_b[2] = 0.0
+            placed: tuple[np.ndarray, np.ndarray] | None = None
+            for k, pair in self._pairs_of[j]:
+                ob = obstacles[k]
+                if _lower_bound(ob, centre_b) - bound_radius >= limit:
+                    continue
+                local = self._corners_local[j]
+                if local is None or ob.kind not in _PLANES:
+                    if placed is None:
+                        placed = (rot @ sol.centre + origin, rot @ sol.rotation)
+                    centre, rotation = placed
+                found: list[tuple[float, list[float], list[float]]]
+                if ob.kind in _PLANES:
+                    if local is not None:
+                        world = local @ rot.T + origin
+                        if self._planar:
+                            world[:, 2] = 0.0
+                    else:
+                        world = cylinder_rims(centre, rotation, sol.size[0], sol.size[1],
+                                              ob.normal)
+                    offset, normal_t = self._plane_of[k]
+                    world_t = world.tolist()
+                    for i, gap in enumerate((world @ ob.normal).tolist()):
+                        if gap - offset < limit:
+                            links.append(sol.link)
+                            obs.append(k)
+                            points.append(world_t[i])
+                            gaps.append(gap - offset)
+                            normals.append(normal_t)
+                    continue
+                if sol.kind == 'polygon':
+                    assert local is not None
+                    world = local @ rot.T + origin
+                    a, b = ob.point, (ob.end if ob.kind is ObstacleKind.SEGMENT else ob.point)
+                    sd, px, py, nx, ny = polygon_segment_xy(
+                        [(x, y) for x, y, _ in world.tolist()],
+                        float(a[0]), float(a[1]), float(b[0]), float(b[1]))
+                    found = [(sd - ob.radius, [px, py, 0.0], [nx, ny, 0.0])]
+                else:
+                    found = [(gap, point.tolist(), normal.tolist()) for gap, point, normal
+                             in solid_gaps(ob, sol.kind, centre, rotation, sol.size, None, pair)]
+                for gap, point_t, normal_t in found:
+                    if gap < limit:
+                        links.append(sol.link)
+                        obs.append(k)
+                        points.append(point_t)
+                        gaps.append(gap)
+                        normals.append(normal_t)
+        return links, obs, points, gaps, normals
+
     def detect(self, q: np.ndarray, margin: float = 0.0,
                jacobians: bool = True) -> ContactSet:
-        """Candidates with ``gap < margin`` at ``q`` (see module doc), with their Jacobians
-        when ``jacobians`` (else zeros)."""
+        """Candidates with ``gap < margin`` at ``q`` (see module doc), the capsules' then the
+        solids', with their Jacobians when ``jacobians`` (else zeros)."""
         p0, p1 = self._axes(q)
-        return self._select(q, p0, p1, self.candidates(p0, p1), margin, jacobians)
-
-    def _select(self, q: np.ndarray, p0: np.ndarray, p1: np.ndarray,
-                cands: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-                margin: float, jacobians: bool) -> ContactSet:
-        caps, obs, s, gaps, normals = cands
+        caps, obs, s, gaps, normals = self.candidates(p0, p1)
         keep = np.nonzero(gaps < margin)[0]
-        caps, obs, s, gaps, normals = caps[keep], obs[keep], s[keep], gaps[keep], normals[keep]
+        caps, obs, s, gaps = caps[keep], obs[keep], s[keep], gaps[keep]
+        normals = normals.reshape(-1, 3)[keep]
         points = p0[caps] + s[:, None] * (p1[caps] - p0[caps])
         links = self._cap_link[caps]
-        jac = np.zeros((keep.size, 3, self.dof))
-        if jacobians and keep.size:
+        if self._solids:
+            s_links, s_obs, s_points, s_gaps, s_normals = self._solid_hits(margin)
+            if s_links:
+                links = np.concatenate((links, s_links)).astype(int)
+                obs = np.concatenate((obs, s_obs)).astype(int)
+                points = np.vstack([points, *s_points])
+                gaps = np.concatenate((gaps, s_gaps))
+                normals = np.vstack([normals, *s_normals])
+        jac = np.zeros((links.size, 3, self.dof))
+        if jacobians and links.size:
             model, data = self.model, self.data
             pin.computeJointJacobians(model, data, q)
-            for r in range(keep.size):
+            for r in range(links.size):
                 joint = int(links[r]) + 1
                 j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, self.dof)
                 ax, ay, az = points[r] - data.oMi[joint].translation
@@ -418,32 +604,51 @@ class ContactModel:
     def torques(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, float]:
         """``sum_i J_i^T F_i`` (d, N m / N) at ``(q, dq)`` and the contacts' power on the VT
         ``sum_i F_i^T v_i`` (W). Called at every RK4 stage, so written for few contacts: per
-        penetrating candidate one joint Jacobian ``J`` (6 x d, world-aligned at the joint),
-        the point's velocity ``v_o + w x a`` (``a``: point - joint origin) and the torques
-        ``J^T (F, a x F)`` (the same numbers as ``J_i^T F_i`` with :meth:`detect`'s
-        ``J_i``)."""
+        link in contact one joint Jacobian ``J`` (6 x d, world-aligned at the joint), per
+        penetrating candidate the point's velocity ``v_o + w x a`` (``a``: point - joint
+        origin), and the torques ``J^T (sum F, sum a x F)`` (``sum_i J_i^T F_i`` with
+        :meth:`detect`'s ``J_i``, to rounding)."""
         p0, p1 = self._axes(q)
         caps, _, s, gaps, normals = self.candidates(p0, p1)
         active = np.flatnonzero(gaps < 0.0)
+        # (joint, point, gap, normal) of every penetrating candidate, capsules then solids
+        hits: list[tuple[int, Any, float, Any]] = [
+            (self._cap_joint[int(caps[i])],
+             (p0[caps[i]] + s[i] * (p1[caps[i]] - p0[caps[i]])).tolist(), float(gaps[i]),
+             normals[i].tolist()) for i in active.tolist()]
+        if self._solids:
+            s_links, _, s_points, s_gaps, s_normals = self._solid_hits(0.0)
+            hits += [(link + 1, point, gap, normal) for link, point, gap, normal in zip(
+                s_links, s_points, s_gaps, s_normals, strict=True)]
         tau = np.zeros(self.dof)
-        if not active.size:
+        if not hits:
             return tau, 0.0
         model, data, params = self.model, self.data, self.params
         pin.computeJointJacobians(model, data, q)
+        by_joint: dict[int, list[tuple[Any, float, Any]]] = {}
+        for joint, point, gap, normal in hits:
+            by_joint.setdefault(joint, []).append((point, gap, normal))
         power = 0.0
-        for i in active.tolist():
-            c = int(caps[i])
-            joint = self._cap_joint[c]
+        for joint, items in by_joint.items():
             j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, self.dof)
-            ax, ay, az = (p0[c] + s[i] * (p1[c] - p0[c])
-                          - data.oMi[joint].translation).tolist()
-            vx, vy, vz, wx, wy, wz = (j6 @ dq).tolist()
-            vx, vy, vz = vx + wy * az - wz * ay, vy + wz * ax - wx * az, vz + wx * ay - wy * ax
-            nx, ny, nz = normals[i].tolist()
-            fx, fy, fz = _force(params, float(gaps[i]), nx, ny, nz, vx, vy, vz)
-            tau += j6.T @ np.array([fx, fy, fz, ay * fz - az * fy, az * fx - ax * fz,
-                                    ax * fy - ay * fx])
-            power += fx * vx + fy * vy + fz * vz
+            ox, oy, oz = data.oMi[joint].translation.tolist()
+            v0x, v0y, v0z, wx, wy, wz = (j6 @ dq).tolist()
+            fx_sum = fy_sum = fz_sum = mx = my = mz = 0.0
+            for point, gap, normal in items:
+                px, py, pz = point
+                ax, ay, az = px - ox, py - oy, pz - oz
+                vx = v0x + wy * az - wz * ay
+                vy = v0y + wz * ax - wx * az
+                vz = v0z + wx * ay - wy * ax
+                nx, ny, nz = normal
+                fx, fy, fz = _force(params, gap, nx, ny, nz, vx, vy, vz)
+                fx_sum, fy_sum, fz_sum = fx_sum + fx, fy_sum + fy, fz_sum + fz
+                mx += ay * fz - az * fy
+                my += az * fx - ax * fz
+                mz += ax * fy - ay * fx
+                power += fx * vx + fy * vy + fz * vz
+            # one joint's contacts: J^T (sum F, sum a x F)
+            tau += j6.T @ np.array([fx_sum, fy_sum, fz_sum, mx, my, mz])
         return tau, power
 
     def potential(self, q: np.ndarray) -> float:
@@ -451,8 +656,13 @@ class ContactModel:
         return contact_potential(self.params, self.gaps(q))
 
     def gaps(self, q: np.ndarray) -> np.ndarray:
-        """Every candidate's gap (m) at ``q``, without normals or Jacobians."""
-        return self.candidates(*self._axes(q), gaps_only=True)[3]
+        """The gaps (m) at ``q`` of every capsule candidate and of the solids' penetrating
+        candidates (the others are culled, see :meth:`_solid_hits`): all that ``U`` and the
+        penetration depth need, without normals or Jacobians."""
+        gaps = self.candidates(*self._axes(q), gaps_only=True)[3]
+        if self._solids:
+            gaps = np.concatenate((gaps, self._solid_hits(0.0)[3]))
+        return gaps
 
     def local(self, q: np.ndarray) -> LocalContacts:
         """The LMI's contacts for an update at ``q``: the candidates within ``margin``."""

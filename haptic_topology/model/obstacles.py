@@ -240,7 +240,7 @@ def _segment_params(p0: np.ndarray, d1: np.ndarray, a: np.ndarray, d2: np.ndarra
     return s, t
 
 
-def _box_local(x: float, y: float, z: float, h: tuple[float, float, float]
+def box_local(x: float, y: float, z: float, h: tuple[float, float, float]
                ) -> tuple[float, float, float, float]:
     """Box sdf at the local point (x, y, z) and its gradient (the nearest feature's normal).
 
@@ -275,7 +275,7 @@ def _box_gap(obstacle: Obstacle, p0: np.ndarray, d: np.ndarray, radius: float) -
     bx, by, bz = (rot.T @ d).tolist()
 
     def slope(s: float) -> float:
-        _, gx, gy, gz = _box_local(ax + s * bx, ay + s * by, az + s * bz, h)
+        _, gx, gy, gz = box_local(ax + s * bx, ay + s * by, az + s * bz, h)
         return gx * bx + gy * by + gz * bz
 
     if slope(0.0) >= 0.0:
@@ -294,7 +294,7 @@ def _box_gap(obstacle: Obstacle, p0: np.ndarray, d: np.ndarray, radius: float) -
             else:
                 lo = mid
         s = 0.5 * (lo + hi)
-    sdf, gx, gy, gz = _box_local(ax + s * bx, ay + s * by, az + s * bz, h)
+    sdf, gx, gy, gz = box_local(ax + s * bx, ay + s * by, az + s * bz, h)
     return sdf - radius, s, rot @ np.array([gx, gy, gz])
 
 

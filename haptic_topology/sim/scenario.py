@@ -94,7 +94,7 @@ class Scenario:
         if linkage.dof != self.linkage.dof:
             q0, dq0 = np.zeros(linkage.dof), np.zeros(linkage.dof)
         if self.contacts is not None:
-            self.contacts.capsules(linkage)     # the per-link choices must fit it
+            self.contacts.shapes(linkage)       # the per-link choices must fit it
         return replace(self, linkage=linkage, q0=q0, dq0=dq0)
 
     @property
