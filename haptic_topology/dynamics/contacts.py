@@ -268,8 +268,8 @@ def _bounding_sphere(solid: LinkSolid, corners: np.ndarray | None
 
 
 def _lower_bound(obstacle: Obstacle, point: np.ndarray) -> float:
-    """A lower bound (m) of the signed distance from ``point`` to ``obstacle``, exact for
-    every kind but the box (its sdf, also exact)."""
+    """The signed distance (m) from ``point`` to ``obstacle``: less a solid's bounding radius,
+    a lower bound of the gaps of the solid around ``point`` (the distance is 1-Lipschitz)."""
     kind = obstacle.kind
     if kind in _PLANES:
         return float(obstacle.normal @ (point - obstacle.point))
