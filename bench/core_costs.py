@@ -14,11 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from haptic_topology.control import ControlMode, HapticController
+from haptic_topology.control import HapticController
 from haptic_topology.device import MaglevModel, user_from_config
 from haptic_topology.dynamics import LinkageDynamics
-from haptic_topology.model import TaskSpace, serial_chain
+from haptic_topology.model import serial_chain
 from haptic_topology.sim import VirtualEnvironment, load_scenario
+from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 BUDGET_US = 10_000.0  # one update period of a 100 Hz VE
 GOAL_FRACTION = 0.3   # issue 11: a 100-link chain within 30 % of the update period

@@ -23,11 +23,11 @@ import sys
 from dataclasses import replace
 from typing import Any
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.device.maglev import device_from_config
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.validate import load_yaml
+from haptic_topology.vocabulary import ControlMode
 
 #: One row per option: the keys added to fig8's device block (SI units; x, y, theta).
 OPTIONS: dict[str, dict[str, Any]] = {

@@ -28,12 +28,13 @@ import numpy as np
 
 import haptic_topology.sim.lockstep as lockstep
 from haptic_topology.control.controller import CycleOutput, HapticController
-from haptic_topology.control.laws import ControlMode, penalty_acceleration
+from haptic_topology.control.laws import penalty_acceleration
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.model import PenaltyDirection
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology.vocabulary import ControlMode
 
 
 def run(name: str, direction: PenaltyDirection) -> dict[str, Any]:

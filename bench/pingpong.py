@@ -26,17 +26,20 @@ from typing import Any
 
 import numpy as np
 
+from haptic_topology.vocabulary import TOPIC_COMMAND, TOPIC_STATE
+
 
 def _executor(node: Any, priority: int) -> Any:
     """The graph's executor for ``node``, after putting this process under SCHED_FIFO at
     ``priority`` (0: normal scheduling) as the graph's nodes do."""
-    from haptic_topology.nodes import common
+    from haptic_topology.device.realtime import set_realtime_priority
+    from haptic_topology.nodes.runtime import make_executor
 
     if priority:
-        problem = common.set_realtime_priority(priority)
+        problem = set_realtime_priority(priority)
         if problem:
             print(problem, file=sys.stderr)
-    executor = common.make_executor('events')
+    executor = make_executor('events')
     executor.add_node(node)
     return executor
 
@@ -45,12 +48,12 @@ def _device(duration: float, rate_hz: float, priority: int) -> dict[str, Any]:
     import rclpy
     from rclpy.node import Node
 
-    from haptic_topology.nodes import common
+    from haptic_topology.nodes.qos import QOS_LOOP
     from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 
     rclpy.init()
     node = Node('bench_device')
-    pub = node.create_publisher(DeviceState, common.TOPIC_STATE, common.QOS_LOOP)
+    pub = node.create_publisher(DeviceState, TOPIC_STATE, QOS_LOOP)
     sent = np.zeros(1 << 20)
     rtt: list[float] = []
     periods: list[float] = []
@@ -84,7 +87,7 @@ def _device(duration: float, rate_hz: float, priority: int) -> dict[str, Any]:
         msg.header.stamp = node.get_clock().now().to_msg()
         pub.publish(msg)
 
-    node.create_subscription(DeviceCommand, common.TOPIC_COMMAND, on_command, common.QOS_LOOP)
+    node.create_subscription(DeviceCommand, TOPIC_COMMAND, on_command, QOS_LOOP)
     node.create_timer(1.0 / rate_hz, tick)
     executor = _executor(node, priority)
     cpu0 = os.times()
@@ -122,12 +125,12 @@ def _echo(duration: float, priority: int) -> None:
     from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
 
-    from haptic_topology.nodes import common
+    from haptic_topology.nodes.qos import QOS_LOOP
     from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 
     rclpy.init()
     node = Node('bench_echo')
-    pub = node.create_publisher(DeviceCommand, common.TOPIC_COMMAND, common.QOS_LOOP)
+    pub = node.create_publisher(DeviceCommand, TOPIC_COMMAND, QOS_LOOP)
     cmd = DeviceCommand()
     cmd.task_dim = 3
     cmd.wrench = [0.0, 0.0, 0.0]
@@ -137,7 +140,7 @@ def _echo(duration: float, priority: int) -> None:
         cmd.header.stamp = msg.header.stamp
         pub.publish(cmd)
 
-    node.create_subscription(DeviceState, common.TOPIC_STATE, on_state, common.QOS_LOOP)
+    node.create_subscription(DeviceState, TOPIC_STATE, on_state, QOS_LOOP)
     executor = _executor(node, priority)
     cpu0 = os.times()
     wall0 = time.monotonic()
@@ -162,7 +165,7 @@ def run(duration: float = 30.0, rate_hz: float = 1000.0, priority: int = 0,
     ``priority``/``echo_priority``: SCHED_FIFO priorities as the graph's device_driver and
     lmi_controller get them (0: normal scheduling).
     """
-    from haptic_topology.nodes.common import localhost_discovery_default
+    from haptic_topology.nodes.dds_env import localhost_discovery_default
 
     localhost_discovery_default(os.environ)   # both sides on the nodes' DDS transport
     env = dict(os.environ)

@@ -110,12 +110,12 @@ def _publisher(duration: float, factor: float) -> int:
     """Publish every topic at ``factor`` x its rate for ``duration`` s; print JSON counts."""
     import rclpy
 
-    from haptic_topology.nodes import common
+    from haptic_topology.nodes.qos import TOPIC_QOS
 
     rclpy.init()
     node = rclpy.create_node('recorder_load_publisher')
     msgs = _messages()
-    pubs = {t: node.create_publisher(type(m), t, common.TOPIC_QOS[t]) for t, m in msgs.items()}
+    pubs = {t: node.create_publisher(type(m), t, TOPIC_QOS[t]) for t, m in msgs.items()}
     deadline = time.monotonic() + START_TIMEOUT_S
     while any(p.get_subscription_count() < 1 for p in pubs.values()):
         if time.monotonic() > deadline:
@@ -223,8 +223,8 @@ class _Lines:
 
 
 def _env() -> dict[str, str]:
-    from haptic_topology.nodes.common import localhost_discovery_default
 
+    from haptic_topology.nodes.dds_env import localhost_discovery_default
     env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                ROS_DOMAIN_ID=str(random.SystemRandom().randint(1, 100)),
                RMW_IMPLEMENTATION='rmw_fastrtps_cpp')

@@ -55,7 +55,7 @@ DEVICE_PRIORITY, CONTROLLER_PRIORITY = 50, 49
 def _env() -> dict[str, str]:
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(random.randint(120, 200))
-    from haptic_topology.nodes.common import localhost_discovery_default
+    from haptic_topology.nodes.dds_env import localhost_discovery_default
 
     localhost_discovery_default(env)     # what the nodes set for themselves
     return env
@@ -121,9 +121,9 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
 
 def offline(scenario: str, mode: str) -> dict[str, float]:
     """``simulate`` of ``scenario``: its largest device-VT distance and its speed."""
-    from haptic_topology.control.laws import ControlMode
     from haptic_topology.sim.lockstep import simulate
     from haptic_topology.sim.scenario import load_scenario
+    from haptic_topology.vocabulary import ControlMode
 
     sc = load_scenario(scenario)
     t0 = time.perf_counter()

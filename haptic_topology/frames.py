@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.vocabulary import TaskSpace
 
 #: Default world frame (``ve_sim`` parameter ``frame_id``).
 WORLD = 'world'

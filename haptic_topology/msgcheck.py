@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from haptic_topology import vocabulary as vocab
 from haptic_topology.errors import HapticTopologyError
 
 #: Why a message was rejected (diagnostics keys ``rejected_<reason>``).
@@ -44,9 +45,9 @@ REASONS = ('task_dim', 'dof', 'size', 'non_finite', 'range')
 MAX_SEQ = 2 ** 53
 #: Bits of ``DeviceState.status`` (OK 0, WORKSPACE_LIMIT 1, SATURATED 2, WATCHDOG 4, FAULT 8,
 #: IDLE 16).
-STATUS_BITS = 31
+STATUS_BITS = vocab.STATUS_BITS
 #: ``DeviceCommand.mode``: MODE_PENALTY 0, MODE_ACCELERATION_ONLY 1, MODE_ZERO 2.
-MODES = (0, 1, 2)
+MODES = vocab.MESSAGE_MODES
 #: Largest ``DeviceCommand.controller_id``: ids are in [1, 2**63 - 1], so they fit a signed
 #: 64-bit integer wherever a tool keeps them (0 is no id: see :func:`check_command`).
 MAX_CONTROLLER_ID = 2 ** 63 - 1

@@ -1,6 +1,6 @@
 """Settings + scenario -> each node's final configuration, resolved once (no rclpy).
 
-A node declares its parameters (:func:`haptic_topology.nodes.common.declare_settings`), loads
+A node declares its parameters (:func:`haptic_topology.nodes.parameters.declare_settings`), loads
 its scenario, and calls the ``resolve_*`` function of this module once; everything it needs
 afterwards is in the returned frozen config, in final form (enums, arrays of the task's size,
 periods in s and ns, "0 = the scenario's" replaced). Checks that need the scenario (array
@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from haptic_topology.control.laws import ControlGains, ControlMode
+from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.safety import SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig
 from haptic_topology.device.watchdog import WatchdogConfig, WatchdogFallback
@@ -27,7 +27,6 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.settings import (
     RATE_MAX,
     RATE_MIN,
-    Clock,
     DeviceDriverSettings,
     LmiControllerSettings,
     RecorderSettings,
@@ -35,6 +34,7 @@ from haptic_topology.settings import (
     check_gain,
     parse_backend_options,
 )
+from haptic_topology.vocabulary import Clock, ControlMode
 
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario

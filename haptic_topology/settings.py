@@ -4,7 +4,7 @@ Each field carries its parameter's description, range (``lo``/``hi``, inclusive)
 and ``read_only`` flag in ``field(metadata=...)`` (see :func:`param`); :func:`param_specs`
 generates the :class:`~haptic_topology.params.ParamSpec` table from the fields (as
 generate_parameter_library does from ``parameters.yaml``). That one table is what the node
-declares (:func:`haptic_topology.nodes.common.declare_settings`) and what params files and
+declares (:func:`haptic_topology.nodes.parameters.declare_settings`) and what params files and
 ``-p`` overrides are checked against before rclpy reads them
 (:data:`haptic_topology.nodes.node_params.KNOWN`).
 
@@ -20,7 +20,6 @@ No rclpy here.
 from __future__ import annotations
 
 import array
-import enum
 import math
 import os
 import re
@@ -29,35 +28,22 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 import yaml
 
+from haptic_topology.device.watchdog import WatchdogFallback
 from haptic_topology.errors import ConfigError
 from haptic_topology.params import ParamSpec, check_value
+from haptic_topology.vocabulary import LAW_MODES, Clock
 
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario
 
 EXECUTORS = ('events', 'single_threaded')
-MODES = ('penalty', 'acceleration_only')
-FALLBACKS = ('zero', 'damping')
+MODES = LAW_MODES
+FALLBACKS = tuple(f.value for f in WatchdogFallback)
 COMPRESSIONS = ('zstd', 'lz4', 'none')
 #: Upper end of the live penalty gains' range (N/(m kg), N s/(m kg)).
 GAIN_MAX = 1.0e5
 #: Device cycle rates a nonzero ``rate_hz`` may take (Hz).
 RATE_MIN, RATE_MAX = 10.0, 10000.0
-
-
-class Clock(enum.Enum):
-    """What paces the device (``device_driver`` parameter ``clock``)."""
-
-    WALL = 'wall'            # a wall timer at rate_hz
-    LOCKSTEP = 'lockstep'    # simulated time, one period per answered state
-
-    @classmethod
-    def parse(cls, text: str) -> Clock:
-        try:
-            return cls(text)
-        except ValueError:
-            raise ConfigError(f'clock: expected one of {", ".join(c.value for c in cls)}, '
-                              f'got {text!r}') from None
 
 
 # -- fields -> parameter specs -----------------------------------------------------------------
@@ -431,7 +417,7 @@ class FoxgloveBridgeSettings(NodeSettings):
     port: int = param(8765, 'TCP port of the WebSocket server (0: any free port; the port '
                       'taken is in the /diagnostics status)', lo=0, hi=65535)
     topics: tuple[str, ...] = param([''], 'topics to serve (empty: every topic of the '
-                                    'graph, haptic_topology.nodes.common.TOPIC_QOS)')
+                                    'graph, haptic_topology.vocabulary.TOPIC_ROLES)')
     forward_period: float = param(0.02, 'the serialized messages DDS holds are taken and '
                                   'forwarded this often (s)', lo=0.001, hi=1.0)
     clock: str = param('wall', "the graph's clock: with lockstep the state and command topics "

@@ -180,7 +180,9 @@ import sys, time
 import rclpy
 import os
 import haptic_topology, haptic_topology_msgs
-from haptic_topology.nodes.common import TOPIC_LMI, QOS_LMI, localhost_discovery_default
+from haptic_topology.vocabulary import TOPIC_LMI
+from haptic_topology.nodes.qos import QOS_LMI
+from haptic_topology.nodes.dds_env import localhost_discovery_default
 from haptic_topology_msgs.msg import LmiUpdate
 ws, pid = sys.argv[1], int(sys.argv[2])
 localhost_discovery_default(os.environ)   # DDS set up as the nodes set it up

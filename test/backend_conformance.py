@@ -33,7 +33,6 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.device.backend import (
     BackendConfig,
     DeviceBackend,
@@ -45,6 +44,7 @@ from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.vocabulary import ControlMode
 
 PENALTY = int(ControlMode.PENALTY)
 #: Relative tolerance of a wrench that went through a device's units and axes and back.

@@ -3,7 +3,7 @@
     python bag_publisher.py N TIMEOUT_S [NAMESPACE [CLOCK]]
 
 Publishes on the graph's topics with the graph's QoS under CLOCK (``wall`` default, or
-``lockstep``: the loop topics reliable; see haptic_topology.nodes.common.publisher_qos):
+``lockstep``: the loop topics reliable; see haptic_topology.nodes.publisher_qos):
 DeviceState.seq, DeviceCommand.state_seq and LmiUpdate.seq run 1..N, one of each per
 millisecond; HandInputs.seq runs 1..N too, in batches of BATCH samples (one message every
 BATCH ms, as lmi_controller sends them; N must be a multiple of BATCH). Starts once every
@@ -22,8 +22,15 @@ from typing import Any
 import rclpy
 from builtin_interfaces.msg import Time
 
-from haptic_topology.nodes import common
-from haptic_topology.settings import Clock
+from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, publisher_qos
+from haptic_topology.vocabulary import (
+    TOPIC_COMMAND,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_HAND_INPUTS,
+    TOPIC_LMI,
+    TOPIC_STATE,
+    Clock,
+)
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
 #: Samples per HandInputs message.
@@ -36,9 +43,9 @@ def main() -> int:
     clock = Clock.parse(sys.argv[4] if len(sys.argv) > 4 else 'wall')
     rclpy.init()
     node = rclpy.create_node('bag_test_publisher', namespace=namespace)
-    topics = ((DeviceState, common.TOPIC_STATE), (DeviceCommand, common.TOPIC_COMMAND),
-              (HandInputs, common.TOPIC_HAND_INPUTS), (LmiUpdate, common.TOPIC_LMI))
-    pubs = [node.create_publisher(t, name, common.publisher_qos(name, clock))
+    topics = ((DeviceState, TOPIC_STATE), (DeviceCommand, TOPIC_COMMAND),
+              (HandInputs, TOPIC_HAND_INPUTS), (LmiUpdate, TOPIC_LMI))
+    pubs = [node.create_publisher(t, name, publisher_qos(name, clock))
             for t, name in topics]
     deadline = time.monotonic() + timeout
     while any(p.get_subscription_count() == 0 for p in pubs):
@@ -94,8 +101,8 @@ def _wait_recorded(node: Any, n: int, timeout: float) -> int:
     than a second behind."""
     from diagnostic_msgs.msg import DiagnosticArray
 
-    want = {common.TOPIC_STATE: n, common.TOPIC_COMMAND: n, common.TOPIC_LMI: n,
-            common.TOPIC_HAND_INPUTS: n // BATCH}
+    want = {TOPIC_STATE: n, TOPIC_COMMAND: n, TOPIC_LMI: n,
+            TOPIC_HAND_INPUTS: n // BATCH}
     got: dict[str, int] = {}
 
     def on_diagnostics(msg: Any) -> None:
@@ -106,8 +113,8 @@ def _wait_recorded(node: Any, n: int, timeout: float) -> int:
                         if kv.key == f'received {topic}':
                             got[topic] = int(kv.value)
 
-    node.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS, on_diagnostics,
-                             common.QOS_DIAGNOSTICS)
+    node.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, on_diagnostics,
+                             QOS_DIAGNOSTICS)
     deadline = time.monotonic() + timeout
     while any(got.get(t, 0) < k for t, k in want.items()):
         if time.monotonic() > deadline:

@@ -59,7 +59,7 @@ def ros_domain_env() -> Iterator[dict[str, str]]:
     (CI and a developer, or parallel jobs) never share a domain and never see each other's
     nodes.
     """
-    from haptic_topology.nodes.common import FASTDDS_PROFILES_ENV, localhost_discovery_default
+    from haptic_topology.nodes.dds_env import FASTDDS_PROFILES_ENV, localhost_discovery_default
 
     lock = _lock_domain()
     overrides = {

@@ -20,8 +20,8 @@ from haptic_topology.device.backend import (
     DeviceReading,
     SimMaglevBackend,
 )
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.errors import DeviceError
+from haptic_topology.vocabulary import DeviceStatus
 
 
 def circle(center: np.ndarray, radius: float, period: float, t: float

@@ -167,7 +167,14 @@ class Injector:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
 
-        from haptic_topology.nodes import common
+        from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, QOS_HAND_INPUTS, QOS_LMI, QOS_LOOP
+        from haptic_topology.vocabulary import (
+            TOPIC_COMMAND,
+            TOPIC_DIAGNOSTICS,
+            TOPIC_HAND_INPUTS,
+            TOPIC_LMI,
+            TOPIC_STATE,
+        )
         from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
         self.rclpy = rclpy
@@ -177,11 +184,11 @@ class Injector:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         n = self.node
-        self.cmd_pub = n.create_publisher(DeviceCommand, common.TOPIC_COMMAND, common.QOS_LOOP)
-        self.state_pub = n.create_publisher(DeviceState, common.TOPIC_STATE, common.QOS_LOOP)
-        self.lmi_pub = n.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
-        self.hand_pub = n.create_publisher(HandInputs, common.TOPIC_HAND_INPUTS,
-                                           common.QOS_HAND_INPUTS)
+        self.cmd_pub = n.create_publisher(DeviceCommand, TOPIC_COMMAND, QOS_LOOP)
+        self.state_pub = n.create_publisher(DeviceState, TOPIC_STATE, QOS_LOOP)
+        self.lmi_pub = n.create_publisher(LmiUpdate, TOPIC_LMI, QOS_LMI)
+        self.hand_pub = n.create_publisher(HandInputs, TOPIC_HAND_INPUTS,
+                                           QOS_HAND_INPUTS)
         self.types = (DeviceCommand, DeviceState, HandInputs, LmiUpdate)
         self.counts: dict[str, int] = {}
         self._huge = False
@@ -189,10 +196,10 @@ class Injector:
         self._n_state = 0
         self._bad_commands: dict[str, dict[str, Any]] = {}
         self._bad_keys: list[str] = []
-        n.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state, common.QOS_LOOP)
+        n.create_subscription(DeviceState, TOPIC_STATE, self._on_state, QOS_LOOP)
         from diagnostic_msgs.msg import DiagnosticArray
-        n.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS, self._on_diagnostics,
-                              common.QOS_DIAGNOSTICS)
+        n.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diagnostics,
+                              QOS_DIAGNOSTICS)
         self.status: dict[str, dict[str, str]] = {}
         self.last_running_state = -math.inf      # monotonic time of the newest running state
         self.last_running_seq = 0                # and its seq
@@ -619,9 +626,10 @@ def table(run: FaultRun) -> str:
 def main() -> None:
     import tempfile
 
+    from haptic_topology.nodes.dds_env import localhost_discovery_default
+
     out = Path(tempfile.mkdtemp(prefix='faults_'))
     os.environ.setdefault('ROS_DOMAIN_ID', str(np.random.default_rng().integers(1, 100)))
-    from haptic_topology.nodes.common import localhost_discovery_default
     localhost_discovery_default(os.environ)     # as the nodes do: DDS on this host
     run = run_faults(out)
     print(f'bags: {run.bags}; exit codes {run.exit_codes}; truncated {run.truncated}')

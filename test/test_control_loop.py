@@ -7,13 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.loop import StateSample
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.sim.lockstep import build_controller_loop
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 
 @pytest.mark.parametrize('vt_coupling', [True, False])

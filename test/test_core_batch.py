@@ -12,7 +12,6 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from haptic_topology.control import batch as batch_module
 from haptic_topology.control.batch import HandBatch, HandBatcher
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.loop import HandSample
 from haptic_topology.device.hosted import state_sample
 from haptic_topology.device.loop import ns_to_seconds, period_ns
@@ -26,6 +25,7 @@ from haptic_topology.nodes.convert import (
 from haptic_topology.sim.lockstep import build_controller_loop, build_device_loop, simulate
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed, VirtualEnvironment
+from haptic_topology.vocabulary import ControlMode
 from haptic_topology_msgs.msg import HandInputs
 
 

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from haptic_topology.cli import main as cli_main
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.lmi import LocalModel
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics.contacts import (
@@ -27,13 +26,14 @@ from haptic_topology.dynamics.contacts import (
     contact_forces,
 )
 from haptic_topology.errors import ConfigError
-from haptic_topology.model import TaskSpace, load_linkage, serial_chain
+from haptic_topology.model import load_linkage, serial_chain
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.trace import Trace
 from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 TABLE1 = config_dir() / 'linkages' / 'table1_planar3.yaml'
 Q0 = np.array([0.0, np.pi / 6, -np.pi / 3])     # link 3's tip at (104.4, 6.0) mm

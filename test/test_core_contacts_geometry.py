@@ -12,13 +12,13 @@ import pytest
 from numpy.testing import assert_allclose
 
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.model.obstacles import (
     Obstacle,
     ObstacleKind,
     capsule_gaps,
     obstacles_from_config,
 )
+from haptic_topology.vocabulary import TaskSpace
 
 W = 'fig.yaml: scenario.contacts.obstacles'
 PLANAR, SPATIAL = TaskSpace.PLANAR, TaskSpace.SPATIAL

@@ -23,7 +23,7 @@ from haptic_topology.dynamics.contacts import (
     LinkSolid,
 )
 from haptic_topology.errors import ConfigError
-from haptic_topology.model import Linkage, TaskSpace, load_linkage
+from haptic_topology.model import Linkage, load_linkage
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.model.solids import (
     box_sdf,
@@ -36,6 +36,7 @@ from haptic_topology.model.solids import (
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology.vocabulary import TaskSpace
 
 RY90 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])   # local z -> world x
 SQUARE = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.1, 0.1, 0.0], [0.0, 0.1, 0.0]])

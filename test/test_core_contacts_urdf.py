@@ -25,11 +25,12 @@ from haptic_topology.dynamics.contacts import (
     contact_forces,
 )
 from haptic_topology.errors import ConfigError, LinkageError
-from haptic_topology.model import Linkage, TaskSpace, load_linkage
+from haptic_topology.model import Linkage, load_linkage
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.vocabulary import TaskSpace
 
 ARM3 = config_dir() / 'linkages' / 'arm3_collision.yaml'
 PLANE = [{'type': 'plane', 'point': [0.0, 0.0, 0.014], 'normal': [0.0, 0.0, 1.0]}]

@@ -9,7 +9,6 @@ import pytest
 
 from haptic_topology.control import (
     ControlGains,
-    ControlMode,
     HapticController,
     LmiModel,
     LmiSnapshot,
@@ -19,8 +18,9 @@ from haptic_topology.control import (
     penalty_control,
 )
 from haptic_topology.dynamics import LinkageDynamics, inverse_operational_inertia
-from haptic_topology.model import TaskSpace, load_linkage
+from haptic_topology.model import load_linkage
 from haptic_topology.paths import config_dir
+from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 TABLE1 = load_linkage(config_dir() / 'linkages' / 'table1_planar3.yaml')
 P = TaskSpace.PLANAR

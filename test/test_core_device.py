@@ -7,13 +7,12 @@ import numpy as np
 from haptic_topology.device import (
     ConstantWrenchUser,
     DeviceParams,
-    DeviceStatus,
     MaglevModel,
     SpringDamperUser,
     TargetPath,
     saturate,
 )
-from haptic_topology.model import TaskSpace
+from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 
 def test_free_device_follows_eq9() -> None:

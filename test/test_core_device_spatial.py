@@ -11,7 +11,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from haptic_topology.device import DeviceParams, DeviceStatus, MaglevModel
+from haptic_topology.device import DeviceParams, MaglevModel
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
 from haptic_topology.device.maglev import (
     DeviceRealism,
@@ -20,7 +20,7 @@ from haptic_topology.device.maglev import (
     device_from_config,
 )
 from haptic_topology.errors import ConfigError
-from haptic_topology.model import TaskSpace
+from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 S = TaskSpace.SPATIAL
 DT = 1e-3

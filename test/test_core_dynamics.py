@@ -14,9 +14,10 @@ from haptic_topology.dynamics import (
     pose_difference,
     task_scale,
 )
-from haptic_topology.model import ConstraintSettings, TaskSpace, load_linkage
+from haptic_topology.model import ConstraintSettings, load_linkage
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology.vocabulary import TaskSpace
 
 TABLE1 = load_linkage(config_dir() / 'linkages' / 'table1_planar3.yaml')
 SPATIAL = load_linkage(config_dir() / 'linkages' / 'spatial_arm4.yaml')

@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from haptic_topology.control.controller import CycleOutput
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.loop import Answer, UpdateVerdict
 from haptic_topology.device.hosted import HostedCycle, HostedStep, state_sample
@@ -26,7 +25,6 @@ from haptic_topology.device.loop import (
     ns_to_seconds,
     period_ns,
 )
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.errors import ConfigError
 from haptic_topology.sim.lockstep import (
@@ -38,6 +36,7 @@ from haptic_topology.sim.lockstep import (
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.trace import Trace
 from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 
 def _cycle(sc: Scenario, mode: ControlMode, **kwargs: Any) -> tuple[HostedCycle,

@@ -9,8 +9,9 @@ import pytest
 import yaml
 
 from haptic_topology.errors import LinkageError
-from haptic_topology.model import JointType, TaskSpace, build_model, load_linkage
+from haptic_topology.model import JointType, build_model, load_linkage
 from haptic_topology.paths import config_dir
+from haptic_topology.vocabulary import TaskSpace
 
 TABLE1 = config_dir() / 'linkages' / 'table1_planar3.yaml'
 SPATIAL = config_dir() / 'linkages' / 'spatial_arm4.yaml'

@@ -15,8 +15,9 @@ import yaml
 
 from haptic_topology.dynamics import LinkageDynamics, pose_difference
 from haptic_topology.errors import LinkageError
-from haptic_topology.model import TaskSpace, linkage_from_dict, load_linkage
+from haptic_topology.model import linkage_from_dict, load_linkage
 from haptic_topology.paths import config_dir
+from haptic_topology.vocabulary import TaskSpace
 
 TABLE1 = config_dir() / 'linkages' / 'table1_planar3.yaml'
 

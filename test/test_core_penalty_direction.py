@@ -19,11 +19,11 @@ from haptic_topology.model import (
     ConstraintSettings,
     Linkage,
     PenaltyDirection,
-    TaskSpace,
     load_linkage,
     serial_chain,
 )
 from haptic_topology.paths import config_dir
+from haptic_topology.vocabulary import TaskSpace
 
 TABLE1 = load_linkage(config_dir() / 'linkages' / 'table1_planar3.yaml')
 SPATIAL = load_linkage(config_dir() / 'linkages' / 'spatial_arm4.yaml')

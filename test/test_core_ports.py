@@ -18,12 +18,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.port import ControllerPort, live_change
 from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
 from haptic_topology.device.hosted import state_sample
 from haptic_topology.device.loop import CommandVerdict, ns_to_seconds, period_ns
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.sim.lockstep import (
     build_controller_loop,
     build_device_loop,
@@ -31,6 +29,7 @@ from haptic_topology.sim.lockstep import (
     virtual_environment,
 )
 from haptic_topology.sim.scenario import Scenario, load_scenario
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 
 def _pair(sc: Scenario, mode: ControlMode, lockstep: bool = True,

@@ -16,10 +16,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.device.hosted import HostedCycle
 from haptic_topology.device.loop import ns_to_seconds, period_ns
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
 from haptic_topology.errors import ConfigError
 from haptic_topology.sim.lockstep import (
@@ -29,6 +27,7 @@ from haptic_topology.sim.lockstep import (
     virtual_environment,
 )
 from haptic_topology.sim.scenario import Scenario, load_scenario
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 
 class FakeClock:

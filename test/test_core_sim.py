@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import yaml
 
-from haptic_topology.control import ControlMode
 from haptic_topology.errors import ConfigError
 from haptic_topology.paths import config_dir
 from haptic_topology.sim import Trace, load_scenario, simulate
+from haptic_topology.vocabulary import ControlMode
 
 
 @pytest.fixture(scope='module')

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_topology.control import ControlMode
 from haptic_topology.errors import ConfigError, LinkageError
 from haptic_topology.model.linkage import linkage_from_dict
 from haptic_topology.paths import resolve_package_uri
 from haptic_topology.sim import Trace, load_scenario, simulate
 from haptic_topology.sim.plots import plot_trace
+from haptic_topology.vocabulary import ControlMode
 
 PANDA = 'package://example-robot-data/robots/panda_description/urdf/panda.urdf'
 

@@ -24,7 +24,7 @@ import yaml
 from haptic_topology import frames
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.errors import LinkageError
-from haptic_topology.model import Linkage, TaskSpace, linkage_from_dict, load_linkage
+from haptic_topology.model import Linkage, linkage_from_dict, load_linkage
 from haptic_topology.model import urdf as urdf_module
 from haptic_topology.model.linkage import build_model, serial_chain
 from haptic_topology.model.urdf import (
@@ -35,6 +35,7 @@ from haptic_topology.model.urdf import (
     robot_description,
 )
 from haptic_topology.paths import config_dir
+from haptic_topology.vocabulary import TaskSpace
 
 LINKAGES = config_dir() / 'linkages'
 TOL = 1e-12

@@ -15,9 +15,10 @@ import pinocchio as pin
 import pytest
 
 from haptic_topology.dynamics import LinkageDynamics
-from haptic_topology.model import TaskSpace, load_linkage, serial_chain
+from haptic_topology.model import load_linkage, serial_chain
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology.vocabulary import TaskSpace
 
 RNG = np.random.default_rng(11)
 

@@ -112,7 +112,7 @@ def test_backend_conforms(subject: str, check: str, request: pytest.FixtureReque
 def test_example_reports_a_fault_and_the_loop_writes_zero(example_installed: Path) -> None:
     """The example's fault (out of travel) goes through the driver's fault path: zero from
     the next cycle, FAULT in the state, the reason in the diagnostics."""
-    from haptic_topology.device.maglev import DeviceStatus
+    from haptic_topology.vocabulary import DeviceStatus
 
     bench = Bench(Subject(EXAMPLE_NAME, Applied, {'travel': 0.001, 'stiffness': 0.0,
                                                   'damping': 0.0}))

@@ -10,19 +10,18 @@ from pathlib import Path
 
 import numpy as np
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.device.backend import (
     BackendConfig,
     DeviceBackend,
     SimMaglevBackend,
 )
 from haptic_topology.device.loop import CommandVerdict, DeviceLoop, device_report, hardware_id
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.msgcheck import STATUS_BITS
 from haptic_topology.msgdefs import typestore_with_haptic_msgs
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fake_backend import FaultBackend

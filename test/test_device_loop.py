@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.device.loop import CommandVerdict, DeviceLoop
 from haptic_topology.sim.lockstep import build_device_loop
 from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.vocabulary import ControlMode
 
 
 def test_longest_run_of_missed_cycles_is_counted() -> None:

@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.device import protocol as P
 from haptic_topology.device.backend import (
     BackendConfig,
@@ -43,7 +42,6 @@ from haptic_topology.device.backend import (
     create_backend,
 )
 from haptic_topology.device.loop import DeviceLoop
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.device.network import NetworkBackend
 from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.device.server import DeviceServer, ServerConfig
@@ -52,6 +50,7 @@ from haptic_topology.errors import ConfigError, DeviceError
 from haptic_topology.settings import parse_backend_options
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 sys.path.insert(0, str(Path(__file__).parent))
 from network_harness import (

@@ -27,6 +27,7 @@ from procs import stop_process
 
 from haptic_topology.msgcheck import MAX_SEQ
 from haptic_topology.paths import config_dir
+from haptic_topology.vocabulary import TOPIC_COMMAND, TOPIC_DIAGNOSTICS, TOPIC_STATE
 
 pytestmark = pytest.mark.graph
 
@@ -53,7 +54,19 @@ class Probe:
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
 
-        from haptic_topology.nodes import common
+        from haptic_topology.nodes.qos import (
+            QOS_DIAGNOSTICS,
+            QOS_HAND_INPUTS,
+            QOS_LMI,
+            QOS_LOOP,
+        )
+        from haptic_topology.vocabulary import (
+            TOPIC_COMMAND,
+            TOPIC_DIAGNOSTICS,
+            TOPIC_HAND_INPUTS,
+            TOPIC_LMI,
+            TOPIC_STATE,
+        )
         from haptic_topology_msgs.msg import (
             DeviceCommand,
             DeviceState,
@@ -68,18 +81,18 @@ class Probe:
         self.node = n = rclpy.create_node('foreign_probe', context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(n)
-        self.state_pub = n.create_publisher(DeviceState, common.TOPIC_STATE, common.QOS_LOOP)
-        self.hand_pub = n.create_publisher(HandInputs, common.TOPIC_HAND_INPUTS,
-                                           common.QOS_HAND_INPUTS)
-        self.lmi_pub = n.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
+        self.state_pub = n.create_publisher(DeviceState, TOPIC_STATE, QOS_LOOP)
+        self.hand_pub = n.create_publisher(HandInputs, TOPIC_HAND_INPUTS,
+                                           QOS_HAND_INPUTS)
+        self.lmi_pub = n.create_publisher(LmiUpdate, TOPIC_LMI, QOS_LMI)
         self.commands: list[Any] = []
         self.updates: list[Any] = []
         self.status: dict[str, dict[str, str]] = {}
-        n.create_subscription(DeviceCommand, common.TOPIC_COMMAND, self.commands.append,
-                              common.QOS_LOOP)
-        n.create_subscription(LmiUpdate, common.TOPIC_LMI, self.updates.append, common.QOS_LMI)
-        n.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS, self._on_diag,
-                              common.QOS_DIAGNOSTICS)
+        n.create_subscription(DeviceCommand, TOPIC_COMMAND, self.commands.append,
+                              QOS_LOOP)
+        n.create_subscription(LmiUpdate, TOPIC_LMI, self.updates.append, QOS_LMI)
+        n.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag,
+                              QOS_DIAGNOSTICS)
 
     def _on_diag(self, msg: Any) -> None:
         for st in msg.status:
@@ -223,8 +236,8 @@ class Impostor:
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
 
-        from haptic_topology.nodes import common
-        from haptic_topology.settings import Clock
+        from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, loop_qos
+        from haptic_topology.vocabulary import Clock
         from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 
         self.rclpy = rclpy
@@ -233,12 +246,12 @@ class Impostor:
         self.node = n = rclpy.create_node('impostor', context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(n)
-        qos = common.loop_qos(Clock.LOCKSTEP)
+        qos = loop_qos(Clock.LOCKSTEP)
         self.cmd_t = DeviceCommand
-        self.pub = n.create_publisher(DeviceCommand, common.TOPIC_COMMAND, qos)
-        n.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state, qos)
-        n.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS, self._on_diag,
-                              common.QOS_DIAGNOSTICS)
+        self.pub = n.create_publisher(DeviceCommand, TOPIC_COMMAND, qos)
+        n.create_subscription(DeviceState, TOPIC_STATE, self._on_state, qos)
+        n.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag,
+                              QOS_DIAGNOSTICS)
         self.sent = 0
         self.foreign = 0          # the driver's foreign_commands, newest report
 
@@ -282,9 +295,9 @@ def test_impostor_commands_answering_real_states_are_never_applied(tmp_path: Pat
     from haptic_topology.bag.graph_trace import read_graph_bag
     from haptic_topology.bag.reader import decoder, iter_messages, open_bag
     from haptic_topology.bringup.run import run_graph
-    from haptic_topology.control.laws import ControlMode
     from haptic_topology.sim.lockstep import simulate
     from haptic_topology.sim.scenario import load_scenario
+    from haptic_topology.vocabulary import ControlMode
 
     bag = tmp_path / 'impostor'
     impostor = Impostor()

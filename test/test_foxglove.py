@@ -3,7 +3,7 @@ bridge (``haptic-topology run ... --foxglove``) against a WebSocket client.
 
 The layout check walks every topic and message path the layout names (3D topics, plot series,
 diagnostics panels, the user script's inputs and the fields it reads) through the topic
-vocabulary (``nodes.common.TOPIC_QOS``/``TOPIC_TYPES``) and the message definitions (the
+vocabulary (``vocabulary.TOPIC_ROLES``/``TOPIC_TYPES``) and the message definitions (the
 .msg files and the ROS 2 Jazzy types of ``rosbags``), so a renamed topic or field fails here.
 
 The live test runs the real graph (recorder, ve_sim, device_driver and foxglove_bridge as
@@ -28,6 +28,7 @@ import pytest
 from conftest import REPO
 
 from haptic_topology import frames
+from haptic_topology import vocabulary as vocab
 from haptic_topology.bag.writer import MSGDEF_SEPARATOR, schema_text
 from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
 
@@ -39,9 +40,6 @@ SUBPROTOCOL = 'foxglove.sdk.v1'
 WAIT = 90.0
 
 
-def _common() -> Any:
-    from haptic_topology.nodes import common
-    return common
 
 
 def _absolute(topic: str) -> str:
@@ -52,10 +50,9 @@ def _absolute(topic: str) -> str:
 def test_every_topic_of_the_vocabulary_has_a_type_and_a_schema() -> None:
     from haptic_topology.nodes.foxglove_bridge import message_class
 
-    common = _common()
-    assert set(common.TOPIC_TYPES) == set(common.TOPIC_QOS)
+    assert set(vocab.TOPIC_TYPES) == set(vocab.TOPIC_ROLES)
     store, sources = typestore_with_haptic_msgs(), message_definitions()
-    for topic, type_name in common.TOPIC_TYPES.items():
+    for topic, type_name in vocab.TOPIC_TYPES.items():
         text = schema_text(store, type_name, sources)
         assert text.strip(), topic
         cls = message_class(type_name)
@@ -123,8 +120,7 @@ def layout_problems(layout: dict[str, Any]) -> list[str]:
     """Everything in ``layout`` that does not exist in the graph (empty: all found)."""
     from haptic_topology.bringup import watch
 
-    common = _common()
-    types = {_absolute(t): n for t, n in common.TOPIC_TYPES.items()}
+    types = {_absolute(t): n for t, n in vocab.TOPIC_TYPES.items()}
     problems: list[str] = []
     for key in ('configById', 'layout', 'globalVariables', 'userNodes', 'playbackConfig'):
         if key not in layout:
@@ -187,8 +183,8 @@ def layout_problems(layout: dict[str, Any]) -> list[str]:
             for series in cfg.get('paths', []):
                 check_series(pid, series['value'])
         else:   # diagnostics panels
-            if cfg.get('topicToRender') != _absolute(common.TOPIC_DIAGNOSTICS):
-                problems.append(f'{pid}: topicToRender is not {common.TOPIC_DIAGNOSTICS}')
+            if cfg.get('topicToRender') != _absolute(vocab.TOPIC_DIAGNOSTICS):
+                problems.append(f'{pid}: topicToRender is not {vocab.TOPIC_DIAGNOSTICS}')
             name = cfg.get('selectedName')
             statuses = (watch.CONTROLLER_STATUS, watch.DEVICE_STATUS, watch.VE_STATUS,
                         watch.RECORDER_STATUS)
@@ -208,11 +204,10 @@ def test_layout_names_only_topics_and_fields_that_exist(layout: dict[str, Any]) 
 
 def test_layout_shows_linkage_device_arrows_distance_forces_and_health(
         layout: dict[str, Any]) -> None:
-    common = _common()
     config = layout['configById']
     three_d = [c for p, c in config.items() if p.startswith('3D!')]
-    assert three_d and _absolute(common.TOPIC_MARKERS) in three_d[0]['topics']
-    assert _absolute(common.TOPIC_ROBOT_DESCRIPTION) in three_d[0]['topics']
+    assert three_d and _absolute(vocab.TOPIC_MARKERS) in three_d[0]['topics']
+    assert _absolute(vocab.TOPIC_ROBOT_DESCRIPTION) in three_d[0]['topics']
     values = [s['value'] for p, c in config.items() if p.startswith('Plot!')
               for s in c['paths']]
     assert any(v.endswith('.distance_m') for v in values)              # device-VT distance
@@ -278,16 +273,17 @@ def _decode_with_schema(schema: str, type_name: str, data: bytes) -> Any:
 @pytest.mark.timeout(240)
 def test_bridge_serves_the_live_graph_to_a_websocket_client(tmp_path: Path) -> None:
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.serialization import deserialize_message
     from visualization_msgs.msg import MarkerArray
     from websockets.sync.client import connect
 
     from haptic_topology.bringup.run import FOXGLOVE_NODE, FOXGLOVE_STATUS, run_graph
+    from haptic_topology.nodes.qos import QOS_DIAGNOSTICS
     from haptic_topology.paths import config_dir
     from haptic_topology_msgs.msg import DeviceState
 
-    common = _common()
     outcome: dict[str, Any] = {}
 
     def graph() -> None:
@@ -312,8 +308,8 @@ def test_bridge_serves_the_live_graph_to_a_websocket_client(tmp_path: Path) -> N
             if st.name == FOXGLOVE_STATUS:
                 bridge.update({kv.key: kv.value for kv in st.values})
 
-    node.create_subscription(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
-                             on_diagnostics, common.QOS_DIAGNOSTICS)
+    node.create_subscription(DiagnosticArray, vocab.TOPIC_DIAGNOSTICS,
+                             on_diagnostics, QOS_DIAGNOSTICS)
     deadline = time.monotonic() + WAIT
 
     def spin_until(cond: Any, what: str) -> None:
@@ -322,8 +318,8 @@ def test_bridge_serves_the_live_graph_to_a_websocket_client(tmp_path: Path) -> N
             assert time.monotonic() < deadline, f'{what}: not within {WAIT:g} s'
             executor.spin_once(timeout_sec=0.1)
 
-    state_topic = _absolute(common.TOPIC_STATE)
-    marker_topic = _absolute(common.TOPIC_MARKERS)
+    state_topic = _absolute(vocab.TOPIC_STATE)
+    marker_topic = _absolute(vocab.TOPIC_MARKERS)
     try:
         spin_until(lambda: 'port' in bridge, 'the bridge reports its port')
         channels: dict[str, dict[str, Any]] = {}
@@ -349,7 +345,7 @@ def test_bridge_serves_the_live_graph_to_a_websocket_client(tmp_path: Path) -> N
                     sid, _stamp = struct.unpack_from('<IQ', frame, 1)
                     received[subs[sid]].append(frame[13:])
         # Every advertised channel: a graph topic, its type, ROS 2 CDR with .msg schemas.
-        types = {_absolute(t): n for t, n in common.TOPIC_TYPES.items()}
+        types = {_absolute(t): n for t, n in vocab.TOPIC_TYPES.items()}
         assert set(channels) == set(types)
         store, sources = typestore_with_haptic_msgs(), message_definitions()
         for topic, ch in channels.items():

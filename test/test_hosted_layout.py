@@ -42,7 +42,8 @@ def test_commands_from_dds_never_reach_the_hosted_device() -> None:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    from haptic_topology.nodes import common
+    from haptic_topology.nodes.qos import QOS_LOOP
+    from haptic_topology.vocabulary import TOPIC_COMMAND, TOPIC_STATE
     from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 
     limit = load_scenario('circle').device.wrench_limit
@@ -55,7 +56,7 @@ def test_commands_from_dds_never_reach_the_hosted_device() -> None:
     states: list[Any] = []
     sent: list[int] = []
     attack = [False]
-    pub = node.create_publisher(DeviceCommand, common.TOPIC_COMMAND, common.QOS_LOOP)
+    pub = node.create_publisher(DeviceCommand, TOPIC_COMMAND, QOS_LOOP)
 
     def on_state(msg: Any) -> None:
         states.append(msg)
@@ -67,7 +68,7 @@ def test_commands_from_dds_never_reach_the_hosted_device() -> None:
             pub.publish(cmd)
             sent.append(msg.seq)
 
-    node.create_subscription(DeviceState, common.TOPIC_STATE, on_state, common.QOS_LOOP)
+    node.create_subscription(DeviceState, TOPIC_STATE, on_state, QOS_LOOP)
 
     def running() -> list[Any]:
         return [s for s in states if not s.status & DeviceState.STATUS_IDLE]

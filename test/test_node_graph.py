@@ -21,11 +21,11 @@ from procs import stop_process
 
 from haptic_topology.bag.graph_trace import GraphRun, read_graph_bag
 from haptic_topology.bringup.run import run_graph
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.trace import Trace
+from haptic_topology.vocabulary import ControlMode
 
 pytestmark = pytest.mark.graph
 

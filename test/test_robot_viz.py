@@ -35,12 +35,31 @@ from haptic_topology import frames
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
 from haptic_topology.bringup.run import run_graph
 from haptic_topology.dynamics import LinkageDynamics
-from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.model.urdf import RobotDescription, robot_description
-from haptic_topology.nodes import common
+from haptic_topology.nodes.qos import QOS_LATCHED, QOS_TF, QOS_VIZ
 from haptic_topology.nodes.viz import FORCE_SCALE
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.scenario import Scenario, load_scenario
+from haptic_topology.vocabulary import (
+    MIRROR_TOPICS,
+    TOPIC_COMMAND,
+    TOPIC_DEVICE_POSE,
+    TOPIC_DEVICE_TWIST,
+    TOPIC_HAND_INPUTS,
+    TOPIC_JOINTS,
+    TOPIC_LMI,
+    TOPIC_MARKERS,
+    TOPIC_ROBOT_DESCRIPTION,
+    TOPIC_STATE,
+    TOPIC_TF,
+    TOPIC_VT_PATH,
+    TOPIC_VT_POSE,
+    TOPIC_VT_TWIST,
+    TOPIC_WRENCH_APPLIED,
+    TOPIC_WRENCH_COUPLING,
+    TOPIC_WRENCH_HAND,
+    TaskSpace,
+)
 
 pytestmark = pytest.mark.graph
 
@@ -49,8 +68,8 @@ WAIT = 60.0          # s: generous, a loaded machine is only slower
 TOL = 1e-12
 #: (scenario, simulated seconds) of the recorded lock-step runs.
 RUNS = (('wall', 1.0), ('panda_link4', 0.4))
-CUSTOM = {common.TOPIC_STATE: frames.DEVICE_BASE, common.TOPIC_COMMAND: frames.DEVICE_BASE,
-          common.TOPIC_HAND_INPUTS: frames.DEVICE_BASE}
+CUSTOM = {TOPIC_STATE: frames.DEVICE_BASE, TOPIC_COMMAND: frames.DEVICE_BASE,
+          TOPIC_HAND_INPUTS: frames.DEVICE_BASE}
 
 
 def _topic(name: str) -> str:
@@ -150,7 +169,7 @@ def _task_pose_se3(pose: np.ndarray, task: TaskSpace, z: float) -> pin.SE3:
 
 
 def _ve_tfs(run: Recorded) -> list[Any]:
-    return [m for m in run[common.TOPIC_TF]
+    return [m for m in run[TOPIC_TF]
             if any(t.child_frame_id == frames.VT_HAND for t in m.transforms)]
 
 
@@ -204,13 +223,13 @@ def test_robot_description_reaches_a_late_subscriber_and_tf_places_vt_hand(
             executor.spin_once(timeout_sec=0.05)
 
     try:
-        node.create_subscription(TFMessage, common.TOPIC_TF, keep('tf'), common.QOS_TF)
-        node.create_subscription(JointState, common.TOPIC_JOINTS, keep('joints'),
-                                 common.QOS_VIZ)
+        node.create_subscription(TFMessage, TOPIC_TF, keep('tf'), QOS_TF)
+        node.create_subscription(JointState, TOPIC_JOINTS, keep('joints'),
+                                 QOS_VIZ)
         # ve_sim publishes the description once, before its first /tf: join after that
         wait(lambda: len(got['tf']) >= 2 and got['joints'], '/tf and joint states')
-        node.create_subscription(String, common.TOPIC_ROBOT_DESCRIPTION, keep('urdf'),
-                                 common.QOS_LATCHED)
+        node.create_subscription(String, TOPIC_ROBOT_DESCRIPTION, keep('urdf'),
+                                 QOS_LATCHED)
         wait(lambda: got['urdf'], 'the robot description (transient local)')
     finally:
         executor.shutdown()
@@ -232,32 +251,32 @@ def test_robot_description_reaches_a_late_subscriber_and_tf_places_vt_hand(
 # -- recorded runs --------------------------------------------------------------------------------
 def test_bag_holds_the_description_once_and_every_header_names_its_frame(
         run: Recorded) -> None:
-    assert [m.data for m in run[common.TOPIC_ROBOT_DESCRIPTION]] == [run.robot.urdf]
+    assert [m.data for m in run[TOPIC_ROBOT_DESCRIPTION]] == [run.robot.urdf]
     for topic, frame in CUSTOM.items():
         assert run[topic] and {m.header.frame_id for m in run[topic]} == {frame}, topic
-    for topic in (common.TOPIC_LMI, common.TOPIC_VT_PATH, common.TOPIC_VT_POSE,
-                  common.TOPIC_VT_TWIST):
+    for topic in (TOPIC_LMI, TOPIC_VT_PATH, TOPIC_VT_POSE,
+                  TOPIC_VT_TWIST):
         assert run[topic] and {m.header.frame_id for m in run[topic]} == {'world'}, topic
-    expected = {common.TOPIC_DEVICE_POSE: frames.DEVICE_BASE,
-                common.TOPIC_DEVICE_TWIST: frames.DEVICE_BASE,
-                common.TOPIC_WRENCH_APPLIED: frames.DEVICE,
-                common.TOPIC_WRENCH_HAND: frames.DEVICE,
-                common.TOPIC_WRENCH_COUPLING: frames.VT_HAND,
-                common.TOPIC_JOINTS: run.robot.root_link}
+    expected = {TOPIC_DEVICE_POSE: frames.DEVICE_BASE,
+                TOPIC_DEVICE_TWIST: frames.DEVICE_BASE,
+                TOPIC_WRENCH_APPLIED: frames.DEVICE,
+                TOPIC_WRENCH_HAND: frames.DEVICE,
+                TOPIC_WRENCH_COUPLING: frames.VT_HAND,
+                TOPIC_JOINTS: run.robot.root_link}
     for topic, frame in expected.items():
         assert len(run[topic]) >= 3 and {m.header.frame_id for m in run[topic]} == {frame}, \
             topic
-    markers = [mk for arr in run[common.TOPIC_MARKERS] for mk in arr.markers]
+    markers = [mk for arr in run[TOPIC_MARKERS] for mk in arr.markers]
     assert markers and {mk.header.frame_id for mk in markers} == {'world'}
-    for tf in run[common.TOPIC_TF]:
+    for tf in run[TOPIC_TF]:
         assert all(t.header.frame_id and t.child_frame_id for t in tf.transforms)
     parents = {t.child_frame_id: t.header.frame_id
-               for tf in run[common.TOPIC_TF] for t in tf.transforms}
+               for tf in run[TOPIC_TF] for t in tf.transforms}
     assert parents[frames.DEVICE] == frames.DEVICE_BASE
     assert parents[frames.DEVICE_BASE] == 'world'
     assert parents[frames.VT_HAND] == run.scenario.linkage.grasp_link
     assert parents[run.robot.root_link] == 'world'
-    for js in run[common.TOPIC_JOINTS]:
+    for js in run[TOPIC_JOINTS]:
         assert list(js.name) == list(run.robot.joint_names)
 
 
@@ -268,8 +287,8 @@ def test_tf_link_frames_equal_the_forward_kinematics_of_the_joint_state(
     the grasp frame there and the VT hand pose mirror of that stamp."""
     lk = run.scenario.linkage
     dyn = LinkageDynamics(lk)
-    joints = run.by_stamp(common.TOPIC_JOINTS)
-    vt = run.by_stamp(common.TOPIC_VT_POSE)
+    joints = run.by_stamp(TOPIC_JOINTS)
+    vt = run.by_stamp(TOPIC_VT_POSE)
     tfs = _ve_tfs(run)
     assert len(tfs) >= 3
     moved = 0
@@ -297,19 +316,19 @@ def test_vt_hand_mirrors_are_the_ve_state(run: Recorded) -> None:
     dyn = LinkageDynamics(lk)
     z = float(dyn.hand_placement(run.scenario.q0).translation[2])
     m = task.dim
-    rows = [np.asarray(p.hand_pose[i * m:(i + 1) * m]) for p in run[common.TOPIC_VT_PATH]
+    rows = [np.asarray(p.hand_pose[i * m:(i + 1) * m]) for p in run[TOPIC_VT_PATH]
             for i in range(len(p.hand_input_seqs))]
     known = [dyn.hand_placement(run.scenario.q0)] + [_task_pose_se3(r, task, z) for r in rows]
     positions = np.array([k.translation for k in known])
-    joints = run.by_stamp(common.TOPIC_JOINTS)
+    joints = run.by_stamp(TOPIC_JOINTS)
     on_path = 0
-    for msg in run[common.TOPIC_VT_POSE]:
+    for msg in run[TOPIC_VT_POSE]:
         placement = _pose_se3(msg.pose)
         i = int(np.argmin(np.linalg.norm(positions - placement.translation, axis=1)))
         _assert_se3(placement, known[i], 'VT hand mirror against the VE')
         on_path += i > 0
     assert on_path >= 2
-    for msg in run[common.TOPIC_VT_TWIST]:
+    for msg in run[TOPIC_VT_TWIST]:
         js = joints[_ns(msg.header.stamp)]
         q, dq = np.asarray(js.position[:lk.dof]), np.asarray(js.velocity[:lk.dof])
         np.testing.assert_allclose(_vec6(msg.twist.linear, msg.twist.angular),
@@ -321,13 +340,13 @@ def test_device_mirrors_copy_the_device_state_of_their_stamp(run: Recorded) -> N
     task = run.task
     dyn = LinkageDynamics(run.scenario.linkage)
     z = float(dyn.hand_placement(run.scenario.q0).translation[2])
-    states = run.by_stamp(common.TOPIC_STATE)
-    twists = run.by_stamp(common.TOPIC_DEVICE_TWIST)
-    hands = run.by_stamp(common.TOPIC_WRENCH_HAND)
-    device_tf = {_ns(t.header.stamp): t for tf in run[common.TOPIC_TF]
+    states = run.by_stamp(TOPIC_STATE)
+    twists = run.by_stamp(TOPIC_DEVICE_TWIST)
+    hands = run.by_stamp(TOPIC_WRENCH_HAND)
+    device_tf = {_ns(t.header.stamp): t for tf in run[TOPIC_TF]
                  for t in tf.transforms if t.child_frame_id == frames.DEVICE}
-    poses = run[common.TOPIC_DEVICE_POSE]
-    assert len(poses) >= 3 and len(run[common.TOPIC_WRENCH_APPLIED]) >= 3
+    poses = run[TOPIC_DEVICE_POSE]
+    assert len(poses) >= 3 and len(run[TOPIC_WRENCH_APPLIED]) >= 3
     for msg in poses:
         stamp = _ns(msg.header.stamp)
         st = states[stamp]
@@ -342,7 +361,7 @@ def test_device_mirrors_copy_the_device_state_of_their_stamp(run: Recorded) -> N
         np.testing.assert_allclose(
             _vec6(w.force, w.torque),
             frames.wrench_in_frame(np.asarray(st.hand_wrench), rot, task), rtol=0, atol=TOL)
-    for msg in run[common.TOPIC_WRENCH_APPLIED]:
+    for msg in run[TOPIC_WRENCH_APPLIED]:
         st = states[_ns(msg.header.stamp)]
         rot = _task_pose_se3(np.asarray(st.pose), task, z).rotation
         w = msg.wrench
@@ -362,13 +381,13 @@ def test_coupling_mirror_is_the_hand_input_in_the_vt_hand_axes(run: Recorded) ->
     dyn = LinkageDynamics(run.scenario.linkage)
     z = float(dyn.hand_placement(run.scenario.q0).translation[2])
     samples: dict[int, tuple[int, np.ndarray]] = {}
-    for h in run[common.TOPIC_HAND_INPUTS]:
+    for h in run[TOPIC_HAND_INPUTS]:
         for i, (seq, stamp) in enumerate(zip(h.state_seq, h.stamp, strict=True)):
             samples[_ns(stamp)] = (int(seq), np.asarray(h.coupling_wrench[i * m:(i + 1) * m]))
     path = {int(s): np.asarray(p.hand_pose[i * m:(i + 1) * m])
-            for p in run[common.TOPIC_VT_PATH] for i, s in enumerate(p.hand_input_seqs)}
+            for p in run[TOPIC_VT_PATH] for i, s in enumerate(p.hand_input_seqs)}
     checked = 0
-    for msg in run[common.TOPIC_WRENCH_COUPLING]:
+    for msg in run[TOPIC_WRENCH_COUPLING]:
         seq, f_pc = samples[_ns(msg.header.stamp)]
         if seq - 1 not in path:          # the first input: the VE was still at q0
             continue
@@ -380,14 +399,14 @@ def test_coupling_mirror_is_the_hand_input_in_the_vt_hand_axes(run: Recorded) ->
     assert checked >= 3
     if run.scenario.vt_coupling:
         assert any(np.any(samples[_ns(msg.header.stamp)][1] != 0.0)
-                   for msg in run[common.TOPIC_WRENCH_COUPLING])
+                   for msg in run[TOPIC_WRENCH_COUPLING])
 
 
 def test_force_arrows_at_their_points(run: Recorded) -> None:
     """The F_h and u arrows start at the device ghost and are FORCE_SCALE m per N long; F_pc
     and F_env start at the grasp point; F_env appears where the run touches an obstacle."""
     seen: dict[str, int] = defaultdict(int)
-    for arr in run[common.TOPIC_MARKERS]:
+    for arr in run[TOPIC_MARKERS]:
         by_ns = {mk.ns: mk for mk in arr.markers}
         for ns in ('F_h', 'u', 'F_pc', 'F_env'):
             mk = by_ns[ns]
@@ -412,12 +431,12 @@ def test_force_arrows_at_their_points(run: Recorded) -> None:
 def test_recorded_topics_include_the_robot_and_the_mirrors(run: Recorded) -> None:
     from haptic_topology.nodes.recorder import RECORDED
 
-    for topic in (common.TOPIC_ROBOT_DESCRIPTION, common.TOPIC_TF, *common.MIRROR_TOPICS):
+    for topic in (TOPIC_ROBOT_DESCRIPTION, TOPIC_TF, *MIRROR_TOPICS):
         assert topic in RECORDED and run[topic], topic
     # the bag offers /robot_description transient local again (ros2 bag play: a late RViz
     # still gets it), the others volatile
     meta = yaml.safe_load((run.bag / 'metadata.yaml').read_text())
     qos = {t['topic_metadata']['name']: t['topic_metadata']['offered_qos_profiles']
            for t in meta['rosbag2_bagfile_information']['topics_with_message_count']}
-    assert qos[common.TOPIC_ROBOT_DESCRIPTION][0]['durability'] == 'transient_local'
-    assert qos[common.TOPIC_TF][0]['durability'] == 'volatile'
+    assert qos[TOPIC_ROBOT_DESCRIPTION][0]['durability'] == 'transient_local'
+    assert qos[TOPIC_TF][0]['durability'] == 'volatile'

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from haptic_topology.errors import ConfigError
-from haptic_topology.nodes.common import localhost_discovery_default
+from haptic_topology.nodes.dds_env import localhost_discovery_default
 from haptic_topology.nodes.node_params import KNOWN
 from haptic_topology.params import check_overrides, check_params_file
 from haptic_topology.paths import config_dir
@@ -184,8 +184,8 @@ def test_node_processes_open_no_shared_memory_port(tmp_path: Path) -> None:
     same LOCALHOST range has shared-memory receive threads."""
     def threads(env: dict[str, str]) -> set[str]:
         code = ('import json, os, rclpy\n'
-                'from haptic_topology.nodes import common\n'
-                'common.localhost_discovery_default(os.environ)\n'
+                'from haptic_topology.nodes.dds_env import localhost_discovery_default\n'
+                'localhost_discovery_default(os.environ)\n'
                 'rclpy.init(); n = rclpy.create_node("transport_probe")\n'
                 'print(json.dumps(sorted({open(f"/proc/self/task/{t}/comm").read().strip()\n'
                 '                         for t in os.listdir("/proc/self/task")})))\n')

@@ -92,9 +92,9 @@ def test_good_messages_pass() -> None:
 def test_controller_ids_drawn_in_range_and_written_into_commands() -> None:
     """Every process draws its own random id in [1, 2**63 - 1]; ``command_msg`` writes it."""
     from haptic_topology.control.controller import CycleOutput
-    from haptic_topology.control.laws import ControlMode
     from haptic_topology.msgcheck import MAX_CONTROLLER_ID, new_controller_id
     from haptic_topology.nodes.convert import CONTROLLER_ID, command_msg
+    from haptic_topology.vocabulary import ControlMode
 
     ids = {new_controller_id() for _ in range(1000)}
     assert len(ids) == 1000 and all(1 <= i <= MAX_CONTROLLER_ID for i in ids)

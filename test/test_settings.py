@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.device.watchdog import WatchdogFallback
 from haptic_topology.errors import ConfigError
 from haptic_topology.nodes.node_params import KNOWN
@@ -23,7 +22,6 @@ from haptic_topology.resolve import (
     resolve_ve_sim,
 )
 from haptic_topology.settings import (
-    Clock,
     DeviceDriverSettings,
     LmiControllerSettings,
     NodeSettings,
@@ -34,6 +32,7 @@ from haptic_topology.settings import (
     scenario_defaults,
 )
 from haptic_topology.sim.scenario import Scenario, load_scenario
+from haptic_topology.vocabulary import Clock, ControlMode
 
 _EX = ('events', 'single_threaded')
 _COMMON: list[tuple[str, Any, float | None, float | None, tuple[str, ...] | None, bool]] = [
@@ -298,7 +297,7 @@ def test_declare_settings_declares_every_field_on_a_node(fig8: Scenario) -> None
     rclpy = pytest.importorskip('rclpy')
     from rclpy.parameter import Parameter
 
-    from haptic_topology.nodes import common
+    from haptic_topology.nodes.parameters import declare_settings, declare_spec
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -306,9 +305,9 @@ def test_declare_settings_declares_every_field_on_a_node(fig8: Scenario) -> None
         node = rclpy.create_node('lmi_controller', context=ctx, parameter_overrides=[
             Parameter('k_tc', value=30.0)])
         try:
-            name = common.declare_spec(node, param_specs(LmiControllerSettings)['scenario'])
+            name = declare_spec(node, param_specs(LmiControllerSettings)['scenario'])
             sc = load_scenario(name)
-            settings = common.declare_settings(node, LmiControllerSettings,
+            settings = declare_settings(node, LmiControllerSettings,
                                                scenario_defaults(LmiControllerSettings, sc))
             assert (settings.mode, settings.k_tc, settings.b_tc) == (sc.mode.label, 30.0, 50.0)
             assert settings.lockstep_wait == 60.0
@@ -322,7 +321,7 @@ def test_declare_settings_declares_every_field_on_a_node(fig8: Scenario) -> None
         try:
             with pytest.raises(ConfigError, match=r'^device_driver: parameter rate_hz: '
                                r'expected 0\.0 \(1/scenario dt\) or a value in \[10, 10000\]'):
-                common.declare_settings(node, DeviceDriverSettings)
+                declare_settings(node, DeviceDriverSettings)
         finally:
             node.destroy_node()
     finally:

@@ -48,11 +48,11 @@ from procs import stop_process
 
 from haptic_topology.bringup.watch import GraphWatcher
 from haptic_topology.device.backend import BackendConfig, backend_class, create_backend
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.errors import DeviceError
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.vocabulary import DeviceStatus
 
 pytestmark = pytest.mark.graph
 
@@ -455,7 +455,8 @@ class Controller:
         import rclpy
         from rclpy.experimental import EventsExecutor
 
-        from haptic_topology.nodes import common
+        from haptic_topology.nodes.qos import QOS_LOOP
+        from haptic_topology.vocabulary import TOPIC_COMMAND, TOPIC_STATE
         from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 
         self._rclpy = rclpy
@@ -463,10 +464,10 @@ class Controller:
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('test_topic_controller', context=self.context)
         self._cmd = DeviceCommand()
-        self.pub = self.node.create_publisher(DeviceCommand, common.TOPIC_COMMAND,
-                                              common.QOS_LOOP)
-        self.node.create_subscription(DeviceState, common.TOPIC_STATE, self._on_state,
-                                      common.QOS_LOOP)
+        self.pub = self.node.create_publisher(DeviceCommand, TOPIC_COMMAND,
+                                              QOS_LOOP)
+        self.node.create_subscription(DeviceState, TOPIC_STATE, self._on_state,
+                                      QOS_LOOP)
         self.wrench: list[float] | None = None
         self.states: list[tuple[int, int, list[float]]] = []
         self.id = int(np.random.default_rng().integers(1, 2 ** 62))

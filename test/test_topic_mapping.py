@@ -18,7 +18,7 @@ from haptic_topology.device.topic_mapping import (
     quat_to_matrix,
     rotz,
 )
-from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.vocabulary import TaskSpace
 
 TOPICS = {'pose_topic': '/p', 'twist_topic': '/t', 'command_topic': '/c'}
 

@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from haptic_topology import vocabulary as vocab
 from haptic_topology.bag.reader import (
     BagMessage,
     Progress,
@@ -65,6 +66,7 @@ from haptic_topology.msgcheck import (
 )
 from haptic_topology.msgdefs import type_name
 from haptic_topology.sim.trace import Trace
+from haptic_topology.vocabulary import ControlMode
 
 _WATCHDOG = 4
 _DEVICE_STATUS = 'device_driver: loop'
@@ -72,15 +74,15 @@ _DEVICE_STATUS = 'device_driver: loop'
 #: ``haptic/hand`` (one ``HandInput`` per cycle): bags recorded before the hand inputs were
 #: batched on ``haptic/hand_inputs``.
 GRAPH_TYPES = {
-    'haptic/device/state': type_name('DeviceState'),
-    'haptic/device/command': type_name('DeviceCommand'),
-    'haptic/hand_inputs': type_name('HandInputs'),
-    'haptic/hand': type_name('HandInput'),
-    'haptic/lmi/update': type_name('LmiUpdate'),
+    vocab.TOPIC_STATE: type_name('DeviceState'),
+    vocab.TOPIC_COMMAND: type_name('DeviceCommand'),
+    vocab.TOPIC_HAND_INPUTS: type_name('HandInputs'),
+    vocab.TOPIC_HAND_LEGACY: type_name('HandInput'),
+    vocab.TOPIC_LMI: type_name('LmiUpdate'),
 }
 #: Topics the graph also publishes that newer bags have (not required to read a bag).
-PATH_TOPIC = 'haptic/ve/path'
-_MODE_LABELS = {0: 'penalty', 1: 'acceleration_only', 2: 'zero'}
+PATH_TOPIC = vocab.TOPIC_VT_PATH
+_MODE_LABELS = {int(m): m.label for m in ControlMode}
 #: Largest gap between consecutive state seqs within one run (10 s of 1 kHz states; a
 #: recorder loses far less).
 MAX_SEQ_GAP = 10_000
@@ -135,11 +137,11 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
     followed: set[int] = set()     # controller ids the device driver reported following
     for raw in iter_messages(bag, progress=progress):
         topic = raw.topic
-        if topic.endswith('haptic/device/state'):
+        if topic.endswith(vocab.TOPIC_STATE):
             raw_states.append(decoded('state', raw))
-        elif topic.endswith('haptic/device/command'):
+        elif topic.endswith(vocab.TOPIC_COMMAND):
             raw_commands.append(decoded('command', raw))
-        elif topic.endswith('haptic/lmi/update'):
+        elif topic.endswith(vocab.TOPIC_LMI):
             updates_in.append(decoded('update', raw))
         elif topic.endswith(PATH_TOPIC):
             paths_in.append(decoded('path', raw))

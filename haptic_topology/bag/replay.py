@@ -63,6 +63,7 @@ import numpy as np
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.rosbag2.metadata import parse_qos
 
+from haptic_topology import vocabulary as vocab
 from haptic_topology.bag.reader import (
     Bag,
     BagMessage,
@@ -76,13 +77,14 @@ from haptic_topology.bag.reader import (
 )
 from haptic_topology.errors import BagError, HapticTopologyError
 from haptic_topology.msgdefs import type_name
+from haptic_topology.vocabulary import TOPIC_LMI_ACK, ControlMode
 
-STATE = 'haptic/device/state'
-COMMAND = 'haptic/device/command'
-UPDATE = 'haptic/lmi/update'
-HAND_INPUTS = 'haptic/hand_inputs'
+STATE = vocab.TOPIC_STATE
+COMMAND = vocab.TOPIC_COMMAND
+UPDATE = vocab.TOPIC_LMI
+HAND_INPUTS = vocab.TOPIC_HAND_INPUTS
 #: One ``HandInput`` per cycle: bags recorded before the hand inputs were batched.
-HAND = 'haptic/hand'
+HAND = vocab.TOPIC_HAND_LEGACY
 #: A recorded and a replayed command agree when no wrench component differs by more (N or
 #: N m). The controller is deterministic given the same inputs in the same order, so the
 #: expected difference is 0; 1e-9 leaves room for a different BLAS summation order only.
@@ -206,9 +208,10 @@ def controller_plan(bag: Bag) -> ControllerPlan:
     if not commands:
         raise BagError(f'{bag.path}: no {COMMAND} messages: nothing to compare')
     scenario = str(((bag.metadata or {}).get('custom_data') or {}).get('scenario', ''))
-    modes = [int(c.mode) for c in commands.values() if int(c.mode) != 2]
-    mode = ('acceleration_only' if modes and max(set(modes), key=modes.count) == 1
-            else 'penalty')
+    modes = [int(c.mode) for c in commands.values() if int(c.mode) != ControlMode.ZERO]
+    mode = (ControlMode.ACCELERATION_ONLY.label
+            if modes and max(set(modes), key=modes.count) == ControlMode.ACCELERATION_ONLY
+            else ControlMode.PENALTY.label)
     updates.sort(key=lambda u: int(u[1].seq))
     published = np.array([_stamp(u[1].header) for u in updates])  # VE stamps at publish
     answered_states = [(m, st) for m, st in states if int(st.seq) in answered]
@@ -408,7 +411,7 @@ class _Spinner:
         import rclpy
         from rclpy.experimental import EventsExecutor
 
-        from haptic_topology.nodes.common import localhost_discovery_default
+        from haptic_topology.nodes.dds_env import localhost_discovery_default
 
         self._rclpy = rclpy
         localhost_discovery_default(os.environ)     # the nodes' DDS setup (run_main)
@@ -484,6 +487,7 @@ def check_controller(bag_path: str | Path, params: Path,
                      scenario: str | None = None, tolerance: float = DEFAULT_TOLERANCE,
                      startup_timeout: float = 40.0, log_dir: Path | None = None) -> CheckResult:
     """The controller regression check (see module doc)."""
+    from haptic_topology.nodes.qos import QOS_LMI
     bag = open_bag(bag_path)
     cp = controller_plan(bag)
     scenario = scenario or cp.scenario
@@ -528,7 +532,6 @@ def check_controller(bag_path: str | Path, params: Path,
 
             from std_msgs.msg import UInt64
 
-            from haptic_topology.nodes.common import QOS_LMI, TOPIC_LMI_ACK
             spinner.node.create_subscription(UInt64, f'{ns}/{TOPIC_LMI_ACK}', ack, QOS_LMI)
             pubs = Publishers(spinner.node, bag, cp.items, ns)
             deadline = time.monotonic() + startup_timeout

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import IO
 
 from haptic_topology.errors import ConfigError, HapticTopologyError
+from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE
 
 NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
 CLOCKS = ('wall', 'lockstep')
@@ -69,11 +70,16 @@ def loop_readers(layout: str) -> dict[tuple[str, str], int]:
     """
     from haptic_topology.bringup.watch import CONTROLLER_STATUS as ctl
     from haptic_topology.bringup.watch import VE_STATUS as ve
-    from haptic_topology.nodes import common
+    from haptic_topology.vocabulary import (
+        TOPIC_COMMAND,
+        TOPIC_HAND_INPUTS,
+        TOPIC_LMI,
+        TOPIC_VT_PATH,
+    )
 
-    return {(ve, common.TOPIC_LMI): 2, (ve, common.TOPIC_VT_PATH): 1,
-            (ctl, common.TOPIC_HAND_INPUTS): 2,
-            (ctl, common.TOPIC_COMMAND): 2 if layout == 'separate' else 1}
+    return {(ve, TOPIC_LMI): 2, (ve, TOPIC_VT_PATH): 1,
+            (ctl, TOPIC_HAND_INPUTS): 2,
+            (ctl, TOPIC_COMMAND): 2 if layout == 'separate' else 1}
 
 
 class BringupError(HapticTopologyError):
@@ -105,7 +111,7 @@ def node_prefixes(items: list[str], layout: str) -> dict[str, list[str]]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('scenario', help='scenario name (fig6, fig8) or a scenario YAML file')
-    parser.add_argument('--mode', action='append', choices=('penalty', 'acceleration_only'),
+    parser.add_argument('--mode', action='append', choices=LAW_MODES,
                         help="control law (repeat to run several); default: the scenario's")
     parser.add_argument('--duration', type=float,
                         help="run length (s) from the loop's first state; default: the "
@@ -213,7 +219,6 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``ip netns exec ht_ve`` for ``ve_sim``, which then keeps its pid and gets the signals).
     """
     from haptic_topology.bringup.watch import GraphWatcher, WaitTimeout
-    from haptic_topology.nodes.common import TOPIC_STATE
 
     if layout not in LAYOUTS:
         raise ConfigError(f'--layout: expected one of {", ".join(LAYOUTS)}, got {layout!r}')

@@ -16,6 +16,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from haptic_topology.errors import HapticTopologyError
+from haptic_topology.vocabulary import TOPIC_COMMAND, TOPIC_HAND_INPUTS, TOPIC_STATE, TOPIC_VT_PATH
 
 #: ``/diagnostics`` status names of the graph's nodes.
 RECORDER_STATUS = 'recorder: bag'
@@ -75,11 +76,19 @@ class GraphWatcher:
         from lifecycle_msgs.srv import GetState
         from rclpy.executors import SingleThreadedExecutor
 
-        from haptic_topology.nodes import common
+        from haptic_topology.nodes.dds_env import localhost_discovery_default
+        from haptic_topology.nodes.qos import QOS_DIAGNOSTICS
+        from haptic_topology.vocabulary import (
+            TOPIC_COMMAND,
+            TOPIC_DIAGNOSTICS,
+            TOPIC_HAND_INPUTS,
+            TOPIC_STATE,
+            TOPIC_VT_PATH,
+        )
 
         import_type_supports()
         self._rclpy = rclpy
-        common.localhost_discovery_default(os.environ)   # the nodes' DDS setup (run_main)
+        localhost_discovery_default(os.environ)   # the nodes' DDS setup (run_main)
         self.context = rclpy.Context()
         if domain_id is None:
             rclpy.init(context=self.context, args=args)
@@ -92,10 +101,10 @@ class GraphWatcher:
         self.status: dict[str, dict[str, str]] = {}
         #: Topics whose recorded counts stop growing once the loop has stopped (the hand
         #: inputs a little after the states: the controller flushes its last partial batch).
-        self.settle_topics = (common.TOPIC_STATE, common.TOPIC_COMMAND,
-                              common.TOPIC_HAND_INPUTS, common.TOPIC_VT_PATH)
-        self.node.create_subscription(DiagnosticArray, common.TOPIC_DIAGNOSTICS,
-                                      self._on_diagnostics, common.QOS_DIAGNOSTICS)
+        self.settle_topics = (TOPIC_STATE, TOPIC_COMMAND,
+                              TOPIC_HAND_INPUTS, TOPIC_VT_PATH)
+        self.node.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS,
+                                      self._on_diagnostics, QOS_DIAGNOSTICS)
         self._get_state = GetState
         self._clients: dict[str, Any] = {}
         self._recorder_counts: list[dict[str, str]] = []
@@ -181,24 +190,23 @@ class GraphWatcher:
         adds to the recorder's count). With best-effort loop topics (wall
         clock) states and commands may be lost on the way: only the reliable topics are
         compared, and the recorder's counts must also have settled."""
-        from haptic_topology.nodes import common
 
         dev = self.status.get('device_driver: loop', {})
         ctl = self.status.get('lmi_controller: loop', {})
         ve = self.status.get('ve_sim: loop', {})
         rec = self.status.get(RECORDER_STATUS, {})
-        hand = ctl.get(f'sent {common.TOPIC_HAND_INPUTS}')
+        hand = ctl.get(f'sent {TOPIC_HAND_INPUTS}')
         if (dev.get('loop_running') != 'false' or ctl.get('hand_pending') != '0'
-                or ve.get(f'received {common.TOPIC_HAND_INPUTS}') != hand
+                or ve.get(f'received {TOPIC_HAND_INPUTS}') != hand
                 or ve.get('path_pending') != '0'):
             return False
-        sent = {common.TOPIC_HAND_INPUTS: hand,
-                common.TOPIC_VT_PATH: ve.get(f'sent {common.TOPIC_VT_PATH}')}
+        sent = {TOPIC_HAND_INPUTS: hand,
+                TOPIC_VT_PATH: ve.get(f'sent {TOPIC_VT_PATH}')}
         if reliable_loop:
             if ctl.get('last_state_seq') != dev.get('seq'):
                 return False
-            sent[common.TOPIC_STATE] = dev.get(f'sent {common.TOPIC_STATE}')
-            sent[common.TOPIC_COMMAND] = ctl.get(f'sent {common.TOPIC_COMMAND}')
+            sent[TOPIC_STATE] = dev.get(f'sent {TOPIC_STATE}')
+            sent[TOPIC_COMMAND] = ctl.get(f'sent {TOPIC_COMMAND}')
         elif not self.recorder_settled():
             return False
         received = {k.removeprefix('received ').lstrip('/'): int(v) for k, v in rec.items()

@@ -3,7 +3,6 @@
 from haptic_topology.control.controller import CycleOutput, HapticController
 from haptic_topology.control.laws import (
     ControlGains,
-    ControlMode,
     acceleration_control,
     control_wrench,
     coordination_wrench,
@@ -11,6 +10,7 @@ from haptic_topology.control.laws import (
     penalty_control,
 )
 from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LocalModel
+from haptic_topology.vocabulary import ControlMode
 
 __all__ = ['ControlGains', 'ControlMode', 'CycleOutput', 'HapticController', 'LmiModel',
            'LmiSnapshot', 'LocalModel', 'acceleration_control', 'control_wrench',

@@ -14,13 +14,12 @@ import numpy as np
 
 from haptic_topology.control.laws import (
     ControlGains,
-    ControlMode,
     control_wrench,
     coordination_wrench,
     stable_hold,
 )
 from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LocalModel
-from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,6 @@ poses m / rad, twists m/s / rad/s; ``M_d`` kg / kg m^2; ``k_tc`` N/(m kg), ``b_t
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -16,29 +15,8 @@ from typing import Any
 import numpy as np
 
 from haptic_topology.dynamics.taskspace import pose_difference
-from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.validate import as_float, as_vector, check_keys
-
-
-class ControlMode(enum.IntEnum):
-    """Control law; values equal ``haptic_topology_msgs/DeviceCommand.MODE_*``."""
-
-    PENALTY = 0             # eq. 14: eq. 10 plus penalties along N(J_h^T) (eq. 13)
-    ACCELERATION_ONLY = 1   # eq. 10: topology at the acceleration level only
-    ZERO = 2                # no force (safe state)
-
-    @classmethod
-    def parse(cls, name: str) -> ControlMode:
-        """Mode from its CLI / parameter name: penalty, acceleration_only, zero."""
-        try:
-            return cls[name.upper()]
-        except KeyError:
-            raise ValueError(f'mode: expected one of penalty, acceleration_only, zero, got '
-                             f'{name!r}') from None
-
-    @property
-    def label(self) -> str:
-        return self.name.lower()
+from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,8 @@ from haptic_topology.dynamics.contacts import LocalContacts
 from haptic_topology.dynamics.linkage_dynamics import DynamicsSnapshot
 from haptic_topology.dynamics.spd import spd_factor, spd_solve
 from haptic_topology.dynamics.taskspace import integrate_pose
-from haptic_topology.model.linkage import PenaltyDirection, TaskSpace
+from haptic_topology.model.linkage import PenaltyDirection
+from haptic_topology.vocabulary import TaskSpace
 
 
 class LmiModel(enum.Enum):

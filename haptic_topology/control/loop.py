@@ -39,11 +39,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from haptic_topology.control.controller import CycleOutput, HapticController
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.safety import SyncGuard, scaled_wrench
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.dynamics.taskspace import pose_difference
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 #: Loop states whose VT hand is kept for comparing updates (> the LMI's input history).
 _VT_KEEP = 512

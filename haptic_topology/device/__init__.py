@@ -1,6 +1,6 @@
 """Haptic device models and simulated users (eq. 9)."""
 
-from haptic_topology.device.maglev import DeviceParams, DeviceStatus, MaglevModel, saturate
+from haptic_topology.device.maglev import DeviceParams, MaglevModel, saturate
 from haptic_topology.device.users import (
     ConstantWrenchUser,
     SpringDamperUser,
@@ -8,6 +8,7 @@ from haptic_topology.device.users import (
     UserModel,
     user_from_config,
 )
+from haptic_topology.vocabulary import DeviceStatus
 
 __all__ = ['ConstantWrenchUser', 'DeviceParams', 'DeviceStatus', 'MaglevModel',
            'SpringDamperUser', 'TargetPath', 'UserModel', 'saturate', 'user_from_config']

@@ -48,10 +48,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from haptic_topology.device.maglev import DeviceParams, DeviceStatus, MaglevModel, PositionSensor
+from haptic_topology.device.maglev import DeviceParams, MaglevModel, PositionSensor
 from haptic_topology.device.users import UserModel, user_from_config
 from haptic_topology.errors import DeviceError
-from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 #: Entry point group through which other distributions can add backends.
 ENTRY_POINT_GROUP = 'haptic_topology.device_backends'

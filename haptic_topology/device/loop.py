@@ -66,10 +66,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from haptic_topology.control.laws import ControlMode
 from haptic_topology.device.backend import DeviceBackend, DeviceReading
-from haptic_topology.device.maglev import DeviceStatus, saturate
+from haptic_topology.device.maglev import saturate
 from haptic_topology.device.watchdog import CommandWatchdog
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 #: Publish times kept for the command age and the round trip (states).
 _KEEP = 4096

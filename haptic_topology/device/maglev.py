@@ -31,7 +31,6 @@ import pinocchio as pin
 
 from haptic_topology.dynamics.taskspace import integrate_pose, pose_difference
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.validate import (
     as_angles,
     as_float,
@@ -40,17 +39,7 @@ from haptic_topology.validate import (
     as_vector,
     check_keys,
 )
-
-
-class DeviceStatus(enum.IntFlag):
-    """Bits of ``haptic_topology_msgs/DeviceState.status``."""
-
-    OK = 0
-    WORKSPACE_LIMIT = 1
-    SATURATED = 2
-    WATCHDOG = 4    # output is not the plain command: none yet, stale, or fading in/out
-    FAULT = 8       # the backend reports a device fault: the driver writes zero while it lasts
-    IDLE = 16       # not engaged yet (always with WATCHDOG): controllers integrate nothing
+from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 
 class VelocitySource(enum.Enum):

@@ -72,7 +72,6 @@ from typing import Any
 import numpy as np
 
 from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.device.protocol import (
     DEFAULT_PORT,
     CommandFlags,
@@ -89,6 +88,7 @@ from haptic_topology.device.protocol import (
     new_session,
 )
 from haptic_topology.errors import DeviceError
+from haptic_topology.vocabulary import DeviceStatus
 
 #: Options and their defaults (module doc).
 DEFAULTS: dict[str, Any] = {

@@ -100,8 +100,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.errors import DeviceError
+from haptic_topology.vocabulary import DeviceStatus
 
 MAGIC = b'HTDP'
 VERSION = 1

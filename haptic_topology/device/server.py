@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
-from haptic_topology.device.maglev import DeviceStatus, saturate
+from haptic_topology.device.maglev import saturate
 from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.device.protocol import (
     DEFAULT_PORT,
@@ -69,6 +69,7 @@ from haptic_topology.device.protocol import (
     new_session,
 )
 from haptic_topology.errors import ConfigError, DeviceError
+from haptic_topology.vocabulary import DeviceStatus
 
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario

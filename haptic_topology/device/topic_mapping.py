@@ -46,7 +46,7 @@ import numpy as np
 import pinocchio as pin
 
 from haptic_topology.errors import DeviceError
-from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.vocabulary import TaskSpace
 
 #: Backend name used in the options' error messages.
 BACKEND = 'ros_topics'

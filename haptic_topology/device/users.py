@@ -16,8 +16,8 @@ import numpy as np
 
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.validate import as_float, as_str, as_vector, check_keys
+from haptic_topology.vocabulary import TaskSpace
 
 
 class UserModel(Protocol):

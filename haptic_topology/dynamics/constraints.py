@@ -45,13 +45,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from haptic_topology.model.linkage import (
-    ConstraintSettings,
-    JointType,
-    Linkage,
-    PenaltyDirection,
-    TaskSpace,
-)
+from haptic_topology.model.linkage import ConstraintSettings, JointType, Linkage, PenaltyDirection
+from haptic_topology.vocabulary import TaskSpace
 
 
 @dataclass(frozen=True)

@@ -54,7 +54,7 @@ import numpy as np
 import pinocchio as pin
 
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import Linkage, TaskSpace
+from haptic_topology.model.linkage import Linkage
 from haptic_topology.model.obstacles import (
     EPS,
     Obstacle,
@@ -73,6 +73,7 @@ from haptic_topology.model.solids import (
     solid_gaps,
 )
 from haptic_topology.validate import as_bool, as_float, check_keys
+from haptic_topology.vocabulary import TaskSpace
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)

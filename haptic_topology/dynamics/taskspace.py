@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pinocchio as pin
 
-from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.vocabulary import TaskSpace
 
 
 def wrap_angle(a: float) -> float:

@@ -8,7 +8,6 @@ from haptic_topology.model.linkage import (
     LinkageModel,
     LinkSpec,
     PenaltyDirection,
-    TaskSpace,
     build_model,
     linkage_from_dict,
     load_linkage,
@@ -16,6 +15,7 @@ from haptic_topology.model.linkage import (
     serial_chain,
     to_dict,
 )
+from haptic_topology.vocabulary import TaskSpace
 
 __all__ = ['CollisionShape', 'ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage',
            'LinkageModel',

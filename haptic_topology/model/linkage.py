@@ -70,25 +70,9 @@ from haptic_topology.validate import (
     check_keys,
     load_yaml,
 )
+from haptic_topology.vocabulary import TaskSpace
 
 _LOG = logging.getLogger(__name__)
-
-
-class TaskSpace(enum.Enum):
-    """Dimension of the hand's rigid-body motion: planar (3-DOF) or spatial (6-DOF)."""
-
-    PLANAR = 'planar'
-    SPATIAL = 'spatial'
-
-    @property
-    def dim(self) -> int:
-        """Task dimension m: 3 planar (vx, vy, wz), 6 spatial (vx, vy, vz, wx, wy, wz)."""
-        return 3 if self is TaskSpace.PLANAR else 6
-
-    @property
-    def translation_rows(self) -> slice:
-        """Rows of a task vector that are translations (m, m/s, N); the others are rotations."""
-        return slice(0, 2) if self is TaskSpace.PLANAR else slice(0, 3)
 
 
 class JointType(enum.Enum):

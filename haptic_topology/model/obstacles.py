@@ -39,8 +39,8 @@ from typing import Any
 import numpy as np
 
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.validate import as_float, as_str, as_vector, check_keys
+from haptic_topology.vocabulary import TaskSpace
 
 #: Lengths (m) below this count as zero: degenerate axes, coincident points, touching segments.
 EPS = 1e-12

@@ -47,8 +47,9 @@ import pinocchio as pin
 
 from haptic_topology import frames
 from haptic_topology.errors import ConfigError, LinkageError
-from haptic_topology.model.linkage import JointType, Linkage, LinkSpec, TaskSpace, reach
+from haptic_topology.model.linkage import JointType, Linkage, LinkSpec, reach
 from haptic_topology.validate import as_float, load_yaml
+from haptic_topology.vocabulary import TaskSpace
 
 #: Name of the generated URDF's root link (``<linkage name>_base_link`` if a link has it).
 ROOT_LINK = 'base_link'

@@ -13,7 +13,8 @@ from collections.abc import Sequence
 
 from rclpy.node import Node
 
-from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes import node_params
+from haptic_topology.nodes.runtime import run_main
 
 
 def build() -> list[Node]:
@@ -43,7 +44,7 @@ def build() -> list[Node]:
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('composed', build, args, node_params.KNOWN)
+    return run_main('composed', build, args, node_params.KNOWN)
 
 
 if __name__ == '__main__':

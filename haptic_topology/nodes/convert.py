@@ -33,7 +33,6 @@ from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
 from haptic_topology.dynamics.constraints import PenaltyDirection
 from haptic_topology.dynamics.contacts import ContactParams, LocalContacts
-from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.msgcheck import (
     MAX_CONTROLLER_ID,
     MAX_SEQ,
@@ -51,6 +50,7 @@ from haptic_topology.msgcheck import (
     finite_scalar,
     new_controller_id,
 )
+from haptic_topology.vocabulary import TaskSpace
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
 

@@ -41,6 +41,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -51,13 +52,24 @@ from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, h
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
 from haptic_topology.frames import DEVICE_BASE
-from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes import node_params
 from haptic_topology.nodes.convert import RejectCounter, ns_to_stamp, state_msg
+from haptic_topology.nodes.diagnostics import diagnostics, matched, monotonic
 from haptic_topology.nodes.hosting import HostedLoop, driver_layout
+from haptic_topology.nodes.parameters import declare_settings
+from haptic_topology.nodes.qos import QOS_CLOCK, QOS_DIAGNOSTICS, loop_qos
+from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.separate import SeparateLoop
 from haptic_topology.resolve import resolve_device_driver
-from haptic_topology.settings import Clock, DeviceDriverSettings
+from haptic_topology.settings import DeviceDriverSettings
 from haptic_topology.sim.scenario import Scenario, load_scenario
+from haptic_topology.vocabulary import (
+    TOPIC_CLOCK,
+    TOPIC_COMMAND,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_STATE,
+    Clock,
+)
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
@@ -68,7 +80,7 @@ class DeviceDriver(LifecycleNode):
 
     def __init__(self, scenario: Scenario | None = None, **kwargs: Any) -> None:
         super().__init__('device_driver', **kwargs)
-        s = common.declare_settings(self, DeviceDriverSettings)
+        s = declare_settings(self, DeviceDriverSettings)
         self.cfg = resolve_device_driver(s, scenario or load_scenario(s.scenario))
         self.lockstep = self.cfg.clock is Clock.LOCKSTEP
         self.backend: DeviceBackend | None = None
@@ -83,15 +95,15 @@ class DeviceDriver(LifecycleNode):
         self._msg.header.frame_id = DEVICE_BASE   # set once: the message is reused
         # Real-time settings go to the loop thread when hosting (run_main leaves the rest).
         self.process_sched_priority = 0 if s.host_controller else s.sched_priority
-        qos = common.loop_qos(self.cfg.clock)
-        self.state_pub = self.create_publisher(DeviceState, common.TOPIC_STATE, qos)
-        self.clock_pub = self.create_publisher(ClockMsg, common.TOPIC_CLOCK, common.QOS_CLOCK)
-        self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
-                                              common.QOS_DIAGNOSTICS)
-        self._endpoints: dict[str, Any] = {common.TOPIC_STATE: self.state_pub}
+        qos = loop_qos(self.cfg.clock)
+        self.state_pub = self.create_publisher(DeviceState, TOPIC_STATE, qos)
+        self.clock_pub = self.create_publisher(ClockMsg, TOPIC_CLOCK, QOS_CLOCK)
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
+                                              QOS_DIAGNOSTICS)
+        self._endpoints: dict[str, Any] = {TOPIC_STATE: self.state_pub}
         if not s.host_controller:
-            self._endpoints[common.TOPIC_COMMAND] = self.create_subscription(
-                DeviceCommand, common.TOPIC_COMMAND, self._on_command, qos)
+            self._endpoints[TOPIC_COMMAND] = self.create_subscription(
+                DeviceCommand, TOPIC_COMMAND, self._on_command, qos)
         self.create_timer(1.0, self._publish_diagnostics,
                           clock=RosClock(clock_type=ClockType.STEADY_TIME))
 
@@ -199,13 +211,13 @@ class DeviceDriver(LifecycleNode):
     def _publish_diagnostics(self) -> None:
         layout = self.layout
         level, message, loop_values = device_report(
-            self.loop, common.monotonic(), self.fault, self.rejected.total,
+            self.loop, monotonic(), self.fault, self.rejected.total,
             layout.values() if layout is not None else {})
         values = {'backend': self.cfg.backend, 'clock': self.cfg.clock.value,
                   'loop_running': str(layout is not None and layout.running).lower(),
-                  f'sent {common.TOPIC_STATE}': str(self.states_sent),
-                  **self.rejected.values(), **common.matched(self._endpoints), **loop_values}
-        self.diag_pub.publish(common.diagnostics(
+                  f'sent {TOPIC_STATE}': str(self.states_sent),
+                  **self.rejected.values(), **matched(self._endpoints), **loop_values}
+        self.diag_pub.publish(diagnostics(
             self, 'device_driver: loop', values, level, message,
             hardware_id(self.backend, self.cfg.backend)))
 
@@ -237,7 +249,7 @@ def build() -> list[Any]:
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('device_driver', build, args, node_params.KNOWN)
+    return run_main('device_driver', build, args, node_params.KNOWN)
 
 
 if __name__ == '__main__':

@@ -1,14 +1,14 @@
 """``foxglove_bridge``: the graph's live topics on the Foxglove WebSocket protocol.
 
 For a Foxglove app (desktop or browser) without a ROS install: the node serves every topic of
-the graph's vocabulary (:data:`~haptic_topology.nodes.common.TOPIC_QOS`, or those named in
+the graph's vocabulary (:data:`~haptic_topology.nodes.TOPIC_QOS`, or those named in
 ``topics``) with the WebSocket server of the Foxglove SDK (``foxglove-sdk`` on PyPI;
 subprotocol ``foxglove.sdk.v1``, the successor name of ``foxglove.websocket.v1``) on
 ``host:port`` (default ``127.0.0.1:8765``). In the app: *Open connection* -> *Foxglove
 WebSocket* -> ``ws://127.0.0.1:8765``; ``docs/foxglove_layout.json`` is a layout for it.
 
 Each topic is one channel: message encoding ``cdr``, schema encoding ``ros2msg``, schema name
-the ROS type (:data:`~haptic_topology.nodes.common.TOPIC_TYPES`) and schema text the
+the ROS type (:data:`~haptic_topology.nodes.TOPIC_TYPES`) and schema text the
 concatenated .msg definitions rosbag2 writes into MCAP files (the ones the recorder's bags
 carry, :func:`haptic_topology.bag.writer.schema_text`). The serialized CDR bytes are forwarded
 as DDS delivered them, never deserialised: as the recorder, the node takes what DDS holds in
@@ -33,15 +33,21 @@ from collections.abc import Sequence
 from typing import Any
 
 import foxglove
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile
 
 from haptic_topology.bag.writer import schema_text
 from haptic_topology.errors import ConfigError
 from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
-from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes import node_params
+from haptic_topology.nodes.diagnostics import diagnostics
+from haptic_topology.nodes.parameters import declare_settings
+from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, TOPIC_QOS, publisher_qos
+from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.take import BatchTaker
-from haptic_topology.settings import Clock, FoxgloveBridgeSettings
+from haptic_topology.settings import FoxgloveBridgeSettings
+from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS, TOPIC_TYPES, Clock
 
 #: Messages each reader holds between two takes (1 kHz topics: 20 per default period).
 READER_DEPTH = 200
@@ -53,7 +59,7 @@ MESSAGE_ENCODING = 'cdr'
 def served_topics(names: Sequence[str]) -> list[str]:
     """Topics of the vocabulary to serve: all if ``names`` is empty, else ``names`` (with or
     without the leading '/'), which must be in the vocabulary."""
-    known = list(common.TOPIC_QOS)
+    known = list(TOPIC_QOS)
     if not names:
         return known
     by_name = {t.lstrip('/'): t for t in known}
@@ -73,7 +79,7 @@ def message_class(type_name: str) -> Any:
 def reader_qos(topic: str, clock: Clock) -> QoSProfile:
     """The bridge's reader of ``topic``: reliability and durability as the graph's publisher
     offers them under ``clock``, keep last :data:`READER_DEPTH`."""
-    pub = common.publisher_qos(topic, clock)
+    pub = publisher_qos(topic, clock)
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=READER_DEPTH,
                       reliability=pub.reliability, durability=pub.durability)
 
@@ -83,7 +89,7 @@ class FoxgloveBridge(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('foxglove_bridge', **kwargs)
-        self.settings = s = common.declare_settings(self, FoxgloveBridgeSettings)
+        self.settings = s = declare_settings(self, FoxgloveBridgeSettings)
         clock = Clock.parse(s.clock)
         topics = served_topics([n for n in s.topics if n])
         store = typestore_with_haptic_msgs()
@@ -93,7 +99,7 @@ class FoxgloveBridge(Node):
         self.topics: list[str] = []
         readers = []
         for topic in topics:
-            type_name = common.TOPIC_TYPES[topic]
+            type_name = TOPIC_TYPES[topic]
             try:
                 cls = message_class(type_name)
             except (ImportError, AttributeError) as exc:
@@ -123,8 +129,8 @@ class FoxgloveBridge(Node):
                                         daemon=True)
         self._thread.start()
         self._open = True
-        self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
-                                              common.QOS_DIAGNOSTICS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
+                                              QOS_DIAGNOSTICS)
         self.create_timer(1.0, self._publish_status)
         self.get_logger().info(f'serving {len(self.channels)} topics on {self.url}')
 
@@ -147,7 +153,7 @@ class FoxgloveBridge(Node):
                                                                strict=True)},
                   **{f'lost {t}': str(n) for t, n in zip(self.topics, self.taker.lost,
                                                           strict=True) if n}}
-        self.diag_pub.publish(common.diagnostics(self, 'foxglove_bridge: server', values, 0,
+        self.diag_pub.publish(diagnostics(self, 'foxglove_bridge: server', values, 0,
                                                  f'serving on {self.url}'))
 
     def close(self) -> None:
@@ -162,7 +168,7 @@ class FoxgloveBridge(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('foxglove_bridge', lambda: [FoxgloveBridge()], args,
+    return run_main('foxglove_bridge', lambda: [FoxgloveBridge()], args,
                            node_params.KNOWN)
 
 

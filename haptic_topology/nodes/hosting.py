@@ -28,17 +28,13 @@ from collections.abc import Callable
 from typing import Any
 
 from haptic_topology.device.hosted import HostedCycle
-from haptic_topology.device.maglev import DeviceStatus
+from haptic_topology.device.realtime import name_os_thread, set_thread_realtime
 from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
 from haptic_topology.errors import DeviceError
-from haptic_topology.nodes.common import (
-    log_notices,
-    monotonic,
-    name_os_thread,
-    set_thread_realtime,
-)
 from haptic_topology.nodes.convert import CONTROLLER_ID, ns_to_stamp
+from haptic_topology.nodes.diagnostics import log_notices, monotonic
 from haptic_topology.nodes.separate import SeparateLoop
+from haptic_topology.vocabulary import DeviceStatus
 
 #: GIL switch interval (s) of a process that hosts the loop thread (CPython's default: 5 ms).
 SWITCH_INTERVAL = 2e-4

@@ -35,6 +35,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
@@ -47,7 +48,7 @@ from haptic_topology.control.loop import StateSample
 from haptic_topology.control.port import ControllerPort, Outgoing, live_change
 from haptic_topology.device.runner import LoopRunner
 from haptic_topology.frames import DEVICE_BASE
-from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes import node_params
 from haptic_topology.nodes.convert import (
     CONTROLLER_ID,
     MessageError,
@@ -58,10 +59,23 @@ from haptic_topology.nodes.convert import (
     stamp_ns,
     state_from_msg,
 )
+from haptic_topology.nodes.diagnostics import diagnostics, log_notices, matched, monotonic
+from haptic_topology.nodes.parameters import declare_settings, declare_spec
+from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, QOS_LMI, hand_inputs_qos, loop_qos
+from haptic_topology.nodes.runtime import run_main
 from haptic_topology.resolve import resolve_lmi_controller
-from haptic_topology.settings import Clock, LmiControllerSettings, scenario_defaults
+from haptic_topology.settings import LmiControllerSettings, scenario_defaults
 from haptic_topology.sim.lockstep import build_controller_loop
 from haptic_topology.sim.scenario import Scenario, load_scenario
+from haptic_topology.vocabulary import (
+    TOPIC_COMMAND,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_HAND_INPUTS,
+    TOPIC_LMI,
+    TOPIC_LMI_ACK,
+    TOPIC_STATE,
+    Clock,
+)
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
 
@@ -71,9 +85,9 @@ class LmiController(Node):
     def __init__(self, scenario: Scenario | None = None, hosted: bool = False,
                  **kwargs: Any) -> None:
         super().__init__('lmi_controller', **kwargs)
-        name = common.declare_spec(self, node_params.LMI_CONTROLLER['scenario'])
+        name = declare_spec(self, node_params.LMI_CONTROLLER['scenario'])
         sc = scenario or load_scenario(name)
-        s = common.declare_settings(self, LmiControllerSettings,
+        s = declare_settings(self, LmiControllerSettings,
                                     scenario_defaults(LmiControllerSettings, sc))
         self.cfg = c = resolve_lmi_controller(s, sc)
         lockstep = c.clock is Clock.LOCKSTEP
@@ -85,19 +99,19 @@ class LmiController(Node):
         self.task, self.dof = sc.linkage.task, sc.linkage.dof
         self.penalty_direction = sc.linkage.constraints.penalty_direction
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        qos = common.loop_qos(c.clock)
-        self.cmd_pub = self.create_publisher(DeviceCommand, common.TOPIC_COMMAND, qos)
-        self.hand_pub = self.create_publisher(HandInputs, common.TOPIC_HAND_INPUTS,
-                                              common.hand_inputs_qos(c.clock))
-        self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
-                                              common.QOS_DIAGNOSTICS)
-        lmi_sub = self.create_subscription(LmiUpdate, common.TOPIC_LMI, self._on_update,
-                                           common.QOS_LMI)
-        self._endpoints = {common.TOPIC_LMI: lmi_sub, common.TOPIC_COMMAND: self.cmd_pub,
-                           common.TOPIC_HAND_INPUTS: self.hand_pub}
+        qos = loop_qos(c.clock)
+        self.cmd_pub = self.create_publisher(DeviceCommand, TOPIC_COMMAND, qos)
+        self.hand_pub = self.create_publisher(HandInputs, TOPIC_HAND_INPUTS,
+                                              hand_inputs_qos(c.clock))
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
+                                              QOS_DIAGNOSTICS)
+        lmi_sub = self.create_subscription(LmiUpdate, TOPIC_LMI, self._on_update,
+                                           QOS_LMI)
+        self._endpoints = {TOPIC_LMI: lmi_sub, TOPIC_COMMAND: self.cmd_pub,
+                           TOPIC_HAND_INPUTS: self.hand_pub}
         self.hosted = hosted
         self.host: LoopRunner | None = None     # the driver's loop, once attached
-        self.ack_pub = (self.create_publisher(UInt64, common.TOPIC_LMI_ACK, common.QOS_LMI)
+        self.ack_pub = (self.create_publisher(UInt64, TOPIC_LMI_ACK, QOS_LMI)
                         if s.ack_updates else None)
         self._cmd, self._hand = DeviceCommand(), HandInputs()
         # set once (the messages are reused): device-side quantities
@@ -108,8 +122,8 @@ class LmiController(Node):
         if hosted:
             self.process_sched_priority = 0       # the driver's loop thread has its own
             return
-        self._endpoints[common.TOPIC_STATE] = self.create_subscription(
-            DeviceState, common.TOPIC_STATE, self._on_state, qos)
+        self._endpoints[TOPIC_STATE] = self.create_subscription(
+            DeviceState, TOPIC_STATE, self._on_state, qos)
         self.create_timer(self.flush_period, self.flush_hand, clock=steady)
         if lockstep:
             self.create_timer(0.01, self._check_wait, clock=steady)
@@ -142,11 +156,11 @@ class LmiController(Node):
         except MessageError as exc:
             return self._reject('state', exc)
         self.send(self.port.on_state(StateSample(seq, stamp, pose, twist, f_h, status),
-                                      stamp_ns(msg.header.stamp), common.monotonic()))
+                                      stamp_ns(msg.header.stamp), monotonic()))
         return None
 
     def _check_wait(self) -> None:
-        self.send(self.port.check_wait(common.monotonic()))
+        self.send(self.port.check_wait(monotonic()))
 
     def send(self, out: Outgoing | None, cmd_stamp: Any = None) -> None:
         """Publish the command (stamped ``cmd_stamp``, default now) and a completed hand
@@ -157,7 +171,7 @@ class LmiController(Node):
                                              out.answer.out, out.update_age))
             if out.batch is not None:
                 self._publish_hand(out.batch)
-        common.log_notices(self, self.loop.notices)
+        log_notices(self, self.loop.notices)
 
     def _publish_hand(self, batch: HandBatch) -> None:
         self.hand_pub.publish(hand_inputs_msg(self._hand, batch))
@@ -165,7 +179,7 @@ class LmiController(Node):
     def flush_hand(self) -> None:
         """Steady timer (hosted: the outbox thread): the pending hand samples once the
         oldest is two periods old."""
-        batch = self.port.flush(common.monotonic())
+        batch = self.port.flush(monotonic())
         if batch is not None:
             self._publish_hand(batch)
 
@@ -181,7 +195,7 @@ class LmiController(Node):
             if not self.host.running:
                 self.host.cycle.apply_updates()
         if snap is not None:
-            out = self.port.on_update(snap, common.monotonic(), self.host is None)
+            out = self.port.on_update(snap, monotonic(), self.host is None)
         if self.ack_pub is not None:
             self.ack_pub.publish(UInt64(data=int(msg.seq)))
         self.send(out)
@@ -191,24 +205,24 @@ class LmiController(Node):
         self.get_logger().warn(f'{what} rejected: {exc}', throttle_duration_sec=1.0)
 
     def _publish_diagnostics(self) -> None:
-        now = common.monotonic()
+        now = monotonic()
         values = self.port.values(now)
         values.update({'clock': self.cfg.clock.value,
                        'layout': 'hosted' if self.hosted else 'separate',
                        'lockstep_timeouts': str(self.port.lockstep_timeouts + (
                            self.host.lockstep_timeouts if self.host else 0)),
-                       f'sent {common.TOPIC_COMMAND}': str(self.port.commands),
-                       f'sent {common.TOPIC_HAND_INPUTS}': str(self.port.batcher.batches),
+                       f'sent {TOPIC_COMMAND}': str(self.port.commands),
+                       f'sent {TOPIC_HAND_INPUTS}': str(self.port.batcher.batches),
                        'controller_id': str(CONTROLLER_ID),
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
-                       **common.matched(self._endpoints)})
+                       **matched(self._endpoints)})
         level, message = self.port.health(now)
-        self.diag_pub.publish(common.diagnostics(self, 'lmi_controller: loop', values, level,
+        self.diag_pub.publish(diagnostics(self, 'lmi_controller: loop', values, level,
                                                  message))
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('lmi_controller', lambda: [LmiController()], args,
+    return run_main('lmi_controller', lambda: [LmiController()], args,
                            node_params.KNOWN)
 
 

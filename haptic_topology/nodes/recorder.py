@@ -17,7 +17,7 @@ the bag, and a SIGKILL leaves a file that reads back up to the last flush (``hap
 bag repair`` completes it for other readers). Drops are counted and reported in its status
 (``lost``: samples DDS never delivered, or gaps in a publisher's sequence numbers). QoS
 mirrors each publisher's reliability with a
-deep queue (see :mod:`haptic_topology.nodes.common`).
+deep queue (see :mod:`haptic_topology.nodes.qos`).
 """
 
 from __future__ import annotations
@@ -39,36 +39,67 @@ from visualization_msgs.msg import MarkerArray
 from haptic_topology import resolve
 from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
 from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
-from haptic_topology.nodes import common, node_params
+from haptic_topology.nodes import node_params
+from haptic_topology.nodes.diagnostics import diagnostics
+from haptic_topology.nodes.parameters import declare_settings
+from haptic_topology.nodes.qos import (
+    QOS_DIAGNOSTICS,
+    QOS_LATCHED,
+    QOS_RECORD_BEST_EFFORT,
+    QOS_RECORD_RELIABLE,
+    TOPIC_QOS,
+    publisher_qos,
+)
+from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.take import BatchTaker
-from haptic_topology.settings import Clock, RecorderSettings
+from haptic_topology.settings import RecorderSettings
+from haptic_topology.vocabulary import (
+    TOPIC_COMMAND,
+    TOPIC_DEVICE_POSE,
+    TOPIC_DEVICE_TWIST,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_HAND_INPUTS,
+    TOPIC_JOINTS,
+    TOPIC_LMI,
+    TOPIC_MARKERS,
+    TOPIC_ROBOT_DESCRIPTION,
+    TOPIC_STATE,
+    TOPIC_TF,
+    TOPIC_VT_PATH,
+    TOPIC_VT_POSE,
+    TOPIC_VT_TWIST,
+    TOPIC_WRENCH_APPLIED,
+    TOPIC_WRENCH_COUPLING,
+    TOPIC_WRENCH_HAND,
+    Clock,
+)
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate, VtPath
 
 #: Topic -> (rclpy type, type name in the bag).
 RECORDED: dict[str, tuple[Any, str]] = {
-    common.TOPIC_STATE: (DeviceState, 'haptic_topology_msgs/msg/DeviceState'),
-    common.TOPIC_COMMAND: (DeviceCommand, 'haptic_topology_msgs/msg/DeviceCommand'),
-    common.TOPIC_HAND_INPUTS: (HandInputs, 'haptic_topology_msgs/msg/HandInputs'),
-    common.TOPIC_LMI: (LmiUpdate, 'haptic_topology_msgs/msg/LmiUpdate'),
-    common.TOPIC_VT_PATH: (VtPath, 'haptic_topology_msgs/msg/VtPath'),
-    common.TOPIC_JOINTS: (JointState, 'sensor_msgs/msg/JointState'),
-    common.TOPIC_MARKERS: (MarkerArray, 'visualization_msgs/msg/MarkerArray'),
-    common.TOPIC_DIAGNOSTICS: (DiagnosticArray, 'diagnostic_msgs/msg/DiagnosticArray'),
-    common.TOPIC_ROBOT_DESCRIPTION: (String, 'std_msgs/msg/String'),
-    common.TOPIC_TF: (TFMessage, 'tf2_msgs/msg/TFMessage'),
-    common.TOPIC_DEVICE_POSE: (PoseStamped, 'geometry_msgs/msg/PoseStamped'),
-    common.TOPIC_DEVICE_TWIST: (TwistStamped, 'geometry_msgs/msg/TwistStamped'),
-    common.TOPIC_VT_POSE: (PoseStamped, 'geometry_msgs/msg/PoseStamped'),
-    common.TOPIC_VT_TWIST: (TwistStamped, 'geometry_msgs/msg/TwistStamped'),
-    common.TOPIC_WRENCH_APPLIED: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
-    common.TOPIC_WRENCH_HAND: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
-    common.TOPIC_WRENCH_COUPLING: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
+    TOPIC_STATE: (DeviceState, 'haptic_topology_msgs/msg/DeviceState'),
+    TOPIC_COMMAND: (DeviceCommand, 'haptic_topology_msgs/msg/DeviceCommand'),
+    TOPIC_HAND_INPUTS: (HandInputs, 'haptic_topology_msgs/msg/HandInputs'),
+    TOPIC_LMI: (LmiUpdate, 'haptic_topology_msgs/msg/LmiUpdate'),
+    TOPIC_VT_PATH: (VtPath, 'haptic_topology_msgs/msg/VtPath'),
+    TOPIC_JOINTS: (JointState, 'sensor_msgs/msg/JointState'),
+    TOPIC_MARKERS: (MarkerArray, 'visualization_msgs/msg/MarkerArray'),
+    TOPIC_DIAGNOSTICS: (DiagnosticArray, 'diagnostic_msgs/msg/DiagnosticArray'),
+    TOPIC_ROBOT_DESCRIPTION: (String, 'std_msgs/msg/String'),
+    TOPIC_TF: (TFMessage, 'tf2_msgs/msg/TFMessage'),
+    TOPIC_DEVICE_POSE: (PoseStamped, 'geometry_msgs/msg/PoseStamped'),
+    TOPIC_DEVICE_TWIST: (TwistStamped, 'geometry_msgs/msg/TwistStamped'),
+    TOPIC_VT_POSE: (PoseStamped, 'geometry_msgs/msg/PoseStamped'),
+    TOPIC_VT_TWIST: (TwistStamped, 'geometry_msgs/msg/TwistStamped'),
+    TOPIC_WRENCH_APPLIED: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
+    TOPIC_WRENCH_HAND: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
+    TOPIC_WRENCH_COUPLING: (WrenchStamped, 'geometry_msgs/msg/WrenchStamped'),
 }
 
 #: Topics whose publishers must be matched before the loop starts (see _check_connected).
-CONNECT_TOPICS = (common.TOPIC_COMMAND, common.TOPIC_HAND_INPUTS, common.TOPIC_LMI,
-                  common.TOPIC_VT_PATH)
-LOOP_TOPICS = (common.TOPIC_STATE, common.TOPIC_COMMAND)
+CONNECT_TOPICS = (TOPIC_COMMAND, TOPIC_HAND_INPUTS, TOPIC_LMI,
+                  TOPIC_VT_PATH)
+LOOP_TOPICS = (TOPIC_STATE, TOPIC_COMMAND)
 #: s between two takes of everything DDS holds (the readers' histories hold 1,000-10,000
 #: messages per topic: at the graph's rates at 10x, a second or more).
 DRAIN_PERIOD = 0.01
@@ -92,11 +123,11 @@ def _record_qos(topic: str, clock: Clock) -> QoSProfile:
     """The recorder's deep queue with the reliability of ``topic``'s publisher; transient
     local for a transient-local publisher (``/robot_description``: published once, maybe
     before the recorder started)."""
-    offered = common.publisher_qos(topic, clock)
+    offered = publisher_qos(topic, clock)
     if _latched(offered):
-        return common.QOS_LATCHED
+        return QOS_LATCHED
     reliable = offered.reliability == ReliabilityPolicy.RELIABLE
-    return common.QOS_RECORD_RELIABLE if reliable else common.QOS_RECORD_BEST_EFFORT
+    return QOS_RECORD_RELIABLE if reliable else QOS_RECORD_BEST_EFFORT
 
 
 class Recorder(Node):
@@ -104,13 +135,13 @@ class Recorder(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('recorder', **kwargs)
-        settings = common.declare_settings(self, RecorderSettings)
+        settings = declare_settings(self, RecorderSettings)
         self.config = config = resolve.resolve_recorder(settings, list(RECORDED))
         topics = list(config.topics)
         self.flush_period = config.flush_period
         self.path = config.path
         specs = [TopicSpec(self.resolve_topic_name(t), RECORDED[t][1],
-                           (_bag_qos(common.TOPIC_QOS[t]),)) for t in topics]
+                           (_bag_qos(TOPIC_QOS[t]),)) for t in topics]
         self.writer = BagWriter(self.path, specs, typestore_with_haptic_msgs(),
                                 sources=message_definitions(), chunk_size=config.chunk_size,
                                 compression=config.compression,
@@ -127,8 +158,8 @@ class Recorder(Node):
         self._open = True
         self._connect = [t for t in CONNECT_TOPICS if t in self.subscriptions_by_topic]
         self.connected = False
-        self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
-                                              common.QOS_DIAGNOSTICS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
+                                              QOS_DIAGNOSTICS)
         self._connect_timer = self.create_timer(0.05, self._check_connected)
         self.create_timer(0.25, self._publish_status)
         self.get_logger().info(f'recording to {self.path}')
@@ -183,7 +214,7 @@ class Recorder(Node):
                   **{f'publishers {t}': str(sub.get_publisher_count())
                      for t, sub in self.subscriptions_by_topic.items()
                      if t in LOOP_TOPICS}}
-        self.diag_pub.publish(common.diagnostics(self, 'recorder: bag', values, 0,
+        self.diag_pub.publish(diagnostics(self, 'recorder: bag', values, 0,
                                                  'recording'))
 
     @property
@@ -211,7 +242,7 @@ class Recorder(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('recorder', lambda: [Recorder()], args, node_params.KNOWN,
+    return run_main('recorder', lambda: [Recorder()], args, node_params.KNOWN,
                            exit_after_close=True)
 
 

@@ -15,9 +15,10 @@ from __future__ import annotations
 from typing import Any
 
 from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
+from haptic_topology.device.realtime import set_thread_realtime
 from haptic_topology.msgcheck import env_wrench
-from haptic_topology.nodes import common
 from haptic_topology.nodes.convert import MessageError, command_from_msg
+from haptic_topology.nodes.diagnostics import monotonic
 from haptic_topology_msgs.msg import DeviceCommand
 
 
@@ -35,7 +36,7 @@ class SeparateLoop:
         """The executor thread's real-time settings (``cpu_affinity``, ``lock_memory``;
         ``sched_priority`` is the process's) and the loop's timers."""
         d, c = self.driver, self.driver.cfg
-        for text in common.set_thread_realtime(0, c.settings.cpu_affinity,
+        for text in set_thread_realtime(0, c.settings.cpu_affinity,
                                                c.settings.lock_memory):
             d.get_logger().warn(text)
         timers = [(c.period, self._tick_idle if d.lockstep else self._tick_wall)]
@@ -72,7 +73,7 @@ class SeparateLoop:
             d.rejected.add(exc)
             d.get_logger().warn(f'command rejected: {exc}', throttle_duration_sec=1.0)
             return
-        out = self.stepper.on_command(state_seq, mode, wrench, common.monotonic(),
+        out = self.stepper.on_command(state_seq, mode, wrench, monotonic(),
                                       d.may_engage(), cid, env)
         if out.info:
             d.get_logger().info(out.info)
@@ -83,16 +84,16 @@ class SeparateLoop:
     def _tick_wall(self) -> None:
         if not self._timers:      # a tick the executor had queued before stop(): the device
             return                # is zeroed and released, it must not be written again
-        self._emit(self.stepper.wall_tick(common.monotonic(),
+        self._emit(self.stepper.wall_tick(monotonic(),
                                           self.driver.get_clock().now().nanoseconds))
 
     def _tick_idle(self) -> None:
         if not self._timers:
             return
-        self._emit(self.stepper.idle_tick(common.monotonic()))
+        self._emit(self.stepper.idle_tick(monotonic()))
 
     def _warn_stalled(self) -> None:
-        text = self.stepper.stalled(common.monotonic())
+        text = self.stepper.stalled(monotonic())
         if text:
             self.driver.get_logger().warn(text)
 

@@ -66,7 +66,6 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.device.topic_mapping import (
     BACKEND,
     Reliability,
@@ -74,7 +73,7 @@ from haptic_topology.device.topic_mapping import (
     parse_topic_options,
 )
 from haptic_topology.errors import DeviceError
-from haptic_topology.model.linkage import TaskSpace
+from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 #: Copies of the zero wrench sent by ``deactivate`` (best effort may lose one).
 _ZERO_COPIES = 3
@@ -215,7 +214,7 @@ class RosTopicBackend(DeviceBackend):
 
     def _spin(self) -> None:
         # spin_once with a timeout: spin() of this rclpy build's EventsExecutor burns a core
-        # (haptic_topology.nodes.common).
+        # (haptic_topology.nodes.runtime).
         executor = self._executor
         while not self._stop.is_set():
             try:

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import rclpy
 import yaml
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
@@ -46,8 +47,12 @@ from haptic_topology.device.maglev import saturate
 from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.device.topic_mapping import TopicOptions, parse_topic_options
 from haptic_topology.errors import HapticTopologyError
-from haptic_topology.nodes import common
+from haptic_topology.nodes.dds_env import localhost_discovery_default
+from haptic_topology.nodes.diagnostics import diagnostics
+from haptic_topology.nodes.qos import QOS_DIAGNOSTICS
+from haptic_topology.nodes.runtime import spin
 from haptic_topology.nodes.topic_backend import topic_qos
+from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS
 
 #: ``/diagnostics`` status name of the player.
 STATUS_NAME = 'topic_device: device'
@@ -94,8 +99,8 @@ class TopicDevice:
                            if opts.wrench_topic else None)
         node.create_subscription(WrenchStamped, opts.command_topic, self._on_command,
                                  topic_qos(opts.command_qos))
-        self.diag_pub = node.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
-                                              common.QOS_DIAGNOSTICS)
+        self.diag_pub = node.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
+                                              QOS_DIAGNOSTICS)
         node.create_timer(0.25, self._publish_status)
         self._pose, self._twist, self._wrench = PoseStamped(), TwistStamped(), WrenchStamped()
         for msg in (self._pose, self._twist, self._wrench):
@@ -210,7 +215,7 @@ class TopicDevice:
                 'command_publishers': str(self.node.count_publishers(self.opts.command_topic))}
 
     def _publish_status(self) -> None:
-        self.diag_pub.publish(common.diagnostics(self.node, STATUS_NAME, self.values(),
+        self.diag_pub.publish(diagnostics(self.node, STATUS_NAME, self.values(),
                                                  hardware_id='topic_device'))
 
     def close(self, record: Path | None) -> None:
@@ -257,13 +262,13 @@ def main(args: Sequence[str] | None = None) -> int:
     except (yaml.YAMLError, HapticTopologyError) as exc:
         print(f'topic_device: error: {exc}', file=sys.stderr)
         return 2
-    common.localhost_discovery_default(os.environ)
+    localhost_discovery_default(os.environ)
     rclpy.init(args=argv)
     node = rclpy.create_node(ns.node_name)
     device = TopicDevice(node, ns.scenario, opts, 1e-3 * ns.command_timeout_ms, ns.rate_hz)
     device.start()
     try:
-        common.spin([node], 'events')
+        spin([node], 'events')
     finally:
         device.close(ns.record)
         node.destroy_node()

@@ -52,6 +52,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
@@ -65,7 +66,7 @@ from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.pacing import LoopStats
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.model.urdf import robot_description
-from haptic_topology.nodes import common, node_params, viz
+from haptic_topology.nodes import node_params, viz
 from haptic_topology.nodes.convert import (
     MessageError,
     RejectCounter,
@@ -73,12 +74,43 @@ from haptic_topology.nodes.convert import (
     stamp_ns,
     vt_wrenches_from_hand_inputs,
 )
+from haptic_topology.nodes.diagnostics import diagnostics, matched, monotonic
+from haptic_topology.nodes.parameters import declare_settings
+from haptic_topology.nodes.qos import (
+    QOS_DIAGNOSTICS,
+    QOS_LATCHED,
+    QOS_LMI,
+    QOS_LOOP,
+    QOS_TF,
+    QOS_VIZ,
+    hand_inputs_qos,
+)
+from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.take import LatestTaker
 from haptic_topology.resolve import resolve_ve_sim
-from haptic_topology.settings import Clock, VeSimSettings
+from haptic_topology.settings import VeSimSettings
 from haptic_topology.sim.lockstep import virtual_environment
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed
+from haptic_topology.vocabulary import (
+    TOPIC_DEVICE_POSE,
+    TOPIC_DEVICE_TWIST,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_HAND_INPUTS,
+    TOPIC_JOINTS,
+    TOPIC_LMI,
+    TOPIC_MARKERS,
+    TOPIC_ROBOT_DESCRIPTION,
+    TOPIC_STATE,
+    TOPIC_TF,
+    TOPIC_VT_PATH,
+    TOPIC_VT_POSE,
+    TOPIC_VT_TWIST,
+    TOPIC_WRENCH_APPLIED,
+    TOPIC_WRENCH_COUPLING,
+    TOPIC_WRENCH_HAND,
+    Clock,
+)
 from haptic_topology_msgs.msg import DeviceState, HandInputs, LmiUpdate, VtPath
 
 #: s, the shortest period of the silence check (path flush, idle keep-alive): at 1 kHz it
@@ -92,7 +124,7 @@ class VeSim(Node):
 
     def __init__(self, scenario: Scenario | None = None, **kwargs: Any) -> None:
         super().__init__('ve_sim', **kwargs)
-        s = common.declare_settings(self, VeSimSettings)
+        s = declare_settings(self, VeSimSettings)
         self.cfg = c = resolve_ve_sim(s, scenario or load_scenario(s.scenario))
         self.scenario = sc = c.scenario
         self.lockstep = c.clock is Clock.LOCKSTEP
@@ -105,28 +137,28 @@ class VeSim(Node):
         self.robot = robot_description(sc.linkage)
         self.viz = viz.RobotViz(self.robot, self._viz_dyn, c.frame_id)
 
-        self.lmi_pub = self.create_publisher(LmiUpdate, common.TOPIC_LMI, common.QOS_LMI)
-        self.path_pub = self.create_publisher(VtPath, common.TOPIC_VT_PATH, common.QOS_LMI)
-        self.joint_pub = self.create_publisher(JointState, common.TOPIC_JOINTS, common.QOS_VIZ)
-        self.marker_pub = self.create_publisher(MarkerArray, common.TOPIC_MARKERS,
-                                                common.QOS_VIZ)
+        self.lmi_pub = self.create_publisher(LmiUpdate, TOPIC_LMI, QOS_LMI)
+        self.path_pub = self.create_publisher(VtPath, TOPIC_VT_PATH, QOS_LMI)
+        self.joint_pub = self.create_publisher(JointState, TOPIC_JOINTS, QOS_VIZ)
+        self.marker_pub = self.create_publisher(MarkerArray, TOPIC_MARKERS,
+                                                QOS_VIZ)
         self.description_pub = self.create_publisher(
-            String, common.TOPIC_ROBOT_DESCRIPTION, common.QOS_LATCHED)
-        self.tf_pub = self.create_publisher(TFMessage, common.TOPIC_TF, common.QOS_TF)
+            String, TOPIC_ROBOT_DESCRIPTION, QOS_LATCHED)
+        self.tf_pub = self.create_publisher(TFMessage, TOPIC_TF, QOS_TF)
         self.mirror_pubs = {
-            topic: self.create_publisher(kind, topic, common.QOS_VIZ) for topic, kind in (
-                (common.TOPIC_DEVICE_POSE, PoseStamped),
-                (common.TOPIC_DEVICE_TWIST, TwistStamped),
-                (common.TOPIC_VT_POSE, PoseStamped), (common.TOPIC_VT_TWIST, TwistStamped),
-                (common.TOPIC_WRENCH_APPLIED, WrenchStamped),
-                (common.TOPIC_WRENCH_HAND, WrenchStamped),
-                (common.TOPIC_WRENCH_COUPLING, WrenchStamped))}
-        self.diag_pub = self.create_publisher(common.DiagnosticArray, common.TOPIC_DIAGNOSTICS,
-                                              common.QOS_DIAGNOSTICS)
-        hand_sub = self.create_subscription(HandInputs, common.TOPIC_HAND_INPUTS,
-                                            self._on_hand, common.hand_inputs_qos(c.clock))
-        self._endpoints = {common.TOPIC_HAND_INPUTS: hand_sub, common.TOPIC_LMI: self.lmi_pub,
-                           common.TOPIC_VT_PATH: self.path_pub}
+            topic: self.create_publisher(kind, topic, QOS_VIZ) for topic, kind in (
+                (TOPIC_DEVICE_POSE, PoseStamped),
+                (TOPIC_DEVICE_TWIST, TwistStamped),
+                (TOPIC_VT_POSE, PoseStamped), (TOPIC_VT_TWIST, TwistStamped),
+                (TOPIC_WRENCH_APPLIED, WrenchStamped),
+                (TOPIC_WRENCH_HAND, WrenchStamped),
+                (TOPIC_WRENCH_COUPLING, WrenchStamped))}
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
+                                              QOS_DIAGNOSTICS)
+        hand_sub = self.create_subscription(HandInputs, TOPIC_HAND_INPUTS,
+                                            self._on_hand, hand_inputs_qos(c.clock))
+        self._endpoints = {TOPIC_HAND_INPUTS: hand_sub, TOPIC_LMI: self.lmi_pub,
+                           TOPIC_VT_PATH: self.path_pub}
         self._lmi = LmiUpdate()
         self._path = VtPath()
         self._lmi.header.frame_id = self._path.header.frame_id = c.frame_id
@@ -162,7 +194,7 @@ class VeSim(Node):
     def _publish_update(self) -> None:
         self._last_snap = self.ve.snapshot(seq=self._update_seq)
         self._update_seq += 1
-        now = common.monotonic()
+        now = monotonic()
         self._last_publish = now
         self.update_stats.tick(now)
         self.lmi_pub.publish(lmi_msg(self._lmi, self._last_snap,
@@ -172,7 +204,7 @@ class VeSim(Node):
         """Keep-alive: the current state when no hand input (and no update) came for an idle
         period. While inputs flow, updates go out every ``update_period`` inputs only, as in
         the offline simulation."""
-        now = common.monotonic()
+        now = monotonic()
         silent = now - self._last_input >= self._silent_after
         if silent:
             self._publish_path()    # the inputs since the last update, once they stop
@@ -191,7 +223,7 @@ class VeSim(Node):
                                    throttle_duration_sec=1.0)
             return
         self.batches += 1
-        self._last_input = common.monotonic()
+        self._last_input = monotonic()
         self.stats.tick(self._last_input)
         feed = self.feed
         for i, seq in enumerate(seqs):
@@ -215,8 +247,8 @@ class VeSim(Node):
         self._coupling = viz.CouplingSample(stamp, np.array(msg.coupling_wrench[-m:],
                                                             dtype=float), self.ve.q)
         if self._state_taker is None:
-            self._state_taker = LatestTaker(self, common.TOPIC_STATE, DeviceState,
-                                            common.QOS_LOOP, suffix='viz_reader')
+            self._state_taker = LatestTaker(self, TOPIC_STATE, DeviceState,
+                                            QOS_LOOP, suffix='viz_reader')
 
     def _publish_path(self) -> None:
         path = self.ve.take_path()
@@ -262,21 +294,21 @@ class VeSim(Node):
             tf, joints, vt_pose, vt_twist = v.ve(q, dq, stamp)
             self.joint_pub.publish(joints)
             self.tf_pub.publish(tf)
-            pubs[common.TOPIC_VT_POSE].publish(vt_pose)
-            pubs[common.TOPIC_VT_TWIST].publish(vt_twist)
+            pubs[TOPIC_VT_POSE].publish(vt_pose)
+            pubs[TOPIC_VT_TWIST].publish(vt_twist)
             self.marker_pub.publish(v.markers(q, device, coupling, self._last_snap, stamp))
         if device is not None and device.ns != self._sent_device_ns:
             self._sent_device_ns = device.ns
             tf, pose, twist, hand, applied = v.device(device, self._plane_z)
             self.tf_pub.publish(tf)
-            pubs[common.TOPIC_DEVICE_POSE].publish(pose)
-            pubs[common.TOPIC_DEVICE_TWIST].publish(twist)
-            pubs[common.TOPIC_WRENCH_HAND].publish(hand)
+            pubs[TOPIC_DEVICE_POSE].publish(pose)
+            pubs[TOPIC_DEVICE_TWIST].publish(twist)
+            pubs[TOPIC_WRENCH_HAND].publish(hand)
             if applied is not None:
-                pubs[common.TOPIC_WRENCH_APPLIED].publish(applied)
+                pubs[TOPIC_WRENCH_APPLIED].publish(applied)
         if coupling is not None and coupling.ns != self._sent_coupling_ns:
             self._sent_coupling_ns = coupling.ns
-            pubs[common.TOPIC_WRENCH_COUPLING].publish(v.coupling(coupling))
+            pubs[TOPIC_WRENCH_COUPLING].publish(v.coupling(coupling))
 
     def _publish_diagnostics(self) -> None:
         feed = self.feed
@@ -287,9 +319,9 @@ class VeSim(Node):
             'hand_batches': str(self.batches),
             # What the bringup checks the bag against at the end of a run (exact, no
             # timing): batches taken, path samples not yet sent, paths sent.
-            f'received {common.TOPIC_HAND_INPUTS}': str(self.batches),
+            f'received {TOPIC_HAND_INPUTS}': str(self.batches),
             'path_pending': str(len(self.ve.path)),
-            f'sent {common.TOPIC_VT_PATH}': str(self.paths_sent),
+            f'sent {TOPIC_VT_PATH}': str(self.paths_sent),
             'lost_hand_inputs': str(feed.lost),
             'hand_input_seq': str(self.ve.hand_input_seq),
             'lmi_updates': str(self._update_seq),
@@ -301,10 +333,10 @@ class VeSim(Node):
             'viz_device_states': str(0 if self._state_taker is None
                                      else self._state_taker.taken),
             'viz_rejected_states': str(self.viz_rejected_states),
-            **common.matched(self._endpoints),
+            **matched(self._endpoints),
         })
         ok = all(math.isfinite(v) for v in self.ve.q)
-        self.diag_pub.publish(common.diagnostics(
+        self.diag_pub.publish(diagnostics(
             self, 've_sim: loop', values, 0 if ok else 2, 'ok' if ok else 'VE state not finite'))
 
     def close(self) -> None:
@@ -315,7 +347,7 @@ class VeSim(Node):
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    return common.run_main('ve_sim', lambda: [VeSim()], args, node_params.KNOWN)
+    return run_main('ve_sim', lambda: [VeSim()], args, node_params.KNOWN)
 
 
 if __name__ == '__main__':

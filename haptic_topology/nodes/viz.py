@@ -2,7 +2,7 @@
 standard mirrors, for RViz, Foxglove and PlotJuggler with no plugin of ours.
 
 Frames and what each header names: :mod:`haptic_topology.frames`. Topics (names and QoS in
-:mod:`haptic_topology.nodes.common`):
+:mod:`haptic_topology.vocabulary` and :mod:`haptic_topology.nodes.qos`):
 
 * ``/robot_description`` (``std_msgs/String``, transient local, once): the URDF of
   :func:`haptic_topology.model.urdf.robot_description`;
@@ -54,9 +54,9 @@ from visualization_msgs.msg import Marker, MarkerArray
 from haptic_topology import frames
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
-from haptic_topology.model.linkage import TaskSpace
 from haptic_topology.model.urdf import LinkFrames, RobotDescription
 from haptic_topology.msgcheck import check_state, env_wrench
+from haptic_topology.vocabulary import TaskSpace
 
 #: Length (m) of a constraint-direction arrow at full penalty weight.
 ARROW_LENGTH = 0.02

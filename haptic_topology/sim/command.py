@@ -11,10 +11,12 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+from haptic_topology.vocabulary import LAW_MODES
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('scenario', help='scenario name (fig6, fig8) or a scenario YAML file')
-    parser.add_argument('--mode', choices=('penalty', 'acceleration_only'),
+    parser.add_argument('--mode', choices=LAW_MODES,
                         help='control law: eq. 14 (penalty) or eq. 10 (acceleration_only); '
                         "default: the scenario's")
     parser.add_argument('--out', required=True, type=Path,
@@ -29,12 +31,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Simulate, write the outputs, print the table; errors surface as HapticTopologyError."""
     # Imported here so that `haptic-topology --help` does not load Pinocchio and matplotlib.
-    from haptic_topology.control.laws import ControlMode
     from haptic_topology.model.linkage import load_linkage
     from haptic_topology.sim.lockstep import simulate
     from haptic_topology.sim.plots import plot_trace
     from haptic_topology.sim.scenario import load_scenario
     from haptic_topology.sim.trace import format_summary
+    from haptic_topology.vocabulary import ControlMode
 
     scenario = load_scenario(args.scenario)
     if args.linkage:

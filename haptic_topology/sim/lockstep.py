@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from haptic_topology.control.controller import HapticController
-from haptic_topology.control.laws import ControlGains, ControlMode
+from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.loop import Answer, ControllerLoop
 from haptic_topology.control.safety import SyncGuard, SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
@@ -39,6 +39,7 @@ from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.sim.scenario import Scenario
 from haptic_topology.sim.trace import Trace
 from haptic_topology.sim.ve import VirtualEnvironment
+from haptic_topology.vocabulary import ControlMode
 
 #: Defaults of the nodes' safety parameters (config/haptic_topology.yaml).
 MAX_DT = 0.05

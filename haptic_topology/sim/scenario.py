@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from haptic_topology.control.laws import ControlGains, ControlMode
+from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiModel, LmiSettings
 from haptic_topology.device.maglev import DeviceParams, device_from_config
 from haptic_topology.device.users import user_from_config
@@ -60,6 +60,7 @@ from haptic_topology.validate import (
     check_keys,
     load_yaml,
 )
+from haptic_topology.vocabulary import ControlMode
 
 
 @dataclass(frozen=True)

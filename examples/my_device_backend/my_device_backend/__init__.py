@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
-from haptic_topology.device.maglev import DeviceStatus
 from haptic_topology.errors import DeviceError
+from haptic_topology.vocabulary import DeviceStatus
 
 DEFAULTS = {'mass': 0.2, 'stiffness': 50.0, 'damping': 2.0, 'max_force': 10.0,
             'travel': 0.05}

@@ -1,0 +1,177 @@
+"""A node process's life: executor, spin until SIGINT/SIGTERM, clean shutdown and exit.
+
+Executors: :class:`rclpy.experimental.EventsExecutor` by default (about 6 us per callback
+against 130 us for the ``SingleThreadedExecutor``), spun with ``spin_once(timeout_sec=0.1)``
+in a loop: in this rclpy build ``spin()`` and ``spin_once()`` without a timeout burn a core
+and ignore SIGINT. ``executor: single_threaded`` is the fallback. The
+``MultiThreadedExecutor`` is not offered (it collapses at 1 kHz in rclpy 7.1).
+"""
+
+from __future__ import annotations
+
+import faulthandler
+import os
+import signal
+import sys
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+
+from haptic_topology.device.realtime import set_realtime_priority
+from haptic_topology.errors import ConfigError, HapticTopologyError
+from haptic_topology.nodes.dds_env import localhost_discovery_default
+from haptic_topology.nodes.parameters import check_config_args
+from haptic_topology.params import NodeParams
+from haptic_topology.sampling import dump_now, start_from_env
+
+
+def make_executor(kind: str) -> Any:
+    if kind == 'events':
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor()
+    return SingleThreadedExecutor()
+
+
+#: Seconds after SIGINT/SIGTERM at which a node still running dumps its threads' stacks (the
+#: bringup escalates to SIGTERM after 5 s).
+STOP_DUMP_AFTER = 4.0
+
+
+def spin(nodes: Sequence[Node], kind: str) -> None:
+    """Spin ``nodes`` on one executor until SIGINT/SIGTERM (or rclpy's shutdown).
+
+    The stop signals are this function's own (Python handlers installed after the executor
+    exists, the previous ones restored when it returns): rclpy's ``EventsExecutor`` installs
+    an asio handler for SIGINT and SIGTERM when it is created, and measured here a recorder
+    idling on it ignored the SIGINT in 2 of 13 tries (it went on spinning normally, main
+    thread in ``spin_once``'s timed wait, until SIGKILL): the bringup's "node did not exit"
+    failures. A Python handler only sets a flag; ``spin_once`` returns every 0.1 s, so the
+    loop ends within that after the signal, whatever the executor does with signals. The
+    handlers stay for the rest of the process (see below).
+    """
+    executor = make_executor(kind)
+    for n in nodes:
+        executor.add_node(n)
+    stop: list[int] = []
+
+    def request_stop(signum: int, frame: Any) -> None:
+        if not stop:
+            # A node that has not ended STOP_DUMP_AFTER s after the signal writes every
+            # thread's Python stack to stderr (its log): where a stop hangs, not a guess.
+            faulthandler.dump_traceback_later(STOP_DUMP_AFTER, exit=False)
+        stop.append(signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        # Kept after the loop: a second signal must not raise KeyboardInterrupt in the
+        # middle of the nodes' close (the recorder finalising its bag); a teardown that
+        # hangs gets the bringup's SIGKILL.
+        signal.signal(sig, request_stop)
+    try:
+        while rclpy.ok() and not stop:
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+
+
+def run_main(prog: str, build: Callable[[], Sequence[Node]],
+             args: Sequence[str] | None = None,
+             params: Mapping[str, NodeParams | None] | None = None,
+             exit_after_close: bool = False) -> int:
+    """Init rclpy, build the node(s), spin, shut down cleanly; return the exit status.
+
+    ``exit_after_close``: end the process with the status once the nodes' ``close`` has run,
+    without rclpy's teardown (the recorder, see the comment at the end). Called as a
+    program (``args`` None) the process always ends in this function, after rclpy's
+    shutdown and without the interpreter's finalization (see the end).
+
+    ``params``: node name -> its declared parameters (None: unknown here), used to check the
+    params files and ``-p`` overrides before rclpy reads them; ``prog`` is the node checked
+    (all of ``params`` for ``composed``). DDS discovery defaults to this host
+    (:func:`localhost_discovery_default`).
+
+    A configuration problem (params file, parameter, scenario) prints one line
+    ``<prog>: error: ...`` and returns 2 without a traceback.
+    """
+    argv = list(sys.argv if args is None else args)
+    localhost_discovery_default(os.environ)
+    start_from_env()
+    if params is not None:
+        try:
+            check_config_args(argv, params, prog if prog in params else None)
+        except ConfigError as exc:
+            print(f'{prog}: error: {exc}', file=sys.stderr)
+            return 2
+    try:
+        rclpy.init(args=argv)
+    except (RuntimeError, ValueError) as exc:  # rclpy's RCLError is a RuntimeError
+        print(f'{prog}: error: invalid ROS arguments or params file: {_first_line(exc)}',
+              file=sys.stderr)
+        return 2
+    nodes: list[Node] = []
+    status = 0
+    try:
+        nodes = list(build())
+        kind = str(nodes[0].get_parameter('executor').value) if nodes else 'events'
+        # A node that applies real-time settings to its own loop thread (the hosted
+        # device_driver) sets ``process_sched_priority`` = 0: the rest of its process stays
+        # under normal scheduling.
+        priority = max((int(getattr(n, 'process_sched_priority',
+                                    n.get_parameter('sched_priority').value))
+                        for n in nodes if n.has_parameter('sched_priority')), default=0)
+        if priority:
+            problem = set_realtime_priority(priority)
+            if problem:
+                nodes[0].get_logger().warn(problem)
+            else:
+                nodes[0].get_logger().info(f'SCHED_FIFO priority {priority}')
+        spin(nodes, kind)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except HapticTopologyError as exc:
+        print(f'{prog}: error: {exc}', file=sys.stderr)
+        status = 2
+    except (ParameterException, RuntimeError) as exc:
+        if not rclpy.ok():  # shutting down: a late rcl error is not a config problem
+            pass
+        else:
+            print(f'{prog}: error: {_first_line(exc)}', file=sys.stderr)
+            status = 2
+    finally:
+        for n in nodes:
+            close = getattr(n, 'close', None)
+            if close is not None:
+                close()
+        if exit_after_close:
+            # Everything the nodes own is closed (the recorder's bag is complete): nothing
+            # is left for rclpy's teardown to do. (Clean-clone CI runs had reported the
+            # recorder "hung" here; the cause found later was the lost SIGINT, see spin().)
+            _end_process(status)
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()
+    if args is None:
+        # A node process (console script, python -m) ends here, without the interpreter's
+        # finalization: everything ROS is shut down above, and finalization only destroys
+        # rclpy's and Fast DDS's C++ objects once more. Measured: under load that took over
+        # 4 s after run_main had returned (faulthandler: the main thread with no Python
+        # frame), and the bringup's SIGTERM ended the process with -15.
+        _end_process(status)
+    return status
+
+
+def _end_process(status: int) -> None:
+    """``os._exit(status)`` after the sampling profiler's dump and the stdio buffers (no
+    ``atexit`` function runs after it)."""
+    dump_now()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
