@@ -26,14 +26,12 @@ from typing import Any
 
 import numpy as np
 
-import haptic_topology.sim.lockstep as lockstep
-from haptic_topology.control.controller import CycleOutput, HapticController
 from haptic_topology.control.laws import penalty_acceleration
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.model import PenaltyDirection
+from haptic_topology.sim.lockstep import SimStep, simulate
 from haptic_topology.sim.scenario import load_scenario
-from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology.vocabulary import ControlMode
 
 
@@ -46,31 +44,22 @@ def run(name: str, direction: PenaltyDirection) -> dict[str, Any]:
     u_add: list[np.ndarray] = []
     states: list[tuple[np.ndarray, np.ndarray]] = []
 
-    class Controller(HapticController):
-        def cycle(self, seq: int, dt: float, x_h: np.ndarray, xd_h: np.ndarray,
-                  f_h: np.ndarray) -> CycleOutput:
-            out = super().cycle(seq, dt, x_h, xd_h, f_h)
-            lmi = self.lmi
-            if lmi.synced and self.mode is ControlMode.PENALTY:
-                e = pose_difference(lmi.x_vt, x_h, self.task)
-                u_add.append(self.m_d @ penalty_acceleration(
-                    lmi.projector, e, lmi.xd_vt - xd_h, self.gains.k_tc, self.gains.b_tc))
-            else:
-                u_add.append(np.zeros(self.task.dim))
-            return out
+    def observe(step: SimStep) -> None:
+        """The penalty addition of each controller cycle and the VT's state when the VE took
+        that cycle's hand input."""
+        if step.answer.hand is None:
+            return
+        ctrl, r = step.controller.ctrl, step.tick.reading
+        lmi = ctrl.lmi
+        if lmi.synced and ctrl.mode is ControlMode.PENALTY:
+            e = pose_difference(lmi.x_vt, r.pose, ctrl.task)
+            u_add.append(ctrl.m_d @ penalty_acceleration(
+                lmi.projector, e, lmi.xd_vt - r.twist, ctrl.gains.k_tc, ctrl.gains.b_tc))
+        else:
+            u_add.append(np.zeros(ctrl.task.dim))
+        states.append((step.ve.q.copy(), step.ve.dq.copy()))   # the VT at this device state
 
-    class Ve(VirtualEnvironment):
-        def push_input(self, seq: int, stamp: float, wrench: np.ndarray) -> None:
-            super().push_input(seq, stamp, wrench)
-            states.append((self.q.copy(), self.dq.copy()))   # the VT at this device state
-
-    # simulate() looks both classes up in its module: swap in the recording subclasses.
-    saved = lockstep.HapticController, lockstep.VirtualEnvironment
-    lockstep.HapticController, lockstep.VirtualEnvironment = Controller, Ve  # type: ignore
-    try:
-        trace = lockstep.simulate(sc, ControlMode.PENALTY)
-    finally:
-        lockstep.HapticController, lockstep.VirtualEnvironment = saved  # type: ignore
+    trace = simulate(sc, ControlMode.PENALTY, observer=observe)
 
     dyn = LinkageDynamics(sc.linkage)
     power = np.array([u @ (dyn.hand_jacobian(q) @ dq)

@@ -21,21 +21,22 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from haptic_topology.processes import cpu_seconds
+
 WAITING = ('wait (threading.py', 'sleep', 'spin_once', '_wait_for_ready_callbacks',
            'wait_offered', 'select', 'sample (sampling.py')
 
 
 def _threads(pid: int) -> dict[str, float]:
     out: dict[str, float] = {}
-    tick = os.sysconf('SC_CLK_TCK')
     for tid in os.listdir(f'/proc/{pid}/task'):
         try:
             comm = Path(f'/proc/{pid}/task/{tid}/comm').read_text().strip()
-            fields = Path(f'/proc/{pid}/task/{tid}/stat').read_text().rsplit(')', 1)[1].split()
         except OSError:
             continue
-        key = f'{comm}[{tid}]'
-        out[key] = (int(fields[11]) + int(fields[12])) / tick
+        cpu = cpu_seconds(pid, int(tid))
+        if cpu is not None:
+            out[f'{comm}[{tid}]'] = cpu
     return out
 
 

@@ -38,7 +38,6 @@ import argparse
 import json
 import os
 import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -46,6 +45,8 @@ import threading
 import time
 from pathlib import Path
 from typing import IO, Any
+
+from haptic_topology.processes import cpu_seconds, terminate
 
 #: Topic (graph name) -> (message rate at 1x in Hz, field holding the sequence number).
 TOPICS: dict[str, tuple[float, str]] = {
@@ -183,10 +184,11 @@ def _publisher(duration: float, factor: float) -> int:
 
 # -- orchestration ------------------------------------------------------------------------------
 def _cpu_seconds(pid: int) -> float:
-    """utime + stime of process ``pid`` (all its threads) in seconds."""
-    with open(f'/proc/{pid}/stat', encoding='ascii') as f:
-        fields = f.read().rsplit(')', 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    """utime + stime of process ``pid`` (all its threads) in seconds (it must be running)."""
+    cpu = cpu_seconds(pid)
+    if cpu is None:
+        raise RuntimeError(f'process {pid} is gone')
+    return cpu
 
 
 class _Lines:
@@ -223,27 +225,15 @@ class _Lines:
 
 
 def _env() -> dict[str, str]:
+    from haptic_topology.nodes.dds_env import isolated_env
 
-    from haptic_topology.nodes.dds_env import localhost_discovery_default
-    env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               ROS_DOMAIN_ID=str(random.SystemRandom().randint(1, 100)),
-               RMW_IMPLEMENTATION='rmw_fastrtps_cpp')
-    env.pop('ROS_LOCALHOST_ONLY', None)  # deprecated; conflicts with the discovery range
-    localhost_discovery_default(env)     # the nodes' DDS transport (Fast DDS profile)
-    return env
+    return isolated_env(random.SystemRandom().randint(1, 100),
+                        dict(os.environ, PYTHONUNBUFFERED='1'))
 
 
 def _stop(proc: subprocess.Popen[str]) -> None:
     """SIGINT, then SIGTERM, then SIGKILL, each after a timeout."""
-    for sig, wait in ((signal.SIGINT, 30.0), (signal.SIGTERM, 10.0), (signal.SIGKILL, 10.0)):
-        if proc.poll() is not None:
-            return
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout=wait)
-            return
-        except subprocess.TimeoutExpired:
-            continue
+    terminate(proc, 30.0, 10.0)
 
 
 def _wait_idle(pid: int, max_s: float) -> float:

@@ -53,12 +53,9 @@ DEVICE_PRIORITY, CONTROLLER_PRIORITY = 50, 49
 
 
 def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(random.randint(120, 200))
-    from haptic_topology.nodes.dds_env import localhost_discovery_default
+    from haptic_topology.nodes.dds_env import isolated_env
 
-    localhost_discovery_default(env)     # what the nodes set for themselves
-    return env
+    return isolated_env(random.randint(120, 200))
 
 
 def fifo_permitted() -> bool:

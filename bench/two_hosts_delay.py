@@ -67,6 +67,8 @@ from typing import Any
 
 import numpy as np
 
+from haptic_topology.processes import process_times
+
 REPO = Path(__file__).resolve().parent.parent
 SCRIPT = REPO / 'scripts' / 'two_hosts.sh'
 CONTROLLER_STATUS = 'lmi_controller: loop'
@@ -126,7 +128,7 @@ def run_device_loopback(scenario: str, duration: float, bag: Path) -> None:
                     str(bag), '--params', str(d / 'params.yaml')]
             print(f'$ {" ".join(argv)}', flush=True)
             done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True)
-            cpu = _cpu_seconds(srv.pid)
+            cpu = process_times(srv.pid)
         finally:
             srv.send_signal(2)      # SIGINT: the server writes its summary
             try:
@@ -142,18 +144,6 @@ def run_device_loopback(scenario: str, duration: float, bag: Path) -> None:
                 shutil.copy(f, bag / f.name)
         if cpu is not None:
             (bag / 'device_server_cpu.json').write_text(json.dumps(cpu) + '\n', 'utf-8')
-
-
-def _cpu_seconds(pid: int) -> dict[str, float] | None:
-    """CPU time (utime + stime) and age of a running process, s (as two_hosts.sh)."""
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-        uptime = float(Path('/proc/uptime').read_text().split()[0])
-    except OSError:
-        return None
-    hz = os.sysconf('SC_CLK_TCK')
-    return {'cpu_s': (int(fields[11]) + int(fields[12])) / hz,
-            'wall_s': uptime - int(fields[19]) / hz}
 
 
 def run_loopback(scenario: str, duration: float, bag: Path) -> None:

@@ -17,11 +17,19 @@ from dataclasses import dataclass
 from haptic_topology import MSGS_PACKAGE_NAME, PACKAGE_NAME, __version__
 from haptic_topology.bag import analyze as analyze_command
 from haptic_topology.bag import repair as bag_command
-from haptic_topology.bag import replay as replay_command
+from haptic_topology.bag import replay as replay_plan
 from haptic_topology.bringup import run as run_command
-from haptic_topology.device import server_command as device_server_command
 from haptic_topology.errors import HapticTopologyError
+from haptic_topology.remote import server_command as device_server_command
 from haptic_topology.sim import command as simulate_command
+
+
+def _replay(args: argparse.Namespace) -> int:
+    """``replay``: the ROS side (:mod:`haptic_topology.nodes.replay`) is imported only when
+    the subcommand runs, as the other ROS subcommands import rclpy only then."""
+    from haptic_topology.nodes import replay
+
+    return replay.run(args)
 
 
 @dataclass(frozen=True)
@@ -65,7 +73,7 @@ def _info_arguments(parser: argparse.ArgumentParser) -> None:
 def _info(args: argparse.Namespace) -> int:
     """Print versions, share directories and message types; 0 if the messages are usable."""
     del args
-    from haptic_topology import msgdefs
+    from haptic_topology.messages import definitions as msgdefs
 
     print(f'haptic_topology {__version__}')
     print(f'python          {sys.version.split()[0]} ({sys.prefix})')
@@ -97,7 +105,7 @@ COMMANDS: tuple[Command, ...] = (
     Command('run', 'start the ROS 2 node graph (device, controller, VE, recorder): bag, '
             'summary, loop figures', run_command.add_arguments, run_command.run),
     Command('replay', "publish a bag's messages with their recorded timing; or check the "
-            'controller against a recording', replay_command.add_arguments, replay_command.run),
+            'controller against a recording', replay_plan.add_arguments, _replay),
     Command('analyze', 'drift and loop health of bags and simulate traces: table, plots, '
             'summary.json', analyze_command.add_arguments, analyze_command.run),
     Command('device-server', "serve the simulated maglev over UDP (the network backend's "

@@ -25,3 +25,37 @@ class BagError(HapticTopologyError):
 
 class DeviceError(HapticTopologyError):
     """A device backend cannot be configured, activated, read or written."""
+
+
+class TruncatedError(BagError):
+    """The MCAP stream ended before its footer (the bag's readers keep what came before)."""
+
+
+class ReplayError(HapticTopologyError):
+    """The replay could not run (no subscriber, controller failed to start, ...)."""
+
+
+class MessageError(HapticTopologyError):
+    """An incoming message does not fit the graph (sizes, task_dim, non-finite values,
+    integers out of range); ``reason`` is one of
+    :data:`haptic_topology.messages.check.REASONS`."""
+
+    def __init__(self, reason: str, text: str) -> None:
+        super().__init__(text)
+        self.reason = reason
+
+
+class MessageDefinitionError(HapticTopologyError):
+    """The .msg files of haptic_topology_msgs cannot be found or parsed."""
+
+
+class LinkError(HapticTopologyError):
+    """An interface cannot be opened, or the bridge lacks the privilege to open it."""
+
+
+class WaitTimeout(HapticTopologyError):
+    """Something the graph should have done within a deadline did not happen."""
+
+
+class BringupError(HapticTopologyError):
+    """A node of the graph failed to start, or the loop never closed."""

@@ -107,7 +107,7 @@ TOPIC_VT_PATH = 'haptic/ve/path'
 TOPIC_LMI_ACK = 'haptic/lmi/ack'
 TOPIC_CLOCK = '/clock'
 # The linkage as a robot and standard mirrors, published by ve_sim (frames:
-# haptic_topology.frames; messages: haptic_topology.nodes.viz).
+# haptic_topology.model.frames; messages: haptic_topology.nodes.viz).
 TOPIC_ROBOT_DESCRIPTION = '/robot_description'
 TOPIC_TF = '/tf'
 TOPIC_DEVICE_POSE = 'haptic/viz/device/pose'

@@ -59,32 +59,21 @@ def ros_domain_env() -> Iterator[dict[str, str]]:
     (CI and a developer, or parallel jobs) never share a domain and never see each other's
     nodes.
     """
-    from haptic_topology.nodes.dds_env import FASTDDS_PROFILES_ENV, localhost_discovery_default
+    from haptic_topology.nodes.dds_env import isolated_env
 
     lock = _lock_domain()
-    overrides = {
-        'ROS_DOMAIN_ID': str(lock[0]),
-        'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-        'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp',
-    }
-    # DDS on this host as the nodes run by default: the project's Fast DDS profile (user data
+    saved = dict(os.environ)
+    # DDS on this host as the nodes run by default (the project's Fast DDS profile, user data
     # over UDP on the loopback), for the test processes too, unless the user set a profile.
-    if FASTDDS_PROFILES_ENV in os.environ:
-        overrides[FASTDDS_PROFILES_ENV] = os.environ[FASTDDS_PROFILES_ENV]
-    localhost_discovery_default(overrides)
-    saved = {k: os.environ.get(k) for k in [*overrides, 'ROS_LOCALHOST_ONLY', 'ROS_STATIC_PEERS']}
-    os.environ.pop('ROS_STATIC_PEERS', None)  # this session's nodes are on this host only
-    os.environ.pop('ROS_LOCALHOST_ONLY', None)  # deprecated; conflicts with the range above
-    os.environ.update(overrides)
+    env = isolated_env(lock[0], saved)
+    os.environ.clear()
+    os.environ.update(env)
     try:
         yield dict(os.environ)
     finally:
         os.close(lock[1])
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+        os.environ.clear()
+        os.environ.update(saved)
 
 
 @pytest.fixture

@@ -36,8 +36,8 @@ from typing import IO, Any
 import numpy as np
 
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
-from haptic_topology.bringup.run import terminate
 from haptic_topology.paths import config_dir
+from haptic_topology.processes import terminate
 
 PARAMS = config_dir() / 'haptic_topology.yaml'
 SCENARIO = 'circle'
@@ -626,11 +626,11 @@ def table(run: FaultRun) -> str:
 def main() -> None:
     import tempfile
 
-    from haptic_topology.nodes.dds_env import localhost_discovery_default
+    from haptic_topology.nodes.dds_env import isolated_env
 
     out = Path(tempfile.mkdtemp(prefix='faults_'))
-    os.environ.setdefault('ROS_DOMAIN_ID', str(np.random.default_rng().integers(1, 100)))
-    localhost_discovery_default(os.environ)     # as the nodes do: DDS on this host
+    domain = os.environ.get('ROS_DOMAIN_ID') or np.random.default_rng().integers(1, 100)
+    os.environ.update(isolated_env(int(domain)))     # as the nodes do: DDS on this host
     run = run_faults(out)
     print(f'bags: {run.bags}; exit codes {run.exit_codes}; truncated {run.truncated}')
     print(f'states {len(run.states)} commands {len(run.commands)} hands {len(run.hands)}')

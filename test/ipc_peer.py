@@ -21,7 +21,11 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosmsg_util import fill_rclpy, rclpy_to_dict, rclpy_type, sample_values
 
-from haptic_topology.msgdefs import MESSAGE_NAMES, type_name, typestore_with_haptic_msgs
+from haptic_topology.messages.definitions import (
+    MESSAGE_NAMES,
+    type_name,
+    typestore_with_haptic_msgs,
+)
 
 QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 

@@ -2,7 +2,7 @@
 fault-injecting UDP relay, a raw protocol client. Host and port are parameters everywhere, so
 the same helpers can run across a network namespace pair.
 
-:class:`ServerProcess` starts ``python -m haptic_topology.device.server_command`` and waits for
+:class:`ServerProcess` starts ``python -m haptic_topology.remote.server_command`` and waits for
 its ready file (no log lines are parsed); :meth:`ServerProcess.stop` sends SIGINT and reads
 the counters (``--summary``) and the per-cycle applied-wrench log (``--log``).
 
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from haptic_topology.device import protocol as P
+from haptic_topology.remote import protocol as P
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -81,7 +81,7 @@ class ServerProcess:
         self.log = tmp / f'{tag}.log.csv'
         for p in (self.ready, self.summary, self.log):
             p.unlink(missing_ok=True)
-        cmd = [sys.executable, '-m', 'haptic_topology.device.server_command',
+        cmd = [sys.executable, '-m', 'haptic_topology.remote.server_command',
                '--scenario', scenario, '--host', host, '--port', str(port),
                '--ready-file', str(self.ready), '--summary', str(self.summary),
                '--log', str(self.log), *extra]

@@ -24,7 +24,11 @@ from haptic_topology.bag.repair import repair_bag
 from haptic_topology.bag.writer import BagWriter, TopicSpec, _mcap_internals, make_qos
 from haptic_topology.cli import main as cli_main
 from haptic_topology.errors import BagError
-from haptic_topology.msgdefs import message_definitions, type_name, typestore_with_haptic_msgs
+from haptic_topology.messages.definitions import (
+    message_definitions,
+    type_name,
+    typestore_with_haptic_msgs,
+)
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import ControlMode

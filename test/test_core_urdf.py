@@ -21,10 +21,9 @@ import pinocchio as pin
 import pytest
 import yaml
 
-from haptic_topology import frames
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.errors import LinkageError
-from haptic_topology.model import Linkage, linkage_from_dict, load_linkage
+from haptic_topology.model import Linkage, frames, linkage_from_dict, load_linkage
 from haptic_topology.model import urdf as urdf_module
 from haptic_topology.model.linkage import build_model, serial_chain
 from haptic_topology.model.urdf import (

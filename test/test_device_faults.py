@@ -17,8 +17,8 @@ from haptic_topology.device.backend import (
 )
 from haptic_topology.device.loop import CommandVerdict, DeviceLoop, device_report, hardware_id
 from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
-from haptic_topology.msgcheck import STATUS_BITS
-from haptic_topology.msgdefs import typestore_with_haptic_msgs
+from haptic_topology.messages.check import STATUS_BITS
+from haptic_topology.messages.definitions import typestore_with_haptic_msgs
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import ControlMode, DeviceStatus

@@ -6,7 +6,7 @@
 * the backend against a fake device socket in this process on an injected clock (exact
   counts, stale -> FAULT -> the driver's loop writes zero, a restarted server followed);
 * the backend against the server in ANOTHER PROCESS (``python -m
-  haptic_topology.device.server_command``), directly and through a fault-injecting relay: what
+  haptic_topology.remote.server_command``), directly and through a fault-injecting relay: what
   the server applied is, cycle by cycle, the clamped wrench the client sent with that seq or
   zero, never a corrupted, repeated or older one; commands stop -> zero; server killed and
   restarted -> the driver's loop recovers.
@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from haptic_topology.device import protocol as P
+from haptic_topology.config.settings import parse_backend_options
 from haptic_topology.device.backend import (
     BackendConfig,
     DeviceBackend,
@@ -42,12 +42,12 @@ from haptic_topology.device.backend import (
     create_backend,
 )
 from haptic_topology.device.loop import DeviceLoop
-from haptic_topology.device.network import NetworkBackend
 from haptic_topology.device.pacing import DeadlinePacer
-from haptic_topology.device.server import DeviceServer, ServerConfig
 from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.errors import ConfigError, DeviceError
-from haptic_topology.settings import parse_backend_options
+from haptic_topology.remote import protocol as P
+from haptic_topology.remote.network import NetworkBackend
+from haptic_topology.remote.server import DeviceServer, ServerConfig
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
@@ -512,8 +512,8 @@ def test_selected_by_module_class_and_configured_from_the_driver_parameter() -> 
     """``backend:=network`` (built in) and ``module:Class`` resolve to it; ``backend_options``
     as the driver parses its YAML parameter configure it."""
     assert backend_class('network') is NetworkBackend
-    assert backend_class('haptic_topology.device.network:NetworkBackend') is NetworkBackend
-    be = create_backend('haptic_topology.device.network:NetworkBackend')
+    assert backend_class('haptic_topology.remote.network:NetworkBackend') is NetworkBackend
+    be = create_backend('haptic_topology.remote.network:NetworkBackend')
     opts = parse_backend_options('{host: 127.0.0.1, port: 47001, stale_ms: 20, '
                                  'command_ttl_ms: 15.5, wait_ms: 0.2}')
     be.configure(_config(opts))
@@ -953,12 +953,12 @@ def test_server_process_restart_the_client_recovers(
 def test_server_command_line(spawn: Callable[..., ServerProcess]) -> None:
     import subprocess
 
-    out = subprocess.run([sys.executable, '-m', 'haptic_topology.device.server_command',
+    out = subprocess.run([sys.executable, '-m', 'haptic_topology.remote.server_command',
                           '--scenario', 'fig8', '--port', '70000'], capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 2
     assert 'expected an integer port in [0, 65535], got 70000' in out.stderr
-    out = subprocess.run([sys.executable, '-m', 'haptic_topology.device.server_command',
+    out = subprocess.run([sys.executable, '-m', 'haptic_topology.remote.server_command',
                           '--scenario', 'no_such_scenario', '--port', '0'],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 1

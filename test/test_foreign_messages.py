@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from procs import stop_process
 
-from haptic_topology.msgcheck import MAX_SEQ
+from haptic_topology.messages.check import MAX_SEQ
 from haptic_topology.paths import config_dir
 from haptic_topology.vocabulary import TOPIC_COMMAND, TOPIC_DIAGNOSTICS, TOPIC_STATE
 

@@ -27,10 +27,10 @@ from typing import Any
 import pytest
 from conftest import REPO
 
-from haptic_topology import frames
 from haptic_topology import vocabulary as vocab
 from haptic_topology.bag.writer import MSGDEF_SEPARATOR, schema_text
-from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
+from haptic_topology.messages.definitions import message_definitions, typestore_with_haptic_msgs
+from haptic_topology.model import frames
 
 LAYOUT = REPO / 'docs' / 'foxglove_layout.json'
 #: Panel types the layout may use (the Foxglove app's ids for them).

@@ -20,9 +20,9 @@ import pytest
 import setuptools
 
 from haptic_topology.bringup import run as bringup
+from haptic_topology.config.node_params import KNOWN
+from haptic_topology.config.params import check_overrides, check_params_file, params_files
 from haptic_topology.errors import ConfigError
-from haptic_topology.nodes.node_params import KNOWN
-from haptic_topology.params import check_overrides, check_params_file, params_files
 
 ROOT = Path(__file__).resolve().parent.parent
 LAUNCH = ROOT / 'launch' / 'haptic_lab.launch.py'

@@ -14,7 +14,11 @@ from pathlib import Path
 import pytest
 from rosmsg_util import sample_values
 
-from haptic_topology.msgdefs import MESSAGE_NAMES, type_name, typestore_with_haptic_msgs
+from haptic_topology.messages.definitions import (
+    MESSAGE_NAMES,
+    type_name,
+    typestore_with_haptic_msgs,
+)
 
 pytestmark = pytest.mark.graph
 

@@ -14,8 +14,12 @@ from rosmsg_util import (
     sample_values,
 )
 
-from haptic_topology import msgdefs
-from haptic_topology.msgdefs import MESSAGE_NAMES, type_name, typestore_with_haptic_msgs
+from haptic_topology.messages import definitions as msgdefs
+from haptic_topology.messages.definitions import (
+    MESSAGE_NAMES,
+    type_name,
+    typestore_with_haptic_msgs,
+)
 
 
 @pytest.mark.parametrize('name', MESSAGE_NAMES)

@@ -20,8 +20,8 @@ from pathlib import Path
 import pytest
 from conftest import REPO
 
-from haptic_topology import msgs_package
-from haptic_topology.msgs_package import colcon_command, missing_msgs_line
+from haptic_topology.messages import package as msgs_package
+from haptic_topology.messages.package import colcon_command, missing_msgs_line
 
 #: Runs ``argv[1]`` as ``python -m`` would (``-c cli`` for the console script
 #: haptic-topology), with haptic_topology_msgs not importable.

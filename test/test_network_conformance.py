@@ -36,8 +36,8 @@ from backend_conformance import (
 from network_harness import MALFORMING, Relay, ServerDevice, wait_for
 
 from haptic_topology.device.backend import backend_class
-from haptic_topology.device.network import NetworkBackend
 from haptic_topology.device.pacing import DeadlinePacer
+from haptic_topology.remote.network import NetworkBackend
 
 CHECKS: dict[str, Callable[[Bench], None]] = {
     'clamping': check_clamping, 'nonfinite': check_nonfinite, 'watchdog': check_watchdog,

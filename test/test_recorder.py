@@ -28,7 +28,7 @@ from rosbags.highlevel import AnyReader, AnyReaderError
 
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
 from haptic_topology.bag.repair import repair_bag
-from haptic_topology.msgdefs import typestore_with_haptic_msgs
+from haptic_topology.messages.definitions import typestore_with_haptic_msgs
 
 pytestmark = pytest.mark.graph
 

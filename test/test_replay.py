@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag, upgraders
-from haptic_topology.bag.replay import DEFAULT_TOLERANCE, check_controller, replay
+from haptic_topology.bag.replay import DEFAULT_TOLERANCE
+from haptic_topology.nodes.replay import check_controller, replay
 from haptic_topology.paths import config_dir
 
 pytestmark = pytest.mark.graph

@@ -31,10 +31,10 @@ import pytest
 import yaml
 from procs import stop_process
 
-from haptic_topology import frames
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
 from haptic_topology.bringup.run import run_graph
 from haptic_topology.dynamics import LinkageDynamics
+from haptic_topology.model import frames
 from haptic_topology.model.urdf import RobotDescription, robot_description
 from haptic_topology.nodes.qos import QOS_LATCHED, QOS_TF, QOS_VIZ
 from haptic_topology.nodes.viz import FORCE_SCALE

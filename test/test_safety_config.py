@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
+from haptic_topology.config.node_params import KNOWN
+from haptic_topology.config.params import check_overrides, check_params_file
 from haptic_topology.errors import ConfigError
 from haptic_topology.nodes.dds_env import localhost_discovery_default
-from haptic_topology.nodes.node_params import KNOWN
-from haptic_topology.params import check_overrides, check_params_file
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.scenario import load_scenario
 

@@ -14,7 +14,7 @@ from builtin_interfaces.msg import Time
 
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
-from haptic_topology.msgcheck import MAX_SEQ, check_vt_path
+from haptic_topology.messages.check import MAX_SEQ, check_vt_path
 from haptic_topology.nodes.convert import (
     MessageError,
     RejectCounter,
@@ -92,7 +92,7 @@ def test_good_messages_pass() -> None:
 def test_controller_ids_drawn_in_range_and_written_into_commands() -> None:
     """Every process draws its own random id in [1, 2**63 - 1]; ``command_msg`` writes it."""
     from haptic_topology.control.controller import CycleOutput
-    from haptic_topology.msgcheck import MAX_CONTROLLER_ID, new_controller_id
+    from haptic_topology.messages.check import MAX_CONTROLLER_ID, new_controller_id
     from haptic_topology.nodes.convert import CONTROLLER_ID, command_msg
     from haptic_topology.vocabulary import ControlMode
 
@@ -336,6 +336,6 @@ def test_largest_sequence_numbers_pass_and_fit_the_core() -> None:
 def test_msgcheck_docstring_example() -> None:
     import doctest
 
-    from haptic_topology import msgcheck
+    from haptic_topology.messages import check as msgcheck
 
     assert doctest.testmod(msgcheck).failed == 0

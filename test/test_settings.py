@@ -11,26 +11,26 @@ from typing import Any
 import numpy as np
 import pytest
 
-from haptic_topology.device.watchdog import WatchdogFallback
-from haptic_topology.errors import ConfigError
-from haptic_topology.nodes.node_params import KNOWN
-from haptic_topology.params import check_overrides, check_params_file
-from haptic_topology.resolve import (
+from haptic_topology.config.node_params import KNOWN
+from haptic_topology.config.params import check_overrides, check_params_file
+from haptic_topology.config.resolve import (
     resolve_device_driver,
     resolve_lmi_controller,
     resolve_recorder,
     resolve_ve_sim,
 )
-from haptic_topology.settings import (
+from haptic_topology.config.settings import (
     DeviceDriverSettings,
     LmiControllerSettings,
     NodeSettings,
     RecorderSettings,
     VeSimSettings,
-    check_live,
     param_specs,
     scenario_defaults,
 )
+from haptic_topology.control.laws import check_live
+from haptic_topology.device.watchdog import WatchdogFallback
+from haptic_topology.errors import ConfigError
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import Clock, ControlMode
 

@@ -16,7 +16,7 @@ the state at which the controller engaged; ``t = 0`` there), in sequence order:
 Messages that do not belong to the run are skipped and counted per ``<kind>_<reason>`` in
 :attr:`GraphRun.skipped` (``analyze`` writes them to ``summary.json`` as
 ``skipped_messages``): messages on the graph's topics that do not decode (``<kind>_decode``),
-fail the nodes' own checks (:mod:`haptic_topology.msgcheck`: task_dim, dof, sizes,
+fail the nodes' own checks (:mod:`haptic_topology.messages.check`: task_dim, dof, sizes,
 non-finite values, integer ranges; the run's task_dim is the scenario's, else the most common
 one among the states, its dof the scenario's, else the most common among the updates), repeat
 a sequence number already read (``state_duplicate``, ``command_duplicate``; of several
@@ -53,9 +53,8 @@ from haptic_topology.bag.reader import (
     open_bag,
     require_types,
 )
-from haptic_topology.errors import BagError
-from haptic_topology.msgcheck import (
-    MessageError,
+from haptic_topology.errors import BagError, MessageError
+from haptic_topology.messages.check import (
     array,
     check_command,
     check_state,
@@ -64,7 +63,7 @@ from haptic_topology.msgcheck import (
     check_vt_path,
     env_wrench,
 )
-from haptic_topology.msgdefs import type_name
+from haptic_topology.messages.definitions import type_name
 from haptic_topology.sim.trace import Trace
 from haptic_topology.vocabulary import ControlMode
 

@@ -39,8 +39,8 @@ from rosbags.typesys.store import Typestore
 from zstandard import ZstdError
 
 from haptic_topology import MSGS_PACKAGE_NAME
-from haptic_topology.errors import BagError
-from haptic_topology.msgdefs import typestore_with_haptic_msgs
+from haptic_topology.errors import BagError, TruncatedError
+from haptic_topology.messages.definitions import typestore_with_haptic_msgs
 
 MCAP_MAGIC = b'\x89MCAP0\r\n'
 METADATA = 'metadata.yaml'
@@ -173,10 +173,6 @@ def iter_records(path: Path, stream: IO[bytes]) -> Iterator[Any]:
     except (McapError, ValueError) as exc:  # CRCValidationError is a ValueError
         raise BagError(f'{path}: corrupt MCAP data near byte {stream.tell()} '
                        f'({exc or type(exc).__name__})') from None
-
-
-class TruncatedError(Exception):
-    """The MCAP stream ended before its footer."""
 
 
 def iter_messages(bag: Bag, topics: Iterable[str] | None = None,

@@ -24,9 +24,9 @@ from rosbags.rosbag2.errors import ReaderError
 from rosbags.rosbag2.metadata import parse_qos
 
 from haptic_topology import __version__
-from haptic_topology.bag.reader import TruncatedError, iter_records, open_bag
+from haptic_topology.bag.reader import iter_records, open_bag
 from haptic_topology.bag.writer import TopicSpec, metadata_info, write_metadata
-from haptic_topology.errors import BagError
+from haptic_topology.errors import BagError, TruncatedError
 
 
 @dataclass(frozen=True)

@@ -1,67 +1,19 @@
-"""``haptic-topology replay BAG``: publish a bag's messages with their recorded timing.
-
-Plain replay publishes every message (or those of ``--topics``) as the recorded CDR bytes
-(``Publisher.publish(bytes)``, nothing is deserialised) on its recorded topic, at the
-recorded receive times scaled by ``1 / --rate``, from ``--start-offset`` seconds into the
-bag, once or ``--loop``. Each topic gets the QoS its publishers offered (the bag's
-``offered_qos_profiles``), so e.g. recorded device states and LMI updates drive a live
-``lmi_controller`` exactly as the device and the VE did. A topic whose type the bag holds in
-an older definition than the installed one is re-serialised as the installed type when
-fields were only appended since (``LmiUpdate`` and ``DeviceState`` before their contact
-fields: the new fields empty or zero, :func:`~haptic_topology.bag.reader.upgraders`), and
-left out, and named in the summary line, when the definition changed otherwise
-(``DeviceCommand`` before ``controller_id``, a field inserted in the middle): its bytes would
-be misread as the current type; naming it in ``--topics`` is an error.
-
-``--check-controller`` is the controller's regression check: it starts ``lmi_controller``
-itself (in its own namespace, with the bag's scenario and the recorded control law), feeds
-it the recorded device states and LMI updates, records its commands and compares them with
-the recorded ones state by state. What the controller needs to reproduce a command exactly:
-
-* the same parameters (scenario, mode; the gains are the scenario's);
-* the same states, in order, and only those it answered in the run: a state it skipped
-  (late, overwritten in its depth-1 queue) changes the next cycle's ``dt``;
-* each LMI update applied between the same two states as in the run. The recorder's
-  receive order is not the controller's (under load the recorder got updates up to 8 ms
-  after the controller), so the plan uses what every command carries: ``update_age``
-  grows from command to command while the controller uses the same update, and
-  ``header.stamp - update_age`` is when it received its newest one. Before the first state
-  of each such group, every update the VE had published (its header stamp) by then is
-  applied, at least the next one.
-
-Only commands whose state is in the bag are compared (the recorder may have joined after
-the device started).
-
-The check runs in lock-step, not in recorded time: each state is published once the live
-controller has answered the previous one (again if no answer comes within 0.3 s: the
-controller ignores a state it has already answered), each update 2 ms before the next
-state. The controller takes ``dt`` from the states' stamps, so the pace does not matter,
-and its depth-1 best-effort state queue cannot drop a state (at recorded speed on 2 cores
-it dropped 2-3 %, each drop changing the next ~8 commands by up to 0.1 N). Then the
-controller computes bit for bit the same commands (measured: 0 difference over 1966
-commands of a 2 s fig8 run); any difference means the control code changed.
+"""What a replay of a bag publishes, offline: the plan of a plain replay (messages, times,
+topics left out) and the plan of the controller check (which states, which updates between
+them), and the check's result. The publishing side (rclpy) is
+:mod:`haptic_topology.nodes.replay`, which documents ``haptic-topology replay``.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import math
-import os
-import signal
-import subprocess
-import sys
-import tempfile
-import threading
-import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.rosbag2.errors import ReaderError
-from rosbags.rosbag2.metadata import parse_qos
 
 from haptic_topology import vocabulary as vocab
 from haptic_topology.bag.reader import (
@@ -69,15 +21,14 @@ from haptic_topology.bag.reader import (
     BagMessage,
     decoder,
     iter_messages,
-    open_bag,
     outdated_types,
     read_channels,
     require_types,
     upgraders,
 )
-from haptic_topology.errors import BagError, HapticTopologyError
-from haptic_topology.msgdefs import type_name
-from haptic_topology.vocabulary import TOPIC_LMI_ACK, ControlMode
+from haptic_topology.errors import BagError
+from haptic_topology.messages.definitions import type_name
+from haptic_topology.vocabulary import ControlMode
 
 STATE = vocab.TOPIC_STATE
 COMMAND = vocab.TOPIC_COMMAND
@@ -89,10 +40,6 @@ HAND = vocab.TOPIC_HAND_LEGACY
 #: N m). The controller is deterministic given the same inputs in the same order, so the
 #: expected difference is 0; 1e-9 leaves room for a different BLAS summation order only.
 DEFAULT_TOLERANCE = 1e-9
-
-
-class ReplayError(HapticTopologyError):
-    """The replay could not run (no subscriber, controller failed to start, ...)."""
 
 
 @dataclass(frozen=True)
@@ -271,190 +218,6 @@ def controller_plan(bag: Bag) -> ControllerPlan:
                           scenario, mode, len(groups), len(updates))
 
 
-def _qos_profile(metadata: dict[str, str], topic: str) -> Any:
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-    reliable, depth = True, 10
-    try:
-        offered = parse_qos(metadata.get('offered_qos_profiles', ''))
-    except (ReaderError, KeyError, TypeError):
-        offered = []
-    if offered:
-        reliable = all(q.reliability.name == 'RELIABLE' for q in offered)
-        depth = max(1, max(q.depth for q in offered))
-    elif topic.endswith((STATE, COMMAND)):
-        reliable, depth = False, 1
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=(ReliabilityPolicy.RELIABLE if reliable
-                                   else ReliabilityPolicy.BEST_EFFORT),
-                      durability=DurabilityPolicy.VOLATILE)
-
-
-def message_class(msgtype: str) -> Any:
-    """The rclpy message class of ``pkg/msg/Type``."""
-    pkg, _, name = msgtype.partition('/msg/')
-    try:
-        return getattr(importlib.import_module(f'{pkg}.msg'), name)
-    except (ImportError, AttributeError):
-        raise BagError(f'message type {msgtype}: no Python message package {pkg} installed '
-                       'to publish it') from None
-
-
-class Publishers:
-    """One publisher per topic of the items (QoS from the bag), under ``namespace``."""
-
-    def __init__(self, node: Any, bag: Bag, items: Sequence[Item], namespace: str = '') -> None:
-        channels = read_channels(bag)
-        self.pubs: dict[str, Any] = {}
-        for topic, msgtype in {it.topic: it.msgtype for it in items}.items():
-            name = topic if not namespace or topic == '/diagnostics' else (
-                namespace.rstrip('/') + '/' + topic.lstrip('/'))
-            qos = _qos_profile(channels.get(topic, {}).get('metadata', {}), topic)
-            self.pubs[topic] = node.create_publisher(message_class(msgtype), name, qos)
-
-    def wait_for_subscribers(self, topics: Iterable[str], timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        pending = [t for t in topics if t in self.pubs]
-        while pending and time.monotonic() < deadline:
-            pending = [t for t in pending if self.pubs[t].get_subscription_count() == 0]
-            time.sleep(0.02)
-        if pending:
-            raise ReplayError(f'no subscriber on {", ".join(pending)} within {timeout:g} s')
-        # The publisher sees the subscriber first; a reliable message sent before the
-        # subscriber has matched this publisher in turn would be lost.
-        time.sleep(0.5)
-
-    def publish(self, items: Sequence[Item], rate: float, loop: bool = False,
-                stop: threading.Event | None = None) -> ReplayStats:
-        """Publish ``items`` at their times / ``rate`` (again and again with ``loop``)."""
-        stats = ReplayStats()
-        start = time.perf_counter()
-        span = items[-1].t if items else 0.0
-        rounds = 0
-        while True:
-            base = start + rounds * (span / rate + 1e-3)
-            for it in items:
-                due = base + it.t / rate
-                while (rem := due - time.perf_counter()) > 0:
-                    time.sleep(rem)
-                if stop is not None and stop.is_set():
-                    break
-                self.pubs[it.topic].publish(it.data)
-                stats.late_ms.append(1e3 * (time.perf_counter() - due))
-                stats.published[it.topic] = stats.published.get(it.topic, 0) + 1
-            rounds += 1
-            if not loop or (stop is not None and stop.is_set()):
-                break
-        stats.wall_s = time.perf_counter() - start
-        return stats
-
-
-    def publish_lockstep(self, items: Sequence[Item], answered: threading.Condition,
-                         done: dict[int, Any], acked: dict[int, int], timeout: float = 0.3,
-                         retries: int = 3) -> ReplayStats:
-        """Publish ``items`` in order, each only once the previous one was taken: a state
-        once it was answered (``done``), an update once the controller acknowledged it
-        (``acked``: update seq -> count, on ``haptic/lmi/ack``), so the controller sees the
-        recorded order whatever the machine's load.
-
-        A message whose answer or acknowledgement does not come within ``timeout`` is
-        published again (the controller ignores a state it has already answered; an update
-        taken twice is the same re-sync), up to ``retries`` times.
-        """
-        stats = ReplayStats()
-        start = time.perf_counter()
-        for it in items:
-            pub = self.pubs[it.topic]
-            if it.seq < 0:
-                useq = _update_seq(it.data)
-                before = acked.get(useq, 0)
-
-                def taken(useq: int = useq, before: int = before) -> bool:
-                    return acked.get(useq, 0) > before
-
-                with answered:
-                    for _ in range(retries):
-                        pub.publish(it.data)
-                        if answered.wait_for(taken, timeout):
-                            break
-            else:
-                seq = it.seq
-
-                def seen(seq: int = seq) -> bool:
-                    return seq in done
-
-                with answered:
-                    for _ in range(retries):
-                        pub.publish(it.data)
-                        if answered.wait_for(seen, timeout):
-                            break
-            stats.published[it.topic] = stats.published.get(it.topic, 0) + 1
-        stats.wall_s = time.perf_counter() - start
-        return stats
-
-
-def _update_seq(data: Any) -> int:
-    """``LmiUpdate.seq`` of a message as published (a message object or raw CDR)."""
-    seq = getattr(data, 'seq', None)
-    if seq is None:
-        from rclpy.serialization import deserialize_message
-
-        from haptic_topology_msgs.msg import LmiUpdate
-        seq = deserialize_message(data, LmiUpdate).seq
-    return int(seq)
-
-
-class _Spinner:
-    """rclpy init, one node, its executor spun in a thread (timeouts: see the notes)."""
-
-    def __init__(self, name: str) -> None:
-        import rclpy
-        from rclpy.experimental import EventsExecutor
-
-        from haptic_topology.nodes.dds_env import localhost_discovery_default
-
-        self._rclpy = rclpy
-        localhost_discovery_default(os.environ)     # the nodes' DDS setup (run_main)
-        self.context = rclpy.Context()
-        rclpy.init(args=[], context=self.context)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set() and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.1)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5.0)
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self._rclpy.try_shutdown(context=self.context)
-
-
-def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None = None,
-           loop: bool = False, start_offset: float = 0.0, wait_subscribers: float = 0.0,
-           stop: threading.Event | None = None, namespace: str = '') -> ReplayStats:
-    """Plain replay (see module doc), topics under ``namespace`` (except /diagnostics);
-    returns what was published."""
-    bag = open_bag(bag_path)
-    items = plan(bag, topics, start_offset)
-    spinner = _Spinner('haptic_replay')
-    try:
-        pubs = Publishers(spinner.node, bag, items, namespace)
-        if wait_subscribers > 0:
-            pubs.wait_for_subscribers(pubs.pubs, wait_subscribers)
-        stats = pubs.publish(items, rate, loop, stop)
-        stats.left_out = [] if topics else sorted(left_out(bag))
-        return stats
-    finally:
-        spinner.close()
-
-
 @dataclass
 class CheckResult:
     """Recorded vs replayed commands of the controller regression check."""
@@ -481,90 +244,6 @@ class CheckResult:
                 f'compared of {self.recorded} recorded ({self.missing} not answered live); '
                 f'max |difference| {self.max_abs_diff:.3g} (tolerance {self.tolerance:g}): '
                 f'{"OK" if self.ok else "DIFFERENT"}')
-
-
-def check_controller(bag_path: str | Path, params: Path,
-                     scenario: str | None = None, tolerance: float = DEFAULT_TOLERANCE,
-                     startup_timeout: float = 40.0, log_dir: Path | None = None) -> CheckResult:
-    """The controller regression check (see module doc)."""
-    from haptic_topology.nodes.qos import QOS_LMI
-    bag = open_bag(bag_path)
-    cp = controller_plan(bag)
-    scenario = scenario or cp.scenario
-    if not scenario:
-        raise BagError(f'{bag.path}: no scenario in metadata.yaml custom_data; give '
-                       '--scenario')
-    ns = f'/replay_{os.getpid()}_{int(time.time() * 1e3) % 100000}'
-    logs = Path(log_dir or tempfile.mkdtemp(prefix='haptic_replay_'))
-    logs.mkdir(parents=True, exist_ok=True)
-    log = logs / 'lmi_controller.log'
-    argv = [sys.executable, '-m', 'haptic_topology.nodes.lmi_controller', '--ros-args',
-            '--params-file', str(params), '-p', f'scenario:={scenario}', '-p',
-            f'mode:={cp.mode}', '-p', 'ack_updates:=true', '-r', f'__ns:={ns}']
-    live: dict[int, Any] = {}
-    spinner = _Spinner('haptic_replay_check')
-    with log.open('wb') as handle:
-        proc = subprocess.Popen(argv, stdout=handle, stderr=subprocess.STDOUT,
-                                env=dict(os.environ, PYTHONUNBUFFERED='1'),
-                                start_new_session=True)
-        try:
-            from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-            from haptic_topology_msgs.msg import DeviceCommand
-
-            answered = threading.Condition()
-
-            def keep(msg: Any) -> None:
-                with answered:
-                    live.setdefault(int(msg.state_seq), (int(msg.mode), np.array(msg.wrench)))
-                    answered.notify_all()
-
-            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                             reliability=ReliabilityPolicy.BEST_EFFORT)
-            sub = spinner.node.create_subscription(DeviceCommand, f'{ns}/{COMMAND}', keep,
-                                                   qos)
-            acked: dict[int, int] = {}
-
-            def ack(msg: Any) -> None:
-                with answered:
-                    acked[int(msg.data)] = acked.get(int(msg.data), 0) + 1
-                    answered.notify_all()
-
-            from std_msgs.msg import UInt64
-
-            spinner.node.create_subscription(UInt64, f'{ns}/{TOPIC_LMI_ACK}', ack, QOS_LMI)
-            pubs = Publishers(spinner.node, bag, cp.items, ns)
-            deadline = time.monotonic() + startup_timeout
-            while sub.get_publisher_count() == 0 and time.monotonic() < deadline:
-                if proc.poll() is not None:
-                    raise ReplayError(f'lmi_controller exited with {proc.returncode}: '
-                                      f'{log.read_text(errors="replace")[-800:]}')
-                time.sleep(0.05)
-            pubs.wait_for_subscribers(pubs.pubs, max(deadline - time.monotonic(), 0.1))
-            stats = pubs.publish_lockstep(cp.items, answered, live, acked)
-        finally:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(10.0)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
-            spinner.close()
-    diffs: dict[int, float] = {}
-    missing: list[int] = []
-    for seq, cmd in sorted(cp.commands.items()):
-        got = live.get(seq)
-        if got is None:
-            missing.append(seq)
-            continue
-        rec = np.array(cmd.wrench, dtype=float)
-        mode_diff = 0.0 if got[0] == int(cmd.mode) else math.inf
-        diffs[seq] = max(float(np.max(np.abs(rec - got[1]), initial=0.0))
-                         if rec.shape == got[1].shape else math.inf, mode_diff)
-    return CheckResult(len(diffs), len(cp.commands), len(live), len(missing),
-                       max(diffs.values(), default=math.inf), tolerance, cp.mode, scenario,
-                       stats, diffs, missing)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -594,24 +273,3 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f'(default {DEFAULT_TOLERANCE:g})')
 
 
-def run(args: argparse.Namespace) -> int:
-    """The ``replay`` subcommand (see module doc)."""
-    rate = float(args.rate)
-    if not (rate > 0 and math.isfinite(rate)):
-        raise BagError(f'--rate: expected a positive factor, got {rate}')
-    if args.start_offset < 0:
-        raise BagError(f'--start-offset: expected seconds >= 0, got {args.start_offset}')
-    if args.check_controller:
-        from haptic_topology.paths import config_dir
-
-        params = args.params or config_dir() / 'haptic_topology.yaml'
-        res = check_controller(args.bag, params, args.scenario, args.tolerance)
-        print(res.stats.line())
-        print(res.line())
-        return 0 if res.ok else 1
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    stats = replay(args.bag, rate, args.topics, args.loop, args.start_offset,
-                   args.wait_subscribers, stop, args.namespace)
-    print(stats.line())
-    return 0

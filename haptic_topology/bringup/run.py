@@ -33,7 +33,6 @@ import argparse
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -42,7 +41,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from haptic_topology.errors import ConfigError, HapticTopologyError
+from haptic_topology.errors import BringupError, ConfigError
+from haptic_topology.processes import cpu_seconds, terminate
 from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE
 
 NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
@@ -80,10 +80,6 @@ def loop_readers(layout: str) -> dict[tuple[str, str], int]:
     return {(ve, TOPIC_LMI): 2, (ve, TOPIC_VT_PATH): 1,
             (ctl, TOPIC_HAND_INPUTS): 2,
             (ctl, TOPIC_COMMAND): 2 if layout == 'separate' else 1}
-
-
-class BringupError(HapticTopologyError):
-    """A node of the graph failed to start, or the loop never closed."""
 
 
 @dataclass
@@ -166,31 +162,6 @@ def _start(name: str, argv: list[str], log_dir: Path,
     return _Proc(name, popen, log, handle)
 
 
-def _cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time (s) of a process and its threads, from /proc (None if gone)."""
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    except (OSError, IndexError):
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
-
-
-def terminate(popen: subprocess.Popen[bytes], timeout: float = 5.0,
-              escalate: float = 2.0) -> int:
-    """SIGINT ``popen``, then SIGTERM and SIGKILL if it has not exited after ``timeout`` /
-    ``escalate`` seconds; return its exit code."""
-    for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, escalate),
-                      (signal.SIGKILL, escalate)):
-        if popen.poll() is not None:
-            break
-        popen.send_signal(sig)
-        try:
-            popen.wait(wait)
-        except subprocess.TimeoutExpired:
-            continue
-    return popen.wait()
-
-
 def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
     """SIGINT each process in order, escalating to SIGTERM and SIGKILL; return exit codes."""
     codes: dict[str, int] = {}
@@ -218,7 +189,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``node_prefix``: process name -> argv put before its command (``--node-prefix``: e.g.
     ``ip netns exec ht_ve`` for ``ve_sim``, which then keeps its pid and gets the signals).
     """
-    from haptic_topology.bringup.watch import GraphWatcher, WaitTimeout
+    from haptic_topology.bringup.watch import GraphWatcher
+    from haptic_topology.errors import WaitTimeout
 
     if layout not in LAYOUTS:
         raise ConfigError(f'--layout: expected one of {", ".join(LAYOUTS)}, got {layout!r}')
@@ -284,13 +256,13 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                     watch.change_state('device_driver', transition, startup_timeout)
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
                                            startup_timeout, poll=0.2)
-            cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
+            cpu0 = {p.name: cpu_seconds(p.popen.pid) for p in procs}
             limit = startup_timeout + (duration + 10.0 if clock == 'wall'
                                        else max(60.0, 30.0 * duration))
             ended = watch.wait_lifecycle('device_driver', ('inactive',), limit)
             wall = ended - started
             for p in procs:
-                c0, c1 = cpu0[p.name], _cpu_seconds(p.popen.pid)
+                c0, c1 = cpu0[p.name], cpu_seconds(p.popen.pid)
                 if c0 is not None and c1 is not None and wall > 0.0:
                     cpu[p.name] = round((c1 - c0) / wall, 4)
             # The loop has stopped; the recorder must take everything it sent while every
@@ -317,7 +289,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
 
 def run(args: argparse.Namespace) -> int:
     """The ``run`` subcommand (see module doc)."""
-    from haptic_topology.msgs_package import require_msgs_package
+    from haptic_topology.messages.package import require_msgs_package
 
     require_msgs_package()      # before anything starts: one line if the messages are missing
     from haptic_topology.bag.graph_trace import format_loop, read_graph_bag

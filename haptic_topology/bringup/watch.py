@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from haptic_topology.errors import HapticTopologyError
+from haptic_topology.errors import WaitTimeout
 from haptic_topology.vocabulary import TOPIC_COMMAND, TOPIC_HAND_INPUTS, TOPIC_STATE, TOPIC_VT_PATH
 
 #: ``/diagnostics`` status names of the graph's nodes.
@@ -27,10 +27,6 @@ CONTROLLER_STATUS = 'lmi_controller: loop'
 
 #: Consecutive equal recorder reports that count as settled (0.25 s apart).
 SETTLE_REPORTS = 5
-
-
-class WaitTimeout(HapticTopologyError):
-    """Something the graph should have done within a deadline did not happen."""
 
 
 _TYPES_LOCK = threading.Lock()

@@ -16,7 +16,34 @@ import numpy as np
 
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.validate import as_float, as_vector, check_keys
-from haptic_topology.vocabulary import ControlMode, TaskSpace
+from haptic_topology.vocabulary import LAW_MODES, ControlMode, TaskSpace
+
+# -- the penalty gains' one range -------------------------------------------------------------
+#: Upper end of the live penalty gains' range (N/(m kg), N s/(m kg)).
+GAIN_MAX = 1.0e5
+
+
+def check_gain(name: str, value: Any) -> str | None:
+    """Why ``value`` is not an acceptable ``k_tc``/``b_tc``, or None if it is."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return f'{name} must be a number, got {value!r}'
+    if not math.isfinite(value):
+        return f'{name} must be finite, got {value}'
+    if value < 0.0:
+        return f'{name} must be >= 0 (a negative penalty pushes off the manifold), got {value}'
+    if value > GAIN_MAX:
+        return f'{name} must be <= {GAIN_MAX:g}, got {value}'
+    return None
+
+
+def check_live(name: str, value: Any) -> str | None:
+    """Why ``value`` is not acceptable for the live lmi_controller parameter ``name``
+    (``mode``, ``k_tc``, ``b_tc``), or None; for an on-set-parameters callback."""
+    if name in ('k_tc', 'b_tc'):
+        return check_gain(name, value)
+    if name == 'mode' and value not in LAW_MODES:
+        return f'mode must be one of {", ".join(LAW_MODES)}, got {value!r}'
+    return None
 
 
 @dataclass(frozen=True)
@@ -41,12 +68,12 @@ class ControlGains:
     @classmethod
     def from_config(cls, raw: Any, where: str, m: int) -> ControlGains:
         """The ``control:`` block of a scenario: ``k_pc``, ``b_pc`` (m values >= 0, required),
-        ``k_tc``, ``b_tc`` (>= 0, default 0). ``where``: the block's path."""
+        ``k_tc``, ``b_tc`` (in [0, GAIN_MAX], default 0). ``where``: the block's path."""
         ctl = check_keys(raw, where, required=('k_pc', 'b_pc'), optional=('k_tc', 'b_tc'))
         return cls(k_pc=as_vector(ctl['k_pc'], f'{where}.k_pc', m, lo=0.0),
                    b_pc=as_vector(ctl['b_pc'], f'{where}.b_pc', m, lo=0.0),
-                   k_tc=as_float(ctl.get('k_tc', 0.0), f'{where}.k_tc', lo=0.0),
-                   b_tc=as_float(ctl.get('b_tc', 0.0), f'{where}.b_tc', lo=0.0))
+                   k_tc=as_float(ctl.get('k_tc', 0.0), f'{where}.k_tc', lo=0.0, hi=GAIN_MAX),
+                   b_tc=as_float(ctl.get('b_tc', 0.0), f'{where}.b_tc', lo=0.0, hi=GAIN_MAX))
 
 
 def coordination_wrench(x_vt: np.ndarray, xd_vt: np.ndarray, x_h: np.ndarray,

@@ -27,12 +27,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from haptic_topology.control.batch import HandBatch, HandBatcher
-from haptic_topology.control.laws import ControlGains
+from haptic_topology.control.laws import ControlGains, check_live
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
 from haptic_topology.control.safety import ModelHealth
-from haptic_topology.device.pacing import LoopStats
-from haptic_topology.settings import check_live
+from haptic_topology.control.stats import LoopStats
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 #: Diagnostics (level, message) of each stage of the local model (0 OK, 1 WARN).

@@ -13,7 +13,7 @@ Backends are selected by name (the ``backend`` parameter of ``device_driver``):
 * a built-in name (:data:`BUILTIN_BACKENDS`): ``sim_maglev`` (:class:`SimMaglevBackend`),
   ``ros_topics`` (:class:`~haptic_topology.nodes.topic_backend.RosTopicBackend`: a device with
   a ROS 2 driver, read from ``PoseStamped``/``TwistStamped`` and commanded with
-  ``WrenchStamped``), ``network`` (:class:`~haptic_topology.device.network.NetworkBackend`: a
+  ``WrenchStamped``), ``network`` (:class:`~haptic_topology.remote.network.NetworkBackend`: a
   device controller on another computer, over UDP). The last two are imported only when
   selected (the ROS one needs rclpy, which the core never imports);
 * ``package.module:ClassName``: any importable subclass of :class:`DeviceBackend`;
@@ -265,7 +265,7 @@ class SimMaglevBackend(DeviceBackend):
 BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
     SimMaglevBackend.name: SimMaglevBackend,
     'ros_topics': 'haptic_topology.nodes.topic_backend:RosTopicBackend',
-    'network': 'haptic_topology.device.network:NetworkBackend',
+    'network': 'haptic_topology.remote.network:NetworkBackend',
 }
 
 

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from haptic_topology.control.stats import LoopStats
 from haptic_topology.device.loop import CommandVerdict, DeviceLoop, DeviceTick, period_ns
-from haptic_topology.device.pacing import LoopStats
 
 
 @dataclass(frozen=True, slots=True)

@@ -45,8 +45,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from haptic_topology import frames
 from haptic_topology.errors import ConfigError, LinkageError
+from haptic_topology.model import frames
 from haptic_topology.model.linkage import JointType, Linkage, LinkSpec, reach
 from haptic_topology.validate import as_float, load_yaml
 from haptic_topology.vocabulary import TaskSpace
@@ -253,7 +253,7 @@ def robot_description(linkage: Linkage,
     Raises:
         LinkageError: the user's URDF cannot be read, lacks a joint of the linkage (or has it
             with another kind or child link), or has a link named as a frame of the graph
-            (:data:`haptic_topology.frames.RESERVED`).
+            (:data:`haptic_topology.model.frames.RESERVED`).
     """
     if linkage.urdf_path is None:
         text, generated, where = linkage_urdf(linkage), True, f'{linkage.source} (generated)'

@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from haptic_topology.errors import ConfigError, HapticTopologyError
+from haptic_topology.errors import ConfigError, HapticTopologyError, LinkError
 
 ETH_P_ALL = 0x0003
 SOL_PACKET = 263
@@ -77,10 +77,6 @@ RECEIVE_BUFFER = 4 * 1024 * 1024
 BURST = 64
 STATS_EVERY = 1.0         # s
 DIRECTIONS = ('a_to_b', 'b_to_a')
-
-
-class LinkError(HapticTopologyError):
-    """An interface cannot be opened, or the bridge lacks the privilege to open it."""
 
 
 @dataclass(frozen=True)

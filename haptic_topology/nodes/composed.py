@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 from rclpy.node import Node
 
-from haptic_topology.nodes import node_params
+from haptic_topology.config import node_params
 from haptic_topology.nodes.runtime import run_main
 
 

@@ -8,7 +8,8 @@ nodes count per reason in their diagnostics (``rejected_<reason>``); the node dr
 message, so nothing of it reaches the device.
 
 Integers are range-checked too (sequence numbers at most
-:data:`~haptic_topology.msgcheck.MAX_SEQ` ``= 2**53``, see :mod:`haptic_topology.msgcheck`,
+:data:`~haptic_topology.messages.check.MAX_SEQ` ``= 2**53``, see
+:mod:`haptic_topology.messages.check`,
 where the checks live without rclpy so that the bag tools use the same ones).
 
 Sequence numbers: device states count from 1, so ``LmiUpdate.hand_input_seq == 0`` means
@@ -33,12 +34,12 @@ from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
 from haptic_topology.dynamics.constraints import PenaltyDirection
 from haptic_topology.dynamics.contacts import ContactParams, LocalContacts
-from haptic_topology.msgcheck import (
+from haptic_topology.errors import MessageError
+from haptic_topology.messages.check import (
     MAX_CONTROLLER_ID,
     MAX_SEQ,
     MODES,
     REASONS,
-    MessageError,
     RejectCounter,
     array,
     check_command,
@@ -99,7 +100,8 @@ def state_msg(msg: DeviceState, seq: int, stamp: Time, reading: DeviceReading,
 def state_from_msg(msg: DeviceState, task: TaskSpace
                    ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray, int]:
     """``(seq, stamp_s, pose, twist, hand_wrench, status)``; every field checked
-    (:func:`haptic_topology.msgcheck.check_state`: seq in [1, MAX_SEQ], known status bits)."""
+    (:func:`haptic_topology.messages.check.check_state`: seq in [1, MAX_SEQ], known status
+    bits)."""
     seq, stamp, pose, twist, f_h, _, status = check_state(msg, task.dim)
     return seq, stamp, pose, twist, f_h, status
 
@@ -128,7 +130,7 @@ def command_from_msg(msg: DeviceCommand, task: TaskSpace
     """``(state_seq, mode, wrench, controller_id)``; the wrench must be finite and task_dim
     long, the mode one of the message's MODE_* constants, state_seq in [1, MAX_SEQ],
     controller_id in [1, MAX_CONTROLLER_ID]; the other fields are checked too
-    (:func:`haptic_topology.msgcheck.check_command`).
+    (:func:`haptic_topology.messages.check.check_command`).
 
     A finite wrench beyond the device's limit is not an error: the device clamps it (status
     SATURATED), as it does for the controller's own large outputs.
@@ -164,7 +166,7 @@ def vt_wrenches_from_hand_inputs(msg: HandInputs, task: TaskSpace, vt_coupling: 
     """``(seqs, state_seqs, stamps_s, pose, twist, F_vt)`` of a batch, per sample (rows):
     ``F_vt = F_h - F_pc`` with VT coupling, else ``F_h``.
 
-    The whole batch is checked first (:func:`haptic_topology.msgcheck.check_hand_inputs`:
+    The whole batch is checked first (:func:`haptic_topology.messages.check.check_hand_inputs`:
     sizes n and n x task_dim, integer ranges, ascending seqs, finite values, every wrench
     entry within ``max_wrench`` (N, N m): a hand input far beyond any device's force would
     only blow the VT up); one bad field rejects it all.

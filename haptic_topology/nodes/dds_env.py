@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 
 from haptic_topology.paths import config_dir
 
@@ -36,3 +37,18 @@ def localhost_discovery_default(env: dict[str, str] | os._Environ[str]) -> str:
         if profile.is_file():
             env[FASTDDS_PROFILES_ENV] = str(profile)
     return scope
+
+
+def isolated_env(domain_id: int, base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """An environment for ROS 2 processes that see only each other: ``base`` (default
+    ``os.environ``) with ``ROS_DOMAIN_ID=domain_id``, discovery on this host only, Fast DDS,
+    no static peers, and the nodes' DDS transport default (:func:`localhost_discovery_default`;
+    a Fast DDS profile the user set is kept). The graph's tests, the benchmarks and the
+    bringup's callers use it to keep their processes apart."""
+    env = dict(os.environ if base is None else base)
+    env.pop('ROS_LOCALHOST_ONLY', None)     # deprecated; conflicts with the discovery range
+    env.pop('ROS_STATIC_PEERS', None)       # these processes are on this host only
+    env.update(ROS_DOMAIN_ID=str(domain_id), RMW_IMPLEMENTATION='rmw_fastrtps_cpp')
+    env[DISCOVERY_ENV] = 'LOCALHOST'
+    localhost_discovery_default(env)
+    return env

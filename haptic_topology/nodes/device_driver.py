@@ -47,12 +47,14 @@ from rclpy.clock import ClockType
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock as ClockMsg
 
+from haptic_topology.config import node_params
+from haptic_topology.config.resolve import resolve_device_driver
+from haptic_topology.config.settings import DeviceDriverSettings
 from haptic_topology.device.backend import DeviceBackend, create_backend, zero_and_release
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, hardware_id
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
-from haptic_topology.frames import DEVICE_BASE
-from haptic_topology.nodes import node_params
+from haptic_topology.model.frames import DEVICE_BASE
 from haptic_topology.nodes.convert import RejectCounter, ns_to_stamp, state_msg
 from haptic_topology.nodes.diagnostics import diagnostics, matched, monotonic
 from haptic_topology.nodes.hosting import HostedLoop, driver_layout
@@ -60,8 +62,6 @@ from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import QOS_CLOCK, QOS_DIAGNOSTICS, loop_qos
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.separate import SeparateLoop
-from haptic_topology.resolve import resolve_device_driver
-from haptic_topology.settings import DeviceDriverSettings
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (
     TOPIC_CLOCK,

@@ -38,15 +38,15 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile
 
 from haptic_topology.bag.writer import schema_text
+from haptic_topology.config import node_params
+from haptic_topology.config.settings import FoxgloveBridgeSettings
 from haptic_topology.errors import ConfigError
-from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
-from haptic_topology.nodes import node_params
+from haptic_topology.messages.definitions import message_definitions, typestore_with_haptic_msgs
 from haptic_topology.nodes.diagnostics import diagnostics
 from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, TOPIC_QOS, publisher_qos
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.take import BatchTaker
-from haptic_topology.settings import FoxgloveBridgeSettings
 from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS, TOPIC_TYPES, Clock
 
 #: Messages each reader holds between two takes (1 kHz topics: 20 per default period).

@@ -43,12 +43,14 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import UInt64
 
+from haptic_topology.config import node_params
+from haptic_topology.config.resolve import resolve_lmi_controller
+from haptic_topology.config.settings import LmiControllerSettings, scenario_defaults
 from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.loop import StateSample
 from haptic_topology.control.port import ControllerPort, Outgoing, live_change
 from haptic_topology.device.runner import LoopRunner
-from haptic_topology.frames import DEVICE_BASE
-from haptic_topology.nodes import node_params
+from haptic_topology.model.frames import DEVICE_BASE
 from haptic_topology.nodes.convert import (
     CONTROLLER_ID,
     MessageError,
@@ -63,8 +65,6 @@ from haptic_topology.nodes.diagnostics import diagnostics, log_notices, matched,
 from haptic_topology.nodes.parameters import declare_settings, declare_spec
 from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, QOS_LMI, hand_inputs_qos, loop_qos
 from haptic_topology.nodes.runtime import run_main
-from haptic_topology.resolve import resolve_lmi_controller
-from haptic_topology.settings import LmiControllerSettings, scenario_defaults
 from haptic_topology.sim.lockstep import build_controller_loop
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (

@@ -16,15 +16,15 @@ from rclpy.exceptions import (
 )
 from rclpy.node import Node
 
-from haptic_topology.errors import ConfigError
-from haptic_topology.params import (
+from haptic_topology.config.params import (
     NodeParams,
     ParamSpec,
     check_overrides,
     check_params_file,
     params_files,
 )
-from haptic_topology.settings import NodeSettings, param_specs
+from haptic_topology.config.settings import NodeSettings, param_specs
+from haptic_topology.errors import ConfigError
 
 
 def declare(node: Node, name: str, default: Any, description: str, *, read_only: bool = True,
@@ -79,7 +79,7 @@ def declare_settings(node: Node, cls: type[S],
     read-only flag from its fields) and return the frozen settings.
 
     ``scenario_defaults``: defaults to declare instead of the table's (see
-    :func:`haptic_topology.settings.scenario_defaults`). Parameters the node has declared
+    :func:`haptic_topology.config.settings.scenario_defaults`). Parameters the node has declared
     already (e.g. ``scenario``, read first to load the scenario the defaults come from) keep
     their value. A bad value raises :class:`ConfigError` naming the node and the parameter.
     """

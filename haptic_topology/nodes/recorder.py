@@ -36,10 +36,10 @@ from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
-from haptic_topology import resolve
 from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
-from haptic_topology.msgdefs import message_definitions, typestore_with_haptic_msgs
-from haptic_topology.nodes import node_params
+from haptic_topology.config import node_params, resolve
+from haptic_topology.config.settings import RecorderSettings
+from haptic_topology.messages.definitions import message_definitions, typestore_with_haptic_msgs
 from haptic_topology.nodes.diagnostics import diagnostics
 from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import (
@@ -52,7 +52,6 @@ from haptic_topology.nodes.qos import (
 )
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.take import BatchTaker
-from haptic_topology.settings import RecorderSettings
 from haptic_topology.vocabulary import (
     TOPIC_COMMAND,
     TOPIC_DEVICE_POSE,
@@ -106,7 +105,8 @@ DRAIN_PERIOD = 0.01
 
 
 def select_topics(names: Sequence[str], regex: str) -> list[str]:
-    """Topics of :data:`RECORDED` to record (see :func:`haptic_topology.resolve.select_topics`)."""
+    """Topics of :data:`RECORDED` to record (see
+    :func:`haptic_topology.config.resolve.select_topics`)."""
     return resolve.select_topics(names, regex, list(RECORDED))
 
 

@@ -21,11 +21,11 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
+from haptic_topology.config.params import NodeParams
 from haptic_topology.device.realtime import set_realtime_priority
 from haptic_topology.errors import ConfigError, HapticTopologyError
 from haptic_topology.nodes.dds_env import localhost_discovery_default
 from haptic_topology.nodes.parameters import check_config_args
-from haptic_topology.params import NodeParams
 from haptic_topology.sampling import dump_now, start_from_env
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
 from haptic_topology.device.realtime import set_thread_realtime
-from haptic_topology.msgcheck import env_wrench
+from haptic_topology.messages.check import env_wrench
 from haptic_topology.nodes.convert import MessageError, command_from_msg
 from haptic_topology.nodes.diagnostics import monotonic
 from haptic_topology_msgs.msg import DeviceCommand

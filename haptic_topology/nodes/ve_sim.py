@@ -62,11 +62,14 @@ from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
+from haptic_topology.config import node_params
+from haptic_topology.config.resolve import resolve_ve_sim
+from haptic_topology.config.settings import VeSimSettings
 from haptic_topology.control.lmi import LmiSnapshot
-from haptic_topology.device.pacing import LoopStats
+from haptic_topology.control.stats import LoopStats
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.model.urdf import robot_description
-from haptic_topology.nodes import node_params, viz
+from haptic_topology.nodes import viz
 from haptic_topology.nodes.convert import (
     MessageError,
     RejectCounter,
@@ -87,8 +90,6 @@ from haptic_topology.nodes.qos import (
 )
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.take import LatestTaker
-from haptic_topology.resolve import resolve_ve_sim
-from haptic_topology.settings import VeSimSettings
 from haptic_topology.sim.lockstep import virtual_environment
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed

@@ -1,7 +1,7 @@
 """Visualisation messages of the VE (``ve_sim``): the linkage as a robot, frames, markers and
 standard mirrors, for RViz, Foxglove and PlotJuggler with no plugin of ours.
 
-Frames and what each header names: :mod:`haptic_topology.frames`. Topics (names and QoS in
+Frames and what each header names: :mod:`haptic_topology.model.frames`. Topics (names and QoS in
 :mod:`haptic_topology.vocabulary` and :mod:`haptic_topology.nodes.qos`):
 
 * ``/robot_description`` (``std_msgs/String``, transient local, once): the URDF of
@@ -51,11 +51,11 @@ from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
-from haptic_topology import frames
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+from haptic_topology.messages.check import check_state, env_wrench
+from haptic_topology.model import frames
 from haptic_topology.model.urdf import LinkFrames, RobotDescription
-from haptic_topology.msgcheck import check_state, env_wrench
 from haptic_topology.vocabulary import TaskSpace
 
 #: Length (m) of a constraint-direction arrow at full penalty weight.
@@ -99,7 +99,7 @@ class CouplingSample:
 
 def device_sample(msg: Any, task: TaskSpace) -> DeviceSample:
     """A checked ``DeviceState`` as a :class:`DeviceSample` (raises
-    :class:`~haptic_topology.msgcheck.MessageError` naming the bad field)."""
+    :class:`~haptic_topology.messages.check.MessageError` naming the bad field)."""
     _, _, pose, twist, f_h, applied, _ = check_state(msg, task.dim)
     return DeviceSample(msg.header.stamp, pose, twist, f_h, applied, env_wrench(msg, task.dim))
 

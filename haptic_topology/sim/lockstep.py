@@ -24,6 +24,9 @@ carry those stamps, computes with the same numbers. Deterministic: no clocks, no
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 
 from haptic_topology.control.controller import HapticController
@@ -84,8 +87,28 @@ def virtual_environment(sc: Scenario) -> VirtualEnvironment:
                               coupling=sc.coupling_gains(), contacts=contacts)
 
 
-def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
-    """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace."""
+@dataclass(frozen=True)
+class SimStep:
+    """What :func:`simulate` did in step ``k`` (time ``t``, s), as its observer sees it: the
+    device tick, the controller's answer, the VE just after it took the step's hand input (if
+    ``answer.hand`` is not None) and the controller loop (its controller: ``controller.ctrl``).
+    The objects are the simulation's own: an observer reads them and changes nothing."""
+
+    k: int
+    t: float
+    tick: DeviceTick
+    answer: Answer
+    ve: VirtualEnvironment
+    controller: ControllerLoop
+
+
+def simulate(scenario: Scenario, mode: ControlMode | None = None,
+             observer: Callable[[SimStep], None] | None = None) -> Trace:
+    """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace.
+
+    ``observer``: called once per step, after the VE took the step's hand input and before
+    the trace records the step, with a :class:`SimStep` (for figures the trace does not hold,
+    e.g. ``bench/penalty_direction.py``); it must not change what it is given."""
     sc = scenario
     mode = sc.mode if mode is None else mode
     task = sc.linkage.task
@@ -120,6 +143,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None) -> Trace:
         if hand is not None:
             ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
             inputs += 1
+        if observer is not None:
+            observer(SimStep(k, t, tick, ans, ve, cycle.controller))
         path = ve.take_path()
         if path:
             vt_pose = path[-1][1]

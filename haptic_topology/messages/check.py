@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from haptic_topology import vocabulary as vocab
-from haptic_topology.errors import HapticTopologyError
+from haptic_topology.errors import MessageError
 
 #: Why a message was rejected (diagnostics keys ``rejected_<reason>``).
 REASONS = ('task_dim', 'dof', 'size', 'non_finite', 'range')
@@ -57,15 +57,6 @@ def new_controller_id() -> int:
     """A random controller id in [1, :data:`MAX_CONTROLLER_ID`] (``secrets``, 63 bits): two
     controller processes share one with probability 2**-63."""
     return 1 + secrets.randbelow(MAX_CONTROLLER_ID)
-
-
-class MessageError(HapticTopologyError):
-    """An incoming message does not fit the graph (sizes, task_dim, non-finite values,
-    integers out of range); ``reason`` is one of :data:`REASONS`."""
-
-    def __init__(self, reason: str, text: str) -> None:
-        super().__init__(text)
-        self.reason = reason
 
 
 class RejectCounter:

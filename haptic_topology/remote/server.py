@@ -1,12 +1,12 @@
 """The simulated maglev served over UDP at its own clock: the device side of the ``network``
-backend (:mod:`haptic_topology.device.protocol`), as the paper's maglev had its own
+backend (:mod:`haptic_topology.remote.protocol`), as the paper's maglev had its own
 real-time controller.
 
 :class:`DeviceServer` holds the same physics as the ``sim_maglev`` backend (a
 :class:`~haptic_topology.device.backend.SimMaglevBackend` built from the scenario's device and
 user blocks, starting at the VT hand pose at ``q0`` plus the device offset, as the driver
 builds it) and one non-blocking UDP socket. ``haptic-topology device-server``
-(:mod:`haptic_topology.device.server_command`) runs it in a process of its own, paced by a
+(:mod:`haptic_topology.remote.server_command`) runs it in a process of its own, paced by a
 :class:`~haptic_topology.device.pacing.DeadlinePacer` (absolute deadlines, 1/dt of the
 scenario unless ``rate_hz`` says otherwise).
 
@@ -54,7 +54,8 @@ import numpy as np
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
 from haptic_topology.device.maglev import saturate
 from haptic_topology.device.pacing import DeadlinePacer
-from haptic_topology.device.protocol import (
+from haptic_topology.errors import ConfigError, DeviceError
+from haptic_topology.remote.protocol import (
     DEFAULT_PORT,
     Command,
     CommandFlags,
@@ -68,7 +69,6 @@ from haptic_topology.device.protocol import (
     encode_state,
     new_session,
 )
-from haptic_topology.errors import ConfigError, DeviceError
 from haptic_topology.vocabulary import DeviceStatus
 
 if TYPE_CHECKING:

@@ -1,7 +1,7 @@
 """``haptic-topology device-server --scenario NAME [--host H] [--port P] ...``.
 
 Serves the scenario's simulated maglev over the device network protocol
-(:mod:`haptic_topology.device.protocol`) at its own clock, in this process, until SIGINT or
+(:mod:`haptic_topology.remote.protocol`) at its own clock, in this process, until SIGINT or
 SIGTERM (or ``--duration``); then zeroes the output, closes the socket and prints one line
 with its counters. Point ``device_driver`` at it with ``backend: network`` and
 ``backend_options: '{host: H, port: P}'``.
@@ -14,7 +14,7 @@ status``) and ``--summary PATH`` (JSON of the counters) are written at shutdown.
 ``--monitor HOST:PORT``: a copy of every cycle's STATE goes there (an observer of what the
 device applies, e.g. a test).
 
-Also runnable as ``python -m haptic_topology.device.server_command``.
+Also runnable as ``python -m haptic_topology.remote.server_command``.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from types import FrameType
 
-from haptic_topology.device.protocol import DEFAULT_PORT
 from haptic_topology.errors import HapticTopologyError
+from haptic_topology.remote.protocol import DEFAULT_PORT
 
 #: Cycles kept in the ``--log`` by default (10 min at 1 kHz).
 DEFAULT_LOG_CYCLES = 600_000
@@ -111,7 +111,7 @@ def _write_atomic(path: Path, text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Serve until stopped; errors surface as HapticTopologyError."""
-    from haptic_topology.device.server import DeviceServer, ServerConfig
+    from haptic_topology.remote.server import DeviceServer, ServerConfig
     from haptic_topology.sim.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m haptic_topology.device.server_command``: as the CLI subcommand."""
+    """``python -m haptic_topology.remote.server_command``: as the CLI subcommand."""
     parser = argparse.ArgumentParser(prog='haptic-topology device-server',
                                      description=__doc__.splitlines()[0] if __doc__ else None)
     add_arguments(parser)

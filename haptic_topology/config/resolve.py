@@ -19,21 +19,20 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from haptic_topology.control.laws import ControlGains
-from haptic_topology.control.safety import SyncGuardConfig
-from haptic_topology.device.backend import BackendConfig
-from haptic_topology.device.watchdog import WatchdogConfig, WatchdogFallback
-from haptic_topology.errors import ConfigError
-from haptic_topology.settings import (
+from haptic_topology.config.settings import (
     RATE_MAX,
     RATE_MIN,
     DeviceDriverSettings,
     LmiControllerSettings,
     RecorderSettings,
     VeSimSettings,
-    check_gain,
     parse_backend_options,
 )
+from haptic_topology.control.laws import ControlGains, check_gain
+from haptic_topology.control.safety import SyncGuardConfig
+from haptic_topology.device.backend import BackendConfig
+from haptic_topology.device.watchdog import WatchdogConfig, WatchdogFallback
+from haptic_topology.errors import ConfigError
 from haptic_topology.vocabulary import Clock, ControlMode
 
 if TYPE_CHECKING:
@@ -151,7 +150,8 @@ class ControllerConfig:
 
 
 def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> ControllerConfig:
-    """``lmi_controller``'s configuration: ``mode``/``k_tc``/``b_tc`` None -> the scenario's."""
+    """``lmi_controller``'s configuration: ``mode``/``k_tc``/``b_tc`` None -> the scenario's
+    (a scenario built in code, not loaded, is checked here against the same range)."""
     mode = sc.mode if s.mode is None else ControlMode.parse(s.mode)
     k_tc = float(sc.gains.k_tc) if s.k_tc is None else s.k_tc
     b_tc = float(sc.gains.b_tc) if s.b_tc is None else s.b_tc

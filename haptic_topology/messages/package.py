@@ -28,7 +28,7 @@ from haptic_topology import MSGS_PACKAGE_NAME, PACKAGE_NAME
 
 #: The repository this module was imported from (a source checkout, or a colcon
 #: ``--symlink-install`` of one: its ``build/`` links back to the sources).
-SOURCE_ROOT = Path(__file__).resolve().parent.parent
+SOURCE_ROOT = Path(__file__).resolve().parents[2]
 #: Directory of the message package inside the repository.
 MSGS_DIR = 'msg_schemas'
 

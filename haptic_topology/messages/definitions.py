@@ -10,7 +10,7 @@ needed, only the .msg texts, which are found in
 
 Example::
 
-    >>> from haptic_topology.msgdefs import typestore_with_haptic_msgs
+    >>> from haptic_topology.messages.definitions import typestore_with_haptic_msgs
     >>> ts = typestore_with_haptic_msgs()
     >>> DeviceState = ts.types['haptic_topology_msgs/msg/DeviceState']
     >>> DeviceState.STATUS_WATCHDOG
@@ -28,18 +28,14 @@ from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typest
 from rosbags.typesys.store import Typestore
 
 from haptic_topology import MSGS_PACKAGE_NAME
-from haptic_topology.errors import HapticTopologyError
+from haptic_topology.errors import MessageDefinitionError
 
 #: Message names of haptic_topology_msgs, in the order they appear in the node graph
 #: (``HandInput``: the graph no longer sends it; bags recorded before hold it).
 MESSAGE_NAMES: tuple[str, ...] = ('DeviceState', 'DeviceCommand', 'LmiUpdate', 'HandInputs',
                                    'VtPath', 'HandInput')
 
-_SOURCE_MSG_DIR = Path(__file__).resolve().parent.parent / 'msg_schemas' / 'msg'
-
-
-class MessageDefinitionError(HapticTopologyError):
-    """The .msg files of haptic_topology_msgs cannot be found or parsed."""
+_SOURCE_MSG_DIR = Path(__file__).resolve().parents[2] / 'msg_schemas' / 'msg'
 
 
 def type_name(name: str) -> str:

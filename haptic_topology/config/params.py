@@ -17,7 +17,7 @@ The file layout is the one of ``ros2 run ... --params-file``: ``<node name>: {ro
 (``/**``, ``/**/device_driver``, ``device_*``); a wildcard's parameters must be known to at
 least one node it matches, unless it also matches a node whose parameters this process does
 not know (``known`` maps it to None): then unknown names pass. The tables of this package's
-nodes are generated from their settings dataclasses (:mod:`haptic_topology.settings`).
+nodes are generated from their settings dataclasses (:mod:`haptic_topology.config.settings`).
 """
 
 from __future__ import annotations

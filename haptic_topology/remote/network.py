@@ -1,6 +1,6 @@
 """The ``network`` device backend: a device controller on another computer, over UDP.
 
-:class:`NetworkBackend` is the client side of :mod:`haptic_topology.device.protocol`, inside
+:class:`NetworkBackend` is the client side of :mod:`haptic_topology.remote.protocol`, inside
 ``device_driver``: each :meth:`~NetworkBackend.write` sends one COMMAND datagram, each
 :meth:`~NetworkBackend.read` takes the STATE datagrams that have arrived, without blocking,
 and returns the newest valid one. The device (``haptic-topology device-server``, the
@@ -15,7 +15,7 @@ until it is empty (``wait_ms`` > 0: then waits at most that long for the state t
 the command just written). Nothing else blocks.
 
 **Never a bad value on.** A datagram that is not a valid STATE of the device's session
-(:func:`~haptic_topology.device.protocol.decode`: size, magic, version, type, task dimension,
+(:func:`~haptic_topology.remote.protocol.decode`: size, magic, version, type, task dimension,
 CRC32, fields, NaN/inf), that comes from another address, or whose ``seq`` is not newer than
 the newest taken (duplicate, late, reordered) is counted and dropped. A non-finite wrench
 given to ``write`` is sent as 0 on that axis and counted (the driver clamps before, so this
@@ -72,7 +72,8 @@ from typing import Any
 import numpy as np
 
 from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
-from haptic_topology.device.protocol import (
+from haptic_topology.errors import DeviceError
+from haptic_topology.remote.protocol import (
     DEFAULT_PORT,
     CommandFlags,
     Malformed,
@@ -87,7 +88,6 @@ from haptic_topology.device.protocol import (
     encode_command,
     new_session,
 )
-from haptic_topology.errors import DeviceError
 from haptic_topology.vocabulary import DeviceStatus
 
 #: Options and their defaults (module doc).

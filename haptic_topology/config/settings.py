@@ -2,17 +2,17 @@
 
 Each field carries its parameter's description, range (``lo``/``hi``, inclusive), ``choices``
 and ``read_only`` flag in ``field(metadata=...)`` (see :func:`param`); :func:`param_specs`
-generates the :class:`~haptic_topology.params.ParamSpec` table from the fields (as
+generates the :class:`~haptic_topology.config.params.ParamSpec` table from the fields (as
 generate_parameter_library does from ``parameters.yaml``). That one table is what the node
 declares (:func:`haptic_topology.nodes.parameters.declare_settings`) and what params files and
 ``-p`` overrides are checked against before rclpy reads them
-(:data:`haptic_topology.nodes.node_params.KNOWN`).
+(:data:`haptic_topology.config.node_params.KNOWN`).
 
 Constructing a settings object checks everything that needs only the values (ROS type,
 range, choices, and relations such as ``degrade_after >= stale_after``) and raises
 :class:`~haptic_topology.errors.ConfigError` naming the node, the parameter and what was
 expected. What needs the scenario (sizes, ``0`` = "the scenario's") is resolved once by
-:mod:`haptic_topology.resolve` into the node's final, frozen configuration.
+:mod:`haptic_topology.config.resolve` into the node's final, frozen configuration.
 
 No rclpy here.
 """
@@ -20,7 +20,6 @@ No rclpy here.
 from __future__ import annotations
 
 import array
-import math
 import os
 import re
 from dataclasses import MISSING, dataclass, field, fields
@@ -28,9 +27,10 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 import yaml
 
+from haptic_topology.config.params import ParamSpec, check_value
+from haptic_topology.control.laws import GAIN_MAX, check_gain
 from haptic_topology.device.watchdog import WatchdogFallback
 from haptic_topology.errors import ConfigError
-from haptic_topology.params import ParamSpec, check_value
 from haptic_topology.vocabulary import LAW_MODES, Clock
 
 if TYPE_CHECKING:
@@ -40,8 +40,6 @@ EXECUTORS = ('events', 'single_threaded')
 MODES = LAW_MODES
 FALLBACKS = tuple(f.value for f in WatchdogFallback)
 COMPRESSIONS = ('zstd', 'lz4', 'none')
-#: Upper end of the live penalty gains' range (N/(m kg), N s/(m kg)).
-GAIN_MAX = 1.0e5
 #: Device cycle rates a nonzero ``rate_hz`` may take (Hz).
 RATE_MIN, RATE_MAX = 10.0, 10000.0
 
@@ -259,30 +257,6 @@ class DeviceDriverSettings(NodeSettings):
             raise ConfigError(f'device_driver: parameter cpu_affinity: expected [-1] (no '
                               f'pinning) or CPU numbers in [0, {cpus - 1}], got '
                               f'{list(self.cpu_affinity)}')
-
-
-# -- lmi_controller ----------------------------------------------------------------------------
-def check_gain(name: str, value: Any) -> str | None:
-    """Why ``value`` is not an acceptable ``k_tc``/``b_tc``, or None if it is."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return f'{name} must be a number, got {value!r}'
-    if not math.isfinite(value):
-        return f'{name} must be finite, got {value}'
-    if value < 0.0:
-        return f'{name} must be >= 0 (a negative penalty pushes off the manifold), got {value}'
-    if value > GAIN_MAX:
-        return f'{name} must be <= {GAIN_MAX:g}, got {value}'
-    return None
-
-
-def check_live(name: str, value: Any) -> str | None:
-    """Why ``value`` is not acceptable for the live lmi_controller parameter ``name``
-    (``mode``, ``k_tc``, ``b_tc``), or None; for an on-set-parameters callback."""
-    if name in ('k_tc', 'b_tc'):
-        return check_gain(name, value)
-    if name == 'mode' and value not in MODES:
-        return f'mode must be one of {", ".join(MODES)}, got {value!r}'
-    return None
 
 
 @dataclass(frozen=True)

@@ -1,27 +1,27 @@
 """Parameters of the graph's nodes, generated from their settings dataclasses (no rclpy).
 
-Each node's table is :func:`haptic_topology.settings.param_specs` of its settings class
-(:class:`~haptic_topology.settings.DeviceDriverSettings`, ...). The nodes declare them
+Each node's table is :func:`haptic_topology.config.settings.param_specs` of its settings class
+(:class:`~haptic_topology.config.settings.DeviceDriverSettings`, ...). The nodes declare them
 (:func:`haptic_topology.nodes.parameters.declare_settings`) and
-:func:`haptic_topology.params.check_params_file` checks params files against the same tables
+:func:`haptic_topology.config.params.check_params_file` checks params files against the same tables
 before rclpy reads them. ``config/haptic_topology.yaml`` lists every one.
 """
 
 from __future__ import annotations
 
-from haptic_topology.params import NodeParams
-from haptic_topology.settings import (
-    EXECUTORS,
-    FALLBACKS,
-    GAIN_MAX,
-    MODES,
-    DeviceDriverSettings,
-    FoxgloveBridgeSettings,
-    LmiControllerSettings,
-    RecorderSettings,
-    VeSimSettings,
-    param_specs,
+from haptic_topology.config.params import NodeParams
+from haptic_topology.config.settings import (
+           EXECUTORS,
+           FALLBACKS,
+           MODES,
+           DeviceDriverSettings,
+           FoxgloveBridgeSettings,
+           LmiControllerSettings,
+           RecorderSettings,
+           VeSimSettings,
+           param_specs,
 )
+from haptic_topology.control.laws import GAIN_MAX
 
 __all__ = ['DEVICE_DRIVER', 'EXECUTORS', 'FALLBACKS', 'FOXGLOVE_BRIDGE', 'GAIN_MAX', 'KNOWN',
            'LMI_CONTROLLER', 'MODES', 'RECORDER', 'SCHED_PRIORITY', 'VE_SIM']

@@ -2,8 +2,8 @@
 
 A device controller on its own real-time computer (the paper's maglev had one) and the
 ``device_driver`` of this package talk over UDP: the driver's
-:class:`~haptic_topology.device.network.NetworkBackend` sends one COMMAND per device cycle,
-the device (here :mod:`haptic_topology.device.server`, the simulated maglev served at its own
+:class:`~haptic_topology.remote.network.NetworkBackend` sends one COMMAND per device cycle,
+the device (here :mod:`haptic_topology.remote.server`, the simulated maglev served at its own
 1 kHz clock) answers every one of its own cycles with a STATE. No ROS, no rclpy: ``struct``
 and ``zlib`` only.
 
