@@ -127,7 +127,7 @@ TOPIC_HAND_LEGACY = 'haptic/hand'
 
 #: Topic (a key of :data:`TOPIC_ROLES`) -> full type name of its messages: what a tool that
 #: subscribes by topic alone (``foxglove_bridge``) serves it as. Every topic of
-#: :data:`TOPIC_ROLES` has one (test/test_foxglove.py checks it).
+#: :data:`TOPIC_ROLES` has one (test/graph/test_foxglove.py checks it).
 TOPIC_TYPES: dict[str, str] = {
     TOPIC_STATE: 'haptic_topology_msgs/msg/DeviceState',
     TOPIC_COMMAND: 'haptic_topology_msgs/msg/DeviceCommand',

@@ -3,7 +3,7 @@
 Every installed distribution gets an exact ``==`` pin, except the ``*.egg-info`` distributions that
 the ``ros-*`` wheels carry inside them (``rclpy 7.1.5`` beside ``ros-rclpy 7.1.6``, ``std_msgs``,
 ...): pip cannot install those on their own, so they are listed as comments ("bundled") and
-checked by test/test_lock.py. The packages built from this repo (``haptic_topology``,
+checked by test/packaging/test_lock.py. The packages built from this repo (``haptic_topology``,
 ``haptic_topology_msgs``) are left out.
 
 Run with the venv's python: ``.venv/bin/python scripts/freeze_lock.py > requirements.lock``

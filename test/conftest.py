@@ -11,6 +11,7 @@ import fcntl
 import os
 import random
 import secrets
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,6 +19,10 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
+#: The tests' helpers (harnesses, fake backends, peers run as processes), importable by name
+#: from every test folder.
+SUPPORT = Path(__file__).resolve().parent / 'support'
+sys.path.insert(0, str(SUPPORT))
 
 
 @pytest.fixture(scope='session')

@@ -25,7 +25,7 @@ So a new device is one class, and nothing else in the graph changes. What every 
 must do (clamped wrenches only reach the device, a non-finite wrench never does, zero on
 ``deactivate``, ``deactivate`` twice is harmless, ``activate`` again after it works, a fault
 of the device is a status bit) is checked for each backend by the same tests
-(``test/backend_conformance.py``).
+(``test/support/backend_conformance.py``).
 
 **Faults.** A backend reports a fault of its device (amplifier fault, lost encoder, an
 emergency stop pressed on the device, ...) by setting :attr:`DeviceStatus.FAULT` in the status

@@ -25,7 +25,8 @@ the grid again. ``max_missed_run`` is the longest run of consecutive skipped dea
 ``DeviceLoop.max_missed_run`` (:mod:`haptic_topology.device.loop`), which counts cycles that
 ran without the controller's answer in time.
 
-Example (checked by ``test/test_core_pacing.py``): ``period = 1 ms``, ``t0 = 0``; cycle 0 is
+Example (checked by
+``test/unit/device/test_core_pacing.py``): ``period = 1 ms``, ``t0 = 0``; cycle 0 is
 released at 0 and its work takes 3.5 ms; ``wait()`` at 3.5 ms returns at once with index 3,
 ``missed = 2`` (the deadlines at 1 and 2 ms), ``dt = 3.5 ms``, ``late = 0.5 ms``; the next
 ``wait()`` sleeps until 4 ms.

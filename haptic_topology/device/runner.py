@@ -7,7 +7,7 @@ recording. What observers need (the state, the command, the hand input, the lock
 ``/clock``) goes into an *outbox* that the node's executor thread drains and publishes, as
 ``realtime_tools.RealtimePublisher`` hands messages to a non-real-time thread. No ROS here:
 clock, sleep and the executor's wake-up are injected, so the pacing logic is tested with a
-fake clock (``test/test_core_runner.py``).
+fake clock (``test/unit/device/test_core_runner.py``).
 
 Pacing (:attr:`RunnerConfig.lockstep`):
 

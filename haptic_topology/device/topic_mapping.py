@@ -26,7 +26,8 @@ z axis, kept continuous from sample to sample (no jump at +-pi); spatial ``(x, y
 :func:`haptic_topology.dynamics.taskspace.integrate_pose`). A planar wrench ``(f_x, f_y,
 t_z)`` is the spatial ``(f_x, f_y, 0, 0, 0, t_z)``.
 
-Example (checked by ``test/test_topic_mapping.py``): a device in millimetres whose axes are
+Example (checked by
+``test/unit/device/test_topic_mapping.py``): a device in millimetres whose axes are
 those of the task turned by +90 degrees about z (``axes: [y, -x, z]``: task x is device y,
 task y is device -x) at ``origin: [0.1, 0.0, 0.0]``, planar task. The handle at
 ``p_D = (10, 20, 0)`` mm, unrotated, is at task ``(0.1 + 0.020, -0.010, theta)`` with

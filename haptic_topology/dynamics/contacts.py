@@ -1,5 +1,8 @@
 """Contacts between the linkage and static obstacles: the ``sum_i J_i^T F_i`` of eqs. 1, 2, 17.
 
+(One module of ~720 lines on purpose: the contact candidates, gaps, forces and torques of every
+shape pair share one set of arrays per step, which the VE and the LMI both run.)
+
 **Geometry.** Each link carries capsules (a sphere is a capsule of zero length); obstacles
 are static shapes in the world frame (:mod:`haptic_topology.model.obstacles`). By default a
 link is one capsule around its axis, from its joint's origin to the next joint's origin (the

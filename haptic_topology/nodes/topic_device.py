@@ -18,7 +18,7 @@ wrench limit (a real device saturates too), or zero when it is older than
 received is kept (arrival time, raw device values, task values) and written with
 ``--record PATH`` (``.npz``) at exit; its counters go to ``/diagnostics`` (status
 ``topic_device: device``) four times a second, so a test can wait on them. Ends on SIGINT or
-SIGTERM. The tests (``test/test_topic_backend.py``) run it in its own process; it is also a
+SIGTERM. The tests (``test/graph/test_topic_backend.py``) run it in its own process; it is also a
 way to try the ``ros_topics`` backend without a device (README, "Bring your own device").
 """
 

@@ -1,5 +1,9 @@
 """The device network protocol: one COMMAND or STATE per UDP datagram, fixed size, CRC32.
 
+(One module of ~540 lines on purpose: the packet layouts, their encoding and decoding and the
+session and sequence rules must agree byte for byte, and a device vendor reads them in one
+place.)
+
 A device controller on its own real-time computer (the paper's maglev had one) and the
 ``device_driver`` of this package talk over UDP: the driver's
 :class:`~haptic_topology.remote.network.NetworkBackend` sends one COMMAND per device cycle,
@@ -83,7 +87,8 @@ the newest is *new* (the gap before it counts as ``lost``); the same ``seq`` aga
 a newer one; it leaves ``lost``); older than the tracker's window (1024) is ``too_old``. Only
 new packets are used: a receiver acts on the newest, never goes back.
 
-Example (checked by ``test/test_device_network.py``): a tracker that receives seqs 1, 2, 5, 3,
+Example (checked by
+``test/unit/remote/test_device_network.py``): a tracker that receives seqs 1, 2, 5, 3,
 3, 2, 6 has taken 4 new packets (1, 2, 5, 6), 1 late (3), 2 duplicates (the second 3, the
 second 2) and counts 1 lost (4; 3 arrived late).
 """

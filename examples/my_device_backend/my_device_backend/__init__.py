@@ -9,7 +9,7 @@ a finite and saturated output, zero on ``deactivate``, a fault reported as a sta
 It is registered by ``pyproject.toml`` in the entry point group
 ``haptic_topology.device_backends`` as ``my_spring``, so ``backend: my_spring`` selects it.
 haptic_topology's tests install this directory and run it through the same conformance checks
-as the built-in backends (``test/test_device_conformance.py``).
+as the built-in backends (``test/unit/device/test_device_conformance.py``).
 
 Options (``backend_options``; all optional): ``mass`` (kg, > 0, default 0.2), ``stiffness``
 (N/m per axis, >= 0, default 50), ``damping`` (N s/m, >= 0, default 2), ``max_force`` (N,

@@ -23,7 +23,7 @@ from haptic_topology.paths import config_dir
 
 pytestmark = pytest.mark.graph
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 REFERENCE = REPO / 'bags' / 'reference_fig8'
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from catkin_pkg.package import parse_package
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 #: Top-level import name -> rosdep key. Keys checked against rosdistro: rosdep/python.yaml
 #: (python3-numpy, python3-yaml, python3-matplotlib, python3-setuptools,
@@ -46,7 +46,7 @@ IMPORT_KEYS = {
     'pytest': 'python3-pytest',
     'hypothesis': 'python3-hypothesis',
     'catkin_pkg': 'python3-catkin-pkg-modules',
-    'websockets': 'python3-websockets',    # test/test_foxglove.py's client
+    'websockets': 'python3-websockets',    # test/graph/test_foxglove.py's client
 }
 #: Imported modules that rosdistro has no key for (python.yaml checked): not declared, but
 #: package.xml must name their PyPI distribution in a comment.

@@ -22,7 +22,7 @@ from haptic_topology.messages.definitions import (
 
 pytestmark = pytest.mark.graph
 
-PEER = Path(__file__).with_name('ipc_peer.py')
+PEER = Path(__file__).resolve().parents[1] / 'support' / 'ipc_peer.py'
 TIMEOUT_S = 30.0
 
 

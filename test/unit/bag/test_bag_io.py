@@ -33,7 +33,7 @@ from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import ControlMode
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[3]
 REFERENCE = REPO / 'bags' / 'reference_fig8'
 STATE = type_name('DeviceState')
 COMMAND = type_name('DeviceCommand')

@@ -4,9 +4,8 @@ simulated maglev."""
 from __future__ import annotations
 
 import re
-import sys
-from pathlib import Path
 
+import fake_backend
 import numpy as np
 import pytest
 
@@ -20,9 +19,6 @@ from haptic_topology.device.backend import (
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.errors import DeviceError
 from haptic_topology.sim.scenario import load_scenario
-
-sys.path.insert(0, str(Path(__file__).parent))
-import fake_backend
 
 
 def _config(options: dict[str, object] | None = None) -> BackendConfig:

@@ -4,20 +4,16 @@ Wall-clock runs assert only what holds on any machine: the wrench applied to the
 (``DeviceState.applied_wrench`` as recorded, every cycle) stays finite and within the limit,
 reliable topics are contiguous in the bags, and the loop recovers by itself (the harness
 waits for it with a generous deadline). How fast it recovers and how large the per-cycle
-force steps were are figures for the README (``python test/fault_harness.py``), not tests.
+force steps were are figures for the README (``python test/support/fault_harness.py``), not tests.
 """
 
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
+import fault_harness as fh
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import fault_harness as fh
 
 pytestmark = pytest.mark.graph
 

@@ -36,7 +36,7 @@ from haptic_topology.errors import DeviceError
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
 
-EXAMPLE = Path(__file__).resolve().parent.parent / 'examples' / 'my_device_backend'
+EXAMPLE = Path(__file__).resolve().parents[3] / 'examples' / 'my_device_backend'
 EXAMPLE_NAME = 'my_spring'
 
 

@@ -5,10 +5,8 @@ its device. After the fault the output fades back in over the watchdog ramp."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
+from fake_backend import FaultBackend
 
 from haptic_topology.device.backend import (
     BackendConfig,
@@ -22,9 +20,6 @@ from haptic_topology.messages.definitions import typestore_with_haptic_msgs
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
-
-sys.path.insert(0, str(Path(__file__).parent))
-from fake_backend import FaultBackend
 
 PENALTY = int(ControlMode.PENALTY)
 FAULT = DeviceStatus.FAULT

@@ -17,14 +17,11 @@ of their own in ``test_device_network.py``.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent))
 from backend_conformance import (
     Bench,
     Subject,

@@ -31,7 +31,7 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.net import delay_bridge
 from haptic_topology.net.delay_bridge import DelayLine, DirectionStats, LinkSettings, figures
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / 'scripts' / 'two_hosts.sh'
 
 

@@ -29,12 +29,14 @@ from haptic_topology.vocabulary import ControlMode
 
 pytestmark = pytest.mark.graph
 
-TEST_DIR = Path(__file__).resolve().parent
+TEST_DIR = Path(__file__).resolve().parents[1] / 'support'
 PARAMS = config_dir() / 'haptic_topology.yaml'
 #: Simulated seconds of each lock-step run: both of the runs' events are inside (the LMI's
 #: constraint count changes at 0.82 s in fig6 and 0.85 s in fig8; fig8 with eq. 10 reaches
 #: the workspace limit at 1.41 s).
 DURATION = 1.5
+#: Lock-step graphs of the module fixture that run at the same time.
+CONCURRENT_RUNS = 4
 
 
 def _graph_run(tmp_path: Path, scenario: str, mode: str, duration: float,
@@ -60,8 +62,10 @@ SEPARATE_RUNS = (('fig6', 'penalty', 'separate'), ('fig8', 'acceleration_only', 
 @pytest.fixture(scope='module')
 def lockstep_runs(tmp_path_factory: pytest.TempPathFactory,
                   spare_domains: list[int]) -> dict[tuple[str, ...], GraphRun]:
-    """The lock-step runs at once, each in a domain of its own: lock-step results do not
-    depend on the machine's load, and the runs wait mostly on each other's messages."""
+    """The lock-step runs, :data:`CONCURRENT_RUNS` at a time, each in a domain of its own:
+    lock-step results do not depend on the machine's load, and the runs wait mostly on each
+    other's messages. All ten at once (~30 node processes) beside the other pytest worker's
+    graph tests starved every run past its deadline on 2 cores."""
     tmp = tmp_path_factory.mktemp('lockstep')
     jobs: dict[tuple[str, ...], tuple[str, str, float, str | None, str]] = {
         key: (key[0], key[1], DURATION, None, 'hosted') for key in LOCKSTEP_RUNS}
@@ -71,12 +75,12 @@ def lockstep_runs(tmp_path_factory: pytest.TempPathFactory,
     for key in SEPARATE_RUNS:
         jobs[key] = (key[0], key[1], DURATION, None, 'separate')
     old_path = os.environ.get('PYTHONPATH')
-    # The test double lives in test/: the node processes find it on PYTHONPATH.
+    # The test double lives in test/support/: the node processes find it on PYTHONPATH.
     os.environ['PYTHONPATH'] = os.pathsep.join([str(TEST_DIR), *filter(None, [old_path])])
     for key in jobs:
         (tmp / '_'.join(key)).mkdir()
     try:
-        with ThreadPoolExecutor(len(jobs)) as pool:
+        with ThreadPoolExecutor(CONCURRENT_RUNS) as pool:
             futures = {key: pool.submit(_graph_run, tmp / '_'.join(key), sc, mode, duration,
                                         backend, domain_id=domain, layout=layout)
                        for (key, (sc, mode, duration, backend, layout)), domain
@@ -172,7 +176,7 @@ def test_lockstep_graph_equals_offline_simulation_spatial(
 
 def test_swapping_the_backend_needs_no_change_in_other_nodes(
         lockstep_runs: dict[tuple[str, ...], GraphRun]) -> None:
-    """The test double (test/fake_backend.py) is selected by a parameter value only; in
+    """The test double (test/support/fake_backend.py) is selected by a parameter value only; in
     lock-step its states are exactly on its circle at t = k dt, and the loop around it ran
     unchanged (every state answered, the VE's hand reported at every cycle)."""
     sys.path.insert(0, str(TEST_DIR))

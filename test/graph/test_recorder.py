@@ -32,7 +32,7 @@ from haptic_topology.messages.definitions import typestore_with_haptic_msgs
 
 pytestmark = pytest.mark.graph
 
-TEST_DIR = Path(__file__).resolve().parent
+TEST_DIR = Path(__file__).resolve().parents[1] / 'support'
 SEQ_FIELD = {'/haptic/device/state': 'seq', '/haptic/device/command': 'state_seq',
              '/haptic/hand_inputs': 'seq', '/haptic/lmi/update': 'seq'}
 #: Samples per message: HandInputs carries bag_publisher.BATCH sequence numbers.

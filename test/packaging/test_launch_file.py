@@ -24,7 +24,7 @@ from haptic_topology.config.node_params import KNOWN
 from haptic_topology.config.params import check_overrides, check_params_file, params_files
 from haptic_topology.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 LAUNCH = ROOT / 'launch' / 'haptic_lab.launch.py'
 PACKAGE = 'haptic_topology'
 

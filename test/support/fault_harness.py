@@ -18,7 +18,7 @@ at a logged wall-clock time (the header stamps are wall-clock ROS time too):
    start it again (the recorder into a second bag).
 
 Then stops everything and reads both bags. Used by ``test_fault_injection.py``;
-``python test/fault_harness.py`` runs it and prints the README table.
+``python test/support/fault_harness.py`` runs it and prints the README table.
 """
 
 from __future__ import annotations

@@ -33,6 +33,14 @@ from typing import Any
 
 import numpy as np
 import pytest
+from network_harness import (
+    MALFORMING,
+    RawClient,
+    Relay,
+    ServerProcess,
+    wait_for,
+    with_nan,
+)
 
 from haptic_topology.config.settings import parse_backend_options
 from haptic_topology.device.backend import (
@@ -51,16 +59,6 @@ from haptic_topology.remote.server import DeviceServer, ServerConfig
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
-
-sys.path.insert(0, str(Path(__file__).parent))
-from network_harness import (
-    MALFORMING,
-    RawClient,
-    Relay,
-    ServerProcess,
-    wait_for,
-    with_nan,
-)
 
 PENALTY = int(ControlMode.PENALTY)
 FAULT = DeviceStatus.FAULT

@@ -34,7 +34,7 @@ import numpy as np
 
 from haptic_topology.remote import protocol as P
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 #: Relay actions by datagram index modulo 50 (in each direction); the others pass unchanged.
 PATTERN = {7: 'drop', 13: 'duplicate', 21: 'reorder', 29: 'delay', 37: 'corrupt', 43: 'nan',
