@@ -20,7 +20,8 @@ from haptic_topology.dynamics.constraints import (
 )
 from haptic_topology.dynamics.spd import spd_factor, spd_solve
 from haptic_topology.dynamics.taskspace import pose_from_placement
-from haptic_topology.model.linkage import Linkage, LinkageModel, build_model
+from haptic_topology.model.build import LinkageModel, build_model
+from haptic_topology.model.linkage import Linkage
 from haptic_topology.vocabulary import TaskSpace
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED

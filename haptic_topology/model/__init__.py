@@ -1,19 +1,18 @@
 """Linkage description (YAML or URDF) -> Pinocchio model with a grasp frame."""
 
+from haptic_topology.model.build import LinkageModel, build_model
 from haptic_topology.model.linkage import (
-    CollisionShape,
-    ConstraintSettings,
-    JointType,
-    Linkage,
-    LinkageModel,
-    LinkSpec,
-    PenaltyDirection,
-    build_model,
-    linkage_from_dict,
-    load_linkage,
-    reach,
-    serial_chain,
-    to_dict,
+           CollisionShape,
+           ConstraintSettings,
+           JointType,
+           Linkage,
+           LinkSpec,
+           PenaltyDirection,
+           linkage_from_dict,
+           load_linkage,
+           reach,
+           serial_chain,
+           to_dict,
 )
 from haptic_topology.vocabulary import TaskSpace
 

@@ -1,4 +1,6 @@
-"""Serial-linkage description (YAML or URDF) and its Pinocchio model with the grasp frame.
+"""Serial-linkage description: the :class:`Linkage` and its YAML form (the link types are in
+:mod:`~haptic_topology.model.links`, the URDF import in :mod:`~haptic_topology.model.urdf_import`,
+the Pinocchio model with the grasp frame in :mod:`~haptic_topology.model.build`).
 
 A linkage is a chain of ``d`` links, each moved by one joint (revolute or prismatic) relative to
 the previous link. The user grasps one link at a point of it (default: the link's centre of
@@ -51,10 +53,8 @@ from __future__ import annotations
 
 import enum
 import logging
-import math
 import warnings
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +62,9 @@ import numpy as np
 import pinocchio as pin
 
 from haptic_topology.errors import ConfigError, LinkageError
+from haptic_topology.model.build import LinkageModel, build_model
+from haptic_topology.model.links import CollisionShape, JointType, LinkSpec
+from haptic_topology.model.urdf_import import UrdfSource, links_from_urdf, read_urdf
 from haptic_topology.paths import PACKAGE_URI, resolve_package_uri
 from haptic_topology.validate import (
     as_float,
@@ -73,55 +76,6 @@ from haptic_topology.validate import (
 from haptic_topology.vocabulary import TaskSpace
 
 _LOG = logging.getLogger(__name__)
-
-
-class JointType(enum.Enum):
-    """One-DOF joint kinds of a serial linkage."""
-
-    REVOLUTE = 'revolute'
-    PRISMATIC = 'prismatic'
-
-
-@dataclass(frozen=True)
-class CollisionShape:
-    """One ``<collision>`` element of a URDF link, placed in the frame of the chain link that
-    carries it (after fixed joints are merged and side branches locked).
-
-    ``kind``: ``sphere`` (``size = (radius,)``), ``capsule`` (``(radius, length)``, axis along
-    the placement's z, as ``<capsule radius length>`` in Drake/Gazebo URDFs), ``cylinder``
-    (``(radius, length)``), ``box`` (``(x, y, z)`` full sizes) or ``mesh`` (``()``);
-    ``xyz`` (m) and ``rotation`` (3 x 3, row-major) place its centre in the link frame;
-    ``urdf_link`` names the URDF link it was declared on. SI units."""
-
-    kind: str
-    size: tuple[float, ...]
-    xyz: tuple[float, ...]
-    rotation: tuple[float, ...]
-    urdf_link: str
-
-
-@dataclass(frozen=True)
-class LinkSpec:
-    """One link and the joint that moves it (SI units, link frame at the joint)."""
-
-    name: str
-    joint: JointType
-    length: float
-    mass: float
-    com: np.ndarray                     # (3,) m, link frame
-    inertia: np.ndarray                 # (3, 3) kg m^2 about the COM, link frame
-    axis: np.ndarray                    # (3,) unit joint axis, link frame
-    origin_xyz: np.ndarray | None = None  # (3,) m in the previous link frame; None = default
-    origin_rpy: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    joint_name: str = ''                # '' = joint_<name>; URDF joints keep their own names
-    #: The URDF's collision geometry on this link (None: not a URDF link, the contacts'
-    #: default capsule applies; ``()``: a URDF link without ``<collision>``).
-    collision: tuple[CollisionShape, ...] | None = None
-
-    @property
-    def joint_label(self) -> str:
-        """Name of the joint that moves this link (Pinocchio model, error messages)."""
-        return self.joint_name or f'joint_{self.name}'
 
 
 class PenaltyDirection(enum.Enum):
@@ -163,6 +117,8 @@ class Linkage:
     urdf_path: Path | None = None
     source: str = '<memory>'
     notes: tuple[str, ...] = ()         # one line each: what loading did (URDF joints locked)
+    #: The URDF the chain was read from, as read once (None: a YAML chain).
+    urdf: UrdfSource | None = None
 
     @property
     def dof(self) -> int:
@@ -183,7 +139,7 @@ class Linkage:
         spec = self.links[names.index(link)]
         p = spec.com.copy() if point is None else np.asarray(point, dtype=float).reshape(3)
         return Linkage(self.name, self.task, self.links, self.gravity, link, p,
-                       self.constraints, self.urdf_path, self.source, self.notes)
+                       self.constraints, self.urdf_path, self.source, self.notes, self.urdf)
 
 
 _LINK_KEYS = ('name', 'joint', 'length', 'mass', 'com', 'inertia', 'axis', 'origin')
@@ -351,6 +307,7 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     wanted_grasp = (as_str(grasp['link'], f'{where}.grasp.link', error=LinkageError)
                     if 'link' in grasp else None)
     urdf_path: Path | None = None
+    urdf: UrdfSource | None = None
     notes: tuple[str, ...] = ()
     if 'urdf' in raw:
         if 'links' in raw:
@@ -368,8 +325,9 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
                                f'position (rad or m), got {locks!r}')
         locked = {str(k): as_float(v, f'{where}.locked_joints.{k}', error=LinkageError)
                   for k, v in locks.items()}
-        links, notes = _links_from_urdf(urdf_path, wanted_grasp, locked,
-                                        f'{where}.locked_joints')
+        urdf = read_urdf(urdf_path)
+        links, notes = links_from_urdf(urdf, wanted_grasp, locked, f'{where}.locked_joints')
+        urdf = replace(urdf, locked=tuple(locked.items()))
     else:
         if 'locked_joints' in raw:
             raise LinkageError(f'{where}.locked_joints: only allowed with urdf (a YAML chain '
@@ -400,7 +358,7 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     for note in notes:
         _LOG.info(note)
     linkage = Linkage(name, task, links, gravity, grasp_link, point, constraints, urdf_path,
-                      source, notes)
+                      source, notes, urdf)
     build_model(linkage)  # fail now, not later, on anything Pinocchio rejects
     return linkage
 
@@ -413,9 +371,7 @@ def load_linkage(path: str | Path) -> Linkage:
     """
     p = Path(path)
     if p.suffix.lower() == '.urdf':
-        if not p.is_file():
-            raise LinkageError(f'{p}: file not found')
-        task = _urdf_declared_task(p) or TaskSpace.SPATIAL
+        task = read_urdf(p).task or TaskSpace.SPATIAL
         return linkage_from_dict({'linkage': {'task': task.value, 'urdf': str(p.resolve()),
                                               'name': p.stem}}, str(p))
     try:
@@ -433,297 +389,6 @@ def _placement_offset(links: tuple[LinkSpec, ...], i: int) -> float:
     if xyz is not None:
         return float(np.linalg.norm(xyz))
     return links[i - 1].length
-
-
-def _urdf_declared_task(path: Path) -> TaskSpace | None:
-    """The task of ``<haptic_topology task="planar|spatial"/>`` under ``<robot>``, if any."""
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise LinkageError(f'{path}: not a valid URDF ({exc})') from None
-    tag = root.find('haptic_topology')
-    if tag is None:
-        return None
-    value = tag.get('task', '')
-    if value not in ('planar', 'spatial'):
-        raise LinkageError(f'{path}: <haptic_topology task=...>: expected planar or spatial, '
-                           f'got {value!r}')
-    return TaskSpace(value)
-
-
-def _joint_child_link(model: pin.Model, j: int) -> str:
-    """Name of the URDF link a joint moves (the body frame right after the joint frame)."""
-    for f in model.frames:
-        if (f.type == pin.FrameType.BODY and f.parentJoint == j
-                and model.frames[f.parentFrame].type == pin.FrameType.JOINT):
-            return str(f.name)
-    return str(model.names[j])
-
-
-def _urdf_joint_kind(model: pin.Model, j: int, path: Path) -> tuple[JointType, np.ndarray]:
-    """Kind and unit axis (joint frame) of a 1-DOF Pinocchio joint read from a URDF.
-
-    URDF ``revolute`` and ``continuous`` joints are revolute here (joint limits are not part
-    of eq. 1); ``continuous`` is Pinocchio's unbounded revolute (RUBx, q = (cos, sin)).
-    """
-    joint = model.joints[j]
-    shortname = joint.shortname()  # JointModelRZ, JointModelRUBZ, JointModelPrismaticUnaligned
-    if joint.nv != 1 or not shortname.startswith(('JointModelR', 'JointModelP')):
-        raise LinkageError(f'{path}: joint {model.names[j]!r} is {shortname} with {joint.nv} '
-                           'DOF; only revolute, continuous, prismatic and fixed joints are '
-                           'supported')
-    kind = JointType.PRISMATIC if shortname.startswith('JointModelP') else JointType.REVOLUTE
-    # The motion subspace S (6 x 1, [v; w] in the joint frame) holds the axis for every
-    # 1-DOF joint class (RX..RZ, RUBX..RUBZ, the unaligned ones, PX..PZ).
-    data = joint.createData()
-    joint.calc(data, pin.neutral(model))
-    s = np.asarray(data.S, dtype=float).reshape(6)
-    axis = s[0:3] if kind is JointType.PRISMATIC else s[3:6]
-    return kind, axis / np.linalg.norm(axis)
-
-
-def _serial_chain_ids(model: pin.Model, grasp_link: str | None, path: Path) -> list[int]:
-    """Joint ids of the chain: root -> grasped link, then on until the tree first branches.
-
-    Without a grasp link, the chain is the main branch from the root (see below); its last
-    link becomes the default grasp.
-    """
-    children: dict[int, list[int]] = {j: [] for j in range(model.njoints)}
-    for j in range(1, model.njoints):
-        children[model.parents[j]].append(j)
-    movable = {_joint_child_link(model, j): j for j in range(1, model.njoints)}
-    if grasp_link is not None:
-        if grasp_link not in movable:
-            raise LinkageError(
-                f'{path}: grasp.link: {grasp_link!r} is not a link moved by a joint (expected '
-                f'one of: {", ".join(movable)})')
-        chain = [j for j in model.supports[movable[grasp_link]] if j != 0]
-        tip = chain[-1]
-        while len(children[tip]) == 1:
-            tip = children[tip][0]
-            chain.append(tip)
-        return chain
-    # No grasp given: the main chain follows, from the root, the child with the unique
-    # deepest subtree (a camera on link 1 is a side branch of the arm) and ends where two
-    # subtrees are equally deep (the two fingers of a gripper) or at a leaf.
-    depth: dict[int, int] = {}
-    for j in range(model.njoints - 1, -1, -1):  # children have larger ids than parents
-        depth[j] = 1 + max((depth[c] for c in children[j]), default=0)
-    chain = []
-    tip = 0
-    while children[tip]:
-        ranked = sorted(children[tip], key=lambda c: depth[c], reverse=True)
-        if len(ranked) > 1 and depth[ranked[0]] == depth[ranked[1]]:
-            break
-        tip = ranked[0]
-        chain.append(tip)
-    if not chain:
-        if not children[0]:
-            raise LinkageError(f'{path}: no movable joints')
-        names = ', '.join(repr(model.names[j]) for j in children[0])
-        raise LinkageError(f'{path}: the tree branches at its root into equally long chains '
-                           f'(joints {names}); give grasp.link to choose one')
-    return chain
-
-
-def _links_from_urdf(path: Path, grasp_link: str | None, locked: dict[str, float],
-                     locked_where: str) -> tuple[tuple[LinkSpec, ...], tuple[str, ...]]:
-    """Read the serial chain of a URDF into LinkSpecs (plus a one-line note of what was locked).
-
-    Fixed joints are merged by Pinocchio (``buildModelFromXML``). Joints off the chain
-    (:func:`_serial_chain_ids`) are locked at ``locked`` (default 0) with
-    ``buildReducedModel``, which keeps their bodies' mass and inertia on the chain link that
-    carries them.
-    """
-    if not path.is_file():
-        raise LinkageError(f'{path}: file not found')
-    try:
-        # Kinematics and inertia only: the <collision> elements are read by _urdf_collisions
-        # (urdfdom does not know <capsule> and would print an error for it).
-        root = ET.parse(path).getroot()
-        for link in root.findall('link'):
-            for col in link.findall('collision'):
-                link.remove(col)
-        full = pin.buildModelFromXML(ET.tostring(root, encoding='unicode'))
-    except (RuntimeError, ValueError, ET.ParseError) as exc:
-        raise LinkageError(f'{path}: not a valid URDF ({exc})') from None
-    for j in range(1, full.njoints):
-        _urdf_joint_kind(full, j, path)
-    chain = _serial_chain_ids(full, grasp_link, path)
-    off = [j for j in range(1, full.njoints) if j not in chain]
-    off_names = {str(full.names[j]): j for j in off}
-    for name in locked:
-        if name in off_names:
-            continue
-        if full.existJointName(name):
-            raise LinkageError(f'{locked_where}.{name}: joint {name!r} is on the chain; only '
-                               f'side-branch joints can be locked (expected one of: '
-                               f'{", ".join(off_names) or "none"})')
-        raise LinkageError(f'{locked_where}.{name}: unknown side-branch joint (expected one '
-                           f'of: {", ".join(off_names) or "none"})')
-    notes: tuple[str, ...] = ()
-    model = full
-    if off:
-        q_ref = pin.neutral(full)
-        for name, j in off_names.items():
-            value = locked.get(name, 0.0)
-            jm = full.joints[j]
-            if jm.nq == 2:   # continuous: q = (cos, sin)
-                q_ref[jm.idx_q:jm.idx_q + 2] = [math.cos(value), math.sin(value)]
-            else:
-                q_ref[jm.idx_q] = value
-        model = pin.buildReducedModel(full, off, q_ref)
-        chain_names = ' -> '.join(str(full.names[j]) for j in chain)
-        locks = ', '.join(f'{n}={locked.get(n, 0.0):g}' for n in off_names)
-        notes = (f'{path}: kept the serial chain {chain_names}; locked {len(off)} side-branch '
-                 f'joint(s) at {locks} (rad or m), their mass kept',)
-    collisions = _urdf_collisions(path, model)
-    links: list[LinkSpec] = []
-    for j in range(1, model.njoints):
-        if model.parents[j] != j - 1:  # pragma: no cover - the reduced model is a chain
-            raise LinkageError(f'{path}: joint {model.names[j]!r} does not continue the chain')
-        kind, axis = _urdf_joint_kind(model, j, path)
-        inertia = model.inertias[j]
-        mass = float(inertia.mass)
-        where = f'{path}: link of joint {model.names[j]!r}'
-        if mass <= 0.0:
-            raise LinkageError(f'{where}: mass must be > 0, got {mass}')
-        inertia_c = np.array(inertia.inertia)
-        if np.linalg.eigvalsh(inertia_c).min() <= 0.0:
-            raise LinkageError(f'{where}: inertia must be positive definite')
-        placement = model.jointPlacements[j]
-        if j + 1 < model.njoints:
-            length = float(np.linalg.norm(model.jointPlacements[j + 1].translation))
-        else:  # the farthest frame fixed to the last link (a tip, a gripper), or 0
-            length = max([float(np.linalg.norm(f.placement.translation))
-                          for f in model.frames if f.parentJoint == j] + [0.0])
-        links.append(LinkSpec(
-            name=_joint_child_link(model, j), joint=kind, length=length, mass=mass,
-            com=np.array(inertia.lever).reshape(3), inertia=inertia_c, axis=axis,
-            origin_xyz=np.array(placement.translation).reshape(3),
-            origin_rpy=np.array(pin.rpy.matrixToRpy(placement.rotation)).reshape(3),
-            joint_name=str(model.names[j]), collision=tuple(collisions.get(j, ()))))
-    return tuple(links), notes
-
-
-def _urdf_geometry(geom: ET.Element, where: str) -> tuple[str, tuple[float, ...]]:
-    """Kind and sizes (m) of a URDF ``<geometry>`` element (see :class:`CollisionShape`)."""
-    shapes = list(geom)
-    if len(shapes) != 1:
-        raise LinkageError(f'{where}: <geometry> must hold exactly one shape, got '
-                           f'{len(shapes)}')
-    shape = shapes[0]
-    kind = shape.tag
-    attrs = {'sphere': ('radius',), 'capsule': ('radius', 'length'),
-             'cylinder': ('radius', 'length'), 'box': ('size',), 'mesh': ()}
-    if kind not in attrs:
-        raise LinkageError(f'{where}: unknown geometry <{kind}> (expected one of: '
-                           f'{", ".join(attrs)})')
-    sizes: list[float] = []
-    for attr in attrs[kind]:
-        text = shape.get(attr)
-        if text is None:
-            raise LinkageError(f'{where}: <{kind}> needs the attribute {attr}')
-        try:
-            values = [float(v) for v in text.split()]
-        except ValueError:
-            raise LinkageError(f'{where}: <{kind} {attr}="{text}">: expected numbers') from None
-        expected = 3 if attr == 'size' else 1
-        if len(values) != expected or not all(math.isfinite(v) and v > 0.0 for v in values):
-            raise LinkageError(f'{where}: <{kind} {attr}="{text}">: expected {expected} '
-                               f'finite number(s) > 0 (m)')
-        sizes.extend(values)
-    return kind, tuple(sizes)
-
-
-def _urdf_collisions(path: Path, model: pin.Model) -> dict[int, list[CollisionShape]]:
-    """The URDF's ``<collision>`` elements per joint of the (reduced) chain ``model``, each
-    placed in that joint's frame: a link merged by a fixed joint or carried by a locked side
-    branch gives its shapes to the chain link that carries it (its Pinocchio body frame).
-    Shapes on the root link (joint 0) are static and left out: the contacts are between the
-    moving links and the scenario's obstacles."""
-    root = ET.parse(path).getroot()
-    out: dict[int, list[CollisionShape]] = {}
-    for link in root.findall('link'):
-        name = link.get('name', '')
-        elements = link.findall('collision')
-        if not elements or not model.existFrame(name, pin.FrameType.BODY):
-            continue
-        frame = model.frames[model.getFrameId(name, pin.FrameType.BODY)]
-        if frame.parentJoint == 0:
-            continue
-        for k, col in enumerate(elements):
-            where = f'{path}: link {name!r} <collision> {k + 1}'
-            geom = col.find('geometry')
-            if geom is None:
-                raise LinkageError(f'{where}: missing <geometry>')
-            kind, size = _urdf_geometry(geom, where)
-            origin = col.find('origin')
-            xyz = rpy = np.zeros(3)
-            if origin is not None:
-                try:
-                    xyz = np.array([float(v) for v in origin.get('xyz', '0 0 0').split()])
-                    rpy = np.array([float(v) for v in origin.get('rpy', '0 0 0').split()])
-                except ValueError:
-                    raise LinkageError(f'{where}: <origin>: expected numbers') from None
-                if xyz.shape != (3,) or rpy.shape != (3,):
-                    raise LinkageError(f'{where}: <origin>: xyz and rpy take 3 numbers each')
-            placement = frame.placement * pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
-            out.setdefault(frame.parentJoint, []).append(CollisionShape(
-                kind, size, tuple(np.asarray(placement.translation, dtype=float).tolist()),
-                tuple(np.asarray(placement.rotation, dtype=float).ravel().tolist()), name))
-    return out
-
-
-@dataclass(frozen=True)
-class LinkageModel:
-    """Pinocchio model of a :class:`Linkage` with the grasp as an operational frame."""
-
-    linkage: Linkage
-    model: pin.Model
-    hand_frame: int
-
-
-def _joint_model(link: LinkSpec, task: TaskSpace) -> Any:
-    """Pinocchio joint for ``link``: RZ / PX for the default planar axes, else unaligned."""
-    if task is TaskSpace.PLANAR:
-        if link.joint is JointType.REVOLUTE and np.array_equal(link.axis, [0.0, 0.0, 1.0]):
-            return pin.JointModelRZ()
-        if link.joint is JointType.PRISMATIC and np.array_equal(link.axis, [1.0, 0.0, 0.0]):
-            return pin.JointModelPX()
-    return (pin.JointModelRevoluteUnaligned(link.axis) if link.joint is JointType.REVOLUTE
-            else pin.JointModelPrismaticUnaligned(link.axis))
-
-
-def build_model(linkage: Linkage) -> LinkageModel:
-    """Build the Pinocchio model of ``linkage`` and add the operational frame ``hand``.
-
-    Gravity is ``linkage.gravity`` (m/s^2, world frame); the base of joint 1 is the world
-    origin (or its ``origin`` placement). Joint i sits at ``origin`` in link i-1's frame
-    (default ``[length of link i-1, 0, 0]``) and moves about / along its ``axis``.
-    """
-    model = pin.Model()
-    model.name = linkage.name
-    parent = 0
-    for i, link in enumerate(linkage.links):
-        if link.origin_xyz is not None:
-            xyz = link.origin_xyz
-        else:
-            xyz = np.array([linkage.links[i - 1].length, 0.0, 0.0]) if i > 0 else np.zeros(3)
-        rot = pin.rpy.rpyToMatrix(*link.origin_rpy)
-        placement = pin.SE3(rot, xyz)
-        jid = model.addJoint(parent, _joint_model(link, linkage.task), placement,
-                             link.joint_label)
-        model.appendBodyToJoint(jid, pin.Inertia(link.mass, link.com, link.inertia),
-                                pin.SE3.Identity())
-        joint_frame = model.addJointFrame(jid, -1)
-        model.addBodyFrame(link.name, jid, pin.SE3.Identity(), joint_frame)
-        parent = jid
-    model.gravity = pin.Motion(np.asarray(linkage.gravity, dtype=float), np.zeros(3))
-    jid = linkage.link_names.index(linkage.grasp_link) + 1
-    hand = model.addFrame(pin.Frame('hand', jid, 0, pin.SE3(np.eye(3), linkage.grasp_point),
-                                    pin.FrameType.OP_FRAME))
-    return LinkageModel(linkage, model, hand)
 
 
 def to_dict(linkage: Linkage) -> dict[str, Any]:

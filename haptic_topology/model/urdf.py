@@ -40,15 +40,14 @@ import math
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
-from haptic_topology.errors import ConfigError, LinkageError
+from haptic_topology.errors import LinkageError
 from haptic_topology.model import frames
 from haptic_topology.model.linkage import JointType, Linkage, LinkSpec, reach
-from haptic_topology.validate import as_float, load_yaml
+from haptic_topology.model.urdf_import import UrdfJoint, UrdfSource, parse_urdf, read_urdf
 from haptic_topology.vocabulary import TaskSpace
 
 #: Name of the generated URDF's root link (``<linkage name>_base_link`` if a link has it).
@@ -163,16 +162,6 @@ def linkage_urdf(linkage: Linkage, radius: float | None = None) -> str:
 
 
 @dataclass(frozen=True)
-class UrdfJoint:
-    """One joint of a URDF: its name, type, parent and child link."""
-
-    name: str
-    kind: str
-    parent: str
-    child: str
-
-
-@dataclass(frozen=True)
 class RobotDescription:
     """A linkage's URDF and what its frames need (see :func:`robot_description`).
 
@@ -188,61 +177,18 @@ class RobotDescription:
     joints: tuple[UrdfJoint, ...]
     joint_names: tuple[str, ...]
     locked: tuple[float, ...]
+    #: The user's URDF as read once (None: generated).
+    source: UrdfSource | None = None
 
     def positions(self, q: np.ndarray) -> np.ndarray:
         """Positions of every joint of :attr:`joint_names`: ``q``, then the locked ones."""
         return np.concatenate([np.asarray(q, dtype=float), self.locked])
 
 
-def parse_urdf(text: str, where: str) -> tuple[str, tuple[UrdfJoint, ...], tuple[str, ...]]:
-    """``(root link, joints in document order, link names)`` of a URDF text.
-
-    Raises:
-        LinkageError: not XML, no ``<robot>``, a joint without parent/child, or not one tree
-            (no root or several).
-    """
-    try:
-        robot = ET.fromstring(text)
-    except ET.ParseError as exc:
-        raise LinkageError(f'{where}: not a valid URDF ({exc})') from None
-    if robot.tag != 'robot':
-        raise LinkageError(f'{where}: expected a <robot> element, got <{robot.tag}>')
-    links = tuple(str(e.get('name', '')) for e in robot.findall('link'))
-    joints = []
-    for e in robot.findall('joint'):
-        parent, child = e.find('parent'), e.find('child')
-        name = str(e.get('name', ''))
-        if parent is None or child is None:
-            raise LinkageError(f'{where}: joint {name!r} needs <parent> and <child>')
-        joints.append(UrdfJoint(name, str(e.get('type', '')), str(parent.get('link', '')),
-                                str(child.get('link', ''))))
-    children = {j.child for j in joints}
-    roots = [n for n in links if n not in children]
-    if len(roots) != 1:
-        raise LinkageError(f'{where}: expected one root link, got {roots}')
-    return roots[0], tuple(joints), links
-
-
 def locked_positions(linkage: Linkage) -> dict[str, float]:
     """``locked_joints`` (joint -> rad or m) of a URDF linkage's YAML description, ``{}`` for
-    anything else.
-
-    The :class:`~haptic_topology.model.linkage.Linkage` keeps the locked joints' masses but
-    not their positions, so they are read from its source file (once, where the robot
-    description is made; the loader has validated them)."""
-    source = Path(linkage.source)
-    if linkage.urdf_path is None or source.suffix.lower() not in ('.yaml', '.yml'):
-        return {}
-    try:
-        doc = load_yaml(source, error=LinkageError)
-    except ConfigError:
-        return {}
-    raw = doc.get('linkage', {}) if isinstance(doc, dict) else {}
-    locks = raw.get('locked_joints', {}) if isinstance(raw, dict) else {}
-    if not isinstance(locks, dict):
-        return {}
-    return {str(k): as_float(v, f'{source}: linkage.locked_joints.{k}', error=LinkageError)
-            for k, v in locks.items()}
+    anything else (as the loader validated and kept them with the URDF it read)."""
+    return {} if linkage.urdf is None else dict(linkage.urdf.locked)
 
 
 def robot_description(linkage: Linkage,
@@ -255,16 +201,14 @@ def robot_description(linkage: Linkage,
             with another kind or child link), or has a link named as a frame of the graph
             (:data:`haptic_topology.model.frames.RESERVED`).
     """
+    src: UrdfSource | None = None
     if linkage.urdf_path is None:
         text, generated, where = linkage_urdf(linkage), True, f'{linkage.source} (generated)'
+        root, joints, links = parse_urdf(text, where)
     else:
-        where = str(linkage.urdf_path)
-        try:
-            text = linkage.urdf_path.read_text(encoding='utf-8')
-        except OSError as exc:
-            raise LinkageError(f'{where}: cannot read ({exc.strerror})') from None
-        generated = False
-    root, joints, links = parse_urdf(text, where)
+        src = linkage.urdf or read_urdf(linkage.urdf_path)
+        text, generated, where = src.text, False, str(src.path)
+        root, joints, links = src.root_link, src.joints, src.link_names
     clash = sorted(set(links) & set(frames.RESERVED))
     if clash:
         raise LinkageError(f'{where}: link name(s) {", ".join(clash)} are frames of the graph '
@@ -283,7 +227,8 @@ def robot_description(linkage: Linkage,
     side = [j.name for j in joints if j.kind in MOVABLE and j.name not in chain]
     values = locked_positions(linkage) if locked is None else dict(locked)
     return RobotDescription(linkage, text, generated, root, joints,
-                            tuple(chain + side), tuple(float(values.get(n, 0.0)) for n in side))
+                            tuple(chain + side), tuple(float(values.get(n, 0.0)) for n in side),
+                            src)
 
 
 def _kinematics_only(text: str) -> str:
@@ -309,7 +254,9 @@ class LinkFrames:
     def __init__(self, description: RobotDescription, world: str = frames.WORLD) -> None:
         self.description = d = description
         try:
-            self.model = pin.buildModelFromXML(_kinematics_only(d.urdf))
+            self.model = pin.buildModelFromXML(
+                _kinematics_only(d.urdf) if d.source is None
+                else d.source.without(('collision', 'visual')))
         except (RuntimeError, ValueError, ET.ParseError) as exc:
             raise LinkageError(f'robot description of {d.linkage.name}: Pinocchio cannot read '
                                f'its URDF ({exc})') from None

@@ -3,7 +3,6 @@ overrides before rclpy parses them."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar
 
@@ -32,8 +31,10 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
             choices: Sequence[str] | None = None) -> Any:
     """Declare a parameter with description, range and read-only flag; return its value.
 
-    Values from a params file are checked here: a wrong type or a value out of range raises
-    :class:`ConfigError` naming the node and the parameter.
+    rclpy refuses a value of the wrong type or outside the descriptor's range (a
+    :class:`ConfigError` naming the node and the parameter); the value itself is checked
+    once, against its :class:`ParamSpec`, where the settings are built
+    (:func:`declare_settings`, :class:`~haptic_topology.config.settings.NodeSettings`).
     """
     desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
     if choices is not None:
@@ -55,10 +56,6 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
         raise ConfigError(f'{where}: {exc}') from None
     except (ParameterException, ParameterUninitializedException) as exc:
         raise ConfigError(f'{where}: {exc}') from None
-    if choices is not None and value not in choices:
-        raise ConfigError(f'{where}: expected one of {", ".join(choices)}, got {value!r}')
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ConfigError(f'{where}: expected a finite number, got {value}')
     return value
 
 

@@ -38,7 +38,8 @@ import pinocchio as pin
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Polygon
 
-from haptic_topology.model.linkage import Linkage, build_model
+from haptic_topology.model.build import build_model
+from haptic_topology.model.linkage import Linkage
 from haptic_topology.model.obstacles import Obstacle, ObstacleKind
 from haptic_topology.sim.trace import Trace
 

@@ -25,7 +25,8 @@ from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.errors import LinkageError
 from haptic_topology.model import Linkage, frames, linkage_from_dict, load_linkage
 from haptic_topology.model import urdf as urdf_module
-from haptic_topology.model.linkage import build_model, serial_chain
+from haptic_topology.model.build import build_model
+from haptic_topology.model.linkage import serial_chain
 from haptic_topology.model.urdf import (
     LinkFrames,
     joint_placement,
@@ -311,3 +312,37 @@ def test_task_poses_and_wrenches_in_3d() -> None:
 def test_docstring_examples() -> None:
     assert doctest.testmod(urdf_module).failed == 0
     assert doctest.testmod(frames).failed == 0
+
+
+def test_a_urdf_file_is_parsed_once_for_the_linkage_and_its_robot_description(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Loading a URDF linkage (YAML naming a URDF, with side branches locked) and making its
+    robot description and /tf frames read and parse the file once (issue 25: it was parsed
+    three times by the loader and a fourth time for the robot description)."""
+    from haptic_topology.model import urdf_import
+    from haptic_topology.model.urdf import LinkFrames, robot_description
+
+    urdf_import._read.cache_clear()
+    parsed: list[int] = []
+    fromstring = urdf_import.ET.fromstring
+
+    def counting(text: str, *args: object) -> object:
+        parsed.append(len(text))
+        return fromstring(text, *args)
+
+    monkeypatch.setattr(urdf_import.ET, 'fromstring', counting)
+    reads: list[Path] = []
+    read_text = Path.read_text
+
+    def counting_read(self: Path, *args: object, **kwargs: object) -> str:
+        if self.suffix == '.urdf':
+            reads.append(self)
+        return read_text(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Path, 'read_text', counting_read)
+    lk = load_linkage(config_dir() / 'linkages' / 'panda_link4.yaml')
+    assert lk.urdf is not None and lk.notes      # side branches (the fingers) locked
+    desc = robot_description(lk)
+    LinkFrames(desc)
+    assert len(reads) == 1 and len(parsed) == 1
+    assert desc.urdf == lk.urdf.text and desc.source is lk.urdf
