@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -373,3 +373,24 @@ def parse_topic_options(options: Mapping[str, Any], task: TaskSpace) -> TopicOpt
         raise DeviceError(f'{BACKEND}: backend_options: expected distinct topics, got '
                           f'{", ".join(topics)}')
     return out
+
+
+#: A sample of one input: (arrival ns on the backend's monotonic clock, task vector or None
+#: when the newest message was not valid, the text of what was wrong).
+Sample = tuple[int, np.ndarray | None, str]
+
+
+def input_fault(inputs: Iterable[tuple[str, Sample | None]], now_ns: int,
+                stale_ns: int) -> str:
+    """Why the newest samples of ``inputs`` (``(topic, sample)``; the first that fails is
+    named) cannot be used at ``now_ns``, or ``''``: none yet, not valid, or older than
+    ``stale_ns`` (an input with an empty topic name is never stale: a constant)."""
+    for topic, s in inputs:
+        if s is None:
+            return f'no device data yet on {topic}'
+        if s[1] is None:
+            return s[2]
+        if topic and now_ns - s[0] > stale_ns:
+            return (f'device data stale ({1e-6 * (now_ns - s[0]):.1f} ms on {topic}, '
+                    f'stale_ms {1e-6 * stale_ns:g})')
+    return ''

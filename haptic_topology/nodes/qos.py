@@ -51,6 +51,7 @@ from functools import cache
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from haptic_topology import vocabulary as vocab
+from haptic_topology.device.topic_mapping import Reliability
 from haptic_topology.vocabulary import Clock, QosRole
 
 
@@ -96,3 +97,12 @@ def publisher_qos(topic: str, clock: Clock) -> QoSProfile:
     """QoS the graph's publisher of ``topic`` (a key of :data:`TOPIC_QOS`) offers under
     ``clock`` (what the recorder mirrors and writes into the bag)."""
     return profile(vocab.publisher_role(topic, clock))
+def topic_qos(reliability: Reliability) -> QoSProfile:
+    """Keep last 1, volatile, with ``reliability``: only the newest sample counts."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                      reliability=(ReliabilityPolicy.RELIABLE
+                                   if reliability is Reliability.RELIABLE
+                                   else ReliabilityPolicy.BEST_EFFORT),
+                      durability=DurabilityPolicy.VOLATILE)
+
+

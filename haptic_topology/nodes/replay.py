@@ -45,7 +45,6 @@ commands of a 2 s fig8 run); any difference means the control code changed.
 from __future__ import annotations
 
 import argparse
-import importlib
 import math
 import os
 import signal
@@ -54,197 +53,27 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.rosbag2.errors import ReaderError
-from rosbags.rosbag2.metadata import parse_qos
 
 from haptic_topology.bag.reader import (
-    Bag,
     open_bag,
-    read_channels,
 )
 from haptic_topology.bag.replay import (
     COMMAND,
     DEFAULT_TOLERANCE,
-    STATE,
     CheckResult,
-    Item,
     ReplayStats,
     controller_plan,
     left_out,
     plan,
 )
 from haptic_topology.errors import BagError, ReplayError
+from haptic_topology.nodes.bag_publishers import Publishers, Spinner
 from haptic_topology.vocabulary import TOPIC_LMI_ACK
-
-
-def _qos_profile(metadata: dict[str, str], topic: str) -> Any:
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-    reliable, depth = True, 10
-    try:
-        offered = parse_qos(metadata.get('offered_qos_profiles', ''))
-    except (ReaderError, KeyError, TypeError):
-        offered = []
-    if offered:
-        reliable = all(q.reliability.name == 'RELIABLE' for q in offered)
-        depth = max(1, max(q.depth for q in offered))
-    elif topic.endswith((STATE, COMMAND)):
-        reliable, depth = False, 1
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=(ReliabilityPolicy.RELIABLE if reliable
-                                   else ReliabilityPolicy.BEST_EFFORT),
-                      durability=DurabilityPolicy.VOLATILE)
-
-
-def message_class(msgtype: str) -> Any:
-    """The rclpy message class of ``pkg/msg/Type``."""
-    pkg, _, name = msgtype.partition('/msg/')
-    try:
-        return getattr(importlib.import_module(f'{pkg}.msg'), name)
-    except (ImportError, AttributeError):
-        raise BagError(f'message type {msgtype}: no Python message package {pkg} installed '
-                       'to publish it') from None
-
-
-class Publishers:
-    """One publisher per topic of the items (QoS from the bag), under ``namespace``."""
-
-    def __init__(self, node: Any, bag: Bag, items: Sequence[Item], namespace: str = '') -> None:
-        channels = read_channels(bag)
-        self.pubs: dict[str, Any] = {}
-        for topic, msgtype in {it.topic: it.msgtype for it in items}.items():
-            name = topic if not namespace or topic == '/diagnostics' else (
-                namespace.rstrip('/') + '/' + topic.lstrip('/'))
-            qos = _qos_profile(channels.get(topic, {}).get('metadata', {}), topic)
-            self.pubs[topic] = node.create_publisher(message_class(msgtype), name, qos)
-
-    def wait_for_subscribers(self, topics: Iterable[str], timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        pending = [t for t in topics if t in self.pubs]
-        while pending and time.monotonic() < deadline:
-            pending = [t for t in pending if self.pubs[t].get_subscription_count() == 0]
-            time.sleep(0.02)
-        if pending:
-            raise ReplayError(f'no subscriber on {", ".join(pending)} within {timeout:g} s')
-        # The publisher sees the subscriber first; a reliable message sent before the
-        # subscriber has matched this publisher in turn would be lost.
-        time.sleep(0.5)
-
-    def publish(self, items: Sequence[Item], rate: float, loop: bool = False,
-                stop: threading.Event | None = None) -> ReplayStats:
-        """Publish ``items`` at their times / ``rate`` (again and again with ``loop``)."""
-        stats = ReplayStats()
-        start = time.perf_counter()
-        span = items[-1].t if items else 0.0
-        rounds = 0
-        while True:
-            base = start + rounds * (span / rate + 1e-3)
-            for it in items:
-                due = base + it.t / rate
-                while (rem := due - time.perf_counter()) > 0:
-                    time.sleep(rem)
-                if stop is not None and stop.is_set():
-                    break
-                self.pubs[it.topic].publish(it.data)
-                stats.late_ms.append(1e3 * (time.perf_counter() - due))
-                stats.published[it.topic] = stats.published.get(it.topic, 0) + 1
-            rounds += 1
-            if not loop or (stop is not None and stop.is_set()):
-                break
-        stats.wall_s = time.perf_counter() - start
-        return stats
-
-
-    def publish_lockstep(self, items: Sequence[Item], answered: threading.Condition,
-                         done: dict[int, Any], acked: dict[int, int], timeout: float = 0.3,
-                         retries: int = 3) -> ReplayStats:
-        """Publish ``items`` in order, each only once the previous one was taken: a state
-        once it was answered (``done``), an update once the controller acknowledged it
-        (``acked``: update seq -> count, on ``haptic/lmi/ack``), so the controller sees the
-        recorded order whatever the machine's load.
-
-        A message whose answer or acknowledgement does not come within ``timeout`` is
-        published again (the controller ignores a state it has already answered; an update
-        taken twice is the same re-sync), up to ``retries`` times.
-        """
-        stats = ReplayStats()
-        start = time.perf_counter()
-        for it in items:
-            pub = self.pubs[it.topic]
-            if it.seq < 0:
-                useq = _update_seq(it.data)
-                before = acked.get(useq, 0)
-
-                def taken(useq: int = useq, before: int = before) -> bool:
-                    return acked.get(useq, 0) > before
-
-                with answered:
-                    for _ in range(retries):
-                        pub.publish(it.data)
-                        if answered.wait_for(taken, timeout):
-                            break
-            else:
-                seq = it.seq
-
-                def seen(seq: int = seq) -> bool:
-                    return seq in done
-
-                with answered:
-                    for _ in range(retries):
-                        pub.publish(it.data)
-                        if answered.wait_for(seen, timeout):
-                            break
-            stats.published[it.topic] = stats.published.get(it.topic, 0) + 1
-        stats.wall_s = time.perf_counter() - start
-        return stats
-
-
-def _update_seq(data: Any) -> int:
-    """``LmiUpdate.seq`` of a message as published (a message object or raw CDR)."""
-    seq = getattr(data, 'seq', None)
-    if seq is None:
-        from rclpy.serialization import deserialize_message
-
-        from haptic_topology_msgs.msg import LmiUpdate
-        seq = deserialize_message(data, LmiUpdate).seq
-    return int(seq)
-
-
-class _Spinner:
-    """rclpy init, one node, its executor spun in a thread (timeouts: see the notes)."""
-
-    def __init__(self, name: str) -> None:
-        import rclpy
-        from rclpy.experimental import EventsExecutor
-
-        from haptic_topology.nodes.dds_env import localhost_discovery_default
-
-        self._rclpy = rclpy
-        localhost_discovery_default(os.environ)     # the nodes' DDS setup (run_main)
-        self.context = rclpy.Context()
-        rclpy.init(args=[], context=self.context)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set() and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.1)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5.0)
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self._rclpy.try_shutdown(context=self.context)
 
 
 def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None = None,
@@ -254,7 +83,7 @@ def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None
     returns what was published."""
     bag = open_bag(bag_path)
     items = plan(bag, topics, start_offset)
-    spinner = _Spinner('haptic_replay')
+    spinner = Spinner('haptic_replay')
     try:
         pubs = Publishers(spinner.node, bag, items, namespace)
         if wait_subscribers > 0:
@@ -285,7 +114,7 @@ def check_controller(bag_path: str | Path, params: Path,
             '--params-file', str(params), '-p', f'scenario:={scenario}', '-p',
             f'mode:={cp.mode}', '-p', 'ack_updates:=true', '-r', f'__ns:={ns}']
     live: dict[int, Any] = {}
-    spinner = _Spinner('haptic_replay_check')
+    spinner = Spinner('haptic_replay_check')
     with log.open('wb') as handle:
         proc = subprocess.Popen(argv, stdout=handle, stderr=subprocess.STDOUT,
                                 env=dict(os.environ, PYTHONUNBUFFERED='1'),

@@ -58,37 +58,24 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
-from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
 from haptic_topology.device.topic_mapping import (
     BACKEND,
-    Reliability,
+    Sample,
     TopicOptions,
+    input_fault,
     parse_topic_options,
 )
 from haptic_topology.errors import DeviceError
+from haptic_topology.nodes.node_thread import NodeThread
+from haptic_topology.nodes.qos import topic_qos
 from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 #: Copies of the zero wrench sent by ``deactivate`` (best effort may lose one).
 _ZERO_COPIES = 3
-#: A sample: (arrival ns on the backend's monotonic clock, task vector or None when the
-#: newest message was not valid, the text of what was wrong).
-Sample = tuple[int, np.ndarray | None, str]
-
-
-def topic_qos(reliability: Reliability) -> QoSProfile:
-    """Keep last 1, volatile, with ``reliability``: only the newest sample counts."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                      reliability=(ReliabilityPolicy.RELIABLE
-                                   if reliability is Reliability.RELIABLE
-                                   else ReliabilityPolicy.BEST_EFFORT),
-                      durability=DurabilityPolicy.VOLATILE)
 
 
 def _xyz(v: Any) -> tuple[float, float, float]:
@@ -105,12 +92,7 @@ class RosTopicBackend(DeviceBackend):
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns
         self._opts: TopicOptions | None = None
-        self._context: Context | None = None
-        self._own_context = False
-        self._node: Node | None = None
-        self._executor: Any = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._ros: NodeThread | None = None   # the backend's node, executor and thread
         self._ready = threading.Event()
         self._pub: Any = None
         self._enabled = False                 # between activate and deactivate
@@ -167,18 +149,9 @@ class RosTopicBackend(DeviceBackend):
         opts = self.options
         if self._enabled:
             return
-        if self._node is None:
-            if rclpy.ok():
-                self._context, self._own_context = rclpy.get_default_context(), False
-            else:
-                self._context, self._own_context = Context(), True
-                rclpy.init(context=self._context)
-            self._stop.clear()
-            try:
-                self._start(opts)
-            except BaseException:
-                self.cleanup()
-                raise
+        if self._ros is None:
+            self._ros = NodeThread(opts.node_name, 'ros_topics',
+                                   lambda node: self._setup(node, opts))
         self._ready.clear()
         self._pose = self._twist = self._wrench = None
         self._stale = False
@@ -193,12 +166,7 @@ class RosTopicBackend(DeviceBackend):
                 'QoS? a best-effort publisher does not match qos: reliable)')
         self._enabled = True
 
-    def _start(self, opts: TopicOptions) -> None:
-        from rclpy.experimental import EventsExecutor
-
-        node = rclpy.create_node(opts.node_name, context=self._context,
-                                 use_global_arguments=False, start_parameter_services=False)
-        self._node = node
+    def _setup(self, node: Node, opts: TopicOptions) -> None:
         qos = topic_qos(opts.qos)
         node.create_subscription(PoseStamped, opts.pose_topic, self._on_pose, qos)
         node.create_subscription(TwistStamped, opts.twist_topic, self._on_twist, qos)
@@ -207,27 +175,9 @@ class RosTopicBackend(DeviceBackend):
         self._pub = node.create_publisher(WrenchStamped, opts.command_topic,
                                           topic_qos(opts.command_qos))
         self._msg.header.frame_id = opts.frame_id
-        self._executor = EventsExecutor(context=self._context)
-        self._executor.add_node(node)
-        self._thread = threading.Thread(target=self._spin, name='ros_topics', daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        # spin_once with a timeout: spin() of this rclpy build's EventsExecutor burns a core
-        # (haptic_topology.nodes.runtime).
-        executor = self._executor
-        while not self._stop.is_set():
-            try:
-                executor.spin_once(timeout_sec=0.05)
-            except (ExternalShutdownException, RuntimeError):
-                # rclpy's shutdown under a running spin (RCLError is a RuntimeError): the
-                # process is ending; anything else is a bug and is raised.
-                if self._stop.is_set() or not self._context_ok():
-                    return
-                raise
 
     def _context_ok(self) -> bool:
-        return self._context is not None and self._context.ok()
+        return self._ros is not None and self._ros.context_ok()
 
     def deactivate(self) -> None:
         """Publish zero (three copies: best effort may lose one) and stop commanding. The
@@ -241,19 +191,9 @@ class RosTopicBackend(DeviceBackend):
         """Stop the thread, destroy the node (and the context the backend made)."""
         self.deactivate()
         self._pub = None
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        self._thread = None
-        if self._executor is not None:
-            self._executor.shutdown(timeout_sec=1.0)
-        self._executor = None
-        if self._node is not None:
-            self._node.destroy_node()
-        self._node = None
-        if self._own_context and self._context is not None:
-            rclpy.try_shutdown(context=self._context)
-        self._context, self._own_context = None, False
+        if self._ros is not None:
+            self._ros.close()
+        self._ros = None
 
     # -- callbacks (the backend's thread) ----------------------------------------------------
     def _bad(self, what: str, topic: str) -> Sample:
@@ -336,25 +276,14 @@ class RosTopicBackend(DeviceBackend):
         now = self._clock_ns()
         pose_s, twist_s = self._pose, self._twist
         wrench_s = self._wrench if opts.wrench_topic else (0, self._zero, '')
-        reason = ''
-        thread = self._thread
-        if not self._enabled or thread is None:
+        ros = self._ros
+        if not self._enabled or ros is None:
             raise DeviceError(f'{self.name}: read() while not active (before activate() or '
                               'after deactivate())')
-        for topic, s in ((opts.pose_topic, pose_s), (opts.twist_topic, twist_s),
-                         (opts.wrench_topic, wrench_s)):
-            if not thread.is_alive():
-                reason = f'{self.name}: the thread taking the device data has ended (see log)'
-            elif s is None:
-                reason = f'no device data yet on {topic}'
-            elif s[1] is None:
-                reason = s[2]
-            elif topic and now - s[0] > opts.stale_ns:
-                reason = (f'device data stale ({1e-6 * (now - s[0]):.1f} ms on {topic}, '
-                          f'stale_ms {1e-6 * opts.stale_ns:g})')
-            else:
-                continue
-            break
+        reason = ('' if ros.alive() else
+                  f'{self.name}: the thread taking the device data has ended (see log)') or \
+            input_fault(((opts.pose_topic, pose_s), (opts.twist_topic, twist_s),
+                         (opts.wrench_topic, wrench_s)), now, opts.stale_ns)
         if reason:
             self._reason = reason
             self.stale_cycles += 1

@@ -32,7 +32,6 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import rclpy
@@ -48,24 +47,16 @@ from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.device.topic_mapping import TopicOptions, parse_topic_options
 from haptic_topology.errors import HapticTopologyError
 from haptic_topology.nodes.dds_env import localhost_discovery_default
+from haptic_topology.nodes.device_messages import fill_pose, fill_twist, fill_wrench
 from haptic_topology.nodes.diagnostics import diagnostics
-from haptic_topology.nodes.qos import QOS_DIAGNOSTICS
+from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, topic_qos
 from haptic_topology.nodes.runtime import spin
-from haptic_topology.nodes.topic_backend import topic_qos
 from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS
 
 #: ``/diagnostics`` status name of the player.
 STATUS_NAME = 'topic_device: device'
 #: Frame of the player's messages when ``frame_id`` is not given.
 DEVICE_FRAME = 'topic_device_base'
-
-
-def _stamp(msg: Any, ns: int) -> None:
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ns, 1_000_000_000)
-
-
-def _set3(v: Any, a: np.ndarray) -> None:
-    v.x, v.y, v.z = (float(x) for x in a)
 
 
 class TopicDevice:
@@ -170,26 +161,10 @@ class TopicDevice:
 
     def _publish(self, pose: np.ndarray, twist: np.ndarray, hand: np.ndarray) -> None:
         ns = time.time_ns()
-        p, q = self.mapping.device_pose(pose)
-        m = self._pose
-        _stamp(m, ns)
-        _set3(m.pose.position, p)
-        o = m.pose.orientation
-        o.x, o.y, o.z, o.w = q
-        self.pose_pub.publish(m)
-        v, w = self.mapping.device_twist(twist)
-        t = self._twist
-        _stamp(t, ns)
-        _set3(t.twist.linear, v)
-        _set3(t.twist.angular, w)
-        self.twist_pub.publish(t)
+        self.pose_pub.publish(fill_pose(self._pose, self.mapping, pose, ns))
+        self.twist_pub.publish(fill_twist(self._twist, self.mapping, twist, ns))
         if self.wrench_pub is not None:
-            f, tq = self.mapping.device_wrench(hand)
-            h = self._wrench
-            _stamp(h, ns)
-            _set3(h.wrench.force, f)
-            _set3(h.wrench.torque, tq)
-            self.wrench_pub.publish(h)
+            self.wrench_pub.publish(fill_wrench(self._wrench, self.mapping, hand, ns))
 
     # -- status, end -------------------------------------------------------------------------
     def values(self) -> dict[str, str]:

@@ -33,11 +33,7 @@ A thin adapter over :class:`~haptic_topology.sim.ve.VirtualEnvironment` and its 
   ``sensor_msgs/JointState`` named after the URDF's joints, markers (linkage, grasp point,
   device ghost, ``n_tc``, ``F_h``, ``u``, ``F_pc``, ``F_env``) and the standard mirrors
   (``PoseStamped``/``TwistStamped`` of the device and the VT hand, ``WrenchStamped`` of the
-  applied, hand and coupling wrenches). The device's applied wrench and ``F_env`` come from
-  the newest ``DeviceState``, taken at the viz rate from a keep-last-1 reader that no
-  executor spins (:class:`~haptic_topology.nodes.take.LatestTaker`, no callback per state);
-  it is created with the first hand input batch, once the loop runs, so that it does not
-  count among the readers ``device_driver`` waits for (``min_subscribers``).
+  applied, hand and coupling wrenches), by :class:`~haptic_topology.nodes.ve_viz.VeViz`.
 
 Diagnostics: ``hand_inputs`` (samples taken), ``hand_batches`` (messages),
 ``lost_hand_inputs``, ``batch_*`` (arrival periods of the batches), ``update_*``,
@@ -53,66 +49,41 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from std_msgs.msg import String
-from tf2_msgs.msg import TFMessage
-from visualization_msgs.msg import MarkerArray
 
 from haptic_topology.config import node_params
 from haptic_topology.config.resolve import resolve_ve_sim
 from haptic_topology.config.settings import VeSimSettings
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.stats import LoopStats
-from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
-from haptic_topology.model.urdf import robot_description
-from haptic_topology.nodes import viz
 from haptic_topology.nodes.convert import (
     MessageError,
     RejectCounter,
     lmi_msg,
-    stamp_ns,
     vt_wrenches_from_hand_inputs,
 )
 from haptic_topology.nodes.diagnostics import diagnostics, matched, monotonic
 from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import (
     QOS_DIAGNOSTICS,
-    QOS_LATCHED,
     QOS_LMI,
-    QOS_LOOP,
-    QOS_TF,
-    QOS_VIZ,
     hand_inputs_qos,
 )
 from haptic_topology.nodes.runtime import run_main
-from haptic_topology.nodes.take import LatestTaker
+from haptic_topology.nodes.ve_viz import VeViz
 from haptic_topology.sim.lockstep import virtual_environment
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed
 from haptic_topology.vocabulary import (
-    TOPIC_DEVICE_POSE,
-    TOPIC_DEVICE_TWIST,
     TOPIC_DIAGNOSTICS,
     TOPIC_HAND_INPUTS,
-    TOPIC_JOINTS,
     TOPIC_LMI,
-    TOPIC_MARKERS,
-    TOPIC_ROBOT_DESCRIPTION,
-    TOPIC_STATE,
-    TOPIC_TF,
     TOPIC_VT_PATH,
-    TOPIC_VT_POSE,
-    TOPIC_VT_TWIST,
-    TOPIC_WRENCH_APPLIED,
-    TOPIC_WRENCH_COUPLING,
-    TOPIC_WRENCH_HAND,
     Clock,
 )
-from haptic_topology_msgs.msg import DeviceState, HandInputs, LmiUpdate, VtPath
+from haptic_topology_msgs.msg import HandInputs, LmiUpdate, VtPath
 
 #: s, the shortest period of the silence check (path flush, idle keep-alive): at 1 kHz it
 #: cost an idle VE a tenth of a core for nothing, as silence is at least an idle period or
@@ -134,26 +105,10 @@ class VeSim(Node):
         self.task = sc.linkage.task
         self.ve = virtual_environment(sc)     # as `simulate` builds it (contacts included)
         self.dyn = self.ve.dyn
-        self._viz_dyn = LinkageDynamics(sc.linkage)     # separate Pinocchio workspace
-        self.robot = robot_description(sc.linkage)
-        self.viz = viz.RobotViz(self.robot, self._viz_dyn, c.frame_id)
+        self.viz = VeViz(self, sc, c.frame_id, self.ve.q)
 
         self.lmi_pub = self.create_publisher(LmiUpdate, TOPIC_LMI, QOS_LMI)
         self.path_pub = self.create_publisher(VtPath, TOPIC_VT_PATH, QOS_LMI)
-        self.joint_pub = self.create_publisher(JointState, TOPIC_JOINTS, QOS_VIZ)
-        self.marker_pub = self.create_publisher(MarkerArray, TOPIC_MARKERS,
-                                                QOS_VIZ)
-        self.description_pub = self.create_publisher(
-            String, TOPIC_ROBOT_DESCRIPTION, QOS_LATCHED)
-        self.tf_pub = self.create_publisher(TFMessage, TOPIC_TF, QOS_TF)
-        self.mirror_pubs = {
-            topic: self.create_publisher(kind, topic, QOS_VIZ) for topic, kind in (
-                (TOPIC_DEVICE_POSE, PoseStamped),
-                (TOPIC_DEVICE_TWIST, TwistStamped),
-                (TOPIC_VT_POSE, PoseStamped), (TOPIC_VT_TWIST, TwistStamped),
-                (TOPIC_WRENCH_APPLIED, WrenchStamped),
-                (TOPIC_WRENCH_HAND, WrenchStamped),
-                (TOPIC_WRENCH_COUPLING, WrenchStamped))}
         self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
                                               QOS_DIAGNOSTICS)
         hand_sub = self.create_subscription(HandInputs, TOPIC_HAND_INPUTS,
@@ -163,14 +118,6 @@ class VeSim(Node):
         self._lmi = LmiUpdate()
         self._path = VtPath()
         self._lmi.header.frame_id = self._path.header.frame_id = c.frame_id
-        #: The newest device sample (a DeviceState, or a HandInputs sample before the
-        #: state reader has one) and F_pc sample, for the viz; stamps (ns) last sent.
-        self._state_taker: LatestTaker | None = None
-        self._device: viz.DeviceSample | None = None
-        self._coupling: viz.CouplingSample | None = None
-        self._sent_device_ns = self._sent_coupling_ns = self._sent_ve_ns = -1
-        self.viz_rejected_states = 0
-        self._plane_z = self.viz.plane_z(self.ve.q)
         self._update_seq = 0
         self.feed = HandFeed(self.ve, self.update_period)
         self.batches = 0
@@ -190,7 +137,6 @@ class VeSim(Node):
                               IDLE_CHECK_MIN_PERIOD), self._publish_idle, clock=steady)
         self.create_timer(c.viz_period, self._publish_viz, clock=steady)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
-        self.description_pub.publish(self.viz.robot_description)
 
     def _publish_update(self) -> None:
         self._last_snap = self.ve.snapshot(seq=self._update_seq)
@@ -235,21 +181,7 @@ class VeSim(Node):
             if update_due:
                 self._publish_update()
                 self._publish_path()
-        self._keep_viz_samples(msg, pose[-1], twist[-1])
-
-    def _keep_viz_samples(self, msg: HandInputs, pose: np.ndarray, twist: np.ndarray) -> None:
-        """The batch's newest sample for the viz (the VE now holds the state after it), and
-        the device-state reader, from the first batch on (the loop is running)."""
-        m = self.task.dim
-        stamp = msg.stamp[-1]
-        if self._device is None or self._device.ns < stamp_ns(stamp):
-            self._device = viz.DeviceSample(stamp, pose, twist,
-                                            np.array(msg.hand_wrench[-m:], dtype=float))
-        self._coupling = viz.CouplingSample(stamp, np.array(msg.coupling_wrench[-m:],
-                                                            dtype=float), self.ve.q)
-        if self._state_taker is None:
-            self._state_taker = LatestTaker(self, TOPIC_STATE, DeviceState,
-                                            QOS_LOOP, suffix='viz_reader')
+        self.viz.keep_samples(msg, pose[-1], twist[-1], self.ve.q)
 
     def _publish_path(self) -> None:
         path = self.ve.take_path()
@@ -263,53 +195,6 @@ class VeSim(Node):
         msg.hand_pose = np.concatenate([x for _, x in path]).tolist()
         self.path_pub.publish(msg)
         self.paths_sent += 1
-
-    def _take_device_state(self) -> None:
-        """The newest DeviceState, if one came since the last viz tick (checked; a bad one
-        is skipped and counted in ``viz_rejected_states``, apart from the messages the VE
-        takes: it changes nothing but the picture)."""
-        if self._state_taker is None:
-            return
-        msg = self._state_taker.take()
-        if msg is None:
-            return
-        try:
-            sample = viz.device_sample(msg, self.task)
-        except MessageError:
-            self.viz_rejected_states += 1
-            return
-        if self._device is None or sample.ns >= self._device.ns:
-            self._device = sample
-
-    def _publish_viz(self) -> None:
-        """Joint state, markers, /tf and the mirrors (module doc). The VE's (stamped now)
-        only when the clock moved since the last ones (tf2 drops a repeated stamp, and one
-        stamp is one VE state; in lock-step simulated time may stand still between two
-        ticks), the device's and the coupling's only for a sample not sent yet."""
-        stamp = self.get_clock().now().to_msg()
-        q, dq, v = self.ve.q, self.ve.dq, self.viz
-        self._take_device_state()
-        device, coupling, pubs = self._device, self._coupling, self.mirror_pubs
-        if stamp_ns(stamp) != self._sent_ve_ns:
-            self._sent_ve_ns = stamp_ns(stamp)
-            tf, joints, vt_pose, vt_twist = v.ve(q, dq, stamp)
-            self.joint_pub.publish(joints)
-            self.tf_pub.publish(tf)
-            pubs[TOPIC_VT_POSE].publish(vt_pose)
-            pubs[TOPIC_VT_TWIST].publish(vt_twist)
-            self.marker_pub.publish(v.markers(q, device, coupling, self._last_snap, stamp))
-        if device is not None and device.ns != self._sent_device_ns:
-            self._sent_device_ns = device.ns
-            tf, pose, twist, hand, applied = v.device(device, self._plane_z)
-            self.tf_pub.publish(tf)
-            pubs[TOPIC_DEVICE_POSE].publish(pose)
-            pubs[TOPIC_DEVICE_TWIST].publish(twist)
-            pubs[TOPIC_WRENCH_HAND].publish(hand)
-            if applied is not None:
-                pubs[TOPIC_WRENCH_APPLIED].publish(applied)
-        if coupling is not None and coupling.ns != self._sent_coupling_ns:
-            self._sent_coupling_ns = coupling.ns
-            pubs[TOPIC_WRENCH_COUPLING].publish(v.coupling(coupling))
 
     def _publish_diagnostics(self) -> None:
         feed = self.feed
@@ -331,20 +216,20 @@ class VeSim(Node):
             **self.rejected.values(),
             'kinetic_energy_j': f'{self.ve.kinetic_energy():.6g}',
             'held_capped': str(self.ve.held_capped),
-            'viz_device_states': str(0 if self._state_taker is None
-                                     else self._state_taker.taken),
-            'viz_rejected_states': str(self.viz_rejected_states),
+            'viz_device_states': str(self.viz.device_states),
+            'viz_rejected_states': str(self.viz.rejected_states),
             **matched(self._endpoints),
         })
         ok = all(math.isfinite(v) for v in self.ve.q)
         self.diag_pub.publish(diagnostics(
             self, 've_sim: loop', values, 0 if ok else 2, 'ok' if ok else 'VE state not finite'))
 
+    def _publish_viz(self) -> None:
+        self.viz.publish(self.ve.q, self.ve.dq, self._last_snap)
+
     def close(self) -> None:
-        """Destroy the device-state reader's helper node (called on shutdown)."""
-        if self._state_taker is not None:
-            self._state_taker.destroy()
-            self._state_taker = None
+        """Destroy the viz's device-state reader (called on shutdown)."""
+        self.viz.close()
 
 
 def main(args: Sequence[str] | None = None) -> int:

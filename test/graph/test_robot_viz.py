@@ -36,8 +36,8 @@ from haptic_topology.bringup.run import run_graph
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.model import frames
 from haptic_topology.model.urdf import RobotDescription, robot_description
+from haptic_topology.nodes.markers import FORCE_SCALE
 from haptic_topology.nodes.qos import QOS_LATCHED, QOS_TF, QOS_VIZ
-from haptic_topology.nodes.viz import FORCE_SCALE
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (

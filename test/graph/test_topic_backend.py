@@ -281,7 +281,7 @@ def test_invalid_device_samples_fault_and_are_never_passed_on(topic_prefix: str)
     from geometry_msgs.msg import PoseStamped, TwistStamped
 
     from haptic_topology.device.topic_mapping import Reliability
-    from haptic_topology.nodes.topic_backend import topic_qos
+    from haptic_topology.nodes.qos import topic_qos
 
     opts = {'pose_topic': f'{topic_prefix}/pose', 'twist_topic': f'{topic_prefix}/twist',
             'command_topic': f'{topic_prefix}/cmd', 'stale_ms': 5000.0,
