@@ -1,0 +1,208 @@
+"""Single-producer / single-consumer rings of fixed-layout records in shared memory.
+
+What two processes exchange without a lock, a GIL or a message that the other side controls:
+a segment (:class:`multiprocessing.shared_memory.SharedMemory`) holds a small header, one
+sequence word per slot and ``capacity`` records of one numpy structured ``dtype``. The
+producer writes record ``k`` (``k`` = 0, 1, 2, ... counted over the ring's life) into slot
+``k % capacity``; the consumer takes records in order. Neither ever waits for the other
+inside :meth:`ShmRing.put` or :meth:`ShmRing.take`.
+
+**Torn reads** are detected with a per-slot sequence word (a seqlock): the producer stores
+``2k + 1`` (writing), then the record, then ``2k + 2`` (written). The consumer copies record
+``k`` only if the word reads ``2k + 2`` before and after the copy; a word that changed during
+the copy (the producer lapped the consumer and rewrote the slot) discards the copy, and a
+word that is already past ``2k + 2`` means the record was overwritten before it was taken.
+The numpy stores of the producer reach the other core in program order on x86-64 (total
+store order), the only architecture this project runs on.
+
+**A full ring** (the consumer ``capacity`` records behind): :meth:`ShmRing.put` with
+``overwrite=True`` (the wall-clock loop: the deadline never waits for an observer) writes
+anyway, the oldest unread record is lost and counted in :attr:`ShmRing.overwritten`, and the
+consumer skips to the oldest record still there and counts what it missed in
+:attr:`ShmRing.lost`; with ``overwrite=False`` (lock-step: nothing recorded may be lost)
+:meth:`ShmRing.put` returns False and writes nothing, and the producer tries again later.
+
+**Lifetime.** The process that :meth:`ShmRing.create` s a segment owns it and unlinks it in
+:meth:`ShmRing.close`; :meth:`ShmRing.attach` opens it in the other process. Python 3.11's
+resource tracker registers every segment a process opens and unlinks it when that process
+exits, even a segment the owner still uses (``track=False`` arrives in 3.13): the attaching
+side unregisters it at once, so only the owner's :meth:`~ShmRing.close` (or the owner's
+tracker, if the owner dies) removes it.
+
+Example (checked by ``test/unit/device/test_shm_ring.py``)::
+
+    >>> import numpy as np
+    >>> ring = ShmRing.create(np.dtype([('k', '<i8'), ('x', '<f8', 3)]), capacity=4)
+    >>> peer = ShmRing.attach(ring.name, ring.dtype, 4)
+    >>> ring.put((1, [0.1, 0.2, 0.3]))
+    True
+    >>> got = peer.take()
+    >>> int(got[0]['k']), got['x'].tolist()
+    (1, [[0.1, 0.2, 0.3]])
+    >>> peer.close(); ring.close()
+"""
+
+from __future__ import annotations
+
+from multiprocessing import resource_tracker
+from multiprocessing.shared_memory import SharedMemory
+from typing import Any
+
+import numpy as np
+
+from haptic_topology.errors import ConfigError
+
+#: Header words (int64): records written (producer), records taken (consumer), capacity,
+#: record size in bytes (both sides check they agree on the layout).
+_WRITTEN, _TAKEN, _CAPACITY, _ITEMSIZE = range(4)
+_HEADER_WORDS = 8
+#: Segments created (and not yet unlinked) by this process.
+_OWNED: set[str] = set()
+
+
+def _segment_size(dtype: np.dtype[Any], capacity: int) -> int:
+    return 8 * (_HEADER_WORDS + capacity) + dtype.itemsize * capacity
+
+
+class ShmRing:
+    """One ring (module doc). Use :meth:`create` (owner) or :meth:`attach` (peer); one
+    process puts, the other takes."""
+
+    def __init__(self, shm: SharedMemory, dtype: np.dtype[Any], capacity: int,
+                 owner: bool) -> None:
+        if capacity < 1:
+            raise ConfigError(f'shm ring: capacity must be >= 1, got {capacity}')
+        self._shm = shm
+        self.dtype = np.dtype(dtype)
+        self.capacity = capacity
+        self.owner = owner
+        buf = shm.buf
+        self._header = np.ndarray((_HEADER_WORDS,), np.int64, buf, 0)
+        self._seq = np.ndarray((capacity,), np.int64, buf, 8 * _HEADER_WORDS)
+        self._slots = np.ndarray((capacity,), self.dtype, buf, 8 * (_HEADER_WORDS + capacity))
+        #: Producer: records put while the ring was full (overwrite) or refused (no room).
+        self.overwritten = 0
+        self.refused = 0
+        #: Consumer: records overwritten before they could be taken; copies discarded
+        #: because the producer rewrote the slot during the copy.
+        self.lost = 0
+        self.torn = 0
+        self._next = 0          # consumer: index of the next record to take
+
+    @property
+    def name(self) -> str:
+        """The segment's name (``/dev/shm/<name>``), for :meth:`attach`."""
+        return str(self._shm.name)
+
+    @classmethod
+    def create(cls, dtype: np.dtype[Any], capacity: int, name: str | None = None) -> ShmRing:
+        """A new, empty ring owned by this process (unlinked by :meth:`close`)."""
+        dtype = np.dtype(dtype)
+        if capacity < 1:
+            raise ConfigError(f'shm ring: capacity must be >= 1, got {capacity}')
+        shm = SharedMemory(name=name, create=True, size=_segment_size(dtype, capacity))
+        _OWNED.add(shm.name)
+        ring = cls(shm, dtype, capacity, owner=True)
+        ring._header[:] = 0
+        ring._seq[:] = 0
+        ring._header[_CAPACITY] = capacity
+        ring._header[_ITEMSIZE] = dtype.itemsize
+        return ring
+
+    @classmethod
+    def attach(cls, name: str, dtype: np.dtype[Any], capacity: int) -> ShmRing:
+        """The ring ``name`` created by another process, with the layout both agree on."""
+        dtype = np.dtype(dtype)
+        shm = SharedMemory(name=name, create=False)
+        if name not in _OWNED:
+            # Python 3.11 registers the attached segment with this process's resource
+            # tracker, which would unlink it at this process's exit while the owner still
+            # uses it (a process started by spawn or as a new interpreter has a tracker of
+            # its own; the owner's process keeps its registration).
+            resource_tracker.unregister(shm._name, 'shared_memory')  # type: ignore[attr-defined]
+        header = np.ndarray((_HEADER_WORDS,), np.int64, shm.buf, 0)
+        have = (int(header[_CAPACITY]), int(header[_ITEMSIZE]))
+        del header
+        if have != (capacity, dtype.itemsize):
+            shm.close()
+            raise ConfigError(f'shm ring {name}: capacity and record size are {have}, '
+                              f'expected {(capacity, dtype.itemsize)}')
+        ring = cls(shm, dtype, capacity, owner=False)
+        ring._next = int(ring._header[_TAKEN])
+        return ring
+
+    # -- producer ------------------------------------------------------------------------------
+    def put(self, record: Any, overwrite: bool = True) -> bool:
+        """Write ``record`` (anything numpy assigns to one element of :attr:`dtype`: a
+        tuple, a ``np.void``) as the next record. A full ring: overwrite the oldest unread
+        record (counted in :attr:`overwritten`) or, with ``overwrite=False``, write nothing
+        and return False (counted in :attr:`refused`)."""
+        header = self._header
+        k = int(header[_WRITTEN])
+        if k - int(header[_TAKEN]) >= self.capacity:
+            if not overwrite:
+                self.refused += 1
+                return False
+            self.overwritten += 1
+        slot = k % self.capacity
+        self._seq[slot] = 2 * k + 1
+        self._slots[slot] = record
+        self._seq[slot] = 2 * k + 2
+        header[_WRITTEN] = k + 1
+        return True
+
+    @property
+    def written(self) -> int:
+        """Records put over the ring's life."""
+        return int(self._header[_WRITTEN])
+
+    # -- consumer ------------------------------------------------------------------------------
+    def take(self, limit: int | None = None) -> np.ndarray:
+        """Copies of the records written since the last take, oldest first (at most
+        ``limit``), as an array of :attr:`dtype`; records overwritten meanwhile are skipped
+        and counted in :attr:`lost`."""
+        written = int(self._header[_WRITTEN])
+        oldest = written - self.capacity
+        if self._next < oldest:
+            self.lost += oldest - self._next
+            self._next = oldest
+        n = written - self._next
+        if limit is not None:
+            n = min(n, limit)
+        out = np.empty(n, self.dtype)
+        got = 0
+        for k in range(self._next, self._next + n):
+            slot = k % self.capacity
+            want = 2 * k + 2
+            if int(self._seq[slot]) != want:
+                self.lost += 1       # rewritten (or being rewritten) by a later record
+                continue
+            out[got] = self._slots[slot]
+            if int(self._seq[slot]) != want:
+                self.torn += 1
+                self.lost += 1
+                continue
+            got += 1
+        self._next += n
+        self._header[_TAKEN] = self._next
+        return out[:got]
+
+    @property
+    def pending(self) -> int:
+        """Records written and not taken yet (at most :attr:`capacity` can still be taken)."""
+        return int(self._header[_WRITTEN]) - self._next
+
+    # -- end -----------------------------------------------------------------------------------
+    def _release(self) -> None:
+        # numpy views hold exports of the buffer: drop them before the mapping is closed.
+        self._header = self._seq = self._slots = None  # type: ignore[assignment]
+        self._shm.close()
+
+    def close(self) -> None:
+        """Unmap the segment; the owner also unlinks it (nothing is left in /dev/shm)."""
+        if self._header is None:
+            return
+        self._release()
+        if self.owner:
+            _OWNED.discard(self._shm.name)
+            self._shm.unlink()

@@ -1,0 +1,170 @@
+"""The shared-memory ring (``haptic_topology/device/shm_ring.py``): order, a full ring both
+ways, torn reads detected (forced, and under a producer in another process), and a segment's
+lifetime across processes (Python 3.11's resource tracker must not unlink the owner's
+segment when the attaching process exits; nothing is left in /dev/shm)."""
+
+from __future__ import annotations
+
+import doctest
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from haptic_topology.device import shm_ring
+from haptic_topology.device.shm_ring import ShmRing
+from haptic_topology.errors import ConfigError
+
+RECORD = np.dtype([('k', '<i8'), ('x', '<f8', 3)])
+
+
+def _shm(name: str) -> Path:
+    return Path('/dev/shm') / name
+
+
+def test_docstring_example() -> None:
+    assert doctest.testmod(shm_ring).failed == 0
+
+
+def test_records_come_out_in_order_with_a_limit() -> None:
+    ring = ShmRing.create(RECORD, 8)
+    peer = ShmRing.attach(ring.name, RECORD, 8)
+    try:
+        for k in range(5):
+            assert ring.put((k, [k, 2 * k, 3 * k]))
+        first = peer.take(limit=2)
+        rest = peer.take()
+        assert first['k'].tolist() == [0, 1] and rest['k'].tolist() == [2, 3, 4]
+        assert rest['x'][-1].tolist() == [4.0, 8.0, 12.0]
+        assert peer.take().size == 0 and peer.pending == 0
+        assert (peer.lost, peer.torn, ring.overwritten, ring.refused) == (0, 0, 0, 0)
+    finally:
+        peer.close()
+        ring.close()
+
+
+def test_a_full_ring_overwrites_the_oldest_and_both_sides_count_it() -> None:
+    ring = ShmRing.create(RECORD, 4)
+    peer = ShmRing.attach(ring.name, RECORD, 4)
+    try:
+        for k in range(7):
+            assert ring.put((k, [k] * 3))
+        assert ring.overwritten == 3
+        got = peer.take()
+        assert got['k'].tolist() == [3, 4, 5, 6] and peer.lost == 3
+    finally:
+        peer.close()
+        ring.close()
+
+
+def test_a_full_ring_refuses_without_overwrite_and_loses_nothing() -> None:
+    ring = ShmRing.create(RECORD, 3)
+    peer = ShmRing.attach(ring.name, RECORD, 3)
+    try:
+        assert [ring.put((k, [k] * 3), overwrite=False) for k in range(4)] == [
+            True, True, True, False]
+        assert ring.refused == 1
+        assert peer.take(limit=1)['k'].tolist() == [0]
+        assert ring.put((3, [3] * 3), overwrite=False)
+        assert peer.take()['k'].tolist() == [1, 2, 3] and peer.lost == 0
+    finally:
+        peer.close()
+        ring.close()
+
+
+class _LappingSlots:
+    """The consumer's slot array, whose read lets the producer lap the ring in the middle of
+    the consumer's copy (what a producer on another core can do at any instant)."""
+
+    def __init__(self, slots: np.ndarray, producer: ShmRing) -> None:
+        self.slots, self.producer = slots, producer
+        self.lapped = False
+
+    def __getitem__(self, i: int) -> Any:
+        if not self.lapped:
+            self.lapped = True
+            for k in range(100, 100 + self.producer.capacity):
+                self.producer.put((k, [k] * 3))
+        return self.slots[i]
+
+
+def test_a_record_rewritten_during_the_copy_is_discarded_as_torn() -> None:
+    ring = ShmRing.create(RECORD, 4)
+    peer = ShmRing.attach(ring.name, RECORD, 4)
+    try:
+        ring.put((1, [1] * 3))
+        peer._slots = _LappingSlots(peer._slots, ring)  # type: ignore[assignment]
+        assert peer.take().size == 0
+        assert peer.torn == 1 and peer.lost == 1
+    finally:
+        peer._slots = peer._slots.slots  # type: ignore[attr-defined]
+        peer.close()
+        ring.close()
+
+
+_PRODUCER = r'''
+import sys
+import numpy as np
+from haptic_topology.device.shm_ring import ShmRing
+dtype = np.dtype([('k', '<i8'), ('x', '<f8', 3)])
+ring = ShmRing.attach(sys.argv[1], dtype, int(sys.argv[2]))
+for k in range(int(sys.argv[3])):
+    ring.put((k, [k, k, k]))
+print(ring.written, ring.overwritten)
+ring.close()
+'''
+
+
+def test_every_record_taken_from_a_producer_in_another_process_is_whole() -> None:
+    """The producer (another process) laps a small ring many times while this process takes:
+    whatever the interleaving, a record taken is never a mix of two writes, records come in
+    increasing order, and taken + lost = written."""
+    n, capacity = 200_000, 16
+    ring = ShmRing.create(RECORD, capacity)
+    try:
+        proc = subprocess.Popen([sys.executable, '-c', _PRODUCER, ring.name, str(capacity),
+                                 str(n)], stdout=subprocess.PIPE, text=True)
+        taken: list[np.ndarray] = []
+        while proc.poll() is None:
+            taken.append(ring.take())
+        out, _ = proc.communicate(timeout=60)
+        taken.append(ring.take())
+        assert proc.returncode == 0
+        got = np.concatenate(taken)
+        assert out.split()[0] == str(n)
+        assert np.all(got['x'] == got['k'][:, None]), 'a torn record was taken'
+        assert np.all(np.diff(got['k']) > 0)
+        assert got.size + ring.lost == n
+    finally:
+        ring.close()
+
+
+def test_the_attaching_process_leaves_the_segment_to_its_owner() -> None:
+    ring = ShmRing.create(RECORD, 4)
+    name = ring.name
+    code = ('import sys, numpy as np\n'
+            'from haptic_topology.device.shm_ring import ShmRing\n'
+            "r = ShmRing.attach(sys.argv[1], np.dtype([('k', '<i8'), ('x', '<f8', 3)]), 4)\n"
+            'r.put((7, [7.0, 7.0, 7.0]))\n')
+    try:
+        subprocess.run([sys.executable, '-c', code, name], check=True, timeout=60)
+        assert _shm(name).exists()
+        assert ring.take()['k'].tolist() == [7]
+    finally:
+        ring.close()
+    assert not _shm(name).exists()
+
+
+def test_a_layout_the_sides_disagree_on_is_refused() -> None:
+    ring = ShmRing.create(RECORD, 4)
+    try:
+        with pytest.raises(ConfigError, match=r'capacity and record size are \(4, 32\), '
+                           r'expected \(8, 32\)'):
+            ShmRing.attach(ring.name, RECORD, 8)
+        with pytest.raises(ConfigError, match='capacity must be >= 1, got 0'):
+            ShmRing.create(RECORD, 0)
+    finally:
+        ring.close()
