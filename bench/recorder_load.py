@@ -46,15 +46,16 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
+from haptic_topology import vocabulary as vocab
 from haptic_topology.processes import cpu_seconds, terminate
 
 #: Topic (graph name) -> (message rate at 1x in Hz, field holding the sequence number).
 TOPICS: dict[str, tuple[float, str]] = {
-    'haptic/device/state': (1000.0, 'seq'),
-    'haptic/device/command': (1000.0, 'state_seq'),
-    'haptic/hand_inputs': (100.0, 'seq'),
-    'haptic/lmi/update': (100.0, 'seq'),
-    '/diagnostics': (3.0, 'seq'),
+    vocab.TOPIC_STATE: (1000.0, 'seq'),
+    vocab.TOPIC_COMMAND: (1000.0, 'state_seq'),
+    vocab.TOPIC_HAND_INPUTS: (100.0, 'seq'),
+    vocab.TOPIC_LMI: (100.0, 'seq'),
+    vocab.TOPIC_DIAGNOSTICS: (3.0, 'seq'),
 }
 #: Samples per HandInputs message (one VE update period of the 1 kHz loop).
 HAND_BATCH = 10
@@ -98,8 +99,8 @@ def _messages() -> dict[str, Any]:
                      ('seq', 'answered', 'rtt_p50_ms', 'rtt_p99_ms', 'period_p99_ms',
                       'cycles', 'stale', 'rejected')]
     diag.status = [status]
-    return {'haptic/device/state': state, 'haptic/device/command': cmd,
-            'haptic/hand_inputs': hand, 'haptic/lmi/update': upd, '/diagnostics': diag}
+    return {vocab.TOPIC_STATE: state, vocab.TOPIC_COMMAND: cmd,
+            vocab.TOPIC_HAND_INPUTS: hand, vocab.TOPIC_LMI: upd, vocab.TOPIC_DIAGNOSTICS: diag}
 
 
 def _set_batch(msg: Any, i: int) -> None:
@@ -129,13 +130,13 @@ def _publisher(duration: float, factor: float) -> int:
     rates = [TOPICS[t][0] * factor for t in order]
     sent = [0] * len(order)
     stamps = [msgs[t].header.stamp for t in order]
-    diag_value = msgs['/diagnostics'].status[0].values[0]
+    diag_value = msgs[vocab.TOPIC_DIAGNOSTICS].status[0].values[0]
     setters: list[Any] = []
     for t in order:
         msg, field = msgs[t], TOPICS[t][1]
-        if t == '/diagnostics':
+        if t == vocab.TOPIC_DIAGNOSTICS:
             setters.append(lambda i: setattr(diag_value, 'value', str(i)))
-        elif t == 'haptic/hand_inputs':
+        elif t == vocab.TOPIC_HAND_INPUTS:
             setters.append(lambda i, m=msg: _set_batch(m, i))
         else:
             setters.append(lambda i, m=msg, f=field: setattr(m, f, i))
@@ -258,16 +259,16 @@ def _read_bag(path: Path) -> tuple[dict[str, list[int]], int, bool]:
     decode = decoder()
     seqs: dict[str, list[int]] = {t: [] for t in TOPICS}
     for msg in iter_messages(bag):
-        topic = msg.topic.lstrip('/') if msg.topic != '/diagnostics' else msg.topic
+        topic = msg.topic.lstrip('/') if msg.topic != vocab.TOPIC_DIAGNOSTICS else msg.topic
         if topic not in seqs:
             continue
         obj = decode(msg)
-        if topic == '/diagnostics':
+        if topic == vocab.TOPIC_DIAGNOSTICS:
             # The synthetic publisher's status only (the recorder reports on the same topic).
             kv = {v.key: v.value for v in obj.status[0].values}
             if 'seq' in kv and obj.status[0].name == 'device_driver: loop':
                 seqs[topic].append(int(kv['seq']))
-        elif topic == 'haptic/hand_inputs':
+        elif topic == vocab.TOPIC_HAND_INPUTS:
             seqs[topic].append(int(obj.seq[-1]) // HAND_BATCH)     # message number
         else:
             seqs[topic].append(int(getattr(obj, TOPICS[topic][1])))

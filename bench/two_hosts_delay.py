@@ -67,6 +67,7 @@ from typing import Any
 
 import numpy as np
 
+from haptic_topology import vocabulary as vocab
 from haptic_topology.processes import process_times
 
 REPO = Path(__file__).resolve().parent.parent
@@ -206,11 +207,11 @@ def resync_figures(bag: Path) -> dict[str, Any]:
     ctl: dict[str, str] = {}
     drv: dict[str, str] = {}
     for m in iter_messages(b):
-        if m.topic.endswith('haptic/device/state'):
+        if m.topic.endswith(vocab.TOPIC_STATE):
             state_time.setdefault(int(decode(m).seq), m.log_time)
-        elif m.topic.endswith('haptic/lmi/update'):
+        elif m.topic.endswith(vocab.TOPIC_LMI):
             updates.append((m.log_time, int(decode(m).hand_input_seq)))
-        elif m.topic == '/diagnostics':
+        elif m.topic == vocab.TOPIC_DIAGNOSTICS:
             for st in decode(m).status:
                 if st.name == CONTROLLER_STATUS:
                     ctl = {kv.key: kv.value for kv in st.values}

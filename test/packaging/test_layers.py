@@ -56,3 +56,20 @@ def test_rclpy_below_the_nodes_breaks_the_core_contract(tmp_path: Path) -> None:
     assert out.returncode == 1, out.stdout
     assert 'Below the nodes nothing imports ROS 2 (rclpy, generated messages) BROKEN' in out.stdout
     assert 'haptic_topology.control.lmi -> rclpy' in out.stdout
+
+
+def test_the_architecture_page_lists_the_contracts_layers_in_order() -> None:
+    """docs/architecture.md's table (top layer first) names the packages of each layer of
+    the contract, in the contract's order: the page cannot drift from what is checked."""
+    import re
+    import tomllib
+
+    config = tomllib.loads((REPO / 'pyproject.toml').read_text())['tool']['importlinter']
+    layers = next(c for c in config['contracts'] if c['id'] == 'layers')['layers']
+    want = [sorted(m.strip().removeprefix('haptic_topology.') for m in layer.split('|'))
+            for layer in layers]
+    rows = [line.split('|')[2] for line in
+            (REPO / 'docs' / 'architecture.md').read_text().splitlines()
+            if re.match(r'^\| \d+ \|', line)]
+    got = [sorted(re.findall(r'`(\w+)`', row)) for row in rows]
+    assert got == want

@@ -35,6 +35,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from haptic_topology import vocabulary as vocab
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
 from haptic_topology.paths import config_dir
 from haptic_topology.processes import terminate
@@ -445,17 +446,17 @@ def _read_bags(run: FaultRun) -> None:
         run.states.append([])
         run.hands.append([])
         for m in iter_messages(bag):
-            if m.topic.endswith('haptic/device/state'):
+            if m.topic.endswith(vocab.TOPIC_STATE):
                 run.states[-1].append(decode(m))
-            elif m.topic.endswith('haptic/device/command'):
+            elif m.topic.endswith(vocab.TOPIC_COMMAND):
                 run.commands.append(decode(m))
-            elif m.topic.endswith('haptic/hand_inputs'):
+            elif m.topic.endswith(vocab.TOPIC_HAND_INPUTS):
                 run.hands[-1].append(decode(m))
-            elif m.topic.endswith('haptic/lmi/update'):
+            elif m.topic.endswith(vocab.TOPIC_LMI):
                 u = decode(m)
                 if int(u.seq) != INJECTED_SEQ:
                     run.updates.append(u)
-            elif m.topic == '/diagnostics':
+            elif m.topic == vocab.TOPIC_DIAGNOSTICS:
                 for st in decode(m).status:
                     d = run.diagnostics.setdefault(st.name, {})
                     for kv in st.values:
