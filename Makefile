@@ -1,6 +1,6 @@
 # Developer entry points. Everything runs from the venv that scripts/setup.sh maintains.
 #   make demo   set up (first time ~1-2 min), then run the demo
-#   make test   set up, then lint + typecheck + pytest; fails if any of them fails
+#   make test   set up, then lint (ruff, lint-imports) + typecheck + pytest; fails if any fails
 #   make test-quick   set up, then pytest without the node-graph tests (-m 'not graph')
 SHELL := /bin/bash
 .SHELLFLAGS := -euo pipefail -c
@@ -24,7 +24,7 @@ PYTEST_ARGS ?=
 
 help:
 	@echo 'make demo       set up the venv and run the demo'
-	@echo 'make test       set up, then lint + typecheck + pytest'
+	@echo 'make test       set up, then lint (ruff + layer contracts) + typecheck + pytest'
 	@echo 'make test-quick set up, then pytest -m "not graph" (no ROS 2 node processes, no lint)'
 	@echo 'make setup      create/update .venv (idempotent, seconds when nothing changed)'
 	@echo 'make lint | typecheck | pytest   one check (assumes setup)'
