@@ -491,3 +491,14 @@ def test_write_many_writes_the_same_bytes_as_write(tmp_path: Path) -> None:
     assert len(files[0]) > 50_000 and files[0] == files[1]
     assert [decoder()(m).seq for m in iter_messages(open_bag(tmp_path / 'many' / 'bag'))][:3] == [
         1, 2, 3]
+
+
+def test_bag_states_counts_the_device_states_the_bag_holds() -> None:
+    """``bag_states`` (summary.json, the loop table's ``states``) is the number of the run's
+    DeviceState messages in the bag, the idle ones before engagement included; the trace has
+    a row per state from the first running one on."""
+    bag = open_bag(REFERENCE)
+    in_bag = sum(1 for m in iter_messages(bag) if m.topic.endswith('haptic/device/state'))
+    run = read_graph_bag(REFERENCE, 'fig8', 3)
+    assert run.loop['bag_states'] == in_bag
+    assert len(run.trace.t) < in_bag
