@@ -5,7 +5,6 @@ and the controller check run in (see :mod:`haptic_topology.nodes.replay`)."""
 from __future__ import annotations
 
 import importlib
-import os
 import threading
 import time
 from collections.abc import Iterable, Sequence
@@ -158,37 +157,3 @@ class Publishers:
             stats.published[it.topic] = stats.published.get(it.topic, 0) + 1
         stats.wall_s = time.perf_counter() - start
         return stats
-
-
-class Spinner:
-    """rclpy init, one node, its executor spun in a thread (timeouts: see the notes)."""
-
-    def __init__(self, name: str) -> None:
-        import rclpy
-        from rclpy.experimental import EventsExecutor
-
-        from haptic_topology.nodes.dds_env import localhost_discovery_default
-
-        self._rclpy = rclpy
-        localhost_discovery_default(os.environ)     # the nodes' DDS setup (run_main)
-        self.context = rclpy.Context()
-        rclpy.init(args=[], context=self.context)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set() and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.1)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5.0)
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self._rclpy.try_shutdown(context=self.context)
-
-

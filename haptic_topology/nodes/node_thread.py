@@ -1,5 +1,6 @@
 """An rclpy node of its own, spun by its own executor in its own thread: what a device backend
-that talks ROS (``ros_topics``) runs beside the driver's executor and the loop thread."""
+that talks ROS (``ros_topics``) runs beside the driver's executor and the loop thread, and
+what ``haptic-topology replay`` publishes and listens with."""
 
 from __future__ import annotations
 
@@ -14,37 +15,47 @@ from rclpy.node import Node
 
 
 class NodeThread:
-    """Node ``name`` in the process's rclpy context (or, where rclpy is not initialised: a
-    test, a tool without ROS, a context of its own, shut down by :meth:`close`), without the
+    """Node ``name`` in the process's rclpy context (or, where rclpy is not initialised or
+    ``own_context`` is set: a test, a tool, a context of its own, shut down by
+    :meth:`close`), without the
     process's ROS arguments (the driver's remappings and parameters do not apply to it);
     ``setup(node)`` creates its subscriptions and publishers before the thread
     ``thread_name`` starts spinning it on an :class:`~rclpy.experimental.EventsExecutor`.
     On any error in the set-up everything made so far is destroyed again."""
 
-    def __init__(self, name: str, thread_name: str, setup: Callable[[Node], None]) -> None:
+    def __init__(self, name: str, thread_name: str,
+                 setup: Callable[[Node], None] = lambda node: None,
+                 own_context: bool = False) -> None:
         from rclpy.experimental import EventsExecutor
 
-        if rclpy.ok():
+        if rclpy.ok() and not own_context:
             self.context, self._own_context = rclpy.get_default_context(), False
         else:
             self.context, self._own_context = Context(), True
             rclpy.init(context=self.context)
         self._stop = threading.Event()
-        self.node: Node | None = None
+        self._node: Node | None = None
         self._executor: Any = None
         self.thread: threading.Thread | None = None
         try:
-            self.node = rclpy.create_node(name, context=self.context,
+            self._node = rclpy.create_node(name, context=self.context,
                                           use_global_arguments=False,
                                           start_parameter_services=False)
-            setup(self.node)
+            setup(self._node)
             self._executor = EventsExecutor(context=self.context)
-            self._executor.add_node(self.node)
+            self._executor.add_node(self._node)
             self.thread = threading.Thread(target=self._spin, name=thread_name, daemon=True)
             self.thread.start()
         except BaseException:
             self.close()
             raise
+
+    @property
+    def node(self) -> Node:
+        """The node (until :meth:`close`)."""
+        if self._node is None:
+            raise RuntimeError('NodeThread: the node is closed')
+        return self._node
 
     def _spin(self) -> None:
         # spin_once with a timeout: spin() of this rclpy build's EventsExecutor burns a core
@@ -77,9 +88,9 @@ class NodeThread:
         if self._executor is not None:
             self._executor.shutdown(timeout_sec=1.0)
         self._executor = None
-        if self.node is not None:
-            self.node.destroy_node()
-        self.node = None
+        if self._node is not None:
+            self._node.destroy_node()
+        self._node = None
         if self._own_context:
             rclpy.try_shutdown(context=self.context)
         self._own_context = False

@@ -72,8 +72,17 @@ from haptic_topology.bag.replay import (
     plan,
 )
 from haptic_topology.errors import BagError, ReplayError
-from haptic_topology.nodes.bag_publishers import Publishers, Spinner
+from haptic_topology.nodes.bag_publishers import Publishers
+from haptic_topology.nodes.dds_env import localhost_discovery_default
+from haptic_topology.nodes.node_thread import NodeThread
 from haptic_topology.vocabulary import TOPIC_LMI_ACK
+
+
+def _spinner(name: str) -> NodeThread:
+    """The replay's node, in an rclpy context of its own, spun in a thread; DDS set up as the
+    nodes set it up (``run_main``)."""
+    localhost_discovery_default(os.environ)
+    return NodeThread(name, 'replay_spin', own_context=True)
 
 
 def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None = None,
@@ -83,7 +92,7 @@ def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None
     returns what was published."""
     bag = open_bag(bag_path)
     items = plan(bag, topics, start_offset)
-    spinner = Spinner('haptic_replay')
+    spinner = _spinner('haptic_replay')
     try:
         pubs = Publishers(spinner.node, bag, items, namespace)
         if wait_subscribers > 0:
@@ -114,7 +123,7 @@ def check_controller(bag_path: str | Path, params: Path,
             '--params-file', str(params), '-p', f'scenario:={scenario}', '-p',
             f'mode:={cp.mode}', '-p', 'ack_updates:=true', '-r', f'__ns:={ns}']
     live: dict[int, Any] = {}
-    spinner = Spinner('haptic_replay_check')
+    spinner = _spinner('haptic_replay_check')
     with log.open('wb') as handle:
         proc = subprocess.Popen(argv, stdout=handle, stderr=subprocess.STDOUT,
                                 env=dict(os.environ, PYTHONUNBUFFERED='1'),
