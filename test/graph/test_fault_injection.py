@@ -14,12 +14,15 @@ import math
 import fault_harness as fh
 import numpy as np
 import pytest
+from cpu_share import cpu_share
 
 pytestmark = pytest.mark.graph
 
 @pytest.fixture(scope='module')
 def run(tmp_path_factory: pytest.TempPathFactory) -> fh.FaultRun:
-    return fh.run_faults(tmp_path_factory.mktemp('faults'))
+    # Recovery needs the graph to keep real time: no pool of graphs beside it (cpu_share).
+    with cpu_share(exclusive=True):
+        return fh.run_faults(tmp_path_factory.mktemp('faults'))
 
 
 def test_every_node_survived_and_stopped_cleanly(run: fh.FaultRun) -> None:
