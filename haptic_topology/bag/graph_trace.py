@@ -64,7 +64,7 @@ from haptic_topology.messages.check import (
     env_wrench,
 )
 from haptic_topology.messages.definitions import type_name
-from haptic_topology.sim.trace import Trace
+from haptic_topology.sim.trace import Trace, contact_depth
 from haptic_topology.vocabulary import ControlMode
 
 _WATCHDOG = 4
@@ -252,13 +252,8 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         if contacts:
             # The VE's deepest contact and energy balance at each update, held until the next
             # one (the VE reports them at its rate), NaN after the last.
-            depth = np.array([max(0.0, -min(known[r].contact_gaps, default=0.0))
-                              for r in rows])
-            energy = np.array([float(known[r].contact_energy) for r in rows])
-            held = (idx >= 0) & (np.arange(len(seqs)) <= last)
-            at = np.maximum(idx, 0)
-            trace.columns['penetration'][:] = np.where(held, depth[at], np.nan)
-            trace.columns['contact_energy'][:] = np.where(held, energy[at], np.nan)
+            trace.hold_contacts(rows, [contact_depth(known[r].contact_gaps) for r in rows],
+                                [float(known[r].contact_energy) for r in rows])
     figures = loop_figures(states, commands, seqs, diags)
     figures['ve_update_rate_hz'] = _update_rate(trace.t, sorted(known))
     return GraphRun(trace, figures, diags, skipped)

@@ -31,6 +31,7 @@ import numpy as np
 
 from haptic_topology.control.controller import HapticController
 from haptic_topology.control.laws import ControlGains
+from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.loop import Answer, ControllerLoop
 from haptic_topology.control.safety import SyncGuard, SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
@@ -40,7 +41,7 @@ from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.dynamics.contacts import ContactModel
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.sim.scenario import Scenario
-from haptic_topology.sim.trace import Trace
+from haptic_topology.sim.trace import Trace, contact_depth
 from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology.vocabulary import ControlMode
 
@@ -117,7 +118,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     ve_check = LinkageDynamics(sc.linkage)  # separate workspace for the trace's truth
     cycle = HostedCycle(build_device_loop(sc),
                         build_controller_loop(sc, mode, update_period=sc.update_period))
-    cycle.offer_update(ve.snapshot(seq=0))
+    first = ve.snapshot(seq=0)
+    cycle.offer_update(first)
     step_ns = period_ns(sc.dt)
 
     def step(t: float) -> tuple[DeviceTick, Answer]:
@@ -134,6 +136,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     vt_pose = dyn.hand_pose(ve.q)
     inputs = 0
     update_seq = 1
+    # (row, depth m, energy J) per update; the VE's initial state describes the first row
+    contact_rows = [(0, _depth(first), first.contact_energy)]
     for k in range(n):
         t = ns_to_seconds(k * step_ns)
         if cycle.waiting_for_update():
@@ -155,10 +159,20 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
                      constraint_count=ve_check.constraints(ve.q).count,
                      lmi_constraint_count=ans.out.constraint_count, status=int(tick.status))
         if ve.contacts is not None:
-            trace.record_contacts(k, ans.out.env_wrench, ve.contacts.gaps(ve.q),
-                                  ve.contact_energy_balance())
+            trace.record_env_wrench(k, ans.out.env_wrench)
         if hand is not None and inputs % sc.update_period == 0:
             # Applied at the start of the next step, before its state: as the graph does.
-            cycle.offer_update(ve.snapshot(seq=update_seq))
+            snap = ve.snapshot(seq=update_seq)
+            cycle.offer_update(snap)
             update_seq += 1
+            # It describes the VE after the input before this one: at this row's state.
+            contact_rows.append((k, _depth(snap), snap.contact_energy))
+    if ve.contacts is not None:
+        rows, depth, energy = zip(*contact_rows, strict=True)
+        trace.hold_contacts(np.array(rows, dtype=int), list(depth), list(energy))
     return trace
+
+
+def _depth(snap: LmiSnapshot) -> float:
+    """The deepest contact (m) an LMI update reports (0 without obstacles)."""
+    return 0.0 if snap.contacts is None else contact_depth(snap.contacts.gaps)

@@ -8,10 +8,12 @@ Drift (the paper's Fig. 6 / Fig. 8 measure): the translational distance (m) betw
 device and the VT's grasp point in the VE at the same instant.
 
 A run with obstacles (``meta['contacts']``) has three more columns: ``env_wrench`` (``F_env``
-of eqs. 10 and 14 as the controller rendered it, m entries), ``penetration`` (m, the deepest
-contact of the VE's linkage, 0 when none) and ``contact_energy`` (J, the contacts' work on the
-VT plus their elastic energy minus at the start, see
-:mod:`haptic_topology.dynamics.contacts`).
+of eqs. 10 and 14 as the controller rendered it, m entries, every cycle), ``penetration`` (m,
+the deepest contact of the VE's linkage, 0 when none) and ``contact_energy`` (J, the contacts'
+work on the VT plus their elastic energy minus at the start, see
+:mod:`haptic_topology.dynamics.contacts`). The last two are what the VE reports with each LMI
+update (:func:`contact_depth`), held until the next one (:meth:`Trace.hold_contacts`), in the
+offline simulation as in a recorded run, so both summaries sample contact alike.
 """
 
 from __future__ import annotations
@@ -31,6 +33,12 @@ _VECTORS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'applied', 
             'lmi_pose')
 _SCALARS = ('constraint_count', 'lmi_constraint_count', 'status')
 _CONTACT_FLOATS = ('penetration', 'contact_energy')
+
+
+def contact_depth(gaps: np.ndarray) -> float:
+    """The deepest penetration (m, >= 0) among contact ``gaps`` (m; none: 0)."""
+    gaps = np.asarray(gaps, dtype=float)
+    return max(0.0, -float(gaps.min())) if gaps.size else 0.0
 
 
 @dataclass
@@ -61,14 +69,26 @@ class Trace:
     def has_contacts(self) -> bool:
         return bool(self.meta.get('contacts'))
 
-    def record_contacts(self, k: int, env_wrench: np.ndarray | None, gaps: np.ndarray,
-                        energy: float) -> None:
-        """Row ``k``'s contact columns: ``F_env`` (None: zero), the VE's candidate ``gaps``
-        (m) and the contact energy balance (J)."""
-        c = self.columns
-        c['env_wrench'][k] = 0.0 if env_wrench is None else env_wrench
-        c['penetration'][k] = max(0.0, -float(gaps.min())) if gaps.size else 0.0
-        c['contact_energy'][k] = energy
+    def record_env_wrench(self, k: int, env_wrench: np.ndarray | None) -> None:
+        """Row ``k``'s ``F_env`` as the controller rendered it (None: zero)."""
+        self.columns['env_wrench'][k] = 0.0 if env_wrench is None else env_wrench
+
+    def hold_contacts(self, rows: np.ndarray, depth: np.ndarray | list[float],
+                      energy: np.ndarray | list[float]) -> None:
+        """The VE's deepest contact (m) and contact energy balance (J) as its LMI updates
+        report them: update ``i`` describes row ``rows[i]`` (ascending) and holds until the
+        next one; NaN before the first and after the last. The offline simulation and a
+        recorded run sample them alike, at the VE's update rate."""
+        n = len(self)
+        rows = np.asarray(rows, dtype=int)
+        if rows.size == 0:
+            self.columns['penetration'][:] = self.columns['contact_energy'][:] = np.nan
+            return
+        idx = np.searchsorted(rows, np.arange(n), side='right') - 1
+        held = (idx >= 0) & (np.arange(n) <= rows[-1])
+        at = np.maximum(idx, 0)
+        self.columns['penetration'][:] = np.where(held, np.asarray(depth)[at], np.nan)
+        self.columns['contact_energy'][:] = np.where(held, np.asarray(energy)[at], np.nan)
 
     def record(self, k: int, t: float, **values: Any) -> None:
         self.t[k] = t

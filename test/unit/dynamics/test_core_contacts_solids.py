@@ -432,7 +432,8 @@ def test_box_table_scenario_sets_the_cube_down_flat() -> None:
     s = trace.summary()
     assert s['energy_injected_j'] == 0.0 and s['energy_dissipated_j'] > 0.0
     assert 0.0 < s['max_penetration_m'] < 0.001 and s['contact_time_s'] > 1.5
-    assert trace.columns['penetration'][-1] == pytest.approx(0.3 / 4 / 2000.0, rel=1e-3)
+    depth = trace.columns['penetration']      # as the VE's last update reported it
+    assert depth[np.isfinite(depth)][-1] == pytest.approx(0.3 / 4 / 2000.0, rel=1e-3)
     np.testing.assert_allclose(trace.columns['applied'][-1], [0.0, 0.0, 0.3, 0.0, 0.0, 0.0],
                                atol=1e-4)
     dyn = LinkageDynamics(sc.linkage)

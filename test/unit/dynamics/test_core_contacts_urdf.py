@@ -229,7 +229,8 @@ def test_table_scenario_stops_the_tool_on_the_table() -> None:
     assert 0.0 < s['max_penetration_m'] < 0.001
     assert s['energy_injected_j'] == 0.0
     assert s['contact_time_s'] > 1.5
-    assert trace.columns['penetration'][-1] == pytest.approx(0.3 / 2000.0, rel=1e-3)
+    depth = trace.columns['penetration']      # as the VE's last update reported it
+    assert depth[np.isfinite(depth)][-1] == pytest.approx(0.3 / 2000.0, rel=1e-3)
     # at rest the device holds the hand against the user's push: 0.3 N up, no torque
     np.testing.assert_allclose(trace.columns['applied'][-1], [0.0, 0.0, 0.3, 0.0, 0.0, 0.0],
                                atol=1e-4)

@@ -171,3 +171,17 @@ def test_blend_removes_the_force_jolt_at_the_rank_switch() -> None:
         assert tr.summary()['final_distance_m'] < 0.5e-3
     print(f'fig8 max force change per cycle: hard {jolt[0.0]:.4f} N, blend=1 {jolt[1.0]:.4f} N')
     assert jolt[1.0] < 0.25 * jolt[0.0]
+
+
+def test_contact_columns_hold_each_update_until_the_next() -> None:
+    """Penetration and contact energy as the VE's updates report them: update i at row
+    rows[i], held to the next update; NaN before the first and after the last (the offline
+    simulation and a recorded run sample them alike)."""
+    tr = Trace.empty(8, 3, 3, contacts=True)
+    tr.hold_contacts(np.array([2, 5]), [0.001, 0.0], [-0.1, -0.2])
+    np.testing.assert_array_equal(
+        tr.columns['penetration'], [np.nan, np.nan, 0.001, 0.001, 0.001, 0.0, np.nan, np.nan])
+    np.testing.assert_array_equal(
+        tr.columns['contact_energy'], [np.nan, np.nan, -0.1, -0.1, -0.1, -0.2, np.nan, np.nan])
+    tr.hold_contacts(np.array([], dtype=int), [], [])
+    assert np.isnan(tr.columns['penetration']).all()
