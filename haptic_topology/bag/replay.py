@@ -159,9 +159,56 @@ def controller_plan(bag: Bag) -> ControllerPlan:
     mode = (ControlMode.ACCELERATION_ONLY.label
             if modes and max(set(modes), key=modes.count) == ControlMode.ACCELERATION_ONLY
             else ControlMode.PENALTY.label)
-    updates.sort(key=lambda u: int(u[1].seq))
-    published = np.array([_stamp(u[1].header) for u in updates])  # VE stamps at publish
     answered_states = [(m, st) for m, st in states if int(st.seq) in answered]
+    upgrade = upgraders(bag)
+
+    def data(m: BagMessage) -> bytes:    # as the installed type (fields appended since)
+        return upgrade[m.msgtype](m.data) if m.msgtype in upgrade else m.data
+
+    if type_name('DeviceCommand') in outdated_types(bag):
+        # Recorded before DeviceCommand.update_seq: reconstructed from the update ages.
+        items, groups = _items_from_ages(answered_states, commands, updates, data)
+    else:
+        items, groups = _items_from_update_seqs(answered_states, commands, updates, data)
+    return ControllerPlan(items, {s: c for s, c in commands.items()
+                                  if s in {int(st.seq) for _, st in answered_states}},
+                          scenario, mode, groups, len(updates))
+
+
+def _items_from_update_seqs(answered_states: list[tuple[BagMessage, Any]],
+                            commands: dict[int, Any], updates: list[tuple[BagMessage, Any]],
+                            data: Any) -> tuple[list[Item], int]:
+    """The plan's items from what each command says: before each state, the updates (in the
+    recorded order, the VE's publishing order) up to the one its command names as the newest
+    the controller had taken (``update_seq``). Returns the items and how many states had
+    updates placed before them."""
+    items: list[Item] = []
+    fed = 0                                 # updates placed so far (recorded order)
+    groups = 0
+    t_first = answered_states[0][0].log_time if answered_states else 0
+    for m, st in answered_states:
+        seq = int(st.seq)
+        t = (m.log_time - t_first) * 1e-9
+        cmd = commands.get(seq)
+        newest = -1 if cmd is None else int(cmd.update_seq)
+        if newest >= 0:
+            ahead = [j for j in range(fed, len(updates)) if int(updates[j][1].seq) == newest]
+            if ahead:
+                for u, _ in updates[fed:ahead[0] + 1]:
+                    items.append(Item(max(t - 2e-4, 0.0), u.topic, u.msgtype, data(u)))
+                fed = ahead[0] + 1
+                groups += 1
+        items.append(Item(t, m.topic, m.msgtype, data(m), seq))
+    return items, groups
+
+
+def _items_from_ages(answered_states: list[tuple[BagMessage, Any]], commands: dict[int, Any],
+                     updates: list[tuple[BagMessage, Any]], data: Any
+                     ) -> tuple[list[Item], int]:
+    """The plan's items of a bag recorded before ``DeviceCommand.update_seq``: the updates
+    placed by the commands' ``update_age`` (see :mod:`haptic_topology.nodes.replay`)."""
+    updates = sorted(updates, key=lambda u: int(u[1].seq))
+    published = np.array([_stamp(u[1].header) for u in updates])  # VE stamps at publish
     # Group the commands by the update they used: the age grows from one command to the
     # next while the update is the same, and the controller's receive time of its newest
     # update (stamp - age, plus this cycle's compute time) jumps by ~1 update period.
@@ -183,14 +230,9 @@ def controller_plan(bag: Bag) -> ControllerPlan:
         groups[first] = min(groups[first], got)  # least compute time: closest to receipt
         prev_age, prev_got = age, got
     first_group = min(groups, default=-1)
-    upgrade = upgraders(bag)
-
-    def data(m: BagMessage) -> bytes:    # as the installed type (fields appended since)
-        return upgrade[m.msgtype](m.data) if m.msgtype in upgrade else m.data
-
     items: list[Item] = []
     applied = -1  # index of the last update placed so far
-    t_first = states[0][0].log_time if states else 0
+    t_first = answered_states[0][0].log_time if answered_states else 0
     for m, st in answered_states:
         seq = int(st.seq)
         t = (m.log_time - t_first) * 1e-9
@@ -213,9 +255,7 @@ def controller_plan(bag: Bag) -> ControllerPlan:
             items.append(Item(max(t - 2e-4, 0.0), u.topic, u.msgtype, data(u)))
         applied = max(applied, target)
         items.append(Item(t, m.topic, m.msgtype, data(m), seq))
-    return ControllerPlan(items, {s: c for s, c in commands.items()
-                                  if s in {int(st.seq) for _, st in answered_states}},
-                          scenario, mode, len(groups), len(updates))
+    return items, len(groups)
 
 
 @dataclass

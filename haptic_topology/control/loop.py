@@ -78,11 +78,14 @@ class HandSample:
 
 @dataclass(frozen=True)
 class Answer:
-    """The command for device state ``state_seq`` and, while running, the hand input."""
+    """The command for device state ``state_seq`` and, while running, the hand input;
+    ``update_seq``: the seq of the newest LMI update taken before it (-1: none), which with
+    the states makes the answer reproducible (``DeviceCommand.update_seq``)."""
 
     state_seq: int
     out: CycleOutput
     hand: HandSample | None
+    update_seq: int = -1
 
 
 class UpdateVerdict:
@@ -149,7 +152,8 @@ class ControllerLoop:
             self._saw_idle = True
             mode = self.ctrl.mode if self.ctrl.lmi.synced else ControlMode.ZERO
             zero = np.zeros(self.ctrl.task.dim)
-            return Answer(s.seq, CycleOutput(zero, zero, zero, s.pose, s.twist, 0, mode), None)
+            return Answer(s.seq, CycleOutput(zero, zero, zero, s.pose, s.twist, 0, mode), None,
+                          self._taken())
         loop_seq = s.seq + self._seq_offset
         if loop_seq <= self.last_seq:
             return None
@@ -189,7 +193,11 @@ class ControllerLoop:
         hand = None
         if out.mode is not ControlMode.ZERO:
             hand = self._hand_input(loop_seq, s, out, scale)
-        return Answer(s.seq, out, hand)
+        return Answer(s.seq, out, hand, self._taken())
+
+    def _taken(self) -> int:
+        """The seq of the newest update taken (-1: none)."""
+        return -1 if self._ve_seq is None else self._ve_seq
 
     def _hand_input(self, loop_seq: int, s: StateSample, out: CycleOutput,
                     scale: float) -> HandSample:

@@ -155,7 +155,7 @@ def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray, int]:
     finite; ``controller_id`` in [1, MAX_CONTROLLER_ID] (a message recorded before the field
     existed has none: 0 is returned for it); the VT pose/twist (recorded, not applied) must
     have ``dim`` entries; ``constraint_count`` in [0, dim]; ``update_age`` >= 0 (inf before
-    the controller's first update)."""
+    the controller's first update); ``update_seq`` in [-1, MAX_SEQ]."""
     check_task_dim(msg, dim)
     wrench = array(msg, 'wrench', dim)      # first: what is applied keeps its reason
     mode = int(msg.mode)
@@ -166,6 +166,8 @@ def check_command(msg: Any, dim: int) -> tuple[int, int, np.ndarray, int]:
     check_int(msg, 'constraint_count', 0, dim)
     age = float(msg.update_age)
     check_range(age >= 0.0, msg, f'update_age must be >= 0 (or inf), got {age}')
+    if hasattr(msg, 'update_seq'):      # recorded before the field existed: none
+        check_int(msg, 'update_seq', -1, MAX_SEQ)
     check_stamp(msg)
     array(msg, 'vt_pose', dim, finite=False)
     array(msg, 'vt_twist', dim, finite=False)

@@ -108,9 +108,11 @@ def state_from_msg(msg: DeviceState, task: TaskSpace
 
 # -- DeviceCommand ----------------------------------------------------------------------------
 def command_msg(msg: DeviceCommand, state_seq: int, stamp: Time, out: CycleOutput,
-                update_age: float, controller_id: int = CONTROLLER_ID) -> DeviceCommand:
+                update_age: float, controller_id: int = CONTROLLER_ID,
+                update_seq: int = -1) -> DeviceCommand:
     """``msg`` filled with the answer ``out`` to state ``state_seq``, from the controller
-    ``controller_id`` (default this process's, :data:`CONTROLLER_ID`); ``update_age`` (s)."""
+    ``controller_id`` (default this process's, :data:`CONTROLLER_ID`); ``update_age`` (s);
+    ``update_seq``: the newest LMI update taken before it (-1: none)."""
     msg.header.stamp = stamp
     msg.state_seq = state_seq
     msg.controller_id = controller_id
@@ -121,6 +123,7 @@ def command_msg(msg: DeviceCommand, state_seq: int, stamp: Time, out: CycleOutpu
     msg.vt_twist = out.vt_twist.tolist()
     msg.constraint_count = int(out.constraint_count)
     msg.update_age = float(update_age)
+    msg.update_seq = int(update_seq)
     msg.env_wrench = [] if out.env_wrench is None else out.env_wrench.tolist()
     return msg
 

@@ -168,7 +168,8 @@ class LmiController(Node):
         if out is not None:
             stamp = cmd_stamp or self.get_clock().now().to_msg()
             self.cmd_pub.publish(command_msg(self._cmd, out.answer.state_seq, stamp,
-                                             out.answer.out, out.update_age))
+                                             out.answer.out, out.update_age,
+                                             update_seq=out.answer.update_seq))
             if out.batch is not None:
                 self._publish_hand(out.batch)
         log_notices(self, self.loop.notices)

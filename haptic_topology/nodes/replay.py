@@ -21,13 +21,14 @@ the recorded ones state by state. What the controller needs to reproduce a comma
 * the same parameters (scenario, mode; the gains are the scenario's);
 * the same states, in order, and only those it answered in the run: a state it skipped
   (late, overwritten in its depth-1 queue) changes the next cycle's ``dt``;
-* each LMI update applied between the same two states as in the run. The recorder's
-  receive order is not the controller's (under load the recorder got updates up to 8 ms
-  after the controller), so the plan uses what every command carries: ``update_age``
-  grows from command to command while the controller uses the same update, and
-  ``header.stamp - update_age`` is when it received its newest one. Before the first state
-  of each such group, every update the VE had published (its header stamp) by then is
-  applied, at least the next one.
+* each LMI update taken between the same two states as in the run. Every command carries
+  ``update_seq``, the newest update its controller had taken, so the plan places the
+  updates (in the bag's order, the VE's publishing order) up to that one before the state
+  (:func:`~haptic_topology.bag.replay.controller_plan`). A bag recorded before that field
+  existed is planned from ``update_age``, which grows from command to command while the
+  controller uses the same update: ``header.stamp - update_age`` is when it received its
+  newest one, and before the first state of each such group every update the VE had
+  published (its header stamp) by then is applied, at least the next one.
 
 Only commands whose state is in the bag are compared (the recorder may have joined after
 the device started).

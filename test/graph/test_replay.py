@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag, upgraders
-from haptic_topology.bag.replay import DEFAULT_TOLERANCE
+from haptic_topology.bag.replay import DEFAULT_TOLERANCE, controller_plan
+from haptic_topology.bringup.run import run_graph
 from haptic_topology.nodes.replay import check_controller, replay
 from haptic_topology.paths import config_dir
 
@@ -42,6 +43,27 @@ def test_replayed_states_reproduce_the_recorded_commands(tmp_path: Path) -> None
     assert res.scenario == 'fig8' and res.mode == 'penalty'
     assert res.missing == 0, res.missing_seqs[:20]
     assert res.compared == res.recorded > 1500
+    assert res.max_abs_diff <= DEFAULT_TOLERANCE, res.line()
+
+
+@pytest.mark.parametrize(('layout', 'clock'), [('hosted', 'wall'), ('hosted', 'lockstep'),
+                                               ('separate', 'wall')])
+def test_a_fresh_bag_of_every_layout_and_clock_checks_exactly(tmp_path: Path, layout: str,
+                                                               clock: str) -> None:
+    """A bag recorded now (its commands carry ``update_seq``: the newest LMI update the
+    controller had taken) checks to 0 difference in every layout and clock: the plan places
+    each update before the state whose command first names it, no timing reconstructed.
+    A wall-clock run on a loaded machine answers fewer states, never different ones."""
+    params = config_dir() / 'haptic_topology.yaml'
+    bag = tmp_path / 'bag'
+    codes = run_graph('fig8', 'penalty', 1.0, bag, params, layout, startup_timeout=60.0,
+                      clock=clock)
+    assert all(c == 0 for c in codes.values()), codes
+    plan = controller_plan(open_bag(bag))
+    assert plan.matched_updates >= 50      # ~100 Hz updates over the 1 s run, each placed
+    res = check_controller(bag, params, log_dir=tmp_path)
+    assert res.missing == 0, res.missing_seqs[:20]
+    assert res.compared == res.recorded > 500
     assert res.max_abs_diff <= DEFAULT_TOLERANCE, res.line()
 
 
