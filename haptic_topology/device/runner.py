@@ -44,10 +44,13 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from haptic_topology.control.laws import ControlGains
+from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.hosted import HostedCycle, HostedStep
 from haptic_topology.device.loop import ns_to_seconds, period_ns
 from haptic_topology.device.pacing import DeadlinePacer, PacerFigures
 from haptic_topology.errors import ConfigError
+from haptic_topology.vocabulary import ControlMode
 
 #: Outbox entries kept (4 s at 1 kHz): a publisher that falls further behind loses the oldest
 #: (wall clock) or holds the loop (lock-step).
@@ -173,6 +176,26 @@ class LoopRunner:
                 raise RuntimeError(f'device loop thread did not stop within {timeout} s')
             self._thread = None
 
+    def request_stop(self) -> None:
+        """Ask the loop to stop after its cycle (or while it waits), without joining."""
+        self._stop.set()
+
+    def offer_update(self, snap: LmiSnapshot) -> None:
+        """Hand an LMI update to the loop (applied at the start of its next cycle; at once
+        when the thread is not running)."""
+        self.cycle.offer_update(snap)
+        if not self.running:
+            self.cycle.apply_updates()
+
+    def change_law(self, gains: ControlGains, mode: ControlMode) -> None:
+        """A live change of the controller's gains and mode, between two cycles."""
+        ctrl = self.cycle.controller.ctrl
+
+        def apply() -> None:
+            ctrl.gains, ctrl.mode = gains, mode
+
+        self.submit(apply)
+
     def submit(self, fn: Callable[[], None]) -> None:
         """Run ``fn`` in the loop thread between two cycles (at once when not running)."""
         if self.running:
@@ -240,6 +263,7 @@ class LoopRunner:
             self._run_calls()
             if self._stop.is_set():
                 return None
+            self.wake()             # the publisher (or a loop process's ring) takes some
             self._sleep(0.001)
         self._run_calls()
         d = self.cycle.device

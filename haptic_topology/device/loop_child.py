@@ -1,0 +1,230 @@
+"""The child of :class:`~haptic_topology.device.loop_process.LoopProcess`: the hosted loop in
+its one thread, no rclpy (``python -m haptic_topology.device.loop_child``; the module doc of
+:mod:`haptic_topology.device.loop_process` describes the exchange and the lifetimes).
+
+It reads its :class:`~haptic_topology.device.loop_process.LoopSpec` from stdin, opens the
+device, builds the :class:`~haptic_topology.device.hosted.HostedCycle` (its updates taken
+from the node's ring) and a :class:`~haptic_topology.device.runner.LoopRunner` whose outbox
+goes into the cycle ring, applies the real-time options to itself, freezes the collector's
+view of everything built so far, and runs the cycles until asked to stop, until the run's
+end, or until its parent dies; then it writes zero wrench and releases the device.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import pickle
+import select
+import signal
+import sys
+import time
+from typing import Any
+
+from haptic_topology.control.loop import ControllerLoop
+from haptic_topology.control.port import HEALTH_MESSAGES
+from haptic_topology.device.backend import create_backend, zero_and_release
+from haptic_topology.device.hosted import HostedCycle
+from haptic_topology.device.loop import DeviceLoop, device_report
+from haptic_topology.device.loop_process import (
+    CONTROL_BYTES,
+    CYCLE_RECORDS,
+    GC_EVERY,
+    STATUS_BYTES,
+    STATUS_PERIOD,
+    UPDATE_RECORDS,
+    CycleCodec,
+    LoopSpec,
+    bytes_dtype,
+    payloads,
+    put_bytes,
+)
+from haptic_topology.device.realtime import name_os_thread, set_thread_realtime
+from haptic_topology.device.runner import LoopRunner
+from haptic_topology.device.shm_ring import ShmRing
+from haptic_topology.device.watchdog import CommandWatchdog
+
+_PR_SET_PDEATHSIG = 1
+
+
+class _RingCycle(HostedCycle):
+    """A :class:`HostedCycle` whose updates come from the node's ring."""
+
+    def __init__(self, device: DeviceLoop, controller: ControllerLoop, ring: ShmRing,
+                 wake_fd: int, poll: Any) -> None:
+        super().__init__(device, controller)
+        self._ring, self._wake_fd, self._poll = ring, wake_fd, poll
+
+    def pull(self) -> bool:
+        got = False
+        for data in payloads(self._ring):
+            self.offer_update(pickle.loads(data))
+            got = True
+        return got
+
+    def apply_updates(self) -> tuple[str, ...]:
+        self.pull()
+        return super().apply_updates()
+
+    def wait_offered(self, timeout: float) -> bool:
+        if self.pull():
+            return True
+        ready, _, _ = select.select([self._wake_fd], [], [], timeout)
+        if ready:
+            try:
+                os.eventfd_read(self._wake_fd)
+            except BlockingIOError:
+                pass
+        self._poll()
+        return self.pull()
+
+
+class _Child:
+    """The child's loop (see module doc)."""
+
+    def __init__(self, spec: LoopSpec) -> None:
+        self.spec = spec
+        rings = spec.rings
+        self.cycles = ShmRing.attach(rings['cycles'], CycleCodec(spec.limit.size).dtype,
+                                     CYCLE_RECORDS)
+        self.control = ShmRing.attach(rings['control'], bytes_dtype(CONTROL_BYTES), 64)
+        self.status_ring = ShmRing.attach(rings['status'], bytes_dtype(STATUS_BYTES), 4)
+        updates = ShmRing.attach(rings['updates'], bytes_dtype(spec.update_bytes),
+                                 UPDATE_RECORDS)
+        self.rings = [self.cycles, self.control, self.status_ring, updates]
+        self.codec = CycleCodec(spec.limit.size)
+        self.backend = create_backend(spec.backend)
+        self.backend.configure(spec.backend_config)
+        dim = spec.limit.size
+        self.device = DeviceLoop(self.backend, spec.limit, CommandWatchdog(spec.watchdog, dim),
+                                 spec.period, spec.takeover_after)
+        self.cycle = _RingCycle(self.device, spec.controller, updates, spec.wake_child,
+                                self.poll_control)
+        self.runner = LoopRunner(self.cycle, spec.runner, wake=self.flush)
+        self.notices: list[str] = []
+        self.stop = False
+        self.parent_gone = False
+        self._status_at = 0.0
+
+    def poll_control(self) -> None:
+        for data in payloads(self.control):
+            item = pickle.loads(data)
+            if item[0] == 'engage':
+                self.runner.may_engage = bool(item[1])
+            elif item[0] == 'law':
+                self.cycle.controller.ctrl.gains, self.cycle.controller.ctrl.mode = item[1:]
+            elif item[0] == 'stop':
+                self.stop = True
+                self.runner.request_stop()
+        if os.getppid() != self.spec.parent:
+            self.parent_gone = self.stop = True
+            self.runner.request_stop()
+
+    def flush(self) -> None:
+        """Move the runner's outbox into the cycle ring (lock-step: as room allows)."""
+        box = self.runner.outbox
+        wrote = False
+        while box:
+            if not self.cycles.put(self.codec.encode(box[0]), not self.spec.runner.lockstep):
+                break
+            box.popleft()
+            wrote = True
+        if wrote and self.spec.runner.lockstep:
+            os.eventfd_write(self.spec.wake_node, 1)
+
+    def report(self, final: bool = False) -> None:
+        now = time.monotonic()
+        if not final and now - self._status_at < STATUS_PERIOD:
+            return
+        self._status_at = now
+        r, c = self.runner, self.cycle.controller
+        loop_now = c.loop_time
+        self.notices.extend(r.notices)
+        r.notices.clear()
+        self.notices.extend(c.notices)
+        c.notices.clear()
+        level, message, values = device_report(self.device, now, '', 0, r.device_values())
+        status = {'device': r.device_values(), 'report': [level, message, values],
+                  'controller': c.values(loop_now),
+                  'health': list(HEALTH_MESSAGES[c.guard.health(loop_now)]),
+                  'finished': r.finished, 'lockstep_timeouts': r.lockstep_timeouts,
+                  'notices': self.notices[-50:]}
+        data = json.dumps(status).encode()
+        if len(data) <= STATUS_BYTES:       # else the notices wait for the next record
+            put_bytes(self.status_ring, data, 'status')
+            self.notices = []
+
+    def run(self) -> int:
+        s = self.spec
+        name_os_thread('device_loop')
+        self.notices.extend(set_thread_realtime(s.sched_priority, s.cpu_affinity,
+                                                s.lock_memory))
+        self.backend.activate()
+        self.runner.pacer.start()
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        k = 0
+        try:
+            while not self.stop and not self.runner.finished:
+                self.poll_control()
+                if self.stop:
+                    break
+                self.runner.cycle_once()
+                self.flush()
+                k += 1
+                if k % GC_EVERY == 0:
+                    gc.collect(1)
+                self.report()
+            while self.runner.outbox and s.runner.lockstep and not self.stop:
+                self.flush()
+                time.sleep(0.001)
+                self.poll_control()
+        finally:
+            zero_and_release(self.backend, s.limit.size)
+            if self.parent_gone or os.getppid() != s.parent:
+                print(f'loop process {os.getpid()}: parent gone: output zeroed, device '
+                      'released', file=sys.stderr, flush=True)
+            self.report(final=True)
+            self.backend.cleanup()
+            for ring in self.rings:
+                ring.close()
+        return 0
+
+
+def _set_parent_death_signal() -> None:
+    import ctypes
+    import ctypes.util
+    libc = ctypes.CDLL(ctypes.util.find_library('c'), use_errno=True)
+    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+
+
+def child_main() -> int:
+    """Entry point of the child (``python -m haptic_topology.device.loop_child``)."""
+    spec: LoopSpec = pickle.loads(sys.stdin.buffer.read())
+    child: _Child | None = None
+    term = [False]
+
+    def on_term(signum: int, frame: Any) -> None:     # the parent died (PR_SET_PDEATHSIG)
+        term[0] = True
+        if child is not None:
+            child.parent_gone = child.stop = True
+            child.runner.request_stop()
+
+    signal.signal(signal.SIGTERM, on_term)            # before the signal can come
+    signal.signal(signal.SIGINT, signal.SIG_IGN)      # the node's Ctrl-C stops us by request
+    _set_parent_death_signal()
+    if os.getppid() != spec.parent:         # the parent died before the signal was set
+        print(f'loop process {os.getpid()}: parent gone before the start: device not opened',
+              file=sys.stderr, flush=True)
+        return 1
+    child = _Child(spec)
+    if term[0]:
+        child.parent_gone = child.stop = True
+    return child.run()
+
+
+if __name__ == '__main__':
+    raise SystemExit(child_main())
+

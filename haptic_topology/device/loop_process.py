@@ -1,0 +1,425 @@
+"""The hosted 1 kHz loop in a process of its own: no GIL shared with ROS on the deadline path.
+
+With ``loop_process: true`` the hosted ``device_driver`` (the ROS node: lifecycle,
+parameters, topics, diagnostics) does not step the loop in a thread of its own process. At
+activation it starts a child, ``python -m haptic_topology.device.loop_child``, which imports
+no rclpy and runs the same :class:`~haptic_topology.device.hosted.HostedCycle` and
+:class:`~haptic_topology.device.runner.LoopRunner` (absolute deadlines, or lock-step) that
+``simulate`` and the in-process layout run, in its one thread, and owns the device backend.
+The two processes exchange fixed-layout records through shared-memory rings
+(:class:`~haptic_topology.device.shm_ring.ShmRing`, single producer / single consumer,
+torn reads detected), never a lock:
+
+* child -> node, one record per cycle (:class:`CycleCodec`: the state, the command, the hand
+  input for the VE); the node publishes them (``DeviceState``, ``DeviceCommand``, hand-input
+  batches). A full ring drops its oldest record and counts it (wall clock: the deadline never
+  waits for the node) or holds the loop until the node has taken some (lock-step: nothing
+  recorded is lost);
+* node -> child, LMI updates (pickled :class:`~haptic_topology.control.lmi.LmiSnapshot`,
+  applied at the start of the next cycle as in-process) and control requests (engagement
+  permission, a live change of law or gains, stop);
+* child -> node, a status record every :data:`STATUS_PERIOD` s: the loop's, the device's and
+  the controller's diagnostics values, and notices for the node's log.
+
+In lock-step each side wakes the other with an ``eventfd`` after writing (the child after a
+cycle's record, the node after an update); with the wall clock the node takes the records
+every few milliseconds and the child never makes a system call for it.
+
+Lifetimes: the node creates (and unlinks) the rings. The child stops at a stop request, or
+when its parent dies (``PR_SET_PDEATHSIG`` delivers SIGTERM, and the parent pid is checked
+every cycle), in both cases after writing zero wrench and releasing the device
+(:func:`~haptic_topology.device.backend.zero_and_release`). The node sees the child exit at
+its next check (every 20 ms) and reports it as the device's fault. The child unregisters the
+rings from its resource tracker (:meth:`ShmRing.attach`), so only the owner unlinks them:
+its :meth:`LoopProcess.close`, or its resource tracker when the node dies.
+
+In the child, after start-up, :func:`gc.freeze` moves every object built so far out of the
+collector's view and automatic collection is off; a young-generation collection runs every
+:data:`GC_EVERY` cycles right after a cycle, when the loop waits for its next deadline.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import select
+import subprocess
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from haptic_topology.control.controller import CycleOutput
+from haptic_topology.control.laws import ControlGains
+from haptic_topology.control.lmi import LmiSnapshot
+from haptic_topology.control.loop import Answer, ControllerLoop, HandSample
+from haptic_topology.device.backend import (
+    BackendConfig,
+    DeviceReading,
+)
+from haptic_topology.device.hosted import HostedStep
+from haptic_topology.device.loop import DeviceTick
+from haptic_topology.device.runner import Published, RunnerConfig
+from haptic_topology.device.shm_ring import ShmRing
+from haptic_topology.device.watchdog import WatchdogConfig
+from haptic_topology.errors import DeviceError
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
+
+#: Cycle records the ring keeps (4 s at 1 kHz), as the in-process outbox.
+CYCLE_RECORDS = 4096
+#: Seconds between two status records of the child.
+STATUS_PERIOD = 0.2
+#: Bytes of one status record (JSON) and of one control record (pickle).
+STATUS_BYTES = 1 << 16
+CONTROL_BYTES = 1 << 12
+#: LMI update records the ring keeps (0.3 s at 100 Hz).
+UPDATE_RECORDS = 32
+#: Cycles between two young-generation collections in the child.
+GC_EVERY = 1000
+#: How long the node waits for the child to stop after a stop request (s).
+STOP_TIMEOUT = 3.0
+
+# Integer fields of a cycle record, then flags of its optional parts.
+_INTS = ('stamp_ns', 'seq', 'run_index', 'status', 'reading_status', 'flags',
+         'state_seq', 'update_seq', 'mode', 'constraint_count', 'hand_seq', 'hand_state_seq')
+_HAS_ENV, _HAS_ANSWER, _HAS_HAND, _HAS_OUT_ENV = 1, 2, 4, 8
+# m-vectors of a cycle record: the state, the answer, the hand input.
+_VECS = ('pose', 'twist', 'hand_wrench', 'applied', 'env', 'wrench', 'coupling', 'vt_wrench',
+         'vt_pose', 'vt_twist', 'out_env', 'h_pose', 'h_twist', 'h_wrench', 'h_coupling',
+         'h_vt_wrench')
+
+
+def bytes_dtype(size: int) -> np.dtype[Any]:
+    return np.dtype([('n', '<i8'), ('b', 'u1', (size,))])
+
+
+def update_bytes(dof: int) -> int:
+    """Bytes of one LMI update record for a linkage of ``dof`` joints (the pickled snapshot:
+    mass matrix, Jacobians, contacts; an update that does not fit is refused, never cut)."""
+    return (1 << 16) + 16 * dof * (dof + 64)
+
+
+class CycleCodec:
+    """One :class:`~haptic_topology.device.runner.Published` cycle as a fixed-layout record
+    of task dimension ``m`` and back (ints: :data:`_INTS`; floats: the state's stamp, the
+    hand input's stamp, then the m-vectors :data:`_VECS`)."""
+
+    def __init__(self, m: int) -> None:
+        self.m = m
+        self.dtype = np.dtype([('i', '<i8', (len(_INTS),)),
+                               ('f', '<f8', (2 + len(_VECS) * m,))])
+        self._zero = np.zeros(m)
+
+    def encode(self, e: Published) -> tuple[list[int], np.ndarray]:
+        tick, ans = e.step.tick, e.step.answer
+        r, z = tick.reading, self._zero
+        flags = _HAS_ENV if tick.env_wrench is not None else 0
+        ints = [e.stamp_ns, tick.seq, tick.run_index, int(tick.status), int(r.status), 0,
+                0, -1, 0, 0, 0, 0]
+        vecs = [r.pose, r.twist, r.hand_wrench, tick.applied,
+                z if tick.env_wrench is None else tick.env_wrench]
+        hand_stamp = 0.0
+        if ans is None:
+            vecs += [z] * 11
+        else:
+            o, h = ans.out, ans.hand
+            flags |= _HAS_ANSWER | (_HAS_OUT_ENV if o.env_wrench is not None else 0)
+            ints[6:10] = [ans.state_seq, ans.update_seq, int(o.mode), o.constraint_count]
+            vecs += [o.wrench, o.coupling, o.vt_wrench, o.vt_pose, o.vt_twist,
+                     z if o.env_wrench is None else o.env_wrench]
+            if h is None:
+                vecs += [z] * 5
+            else:
+                flags |= _HAS_HAND
+                ints[10:12] = [h.seq, h.state_seq]
+                hand_stamp = h.stamp
+                vecs += [h.pose, h.twist, h.hand_wrench, h.coupling, h.vt_wrench]
+        ints[5] = flags
+        return ints, np.concatenate(([e.step.stamp, hand_stamp], *vecs))
+
+    def decode(self, rec: np.void) -> Published:
+        i = [int(x) for x in rec['i']]
+        f = rec['f']
+        m = self.m
+        v = {name: f[2 + k * m:2 + (k + 1) * m].copy() for k, name in enumerate(_VECS)}
+        flags = i[5]
+        reading = DeviceReading(v['pose'], v['twist'], v['hand_wrench'], DeviceStatus(i[4]))
+        tick = DeviceTick(i[1], i[2], reading, v['applied'], DeviceStatus(i[3]),
+                          v['env'] if flags & _HAS_ENV else None)
+        ans = None
+        if flags & _HAS_ANSWER:
+            out = CycleOutput(v['wrench'], v['coupling'], v['vt_wrench'], v['vt_pose'],
+                              v['vt_twist'], i[9], ControlMode(i[8]),
+                              v['out_env'] if flags & _HAS_OUT_ENV else None)
+            hand = (HandSample(i[10], i[11], float(f[1]), v['h_pose'], v['h_twist'],
+                               v['h_wrench'], v['h_coupling'], v['h_vt_wrench'])
+                    if flags & _HAS_HAND else None)
+            ans = Answer(i[6], out, hand, i[7])
+        return Published(HostedStep(tick, float(f[0]), ans, None, ()), i[0])
+
+
+def put_bytes(ring: ShmRing, data: bytes, what: str, overwrite: bool = True) -> bool:
+    """Put ``data`` into a ring of :func:`_bytes_dtype` records; too long is an error."""
+    size = ring.dtype['b'].shape[0]
+    if len(data) > size:
+        raise DeviceError(f'loop process: {what} of {len(data)} bytes exceeds its record '
+                          f'({size} bytes)')
+    rec = np.zeros((), ring.dtype)
+    rec['n'] = len(data)
+    rec['b'][:len(data)] = np.frombuffer(data, np.uint8)
+    return ring.put(rec, overwrite)
+
+
+def payloads(ring: ShmRing) -> list[bytes]:
+    return [bytes(r['b'][:int(r['n'])]) for r in ring.take()]
+
+
+@dataclass(frozen=True)
+class LoopSpec:
+    """What the child builds its loop from (pickled to its stdin): the backend (name and
+    configuration: the child opens the device), the device loop's limits, watchdog, period
+    and takeover time, the controller loop (built by the hosted ``lmi_controller``, never
+    stepped in the node), the runner's pacing, real-time options, ring names and wake-up
+    descriptors, and the parent's pid."""
+
+    backend: str
+    backend_config: BackendConfig
+    limit: np.ndarray
+    watchdog: WatchdogConfig
+    period: float
+    takeover_after: float
+    controller: ControllerLoop
+    runner: RunnerConfig
+    sched_priority: int
+    cpu_affinity: tuple[int, ...]
+    lock_memory: bool
+    rings: dict[str, str]
+    update_bytes: int
+    wake_node: int            # eventfd the child writes (lock-step: after each record)
+    wake_child: int           # eventfd the node writes (after an update or a request)
+    parent: int
+
+
+class LoopProcess:
+    """The node's handle of the child (see module doc), with the interface the node's
+    publishing thread and checks use of an in-process :class:`LoopRunner`: :meth:`start`,
+    :meth:`stop`, :meth:`drain`, :attr:`may_engage`, :attr:`finished`, :attr:`error`,
+    :meth:`device_values`, :attr:`notices`; and :meth:`offer_update`, :meth:`change_law`
+    for the hosted controller."""
+
+    def __init__(self, spec: dict[str, Any], task_dim: int, dof: int) -> None:
+        self._spec = spec          # LoopSpec fields but the rings, fds and parent
+        self.codec = CycleCodec(task_dim)
+        self._update_bytes = update_bytes(dof)
+        self.lockstep = bool(spec['runner'].lockstep)
+        self.notices: deque[str] = deque(maxlen=100)
+        self.status: dict[str, Any] = {}
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._rings: dict[str, ShmRing] = {}
+        self._fds: tuple[int, int] | None = None
+        self._may_engage = False
+        self._stopping = False
+        self.error: BaseException | None = None
+        self.taken = 0              # cycle records taken
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def start(self, name: str = 'device_loop', on_start: Any = None) -> None:
+        """Create the rings and start the child (``on_start`` is not used: the child applies
+        the real-time options itself)."""
+        if self.running:
+            raise RuntimeError('LoopProcess.start: already running')
+        self.close()
+        self.error = None
+        self._stopping = False
+        self.status = {}
+        self.taken = 0
+        self._rings = {
+            'cycles': ShmRing.create(self.codec.dtype, CYCLE_RECORDS),
+            'updates': ShmRing.create(bytes_dtype(self._update_bytes), UPDATE_RECORDS),
+            'control': ShmRing.create(bytes_dtype(CONTROL_BYTES), 64),
+            'status': ShmRing.create(bytes_dtype(STATUS_BYTES), 4),
+        }
+        self._fds = (os.eventfd(0, os.EFD_NONBLOCK), os.eventfd(0, os.EFD_NONBLOCK))
+        spec = LoopSpec(**self._spec, rings={k: r.name for k, r in self._rings.items()},
+                        update_bytes=self._update_bytes, wake_node=self._fds[0],
+                        wake_child=self._fds[1], parent=os.getpid())
+        self._proc = subprocess.Popen(
+            [sys.executable, '-m', 'haptic_topology.device.loop_child'],
+            stdin=subprocess.PIPE, pass_fds=self._fds, close_fds=True)
+        assert self._proc.stdin is not None
+        self._proc.stdin.write(pickle.dumps(spec))
+        self._proc.stdin.close()
+        self._request(('engage', self._may_engage))
+
+    def stop(self, timeout: float = STOP_TIMEOUT) -> None:
+        """Ask the child to stop (it zeroes and releases the device) and wait for it."""
+        proc = self._proc
+        if proc is None or proc.poll() is not None:
+            return
+        self._stopping = True
+        self._request(('stop',))
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            raise RuntimeError(f'loop process did not stop within {timeout} s: killed') from None
+        finally:
+            self._poll_status()
+
+    def close(self) -> None:
+        """Unlink the rings and close the descriptors (after :meth:`stop`, or at shutdown)."""
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+        for ring in self._rings.values():
+            ring.close()
+        self._rings = {}
+        if self._fds is not None:
+            for fd in self._fds:
+                os.close(fd)
+            self._fds = None
+
+    def ring_names(self) -> list[str]:
+        """The shared-memory segments of the rings (``/dev/shm/<name>``)."""
+        return [r.name for r in self._rings.values()]
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    @property
+    def running(self) -> bool:
+        """The child runs (and has not finished its run)."""
+        return self._proc is not None and self._proc.poll() is None
+
+    def check(self) -> None:
+        """Sets :attr:`error` when the child exited without being asked to."""
+        proc = self._proc
+        if proc is not None and not self._stopping and proc.poll() is not None \
+                and self.error is None and not self.finished:
+            self.error = DeviceError(f'loop process {proc.pid} exited with code '
+                                     f'{proc.returncode}: device output lost')
+
+    # -- requests --------------------------------------------------------------------------------
+    def _request(self, item: tuple[Any, ...]) -> None:
+        ring = self._rings.get('control')
+        if ring is None:
+            return
+        if not put_bytes(ring, pickle.dumps(item), 'control request', overwrite=False):
+            raise DeviceError('loop process: control ring full (the child does not read it)')
+        self._wake_child()
+
+    def _wake_child(self) -> None:
+        if self._fds is not None:
+            os.eventfd_write(self._fds[1], 1)
+
+    @property
+    def may_engage(self) -> bool:
+        return self._may_engage
+
+    @may_engage.setter
+    def may_engage(self, value: bool) -> None:
+        if bool(value) != self._may_engage:
+            self._may_engage = bool(value)
+            self._request(('engage', self._may_engage))
+
+    def offer_update(self, snap: LmiSnapshot) -> None:
+        """Hand an LMI update to the child (applied at the start of its next cycle)."""
+        ring = self._rings.get('updates')
+        if ring is None:
+            return
+        if not put_bytes(ring, pickle.dumps(snap, protocol=pickle.HIGHEST_PROTOCOL),
+                         'LMI update', overwrite=False):
+            self.notices.append('loop process: update ring full, update dropped (the loop '
+                                'is not stepping)')
+        self._wake_child()
+
+    def change_law(self, gains: ControlGains, mode: ControlMode) -> None:
+        """A live change of gains and mode, applied between two cycles."""
+        self._request(('law', gains, mode))
+
+    # -- what the child produced ---------------------------------------------------------------
+    def wait(self, timeout: float) -> None:
+        """Block until the child signals a record (lock-step) or ``timeout`` s."""
+        if self._fds is None:
+            time.sleep(timeout)
+            return
+        ready, _, _ = select.select([self._fds[0]], [], [], timeout)
+        if ready:
+            try:
+                os.eventfd_read(self._fds[0])
+            except BlockingIOError:
+                pass
+
+    def drain(self) -> list[Published]:
+        """The cycles the child has produced since the last call, oldest first."""
+        ring = self._rings.get('cycles')
+        if ring is None:
+            return []
+        recs = ring.take()
+        self.taken += len(recs)
+        self._poll_status()
+        return [self.codec.decode(r) for r in recs]
+
+    def _poll_status(self) -> None:
+        ring = self._rings.get('status')
+        if ring is None:
+            return
+        for data in payloads(ring):
+            status = json.loads(data)
+            self.notices.extend(status.pop('notices', []))
+            self.status = status
+
+    @property
+    def outbox(self) -> int:
+        """Cycle records not taken yet."""
+        ring = self._rings.get('cycles')
+        return 0 if ring is None else ring.pending
+
+    @property
+    def appended(self) -> int:
+        ring = self._rings.get('cycles')
+        return self.taken if ring is None else ring.written
+
+    @property
+    def outbox_dropped(self) -> int:
+        ring = self._rings.get('cycles')
+        return 0 if ring is None else ring.lost
+
+    @property
+    def finished(self) -> bool:
+        return bool(self.status.get('finished'))
+
+    @property
+    def lockstep_timeouts(self) -> int:
+        return int(self.status.get('lockstep_timeouts', 0))
+
+    def device_values(self) -> dict[str, str]:
+        out = dict(self.status.get('device', {}))
+        out.update({'loop_process_pid': str(self.pid or 0),
+                    'loop_records_lost': str(self.outbox_dropped)})
+        return out
+
+    def device_report(self, fault: str, rejected: int) -> tuple[int, str, dict[str, str]]:
+        """The device's diagnostics as the child last reported them (see
+        :func:`~haptic_topology.device.loop.device_report`), with the node's ``fault`` and
+        its ``rejected`` messages."""
+        level, message, values = self.status.get('report', (1, 'loop process starting', {}))
+        values = dict(values)
+        values['rejected_commands'] = str(int(values.get('rejected_commands', 0)) + rejected)
+        if fault:
+            level, message = 2, f'fault: {fault}'
+        return int(level), str(message), values
+
+    def controller_values(self) -> dict[str, str]:
+        """The controller loop's diagnostics values as the child last reported them."""
+        return dict(self.status.get('controller', {}))
+
+    def controller_health(self) -> tuple[int, str] | None:
+        h = self.status.get('health')
+        return None if h is None else (int(h[0]), str(h[1]))

@@ -1,0 +1,169 @@
+"""The loop process (``haptic_topology/device/loop_process.py``) without ROS: the cycle
+record's round trip, lock-step through the child equal to ``simulate`` at every cycle, and
+either side killed (the other sees it; the child zeroes the device; nothing is left in
+/dev/shm)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from loop_specs import spec_for
+
+from haptic_topology.control.controller import CycleOutput
+from haptic_topology.control.loop import Answer, HandSample
+from haptic_topology.device.backend import DeviceReading
+from haptic_topology.device.hosted import HostedStep
+from haptic_topology.device.loop import DeviceTick
+from haptic_topology.device.loop_process import CycleCodec, LoopProcess
+from haptic_topology.device.runner import Published
+from haptic_topology.errors import DeviceError
+from haptic_topology.sim.lockstep import simulate, virtual_environment
+from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
+
+SUPPORT = Path(__file__).resolve().parents[2] / 'support'
+
+
+def _v(*x: float) -> np.ndarray:
+    return np.array(x, dtype=float)
+
+
+def test_cycle_record_round_trip() -> None:
+    codec = CycleCodec(3)
+    reading = DeviceReading(_v(1, 2, 3), _v(4, 5, 6), _v(7, 8, 9), DeviceStatus.SATURATED)
+    tick = DeviceTick(41, 40, reading, _v(0.1, 0.2, 0.3), DeviceStatus.WATCHDOG, _v(1, 1, 1))
+    out = CycleOutput(_v(1, 0, 0), _v(2, 0, 0), _v(3, 0, 0), _v(4, 0, 0), _v(5, 0, 0), 1,
+                      ControlMode.ACCELERATION_ONLY, None)
+    hand = HandSample(7, 41, 0.04, _v(1, 2, 3), _v(4, 5, 6), _v(7, 8, 9), _v(2, 0, 0),
+                      _v(3, 0, 0))
+    full = Published(HostedStep(tick, 0.04, Answer(41, out, hand, 12), None, ()),
+                     40_000_000)
+    bare = Published(HostedStep(replace(tick, env_wrench=None), 0.0, None, None, ()), 0)
+    for e in (full, bare):
+        ints, floats = codec.encode(e)
+        rec = np.zeros((), codec.dtype)
+        rec['i'], rec['f'] = ints, floats
+        back = codec.decode(rec)
+        assert back.stamp_ns == e.stamp_ns and back.step.stamp == e.step.stamp
+        t, t0 = back.step.tick, e.step.tick
+        assert (t.seq, t.run_index, t.status, t.reading.status) == (
+            t0.seq, t0.run_index, t0.status, t0.reading.status)
+        for a, b in ((t.reading.pose, t0.reading.pose), (t.applied, t0.applied)):
+            np.testing.assert_array_equal(a, b)
+        assert (t.env_wrench is None) == (t0.env_wrench is None)
+        assert (back.step.answer is None) == (e.step.answer is None)
+    a = codec.decode(_record(codec, full)).step.answer
+    assert a is not None and a.hand is not None
+    assert (a.state_seq, a.update_seq, a.out.mode, a.out.constraint_count) == (
+        41, 12, ControlMode.ACCELERATION_ONLY, 1)
+    assert a.out.env_wrench is None
+    assert (a.hand.seq, a.hand.state_seq, a.hand.stamp) == (7, 41, 0.04)
+    np.testing.assert_array_equal(a.hand.vt_wrench, hand.vt_wrench)
+
+
+def _record(codec: CycleCodec, e: Published) -> np.void:
+    rec = np.zeros((), codec.dtype)
+    rec['i'], rec['f'] = codec.encode(e)
+    return rec[()]
+
+
+@pytest.mark.parametrize('name', ['fig8', 'wall', 'panda_link4'])
+def test_lockstep_through_the_loop_process_equals_simulate(name: str) -> None:
+    """The child runs the cycle, this process runs the VE as ``simulate`` does (each hand
+    input taken in order, an update offered after every update_period inputs): the device
+    poses and commands equal ``simulate``'s at every cycle, bit for bit."""
+    duration = 0.3
+    sc = replace(load_scenario(name), duration=duration)
+    offline = simulate(sc)
+    spec, dim, dof = spec_for(name, lockstep=True, duration=duration)
+    ve = virtual_environment(sc)
+    proc = LoopProcess(spec, dim, dof)
+    proc.may_engage = True                      # sent at start
+    rows: list[Published] = []
+    inputs, update_seq = 0, 1
+    proc.start()
+    try:
+        proc.offer_update(ve.snapshot(seq=0))
+        deadline = time.monotonic() + 120.0
+        while len(rows) < len(offline) and time.monotonic() < deadline:
+            proc.check()
+            assert proc.error is None, proc.error
+            proc.wait(0.05)
+            for e in proc.drain():
+                ans = e.step.answer
+                if e.step.tick.run_index >= 0:
+                    rows.append(e)
+                if ans is not None and ans.hand is not None:
+                    h = ans.hand
+                    ve.push_input(h.state_seq, h.stamp, h.vt_wrench)
+                    inputs += 1
+                    if inputs % sc.update_period == 0:
+                        proc.offer_update(ve.snapshot(seq=update_seq))
+                        update_seq += 1
+        proc.stop()
+    finally:
+        proc.close()
+    assert len(rows) >= len(offline)
+    rows = rows[:len(offline)]
+    pose = np.array([e.step.tick.reading.pose for e in rows])
+    cmd = np.array([e.step.answer.out.wrench for e in rows if e.step.answer is not None])
+    np.testing.assert_array_equal(pose, offline.columns['device_pose'])
+    np.testing.assert_array_equal(cmd, offline.columns['command'])
+    assert [e.stamp_ns for e in rows] == [round(k * sc.dt * 1e9) for k in range(len(rows))]
+
+
+def _segments(names: list[str]) -> list[str]:
+    return [n for n in names if (Path('/dev/shm') / n.lstrip('/')).exists()]
+
+
+def test_a_killed_child_is_a_fault_and_close_leaves_no_segment() -> None:
+    spec, dim, dof = spec_for('fig8', lockstep=False, duration=0.0)
+    proc = LoopProcess(spec, dim, dof)
+    proc.start()
+    names = proc.ring_names()
+    try:
+        assert len(_segments(names)) == 4
+        deadline = time.monotonic() + 30.0
+        while not proc.status and time.monotonic() < deadline:     # running: reports
+            proc.wait(0.05)
+            proc.drain()
+        assert proc.status and proc.error is None
+        os.kill(proc.pid or 0, signal.SIGKILL)
+        while proc.error is None and time.monotonic() < deadline:
+            time.sleep(0.002)
+            proc.check()
+        assert isinstance(proc.error, DeviceError) and 'exited with code -9' in str(proc.error)
+    finally:
+        proc.close()
+    assert _segments(names) == []
+
+
+def test_a_killed_parent_stops_the_child_with_zero_output_and_no_segment_left() -> None:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(SUPPORT), *filter(None, [os.environ.get('PYTHONPATH')])]))
+    parent = subprocess.Popen([sys.executable, str(SUPPORT / 'loop_parent.py')],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                              env=env)
+    assert parent.stdout is not None
+    first = parent.stdout.readline().split()
+    child, names = int(first[0]), first[1:]
+    assert len(_segments(names)) == 4
+    parent.kill()
+    parent.wait()
+    rest = parent.stdout.read()         # the child's last words (it shares the pipe)
+    deadline = time.monotonic() + 30.0
+    while Path(f'/proc/{child}').exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not Path(f'/proc/{child}').exists()
+    assert 'parent gone: output zeroed, device released' in rest, rest
+    while _segments(names) and time.monotonic() < deadline:   # the parent's tracker
+        time.sleep(0.01)
+    assert _segments(names) == []
