@@ -27,8 +27,8 @@ sys.path.insert(0, str(SUPPORT))
 
 @pytest.fixture(scope='session')
 def spare_domains(ros_domain_env: dict[str, str]) -> Iterator[list[int]]:
-    """Ten more domain ids held by this session, for graphs that run at the same time."""
-    locks = [_lock_domain() for _ in range(10)]
+    """Twelve more domain ids held by this session, for graphs that run at the same time."""
+    locks = [_lock_domain() for _ in range(12)]
     try:
         yield [d for d, _ in locks]
     finally:

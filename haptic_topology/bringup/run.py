@@ -4,7 +4,9 @@ Starts the graph in one of three layouts (``--layout``): ``hosted`` (default): `
 ``ve_sim`` and ``device_driver``, which runs ``lmi_controller`` in its process and the 1 kHz
 cycle in one loop thread (``device_driver.host_controller``); ``separate``: the four nodes as
 four processes, the state -> command hop over DDS; ``composed``: all four in one process on
-one executor (``--composed`` is short for it; the driver hosts the controller). All with
+one executor (``--composed`` is short for it; the driver hosts the controller); ``process``:
+as ``hosted``, the cycle in the driver's loop process (``device_driver.loop_process``: a child
+without rclpy, shared memory to the node). All with
 the params file (default ``config/haptic_topology.yaml``) plus ``scenario``, ``clock``
 (``wall`` or ``lockstep``), the controller's ``mode``, the recorder's ``output``,
 ``device_driver.min_subscribers = 2`` (controller and recorder must see the device before it
@@ -49,7 +51,7 @@ NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
 CLOCKS = ('wall', 'lockstep')
 #: Layout -> the processes it starts (node modules), in start order.
 LAYOUTS = {'hosted': ('recorder', 've_sim', 'device_driver'), 'separate': NODES,
-           'composed': ('composed',)}
+           'composed': ('composed',), 'process': ('recorder', 've_sim', 'device_driver')}
 
 
 #: Default port of ``--foxglove`` (the Foxglove app's default for a WebSocket connection).
@@ -204,6 +206,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
            '-p', f'recorder:output:={bag}', '-p', 'device_driver:min_subscribers:=2',
            '-p', f'device_driver:run_duration:={float(duration)!r}',
            '-p', f'device_driver:host_controller:={host}']
+    if layout == 'process':
+        ros += ['-p', 'device_driver:loop_process:=true']
     if clock == 'lockstep':
         ros += ['-p', 'lmi_controller:use_sim_time:=true', '-p', 've_sim:use_sim_time:=true']
     if backend:

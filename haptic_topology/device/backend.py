@@ -107,6 +107,9 @@ class DeviceBackend(ABC):
     #: advances only when read, by the ``dt`` it is given. False for a device that runs on its
     #: own clock (a real one, a remote server): the driver refuses lock-step with it.
     lockstep: ClassVar[bool] = True
+    #: Whether the backend uses rclpy itself (a node of its own in the driver's process): then
+    #: it cannot run in the loop process (``loop_process``), which imports no rclpy.
+    needs_ros: ClassVar[bool] = False
 
     @abstractmethod
     def configure(self, config: BackendConfig) -> None:

@@ -77,7 +77,7 @@ _KEEP = 4096
 #: costs ~0.7 us, ``int(status) & _FAULT_BIT`` ~0.07 us).
 _FAULT_BIT = int(DeviceStatus.FAULT)
 #: Round-trip samples kept for the run's percentiles (10 min at 1 kHz).
-_RTT_KEEP = 600_000
+RTT_KEEP = 600_000
 #: Default silence (s) of the followed controller after which another controller's command
 #: may take the device over (see module doc): 100 watchdog timeouts, 10 fade ramps of the
 #: shipped parameters, and shorter than a controller process needs to restart (2-4 s).
@@ -147,8 +147,9 @@ class DeviceLoop:
         self._cmd_seq = 0
         self._twist = np.zeros(m)
         self._publish_times = np.zeros(_KEEP)
-        self._rtt = np.zeros(_RTT_KEEP)
+        self._rtt = np.zeros(RTT_KEEP)
         self._rtt_n = 0
+        self._rtt_max = math.nan
         self.answered = 0             # the command for state k arrived before tick k+1
         self.answered_previous = 0    # ... or the one for state k-1
         self.expected = 0
@@ -190,8 +191,11 @@ class DeviceLoop:
         if not other:
             self._heard = now
         if state_seq > self.seq - _KEEP:
-            self._rtt[self._rtt_n % _RTT_KEEP] = now - self._publish_times[state_seq % _KEEP]
+            rtt = now - self._publish_times[state_seq % _KEEP]
+            self._rtt[self._rtt_n % RTT_KEEP] = rtt
             self._rtt_n += 1
+            if not rtt <= self._rtt_max:
+                self._rtt_max = rtt
         if state_seq <= self._cmd_seq:
             return CommandVerdict.OLD
         if other:                     # silent long enough: this controller takes over
@@ -285,23 +289,40 @@ class DeviceLoop:
                           DeviceStatus(status | reading.status), env)
 
     # -- statistics --------------------------------------------------------------------------
-    def figures(self) -> dict[str, float]:
-        """Answered fractions and round-trip percentiles (ms) over the run so far."""
-        n = min(self._rtt_n, _RTT_KEEP)
+    @property
+    def round_trips(self) -> tuple[np.ndarray, int]:
+        """The round-trip buffer (s, a ring of the newest answers) and how many it has held."""
+        return self._rtt, self._rtt_n
+
+    def use_round_trip_buffer(self, buf: np.ndarray) -> None:
+        """Keep the round trips in ``buf`` (zeroed, :data:`RTT_KEEP` float64; e.g. shared
+        memory that another process reads, so the loop never sorts them itself)."""
+        if buf.shape != (RTT_KEEP,) or buf.dtype != np.float64:
+            raise ValueError(f'round-trip buffer must be {RTT_KEEP} float64, got '
+                             f'{buf.shape} {buf.dtype}')
+        buf[:] = 0.0
+        self._rtt, self._rtt_n = buf, 0
+
+    def figures(self, percentiles: bool = True) -> dict[str, float]:
+        """Answered fractions and round-trip percentiles (ms) over the run so far
+        (``percentiles=False``: NaN for them; sorting the buffer takes milliseconds)."""
+        n = min(self._rtt_n, RTT_KEEP)
         rtt = self._rtt[:n]
         exp = self.expected
+        p50, p99 = ((1e3 * float(v) for v in np.percentile(rtt, [50, 99])) if n and percentiles
+                    else (math.nan, math.nan))
         return {
             'answered_fraction': self.answered / exp if exp else math.nan,
             'answered_or_previous_fraction': self.answered_previous / exp if exp else math.nan,
-            'round_trip_p50_ms': 1e3 * float(np.percentile(rtt, 50)) if n else math.nan,
-            'round_trip_p99_ms': 1e3 * float(np.percentile(rtt, 99)) if n else math.nan,
-            'round_trip_max_ms': 1e3 * float(rtt.max()) if n else math.nan,
+            'round_trip_p50_ms': p50,
+            'round_trip_p99_ms': p99,
+            'round_trip_max_ms': 1e3 * self._rtt_max,
             'max_consecutive_missed': float(self.max_missed_run),
         }
 
-    def values(self, now: float) -> dict[str, str]:
-        """Loop figures as diagnostics key/values."""
-        f = self.figures()
+    def values(self, now: float, percentiles: bool = True) -> dict[str, str]:
+        """Loop figures as diagnostics key/values (``percentiles``: see :meth:`figures`)."""
+        f = self.figures(percentiles)
         return {
             'seq': str(self.seq),
             'engaged_seq': str(self.engaged_seq),
@@ -353,7 +374,8 @@ def hardware_id(backend: DeviceBackend | None, backend_name: str) -> str:
 
 
 def device_report(loop: DeviceLoop | None, now: float, fault: str, rejected: int,
-                  layout_values: dict[str, str]) -> tuple[int, str, dict[str, str]]:
+                  layout_values: dict[str, str], percentiles: bool = True
+                  ) -> tuple[int, str, dict[str, str]]:
     """The device side's diagnostics ``(level, message, values)``: ERROR with ``fault`` (a
     failed transition or loop), WARN while not configured (``loop`` None), else
     :meth:`DeviceLoop.health` (ERROR while the device reports a fault). ``rejected``: commands
@@ -362,7 +384,7 @@ def device_report(loop: DeviceLoop | None, now: float, fault: str, rejected: int
     level, message = (2, f'fault: {fault}') if fault else (1, 'not configured')
     values = {'rejected_commands': str(rejected)}
     if loop is not None:
-        values.update(loop.values(now))
+        values.update(loop.values(now, percentiles))
         values.update(loop.backend.values())
         values['rejected_commands'] = str(rejected + loop.rejected_commands)
         values.update(layout_values)

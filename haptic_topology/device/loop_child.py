@@ -22,11 +22,13 @@ import sys
 import time
 from typing import Any
 
+import numpy as np
+
 from haptic_topology.control.loop import ControllerLoop
 from haptic_topology.control.port import HEALTH_MESSAGES
 from haptic_topology.device.backend import create_backend, zero_and_release
 from haptic_topology.device.hosted import HostedCycle
-from haptic_topology.device.loop import DeviceLoop, device_report
+from haptic_topology.device.loop import RTT_KEEP, DeviceLoop, device_report
 from haptic_topology.device.loop_process import (
     CONTROL_BYTES,
     CYCLE_RECORDS,
@@ -40,9 +42,10 @@ from haptic_topology.device.loop_process import (
     payloads,
     put_bytes,
 )
+from haptic_topology.device.pacing import PERIOD_WINDOW
 from haptic_topology.device.realtime import name_os_thread, set_thread_realtime
 from haptic_topology.device.runner import LoopRunner
-from haptic_topology.device.shm_ring import ShmRing
+from haptic_topology.device.shm_ring import SharedArray, ShmRing
 from haptic_topology.device.watchdog import CommandWatchdog
 
 _PR_SET_PDEATHSIG = 1
@@ -102,6 +105,11 @@ class _Child:
         self.cycle = _RingCycle(self.device, spec.controller, updates, spec.wake_child,
                                 self.poll_control)
         self.runner = LoopRunner(self.cycle, spec.runner, wake=self.flush)
+        # The statistics the node sorts for the percentiles, in memory it reads.
+        self.arrays = [SharedArray.attach(spec.periods, PERIOD_WINDOW),
+                       SharedArray.attach(spec.round_trips, RTT_KEEP)]
+        self.runner.pacer.use_period_buffer(self.arrays[0].array)
+        self.device.use_round_trip_buffer(self.arrays[1].array)
         self.notices: list[str] = []
         self.stop = False
         self.parent_gone = False
@@ -109,7 +117,9 @@ class _Child:
 
     def poll_control(self) -> None:
         for data in payloads(self.control):
-            item = pickle.loads(data)
+            generation, *item = pickle.loads(data)
+            if generation != self.spec.generation:
+                continue            # for the child before this one
             if item[0] == 'engage':
                 self.runner.may_engage = bool(item[1])
             elif item[0] == 'law':
@@ -144,8 +154,12 @@ class _Child:
         r.notices.clear()
         self.notices.extend(c.notices)
         c.notices.clear()
-        level, message, values = device_report(self.device, now, '', 0, r.device_values())
-        status = {'device': r.device_values(), 'report': [level, message, values],
+        device = r.device_values(percentiles=False)
+        level, message, values = device_report(self.device, now, '', 0, device,
+                                               percentiles=False)
+        status = {'device': device, 'report': [level, message, values],
+                  'n_periods': r.pacer.periods[1], 'n_round_trips': self.device.round_trips[1],
+                  'hardware_id': self.backend.hardware_id,
                   'controller': c.values(loop_now),
                   'health': list(HEALTH_MESSAGES[c.guard.health(loop_now)]),
                   'finished': r.finished, 'lockstep_timeouts': r.lockstep_timeouts,
@@ -190,6 +204,10 @@ class _Child:
             self.backend.cleanup()
             for ring in self.rings:
                 ring.close()
+            self.runner.pacer.use_period_buffer(np.zeros(PERIOD_WINDOW))
+            self.device.use_round_trip_buffer(np.zeros(RTT_KEEP))
+            for arr in self.arrays:
+                arr.close()
         return 0
 
 

@@ -46,6 +46,7 @@ import pickle
 import select
 import subprocess
 import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -61,10 +62,11 @@ from haptic_topology.device.backend import (
     BackendConfig,
     DeviceReading,
 )
-from haptic_topology.device.hosted import HostedStep
-from haptic_topology.device.loop import DeviceTick
+from haptic_topology.device.hosted import MAX_PENDING, HostedStep
+from haptic_topology.device.loop import RTT_KEEP, DeviceTick
+from haptic_topology.device.pacing import PERIOD_WINDOW
 from haptic_topology.device.runner import Published, RunnerConfig
-from haptic_topology.device.shm_ring import ShmRing
+from haptic_topology.device.shm_ring import SharedArray, ShmRing
 from haptic_topology.device.watchdog import WatchdogConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
@@ -202,10 +204,14 @@ class LoopSpec:
     wake_node: int            # eventfd the child writes (lock-step: after each record)
     wake_child: int           # eventfd the node writes (after an update or a request)
     parent: int
+    generation: int           # the child's number: requests for an earlier one are ignored
+    periods: str              # shared arrays the child's statistics live in (the node sorts
+    round_trips: str          # them for the percentiles, never the loop)
 
 
 class LoopProcess:
-    """The node's handle of the child (see module doc), with the interface the node's
+    """The node's handle of the child (see module doc; a deactivation stops the child, an
+    activation starts a new one on the same rings), with the interface the node's
     publishing thread and checks use of an in-process :class:`LoopRunner`: :meth:`start`,
     :meth:`stop`, :meth:`drain`, :attr:`may_engage`, :attr:`finished`, :attr:`error`,
     :meth:`device_values`, :attr:`notices`; and :meth:`offer_update`, :meth:`change_law`
@@ -220,11 +226,16 @@ class LoopProcess:
         self.status: dict[str, Any] = {}
         self._proc: subprocess.Popen[bytes] | None = None
         self._rings: dict[str, ShmRing] = {}
+        self._arrays: dict[str, SharedArray] = {}
         self._fds: tuple[int, int] | None = None
         self._may_engage = False
         self._stopping = False
         self.error: BaseException | None = None
         self.taken = 0              # cycle records taken
+        self.generation = 0         # children started (requests carry it)
+        self._pending: deque[bytes] = deque(maxlen=MAX_PENDING)    # updates, pickled
+        self.updates_dropped = 0
+        self._status_lock = threading.Lock()    # the status ring's one consumer at a time
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self, name: str = 'device_loop', on_start: Any = None) -> None:
@@ -232,21 +243,25 @@ class LoopProcess:
         the real-time options itself)."""
         if self.running:
             raise RuntimeError('LoopProcess.start: already running')
-        self.close()
         self.error = None
         self._stopping = False
-        self.status = {}
-        self.taken = 0
-        self._rings = {
-            'cycles': ShmRing.create(self.codec.dtype, CYCLE_RECORDS),
-            'updates': ShmRing.create(bytes_dtype(self._update_bytes), UPDATE_RECORDS),
-            'control': ShmRing.create(bytes_dtype(CONTROL_BYTES), 64),
-            'status': ShmRing.create(bytes_dtype(STATUS_BYTES), 4),
-        }
-        self._fds = (os.eventfd(0, os.EFD_NONBLOCK), os.eventfd(0, os.EFD_NONBLOCK))
+        self.generation += 1
+        if not self._rings:     # kept over a deactivation: the node's thread may drain them
+            self._rings = {
+                'cycles': ShmRing.create(self.codec.dtype, CYCLE_RECORDS),
+                'updates': ShmRing.create(bytes_dtype(self._update_bytes), UPDATE_RECORDS),
+                'control': ShmRing.create(bytes_dtype(CONTROL_BYTES), 64),
+                'status': ShmRing.create(bytes_dtype(STATUS_BYTES), 4),
+            }
+            self._fds = (os.eventfd(0, os.EFD_NONBLOCK), os.eventfd(0, os.EFD_NONBLOCK))
+            self._arrays = {'periods': SharedArray.create(PERIOD_WINDOW),
+                            'round_trips': SharedArray.create(RTT_KEEP)}
+        assert self._fds is not None
         spec = LoopSpec(**self._spec, rings={k: r.name for k, r in self._rings.items()},
                         update_bytes=self._update_bytes, wake_node=self._fds[0],
-                        wake_child=self._fds[1], parent=os.getpid())
+                        wake_child=self._fds[1], parent=os.getpid(),
+                        generation=self.generation, periods=self._arrays['periods'].name,
+                        round_trips=self._arrays['round_trips'].name)
         self._proc = subprocess.Popen(
             [sys.executable, '-m', 'haptic_topology.device.loop_child'],
             stdin=subprocess.PIPE, pass_fds=self._fds, close_fds=True)
@@ -279,6 +294,9 @@ class LoopProcess:
         for ring in self._rings.values():
             ring.close()
         self._rings = {}
+        for arr in self._arrays.values():
+            arr.close()
+        self._arrays = {}
         if self._fds is not None:
             for fd in self._fds:
                 os.close(fd)
@@ -286,7 +304,7 @@ class LoopProcess:
 
     def ring_names(self) -> list[str]:
         """The shared-memory segments of the rings (``/dev/shm/<name>``)."""
-        return [r.name for r in self._rings.values()]
+        return [r.name for r in self._rings.values()] + [a.name for a in self._arrays.values()]
 
     @property
     def pid(self) -> int | None:
@@ -298,10 +316,14 @@ class LoopProcess:
         return self._proc is not None and self._proc.poll() is None
 
     def check(self) -> None:
-        """Sets :attr:`error` when the child exited without being asked to."""
+        """Sets :attr:`error` when the child exited without being asked to; moves waiting
+        updates into the ring (executor thread, every 20 ms)."""
+        self.flush_updates()
         proc = self._proc
-        if proc is not None and not self._stopping and proc.poll() is not None \
-                and self.error is None and not self.finished:
+        if proc is None or self._stopping or proc.poll() is None or self.error is not None:
+            return
+        self._poll_status()             # its last status: did it finish its run?
+        if not self.finished:
             self.error = DeviceError(f'loop process {proc.pid} exited with code '
                                      f'{proc.returncode}: device output lost')
 
@@ -310,7 +332,8 @@ class LoopProcess:
         ring = self._rings.get('control')
         if ring is None:
             return
-        if not put_bytes(ring, pickle.dumps(item), 'control request', overwrite=False):
+        if not put_bytes(ring, pickle.dumps((self.generation, *item)), 'control request',
+                         overwrite=False):
             raise DeviceError('loop process: control ring full (the child does not read it)')
         self._wake_child()
 
@@ -329,15 +352,29 @@ class LoopProcess:
             self._request(('engage', self._may_engage))
 
     def offer_update(self, snap: LmiSnapshot) -> None:
-        """Hand an LMI update to the child (applied at the start of its next cycle)."""
+        """Hand an LMI update to the child (applied at the start of its next cycle, after
+        every update offered before it). While the ring is full (the child starting up, or
+        not stepping) updates wait here, at most :data:`~haptic_topology.device.hosted.
+        MAX_PENDING` (then the oldest is dropped and counted, as in-process). Call from one
+        thread (the executor's), as :meth:`flush_updates`."""
+        if len(self._pending) == self._pending.maxlen:
+            self.updates_dropped += 1
+        self._pending.append(pickle.dumps(snap, protocol=pickle.HIGHEST_PROTOCOL))
+        self.flush_updates()
+
+    def flush_updates(self) -> None:
+        """Move waiting updates into the ring as room allows (the node's check timer calls
+        this too, so the last update of a burst is not left waiting)."""
         ring = self._rings.get('updates')
         if ring is None:
             return
-        if not put_bytes(ring, pickle.dumps(snap, protocol=pickle.HIGHEST_PROTOCOL),
-                         'LMI update', overwrite=False):
-            self.notices.append('loop process: update ring full, update dropped (the loop '
-                                'is not stepping)')
-        self._wake_child()
+        moved = False
+        while self._pending and put_bytes(ring, self._pending[0], 'LMI update',
+                                          overwrite=False):
+            self._pending.popleft()
+            moved = True
+        if moved:
+            self._wake_child()
 
     def change_law(self, gains: ControlGains, mode: ControlMode) -> None:
         """A live change of gains and mode, applied between two cycles."""
@@ -367,13 +404,14 @@ class LoopProcess:
         return [self.codec.decode(r) for r in recs]
 
     def _poll_status(self) -> None:
-        ring = self._rings.get('status')
-        if ring is None:
-            return
-        for data in payloads(ring):
-            status = json.loads(data)
-            self.notices.extend(status.pop('notices', []))
-            self.status = status
+        with self._status_lock:
+            ring = self._rings.get('status')
+            if ring is None:
+                return
+            for data in payloads(ring):
+                status = json.loads(data)
+                self.notices.extend(status.pop('notices', []))
+                self.status = status
 
     @property
     def outbox(self) -> int:
@@ -399,10 +437,30 @@ class LoopProcess:
     def lockstep_timeouts(self) -> int:
         return int(self.status.get('lockstep_timeouts', 0))
 
+    def _percentiles(self, values: dict[str, str]) -> dict[str, str]:
+        """``values`` with the period and round-trip percentiles (ms) of the child's shared
+        statistics (the child reports them as NaN: sorting is this process's job)."""
+        out = dict(values)
+        for name, n_key, keys in (
+                ('periods', 'n_periods', ('period', 'loop_period')),
+                ('round_trips', 'n_round_trips', ('round_trip',))):
+            arr = self._arrays.get(name)
+            n = min(int(self.status.get(n_key, 0)), 0 if arr is None else arr.array.size)
+            if arr is None or n == 0:
+                continue
+            p50, p99 = (1e3 * float(v) for v in np.percentile(arr.array[:n], [50, 99]))
+            for key in keys:
+                if f'{key}_p50_ms' in out:
+                    out[f'{key}_p50_ms'], out[f'{key}_p99_ms'] = f'{p50:.3f}', f'{p99:.3f}'
+        return out
+
     def device_values(self) -> dict[str, str]:
-        out = dict(self.status.get('device', {}))
+        out = self._percentiles(self.status.get('device', {}))
         out.update({'loop_process_pid': str(self.pid or 0),
-                    'loop_records_lost': str(self.outbox_dropped)})
+                    'loop_records_lost': str(self.outbox_dropped),
+                    'updates_waiting': str(len(self._pending)),
+                    'updates_dropped': str(int(out.get('updates_dropped', 0))
+                                           + self.updates_dropped)})
         return out
 
     def device_report(self, fault: str, rejected: int) -> tuple[int, str, dict[str, str]]:
@@ -410,7 +468,7 @@ class LoopProcess:
         :func:`~haptic_topology.device.loop.device_report`), with the node's ``fault`` and
         its ``rejected`` messages."""
         level, message, values = self.status.get('report', (1, 'loop process starting', {}))
-        values = dict(values)
+        values = self._percentiles(values)
         values['rejected_commands'] = str(int(values.get('rejected_commands', 0)) + rejected)
         if fault:
             level, message = 2, f'fault: {fault}'

@@ -190,11 +190,27 @@ class DeadlinePacer:
         self.max_missed_run = max(self.max_missed_run, missed)
         return PacerTick(j, now, dt, missed, now - self.deadline(j))
 
-    def figures(self) -> PacerFigures:
-        """The pacing figures so far (see :class:`PacerFigures`)."""
+    @property
+    def periods(self) -> tuple[np.ndarray, int]:
+        """The measured-period buffer (s, a ring of the newest) and how many it has held."""
+        return self._periods, self._n_periods
+
+    def use_period_buffer(self, buf: np.ndarray) -> None:
+        """Keep the measured periods in ``buf`` (float64, the window's size; e.g. shared
+        memory that another process reads, so the loop never sorts them itself)."""
+        if buf.shape != self._periods.shape or buf.dtype != np.float64:
+            raise ConfigError(f'period buffer must be {self._periods.size} float64, got '
+                              f'{buf.shape} {buf.dtype}')
+        buf[:] = 0.0
+        self._periods, self._n_periods = buf, 0
+
+    def figures(self, percentiles: bool = True) -> PacerFigures:
+        """The pacing figures so far (see :class:`PacerFigures`; ``percentiles=False``: NaN
+        for p50 and p99, which sort the window: milliseconds for a minute of periods)."""
         n = min(self._n_periods, self._periods.size)
         p = self._periods[:n]
-        p50, p99 = (float(v) for v in np.percentile(p, [50, 99])) if n else (math.nan, math.nan)
+        p50, p99 = ((float(v) for v in np.percentile(p, [50, 99])) if n and percentiles
+                    else (math.nan, math.nan))
         return PacerFigures(self.cycles, self.missed, self.max_missed_run, p50, p99,
                             self.period_max, float(p.mean()) if n else math.nan)
 

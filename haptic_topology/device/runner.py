@@ -305,12 +305,12 @@ class LoopRunner:
         d = self.cycle.device
         return d.answered, d.expected + self.missed_deadlines
 
-    def device_values(self) -> dict[str, str]:
+    def device_values(self, percentiles: bool = True) -> dict[str, str]:
         """The device's period and answer figures as the separate layout's ``device_driver``
         reports them, from the loop thread's pacing: the measured period as ``period_*``,
         skipped deadlines as ``overruns`` and as cycles not answered in time; with
         :meth:`values`."""
-        f = self.pacer.figures()
+        f = self.pacer.figures(percentiles)
         out = self.values(f)
         answered, expected = self.answered_in_time()
         out.update({'rate_hz': f'{1.0 / f.period_mean:.1f}' if f.period_mean > 0 else '0',

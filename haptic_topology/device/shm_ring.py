@@ -206,3 +206,48 @@ class ShmRing:
         if self.owner:
             _OWNED.discard(self._shm.name)
             self._shm.unlink()
+
+
+class SharedArray:
+    """A float64 array in a shared-memory segment, written by one process and read by
+    another (each 8-byte element is stored whole on x86-64: a reader sees an old or a new
+    value, never a mix). Lifetime as :class:`ShmRing`'s: :meth:`create` owns and unlinks it,
+    :meth:`attach` unregisters it from its process's resource tracker."""
+
+    def __init__(self, shm: SharedMemory, size: int, owner: bool) -> None:
+        self._shm = shm
+        self.owner = owner
+        self.array: np.ndarray = np.ndarray((size,), np.float64, shm.buf, 0)
+
+    @property
+    def name(self) -> str:
+        return str(self._shm.name)
+
+    @classmethod
+    def create(cls, size: int) -> SharedArray:
+        if size < 1:
+            raise ConfigError(f'shared array: size must be >= 1, got {size}')
+        shm = SharedMemory(create=True, size=8 * size)
+        _OWNED.add(shm.name)
+        arr = cls(shm, size, owner=True)
+        arr.array[:] = 0.0
+        return arr
+
+    @classmethod
+    def attach(cls, name: str, size: int) -> SharedArray:
+        shm = SharedMemory(name=name, create=False)
+        if name not in _OWNED:      # see ShmRing.attach
+            resource_tracker.unregister(shm._name, 'shared_memory')  # type: ignore[attr-defined]
+        if shm.size < 8 * size:
+            shm.close()
+            raise ConfigError(f'shared array {name}: {shm.size} bytes, expected {8 * size}')
+        return cls(shm, size, owner=False)
+
+    def close(self) -> None:
+        if self.array is None:
+            return
+        self.array = None  # type: ignore[assignment]
+        self._shm.close()
+        if self.owner:
+            _OWNED.discard(self._shm.name)
+            self._shm.unlink()

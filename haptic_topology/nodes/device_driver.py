@@ -30,7 +30,10 @@ Layouts (parameter ``host_controller``):
   deadlines, or lock-step), the state -> command hop is a function call, and a second
   thread publishes the states, commands, hand inputs and ``/clock`` for observers. Commands
   from DDS never reach the device: the node does not subscribe to them. ``sched_priority``,
-  ``cpu_affinity`` and ``lock_memory`` apply to the loop thread;
+  ``cpu_affinity`` and ``lock_memory`` apply to the loop thread. With ``loop_process`` the
+  cycle runs in a child process without rclpy instead, which opens the device
+  (:mod:`haptic_topology.device.loop_process`); a backend that uses rclpy itself
+  (``ros_topics``) keeps the loop thread, and the node says so when it configures;
 * separate: commands come over DDS from an ``lmi_controller`` process; executor timers and
   the command callback step the loop through the core
   :class:`~haptic_topology.device.executor_loop.ExecutorLoop`, as described above.
@@ -57,7 +60,7 @@ from haptic_topology.errors import DeviceError, HapticTopologyError
 from haptic_topology.model.frames import DEVICE_BASE
 from haptic_topology.nodes.convert import RejectCounter, ns_to_stamp, state_msg
 from haptic_topology.nodes.diagnostics import diagnostics, matched, monotonic
-from haptic_topology.nodes.hosting import HostedLoop, driver_layout
+from haptic_topology.nodes.hosting import HostedLoop, driver_layout, in_child
 from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import QOS_CLOCK, QOS_DIAGNOSTICS, loop_qos
 from haptic_topology.nodes.runtime import run_main
@@ -86,6 +89,7 @@ class DeviceDriver(LifecycleNode):
         self.backend: DeviceBackend | None = None
         self.loop: DeviceLoop | None = None
         self.layout: HostedLoop | SeparateLoop | None = None    # once configured
+        self.in_child = False         # the loop runs in a loop process (loop_process)
         self.hosted: Any = None       # the hosted LmiController node (host_controller)
         self.fault = ''
         self.rejected = RejectCounter()
@@ -126,10 +130,15 @@ class DeviceDriver(LifecycleNode):
                     f'backend {c.backend}: the device runs on its own clock, so clock: '
                     f'lockstep cannot pace it (expected clock: wall, or a backend that '
                     f'advances only when read, such as sim_maglev)')
-            self.backend.configure(c.backend_config())
-            self.loop = DeviceLoop(self.backend, c.wrench_limit,
-                                   CommandWatchdog(c.watchdog, c.task_dim), c.period,
-                                   c.takeover_after)
+            self.in_child = self.hosted is not None and in_child(self)
+            if self.hosted is not None and c.settings.loop_process and not self.in_child:
+                self.get_logger().warn(f'loop_process: backend {c.backend} uses rclpy itself, '
+                                       'so the loop runs in a thread of this process')
+            if not self.in_child:         # else the loop process opens the device
+                self.backend.configure(c.backend_config())
+                self.loop = DeviceLoop(self.backend, c.wrench_limit,
+                                       CommandWatchdog(c.watchdog, c.task_dim), c.period,
+                                       c.takeover_after)
             self.layout = driver_layout(self, self.hosted)
         except HapticTopologyError as exc:
             # Not configured: diagnostics report the backend parameter, not a half-made backend.
@@ -140,15 +149,19 @@ class DeviceDriver(LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         assert self.backend is not None and self.layout is not None
         try:
-            self.backend.activate()
+            if not self.in_child:
+                self.backend.activate()
         except DeviceError as exc:
             self.backend.deactivate()
             return self.fail(str(exc))
         self.layout.start()
         self._active = True
         c = self.cfg
+        child = self.layout.process if isinstance(self.layout, HostedLoop) else None
+        where = f'loop process {child.pid}' if child is not None else 'loop thread'
+
         self.get_logger().info(f'active: backend {c.backend}, {c.rate_hz:g} Hz {c.clock.value}'
-                               + (', lmi_controller hosted (loop thread)'
+                               + (f', lmi_controller hosted ({where})'
                                   if self.hosted is not None else ''))
         return SUCCESS
 
@@ -161,7 +174,7 @@ class DeviceDriver(LifecycleNode):
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         if self.layout is not None:
             self.layout.close()
-        if self.backend is not None:
+        if self.backend is not None and not self.in_child:
             self.backend.cleanup()
         self.loop = self.backend = self.layout = None
         return SUCCESS
@@ -181,7 +194,7 @@ class DeviceDriver(LifecycleNode):
         self._active = False
         if self.layout is not None:
             self.layout.stop()
-        if self.backend is not None:
+        if self.backend is not None and not self.in_child:   # the child zeroed its own
             zero_and_release(self.backend, self.cfg.task_dim)
         if self.loop is not None and self.loop.engaged:
             self.get_logger().info(f'output zeroed at state {self.loop.seq}; loop: '
@@ -210,16 +223,23 @@ class DeviceDriver(LifecycleNode):
 
     def _publish_diagnostics(self) -> None:
         layout = self.layout
-        level, message, loop_values = device_report(
-            self.loop, monotonic(), self.fault, self.rejected.total,
-            layout.values() if layout is not None else {})
+        child = layout.process if isinstance(layout, HostedLoop) else None
+        if isinstance(layout, HostedLoop) and child is not None:
+            # the loop process's report, with this node's refusals
+            level, message, loop_values = child.device_report(self.fault, self.rejected.total)
+            loop_values.update(layout.values())
+        else:
+            level, message, loop_values = device_report(
+                self.loop, monotonic(), self.fault, self.rejected.total,
+                layout.values() if layout is not None else {})
         values = {'backend': self.cfg.backend, 'clock': self.cfg.clock.value,
                   'loop_running': str(layout is not None and layout.running).lower(),
                   f'sent {TOPIC_STATE}': str(self.states_sent),
                   **self.rejected.values(), **matched(self._endpoints), **loop_values}
         self.diag_pub.publish(diagnostics(
             self, 'device_driver: loop', values, level, message,
-            hardware_id(self.backend, self.cfg.backend)))
+            child.status.get('hardware_id', self.cfg.backend) if child is not None
+            else hardware_id(self.backend, self.cfg.backend)))
 
     def close(self) -> None:
         """Zero and release the device (called on shutdown)."""
@@ -227,7 +247,7 @@ class DeviceDriver(LifecycleNode):
             self._stop_output()
         if self.layout is not None:
             self.layout.close()
-        if self.backend is not None:
+        if self.backend is not None and not self.in_child:
             self.backend.cleanup()
 
 

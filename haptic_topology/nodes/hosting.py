@@ -27,7 +27,11 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
+from haptic_topology.control.loop import ControllerLoop
 from haptic_topology.device.hosted import HostedCycle
+from haptic_topology.device.loop_process import LoopProcess
 from haptic_topology.device.realtime import name_os_thread, set_thread_realtime
 from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
 from haptic_topology.errors import DeviceError
@@ -40,14 +44,19 @@ from haptic_topology.vocabulary import DeviceStatus
 SWITCH_INTERVAL = 2e-4
 #: Wall clock: the outbox thread publishes what the loop produced every this many s.
 PUBLISH_PERIOD = 0.002
+#: Lock-step with a loop process: the publishing thread, woken by the child's eventfd after
+#: each cycle, also looks this often (s) without a wake-up (a stop, the end of the run).
+PROCESS_IDLE_WAKE = 0.05
 
 
 class OutboxThread:
     """Publishes what a :class:`LoopRunner` puts in its outbox (see module doc)."""
 
-    def __init__(self, runner: LoopRunner, publish: Callable[[list[Published]], None],
-                 idle: Callable[[], None], period: float) -> None:
+    def __init__(self, runner: LoopRunner | LoopProcess,
+                 publish: Callable[[list[Published]], None], idle: Callable[[], None],
+                 period: float, wait: Callable[[float], None] | None = None) -> None:
         self.runner = runner
+        self._wait = wait
         self._publish = publish
         self._idle = idle
         self._period = period
@@ -92,8 +101,11 @@ class OutboxThread:
         name_os_thread('device_publish')
         try:
             while True:
-                self._event.wait(self._period)
-                self._event.clear()
+                if self._wait is not None:     # a loop process: its eventfd, or a poll
+                    self._wait(self._period)
+                else:
+                    self._event.wait(self._period)
+                    self._event.clear()
                 entries = self.runner.drain()
                 if entries:
                     self._publish(entries)
@@ -121,17 +133,24 @@ class HostedLoop:
                               f'{controller.cfg.scenario.name}, the device '
                               f'{c.scenario.name}: give both the same scenario')
         self.driver, self.controller = driver, controller
-        self.runner = LoopRunner(
-            HostedCycle(driver.loop, controller.loop),
-            RunnerConfig(c.period, driver.lockstep, c.run_duration,
-                         controller.cfg.lockstep_wait),
-            wall_ns=lambda: driver.get_clock().now().nanoseconds)
+        pacing = RunnerConfig(c.period, driver.lockstep, c.run_duration,
+                              controller.cfg.lockstep_wait)
+        self.process: LoopProcess | None = None
+        self.runner: LoopRunner | LoopProcess
+        if in_child(driver):
+            self.runner = self.process = LoopProcess(loop_spec(driver, controller.loop, pacing),
+                                                     c.task_dim, controller.dof)
+        else:
+            self.runner = LoopRunner(HostedCycle(driver.loop, controller.loop), pacing,
+                                     wall_ns=lambda: driver.get_clock().now().nanoseconds)
         # Lock-step: woken by every cycle (the VE waits on the hand inputs); wall clock: the
-        # outbox is drained every PUBLISH_PERIOD, so the loop thread pays no wake-up.
+        # outbox is drained every PUBLISH_PERIOD, so the loop pays no wake-up.
         self.outbox = OutboxThread(
             self.runner, self._observe, controller.flush_hand,
-            min(controller.flush_period, 1.0 if driver.lockstep else PUBLISH_PERIOD))
-        if driver.lockstep:
+            min(controller.flush_period, PUBLISH_PERIOD if not driver.lockstep else
+                PROCESS_IDLE_WAKE if self.process is not None else 1.0),
+            self.process.wait if self.process is not None else None)
+        if driver.lockstep and isinstance(self.runner, LoopRunner):
             self.runner.wake = self.outbox.wake
         controller.attach(self.runner)
         self._problems: list[str] = []      # real-time settings refused (loop thread)
@@ -161,6 +180,8 @@ class HostedLoop:
         every state of it published: tools take the driver's "inactive" as the end) the
         driver deactivates."""
         runner, d = self.runner, self.driver
+        if self.process is not None:
+            self.process.check()
         runner.may_engage = d.may_engage()
         while self._problems:
             d.get_logger().warn(self._problems.pop(0))
@@ -181,6 +202,8 @@ class HostedLoop:
 
     def close(self) -> None:
         self.outbox.stop()
+        if self.process is not None:
+            self.process.close()
 
     @property
     def running(self) -> bool:
@@ -208,6 +231,23 @@ class HostedLoop:
                        ns_to_stamp(e.stamp_ns))
         log_notices(c, c.loop.notices)
         log_notices(d, self.runner.notices)
+
+
+def in_child(driver: Any) -> bool:
+    """Whether the configured hosted ``driver`` runs its loop in a loop process: with
+    ``loop_process``, unless its backend uses rclpy itself."""
+    return bool(driver.cfg.settings.loop_process) and not driver.backend.needs_ros
+
+
+def loop_spec(driver: Any, controller: ControllerLoop, pacing: RunnerConfig) -> dict[str, Any]:
+    """What the loop process of ``driver`` builds its loop from (see
+    :class:`~haptic_topology.device.loop_process.LoopSpec`)."""
+    c, s = driver.cfg, driver.cfg.settings
+    return dict(backend=c.backend, backend_config=c.backend_config(),
+                limit=np.asarray(c.wrench_limit, dtype=float), watchdog=c.watchdog,
+                period=c.period, takeover_after=c.takeover_after, controller=controller,
+                runner=pacing, sched_priority=s.sched_priority,
+                cpu_affinity=tuple(s.cpu_affinity), lock_memory=s.lock_memory)
 
 
 def driver_layout(driver: Any, hosted: Any) -> HostedLoop | SeparateLoop:

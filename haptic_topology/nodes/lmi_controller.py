@@ -49,6 +49,7 @@ from haptic_topology.config.settings import LmiControllerSettings, scenario_defa
 from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.loop import StateSample
 from haptic_topology.control.port import ControllerPort, Outgoing, live_change
+from haptic_topology.device.loop_process import LoopProcess
 from haptic_topology.device.runner import LoopRunner
 from haptic_topology.model.frames import DEVICE_BASE
 from haptic_topology.nodes.convert import (
@@ -110,7 +111,7 @@ class LmiController(Node):
         self._endpoints = {TOPIC_LMI: lmi_sub, TOPIC_COMMAND: self.cmd_pub,
                            TOPIC_HAND_INPUTS: self.hand_pub}
         self.hosted = hosted
-        self.host: LoopRunner | None = None     # the driver's loop, once attached
+        self.host: LoopRunner | LoopProcess | None = None   # the driver's loop, once attached
         self.ack_pub = (self.create_publisher(UInt64, TOPIC_LMI_ACK, QOS_LMI)
                         if s.ack_updates else None)
         self._cmd, self._hand = DeviceCommand(), HandInputs()
@@ -135,17 +136,14 @@ class LmiController(Node):
         if isinstance(change, str):
             return SetParametersResult(successful=False, reason=change)
 
-        def apply() -> None:
-            ctrl.gains, ctrl.mode = change
-
         if self.host is not None:
-            self.host.submit(apply)       # between two cycles of the loop thread
-        else:
-            apply()
+            self.host.change_law(*change)     # between two cycles of the loop
+        if self.host is None or isinstance(self.host, LoopProcess):
+            ctrl.gains, ctrl.mode = change    # (a loop process: this node's copy follows)
         return SetParametersResult(successful=True)
 
     # -- hosted --------------------------------------------------------------------------------
-    def attach(self, runner: LoopRunner) -> None:
+    def attach(self, runner: LoopRunner | LoopProcess) -> None:
         """Hosted: the driver's loop thread now runs :attr:`loop` (see module doc)."""
         self.host = runner
 
@@ -192,9 +190,7 @@ class LmiController(Node):
             snap = None
         out = None
         if snap is not None and self.host is not None:
-            self.host.cycle.offer_update(snap)      # the loop thread applies it
-            if not self.host.running:
-                self.host.cycle.apply_updates()
+            self.host.offer_update(snap)      # the loop applies it
         if snap is not None:
             out = self.port.on_update(snap, monotonic(), self.host is None)
         if self.ack_pub is not None:
@@ -218,6 +214,9 @@ class LmiController(Node):
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
                        **matched(self._endpoints)})
         level, message = self.port.health(now)
+        if isinstance(self.host, LoopProcess):      # the loop's controller is the child's
+            values.update(self.host.controller_values())
+            level, message = self.host.controller_health() or (level, message)
         self.diag_pub.publish(diagnostics(self, 'lmi_controller: loop', values, level,
                                                  message))
 

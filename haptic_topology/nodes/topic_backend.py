@@ -87,7 +87,9 @@ class RosTopicBackend(DeviceBackend):
     the samples' ages (tests may inject one)."""
 
     name = BACKEND
-    lockstep = False          # the device's ROS driver publishes on its own clock
+    # The device's ROS driver publishes on its own clock; the backend is a node of its own,
+    # so it never runs in the rclpy-free loop process.
+    lockstep, needs_ros = False, True
 
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns

@@ -99,7 +99,7 @@ _FAULT = int(DeviceStatus.FAULT)
 _PASS_BITS = int(DeviceStatus.WORKSPACE_LIMIT | DeviceStatus.SATURATED)
 _TIMEOUT_BIT = int(ServerStatus.COMMAND_TIMEOUT)
 #: Round-trip samples kept for the percentiles.
-_RTT_KEEP = 10_000
+RTT_KEEP = 10_000
 #: RELEASE copies sent by ``deactivate`` (one datagram may be lost; copies are duplicates).
 _RELEASE_COPIES = 3
 
@@ -157,7 +157,7 @@ class NetworkBackend(DeviceBackend):
         self.server_session = 0
         self._follower = SessionFollower(1.0)
         self.malformed = MalformedCounts()
-        self._rtt = np.zeros(_RTT_KEEP)
+        self._rtt = np.zeros(RTT_KEEP)
         self._rtt_n = 0
         self._rtt_seq = 0
         # counters (module doc); read by any thread as they are
@@ -417,7 +417,7 @@ class NetworkBackend(DeviceBackend):
             self._state_ns = now_ns
             if st.echo_stamp_ns and st.echo_seq > self._rtt_seq:
                 self._rtt_seq = st.echo_seq
-                self._rtt[self._rtt_n % _RTT_KEEP] = (now_ns - st.echo_stamp_ns) * 1e-9
+                self._rtt[self._rtt_n % RTT_KEEP] = (now_ns - st.echo_stamp_ns) * 1e-9
                 self._rtt_n += 1
 
     # -- figures -----------------------------------------------------------------------------
@@ -438,7 +438,7 @@ class NetworkBackend(DeviceBackend):
 
     def round_trip(self) -> dict[str, float]:
         """Command -> state round trip (s): p50, p99, max over the last samples (NaN: none)."""
-        n = min(self._rtt_n, _RTT_KEEP)
+        n = min(self._rtt_n, RTT_KEEP)
         if not n:
             return {'p50': math.nan, 'p99': math.nan, 'max': math.nan}
         r = self._rtt[:n]

@@ -55,9 +55,11 @@ LOCKSTEP_RUNS = (('fig6', 'penalty'), ('fig6', 'acceleration_only'), ('fig8', 'p
 #: Also in the pool: the spatial scenario (0.5 s) and the swapped backend (1 s).
 SPATIAL, SPATIAL_DURATION = ('panda_link4', 'penalty'), 0.5
 SWAPPED, SWAPPED_DURATION = ('fig8', 'fake_backend'), 1.0
-#: The same in the separate-process layout (the others run hosted, the default).
+#: The same in the separate-process layout and with the loop in the driver's loop process
+#: (the others run hosted with the loop thread, the default).
 SEPARATE_RUNS = (('fig6', 'penalty', 'separate'), ('fig8', 'acceleration_only', 'separate'),
-                 ('wall', 'penalty', 'separate'))
+                 ('wall', 'penalty', 'separate'), ('fig8', 'penalty', 'process'),
+                 ('wall', 'penalty', 'process'))
 
 
 @pytest.fixture(scope='module')
@@ -74,7 +76,7 @@ def lockstep_runs(tmp_path_factory: pytest.TempPathFactory,
     jobs[SWAPPED] = ('fig8', 'penalty', SWAPPED_DURATION, 'fake_backend:CircleBackend',
                      'hosted')
     for key in SEPARATE_RUNS:
-        jobs[key] = (key[0], key[1], DURATION, None, 'separate')
+        jobs[key] = (key[0], key[1], DURATION, None, key[2])
     old_path = os.environ.get('PYTHONPATH')
     # The test double lives in test/support/: the node processes find it on PYTHONPATH.
     os.environ['PYTHONPATH'] = os.pathsep.join([str(TEST_DIR), *filter(None, [old_path])])
@@ -155,10 +157,12 @@ def test_lockstep_graph_equals_offline_simulation(
 
 
 @pytest.mark.parametrize('key', SEPARATE_RUNS, ids=lambda k: '-'.join(k))
-def test_separate_layout_equals_hosted_layout_and_offline(
+def test_other_layouts_equal_hosted_layout_and_offline(
         lockstep_runs: dict[tuple[str, ...], GraphRun], key: tuple[str, str, str]) -> None:
-    """The separate-process layout (state -> command over DDS) in lock-step computes the
-    same as the hosted layout and ``simulate()``: every exact column bit for bit."""
+    """The separate-process layout (state -> command over DDS) and the loop process (the
+    cycle in a child of the driver without rclpy, shared memory to the node) compute in
+    lock-step the same as the hosted loop thread and ``simulate()``: every exact column bit
+    for bit."""
     scenario, mode, _ = key
     separate, hosted = lockstep_runs[key].trace, lockstep_runs[(scenario, mode)].trace
     _assert_equals_offline(separate, scenario, mode, DURATION)

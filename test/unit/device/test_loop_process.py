@@ -32,6 +32,14 @@ from haptic_topology.vocabulary import ControlMode, DeviceStatus
 SUPPORT = Path(__file__).resolve().parents[2] / 'support'
 
 
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie waiting for its reaper does not)."""
+    try:
+        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z'
+    except (OSError, IndexError):
+        return False
+
+
 def _v(*x: float) -> np.ndarray:
     return np.array(x, dtype=float)
 
@@ -130,7 +138,7 @@ def test_a_killed_child_is_a_fault_and_close_leaves_no_segment() -> None:
     proc.start()
     names = proc.ring_names()
     try:
-        assert len(_segments(names)) == 4
+        assert len(_segments(names)) == 6     # 4 rings, 2 statistics arrays
         deadline = time.monotonic() + 30.0
         while not proc.status and time.monotonic() < deadline:     # running: reports
             proc.wait(0.05)
@@ -153,16 +161,18 @@ def test_a_killed_parent_stops_the_child_with_zero_output_and_no_segment_left() 
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                               env=env)
     assert parent.stdout is not None
-    first = parent.stdout.readline().split()
-    child, names = int(first[0]), first[1:]
-    assert len(_segments(names)) == 4
-    parent.kill()
-    parent.wait()
+    try:
+        first = parent.stdout.readline().split()
+        child, names = int(first[0]), first[1:]
+        assert len(_segments(names)) == 6     # 4 rings, 2 statistics arrays
+    finally:
+        parent.kill()                   # also when a check above failed: never leak it
+        parent.wait()
     rest = parent.stdout.read()         # the child's last words (it shares the pipe)
     deadline = time.monotonic() + 30.0
-    while Path(f'/proc/{child}').exists() and time.monotonic() < deadline:
+    while _alive(child) and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert not Path(f'/proc/{child}').exists()
+    assert not _alive(child)
     assert 'parent gone: output zeroed, device released' in rest, rest
     while _segments(names) and time.monotonic() < deadline:   # the parent's tracker
         time.sleep(0.01)
