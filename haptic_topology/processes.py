@@ -26,6 +26,16 @@ def cpu_seconds(pid: int, tid: int | None = None) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
+def reaped_children_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time (s) of the children of ``pid`` that have ended and that it has
+    waited for (e.g. ``device_driver``'s loop process after a run), from ``/proc``; None once
+    ``pid`` is gone."""
+    fields = _stat_fields(f'/proc/{pid}/stat')
+    if fields is None:
+        return None
+    return (int(fields[13]) + int(fields[14])) / os.sysconf('SC_CLK_TCK')
+
+
 def process_times(pid: int) -> dict[str, float] | None:
     """``cpu_s`` (user + system, s) and ``wall_s`` (age, s) of a running process; None once
     it is gone."""

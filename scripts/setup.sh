@@ -33,6 +33,8 @@ for tool in cmake gcc g++ make; do
   command -v "$tool" >/dev/null 2>&1 \
     || die "$tool not found; it builds msg_schemas/ (apt-get install cmake build-essential)."
 done
+command -v unshare >/dev/null 2>&1 \
+  || die "unshare not found; the tests run the loop process without real-time privileges in a user namespace (apt-get install util-linux)."
 
 hash_files() { # sha256 over the names and contents of the given files, in sorted order
   local f

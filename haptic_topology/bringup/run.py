@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import IO
 
 from haptic_topology.errors import BringupError, ConfigError
-from haptic_topology.processes import cpu_seconds, terminate
+from haptic_topology.processes import cpu_seconds, reaped_children_cpu_seconds, terminate
 from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE
 
 NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
@@ -261,6 +261,9 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
                                            startup_timeout, poll=0.2)
             cpu0 = {p.name: cpu_seconds(p.popen.pid) for p in procs}
+            # The loop process ends with the run: the driver has waited for it by then.
+            drivers = [p.popen.pid for p in procs if p.name == 'device_driver']
+            loop0 = reaped_children_cpu_seconds(drivers[0]) if drivers else None
             limit = startup_timeout + (duration + 10.0 if clock == 'wall'
                                        else max(60.0, 30.0 * duration))
             ended = watch.wait_lifecycle('device_driver', ('inactive',), limit)
@@ -269,6 +272,9 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                 c0, c1 = cpu0[p.name], cpu_seconds(p.popen.pid)
                 if c0 is not None and c1 is not None and wall > 0.0:
                     cpu[p.name] = round((c1 - c0) / wall, 4)
+            loop1 = reaped_children_cpu_seconds(drivers[0]) if drivers else None
+            if layout == 'process' and loop0 is not None and loop1 is not None and wall > 0:
+                cpu['loop_process'] = round((loop1 - loop0) / wall, 4)
             # The loop has stopped; the recorder must take everything it sent while every
             # writer is still there to resend (checked on the nodes' own counts).
             try:

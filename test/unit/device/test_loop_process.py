@@ -177,3 +177,19 @@ def test_a_killed_parent_stops_the_child_with_zero_output_and_no_segment_left() 
     while _segments(names) and time.monotonic() < deadline:   # the parent's tracker
         time.sleep(0.01)
     assert _segments(names) == []
+
+
+def test_refused_real_time_options_are_one_warning_each_and_the_loop_runs() -> None:
+    """Without the privileges (here: root of a user namespace, which has no CAP_SYS_NICE or
+    CAP_IPC_LOCK over the machine) the loop process runs with normal scheduling and says
+    once per option why."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(SUPPORT), *filter(None, [os.environ.get('PYTHONPATH')])]))
+    res = subprocess.run(['unshare', '--user', '--map-root-user', sys.executable,
+                          str(SUPPORT / 'loop_refused.py')], env=env,
+                         capture_output=True, text=True, timeout=120, check=False)
+    assert res.returncode == 0, res.stdout + res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0] == 'cycling', res.stdout
+    assert sum('sched_priority 50: not permitted' in ln for ln in lines) == 1, res.stdout
+    assert sum(ln.startswith('lock_memory') for ln in lines) == 1, res.stdout
