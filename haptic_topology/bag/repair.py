@@ -25,7 +25,7 @@ from rosbags.rosbag2.metadata import parse_qos
 
 from haptic_topology import __version__
 from haptic_topology.bag.reader import iter_records, open_bag
-from haptic_topology.bag.writer import TopicSpec, metadata_info, write_metadata
+from haptic_topology.bag.writer import FileInfo, TopicSpec, metadata_info, write_metadata
 from haptic_topology.errors import BagError, TruncatedError
 
 
@@ -83,7 +83,8 @@ def _rewrite(src: Path, dst: Path) -> tuple[list[TopicSpec], dict[str, str], lis
                     counts[index_of[rec.channel_id]] += 1
         except TruncatedError:
             truncated = True
-        info = metadata_info(dst.name, topics, hashes, counts, start, end)
+        info = metadata_info([FileInfo(dst.name, start, end, sum(counts))], topics, hashes,
+                             counts, start, end)
         writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
             info, sort_keys=False)})
         writer.finish()
@@ -93,28 +94,45 @@ def _rewrite(src: Path, dst: Path) -> tuple[list[TopicSpec], dict[str, str], lis
 
 
 def repair_bag(path: str | Path, force: bool = False) -> RepairResult:
-    """Repair the bag at ``path`` (see module doc); ``force`` rewrites a complete bag too."""
+    """Repair the bag at ``path`` (see module doc); ``force`` rewrites a complete bag too. A
+    bag split into several files (the recorder's ``max_bag_size``/``max_bag_duration``) has
+    each file checked; the truncated ones (a killed recorder leaves the last) are rewritten,
+    and ``metadata.yaml`` lists them all with their counts."""
     bag = open_bag(path)
     if bag.path.is_file():
         raise BagError(f'{bag.path}: give the bag directory (repair rewrites metadata.yaml)')
-    if len(bag.files) != 1:
-        raise BagError(f'{bag.path}: repair handles one MCAP file per bag, found '
-                       f'{len(bag.files)}')
-    src = bag.files[0]
-    tmp = src.with_name(f'.{src.name}.repair')
-    try:
-        topics, hashes, counts, start, end, truncated = _rewrite(src, tmp)
-        if not truncated and bag.metadata is not None and not force:
-            tmp.unlink()
-            return RepairResult(bag.path, False, {t.topic: n for t, n in
-                                                  zip(topics, counts, strict=True)})
-        tmp.replace(src)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    write_metadata(bag.path, metadata_info(src.name, topics, hashes, counts, start, end))
-    return RepairResult(bag.path, True, {t.topic: n for t, n in zip(topics, counts,
-                                                                      strict=True)})
+    files: list[FileInfo] = []
+    topics: list[TopicSpec] = []
+    hashes: dict[str, str] = {}
+    counts: list[int] = []
+    repaired = force or bag.metadata is None
+    for src in bag.files:
+        tmp = src.with_name(f'.{src.name}.repair')
+        try:
+            file_topics, file_hashes, file_counts, start, end, truncated = _rewrite(src, tmp)
+            if truncated or force or bag.metadata is None:
+                tmp.replace(src)
+                repaired = True
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+        files.append(FileInfo(src.name, start, end, sum(file_counts)))
+        hashes.update(file_hashes)
+        for spec, n in zip(file_topics, file_counts, strict=True):
+            known = [t.topic for t in topics]
+            if spec.topic in known:
+                counts[known.index(spec.topic)] += n
+            else:
+                topics.append(spec)
+                counts.append(n)
+    per_topic = {t.topic: n for t, n in zip(topics, counts, strict=True)}
+    if not repaired:
+        return RepairResult(bag.path, False, per_topic)
+    done = [f for f in files if f.messages]
+    write_metadata(bag.path, metadata_info(
+        files, topics, hashes, counts, min((f.start_ns for f in done), default=0),
+        max((f.end_ns for f in done), default=0)))
+    return RepairResult(bag.path, True, per_topic)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

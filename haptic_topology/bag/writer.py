@@ -1,7 +1,12 @@
 """rosbag2 directories with MCAP storage, written so that a crash loses little.
 
 A bag is a directory ``<name>/`` holding ``metadata.yaml`` and ``<name>_0.mcap``, the layout
-``ros2 bag record -s mcap`` produces (metadata version 9, Jazzy). The MCAP file has profile
+``ros2 bag record -s mcap`` produces (metadata version 9, Jazzy). With ``max_bag_size``
+(bytes) or ``max_bag_duration`` (s) the bag is split as rosbag2 splits it: at the first flush
+after the current file has reached the size or spans the duration, the file is finished
+(summary, footer) and ``<name>_1.mcap``, ``<name>_2.mcap``, ... follow; ``metadata.yaml``
+lists them in order with their counts, so a long recording never keeps more than one file's
+chunk index in memory. The MCAP file has profile
 ``ros2``, one ``ros2msg`` schema per message type whose text is the .msg definition followed by
 every dependency in rosbag2's concatenated form (``====...\\nMSG: std_msgs/Header\\n...``),
 ``cdr`` message encoding, and per channel the ``offered_qos_profiles`` (YAML) and
@@ -108,10 +113,21 @@ def write_metadata(path: Path, info: dict[str, Any]) -> None:
     tmp.replace(path / METADATA)
 
 
-def metadata_info(mcap_name: str, topics: Sequence[TopicSpec], hashes: Mapping[str, str],
-                  counts: Sequence[int], start_ns: int, end_ns: int,
-                  custom: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """The ``rosbag2_bagfile_information`` mapping (metadata version 9)."""
+@dataclass(frozen=True)
+class FileInfo:
+    """One storage file of a bag: its name, time range (ns) and message count."""
+
+    name: str
+    start_ns: int
+    end_ns: int
+    messages: int
+
+
+def metadata_info(files: Sequence[FileInfo], topics: Sequence[TopicSpec],
+                  hashes: Mapping[str, str], counts: Sequence[int], start_ns: int,
+                  end_ns: int, custom: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The ``rosbag2_bagfile_information`` mapping (metadata version 9) of a bag whose
+    storage ``files`` are in order."""
     total = int(sum(counts))
     start = start_ns if total else 0
     duration = max(0, end_ns - start_ns) if total else 0
@@ -130,9 +146,13 @@ def metadata_info(mcap_name: str, topics: Sequence[TopicSpec], hashes: Mapping[s
             for t, n in zip(topics, counts, strict=True)],
         'compression_format': '',
         'compression_mode': '',
-        'relative_file_paths': [mcap_name],
-        'files': [{'path': mcap_name, 'starting_time': {'nanoseconds_since_epoch': start},
-                   'duration': {'nanoseconds': duration}, 'message_count': total}],
+        'relative_file_paths': [f.name for f in files],
+        'files': [{'path': f.name,
+                   'starting_time': {'nanoseconds_since_epoch': f.start_ns if f.messages
+                                     else 0},
+                   'duration': {'nanoseconds': max(0, f.end_ns - f.start_ns)
+                                if f.messages else 0},
+                   'message_count': int(f.messages)} for f in files],
         'custom_data': dict(custom) if custom else None,
         'ros_distro': 'jazzy',
     }
@@ -158,45 +178,64 @@ class BagWriter:
 
     def __init__(self, path: Path, topics: Sequence[TopicSpec], typestore: Typestore, *,
                  sources: Mapping[str, str] | None = None, chunk_size: int = 64 * 1024,
-                 compression: str = 'zstd', custom: Mapping[str, str] | None = None) -> None:
+                 compression: str = 'zstd', custom: Mapping[str, str] | None = None,
+                 max_bag_size: int = 0, max_bag_duration: float = 0.0) -> None:
         if compression not in COMPRESSIONS:
             raise BagError(f'{path}: compression must be one of {", ".join(COMPRESSIONS)}, '
                            f'got {compression!r}')
+        if max_bag_size < 0 or not max_bag_duration >= 0.0:
+            raise BagError(f'{path}: max_bag_size (bytes) and max_bag_duration (s) must be '
+                           f'>= 0 (0: no split), got {max_bag_size} and {max_bag_duration}')
         if path.exists():
             raise BagError(f'{path}: already exists (a bag is never overwritten)')
         self.path = path
         self.topics = list(topics)
-        self.mcap_name = f'{path.name}_0.mcap'
         self.custom = dict(custom or {})
-        try:
-            path.mkdir(parents=True)
-            self._file: IO[bytes] = (path / self.mcap_name).open('xb')
-        except OSError as exc:
-            raise BagError(f'{path}: cannot create bag ({exc.strerror})') from None
-        self._mcap = McapWriter(self._file, chunk_size=chunk_size,
-                                compression=COMPRESSIONS[compression])
-        self._mcap.start(profile='ros2', library=f'haptic_topology {__version__}')
+        self.max_bag_size = int(max_bag_size)
+        self.max_bag_duration_ns = round(max_bag_duration * 1e9)
+        self._chunk_size, self._compression = chunk_size, COMPRESSIONS[compression]
         self.hashes: dict[str, str] = {}
-        schema_ids: dict[str, int] = {}
-        self.channel_ids: list[int] = []
+        self._schemas: dict[str, bytes] = {}
         for spec in self.topics:
-            if spec.msgtype not in schema_ids:
+            if spec.msgtype not in self._schemas:
                 try:
-                    text = schema_text(typestore, spec.msgtype, sources)
+                    self._schemas[spec.msgtype] = schema_text(typestore, spec.msgtype,
+                                                              sources).encode()
                     self.hashes[spec.msgtype] = typestore.hash_rihs01(spec.msgtype)
                 except KeyError:
                     raise BagError(f'{path}: unknown message type {spec.msgtype} '
                                    f'(topic {spec.topic})') from None
-                schema_ids[spec.msgtype] = self._mcap.register_schema(
-                    spec.msgtype, 'ros2msg', text.encode())
-            self.channel_ids.append(self._mcap.register_channel(
-                spec.topic, 'cdr', schema_ids[spec.msgtype],
-                {'offered_qos_profiles': qos_yaml(spec.qos),
-                 'topic_type_hash': self.hashes[spec.msgtype]}))
+        try:
+            path.mkdir(parents=True)
+        except OSError as exc:
+            raise BagError(f'{path}: cannot create bag ({exc.strerror})') from None
+        self._files: list[FileInfo] = []       # the closed storage files, in order
         self._counts = _Counts([0] * len(self.topics))
         self._counts.flushed = list(self._counts.per_topic)
+        self._open_file()
         self._open = True
         self.flush(force=True)
+
+    def _open_file(self) -> None:
+        """Start storage file ``<name>_<k>.mcap`` (k: the files so far): schemas, channels."""
+        self.mcap_name = f'{self.path.name}_{len(self._files)}.mcap'
+        try:
+            self._file: IO[bytes] = (self.path / self.mcap_name).open('xb')
+        except OSError as exc:
+            raise BagError(f'{self.path}: cannot create {self.mcap_name} '
+                           f'({exc.strerror})') from None
+        self._mcap = McapWriter(self._file, chunk_size=self._chunk_size,
+                                compression=self._compression)
+        self._mcap.start(profile='ros2', library=f'haptic_topology {__version__}')
+        schema_ids = {t: self._mcap.register_schema(t, 'ros2msg', text)
+                      for t, text in self._schemas.items()}
+        self.channel_ids: list[int] = [
+            self._mcap.register_channel(spec.topic, 'cdr', schema_ids[spec.msgtype],
+                                        {'offered_qos_profiles': qos_yaml(spec.qos),
+                                         'topic_type_hash': self.hashes[spec.msgtype]})
+            for spec in self.topics]
+        self._file_first = sum(self._counts.per_topic)     # messages before this file
+        self._file_range: tuple[int, int] | None = None    # (first, last) log time (ns)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -216,6 +255,9 @@ class BagWriter:
         c.start_ns = min(c.start_ns, log_time_ns)
         c.end_ns = max(c.end_ns, log_time_ns)
         c.per_topic[index] = seq + 1
+        r = self._file_range
+        self._file_range = ((log_time_ns, log_time_ns) if r is None else
+                            (min(r[0], log_time_ns), max(r[1], log_time_ns)))
 
     def write_many(self, items: Sequence[tuple[int, int, bytes]]) -> None:
         """:meth:`write` for each ``(index, log_time_ns, data)`` of ``items``, in order.
@@ -276,6 +318,8 @@ class BagWriter:
             if ns > c.end_ns:
                 c.end_ns = ns
             per_topic[index] = seq + 1
+        if stats.message_count:     # this file's range: mcap's statistics of it
+            self._file_range = (stats.message_start_time, stats.message_end_time)
 
     def flush(self, force: bool = False) -> None:
         """Close the current chunk, hand the file to the OS, rewrite ``metadata.yaml``; a
@@ -291,29 +335,63 @@ class BagWriter:
         if finalize is not None:
             finalize()
         self._file.flush()
+        if self._split_due():
+            self._finish_file()
+            self._open_file()
         self._counts.flushed = list(self._counts.per_topic)
         self._write_metadata(self._counts.flushed)
 
-    def _write_metadata(self, counts: Sequence[int]) -> None:
-        c = self._counts
-        write_metadata(self.path, metadata_info(self.mcap_name, self.topics, self.hashes,
-                                                counts, c.start_ns, c.end_ns, self.custom))
+    def _split_due(self) -> bool:
+        """The current file has reached ``max_bag_size`` bytes or spans
+        ``max_bag_duration``: the next messages go into a new one (rosbag2's split)."""
+        r = self._file_range
+        if r is None:
+            return False
+        return ((self.max_bag_size > 0 and self._file.tell() >= self.max_bag_size)
+                or (self.max_bag_duration_ns > 0 and r[1] - r[0] >= self.max_bag_duration_ns))
 
-    def close(self) -> None:
-        """Write the summary and footer and the final ``metadata.yaml``; idempotent."""
-        if not self._open:
-            return
-        self._open = False
+    def _current(self) -> FileInfo:
+        r = self._file_range or (0, 0)
+        return FileInfo(self.mcap_name, r[0], r[1],
+                        sum(self._counts.per_topic) - self._file_first)
+
+    def _finish_file(self) -> None:
+        """Summary, footer and the ``rosbag2`` metadata record of the current file; closed."""
         c = self._counts
-        info = metadata_info(self.mcap_name, self.topics, self.hashes, c.per_topic,
-                             c.start_ns, c.end_ns, self.custom)
+        info = metadata_info([*self._files, self._current()], self.topics, self.hashes,
+                             c.per_topic, c.start_ns, c.end_ns, self.custom)
         self._mcap.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
             info, sort_keys=False)})
         self._mcap.finish()
         self._file.flush()
         os.fsync(self._file.fileno())
         self._file.close()
-        self._write_metadata(c.per_topic)
+        self._files.append(self._current())
+
+    @property
+    def files(self) -> list[str]:
+        """The bag's storage files so far, in order."""
+        return [f.name for f in self._files] + ([self.mcap_name] if self._open else [])
+
+    def _write_metadata(self, counts: Sequence[int]) -> None:
+        c = self._counts
+        files = self._files + ([self._current()] if self._open else [])
+        write_metadata(self.path, metadata_info(files, self.topics, self.hashes, counts,
+                                                c.start_ns, c.end_ns, self.custom))
+
+    def close(self) -> None:
+        """Write the summary and footer and the final ``metadata.yaml``; idempotent."""
+        if not self._open:
+            return
+        if self._files and self._current().messages == 0:
+            # Split at the last flush and nothing came since: no empty file at the end.
+            self._mcap.finish()
+            self._file.close()
+            (self.path / self.mcap_name).unlink()
+        else:
+            self._finish_file()
+        self._open = False
+        self._write_metadata(self._counts.per_topic)
 
 
 #: An MCAP Message record's opcode, length and fixed fields (channel id, sequence, log and

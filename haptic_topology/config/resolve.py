@@ -209,7 +209,7 @@ def resolve_ve_sim(s: VeSimSettings, sc: Scenario) -> VeSimConfig:
 @dataclass(frozen=True)
 class RecorderConfig:
     """What ``recorder`` runs with: the bag directory, the topics (of those it can record),
-    chunk size (bytes), flush period (s)."""
+    chunk size (bytes), flush period (s), split limits (bytes, s; 0: none)."""
 
     settings: RecorderSettings
     scenario_name: str
@@ -221,6 +221,8 @@ class RecorderConfig:
     clock: Clock
     executor: str
     sched_priority: int
+    max_bag_size: int = 0
+    max_bag_duration: float = 0.0
 
 
 def default_bag_dir(scenario: str, root: str | Path = 'bags') -> Path:
@@ -260,4 +262,5 @@ def resolve_recorder(s: RecorderSettings, recorded: Sequence[str]) -> RecorderCo
         path=Path(s.output) if s.output else default_bag_dir(name), topics=tuple(topics),
         flush_period=s.flush_period, chunk_size=s.chunk_kib * 1024,
         compression=s.compression, clock=Clock.parse(s.clock), executor=s.executor,
-        sched_priority=s.sched_priority)
+        sched_priority=s.sched_priority, max_bag_size=s.max_bag_size,
+        max_bag_duration=s.max_bag_duration)

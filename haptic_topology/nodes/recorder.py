@@ -146,7 +146,9 @@ class Recorder(Node):
                                 sources=message_definitions(), chunk_size=config.chunk_size,
                                 compression=config.compression,
                                 custom={'recorded_by': 'haptic_topology recorder',
-                                        'scenario': settings.scenario})
+                                        'scenario': settings.scenario},
+                                max_bag_size=config.max_bag_size,
+                                max_bag_duration=config.max_bag_duration)
         self._error: BaseException | None = None
         self.taker = BatchTaker(self, [(self.resolve_topic_name(t), RECORDED[t][0],
                                         _record_qos(t, config.clock)) for t in topics])

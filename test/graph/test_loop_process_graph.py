@@ -1,6 +1,6 @@
 """``device_driver`` with ``loop_process: true`` against real processes: either side of the
 loop killed. The cycle runs in a child of the driver (no rclpy); killing the child is the
-driver's fault (ERROR in ``/diagnostics``, no more running states), killing the driver ends
+driver's fault (ERROR in ``/diagnostics``, its loop stops), killing the driver ends
 the child (``PR_SET_PDEATHSIG``), which writes zero to the device first. Every wait is on
 messages or processes, with a deadline; nothing is timed (``make bench`` measures how fast).
 """
@@ -126,14 +126,9 @@ def test_a_killed_loop_process_is_the_drivers_fault(graph: Any) -> None:
                and 'loop process' in watch.driver.message, 'the driver reporting the fault',
                procs)
     assert f'{child[0]} exited with code -9' in watch.driver.message
-    seen = watch.running
     watch.wait(lambda: watch.driver.values and any(
         kv.key == 'loop_running' and kv.value == 'false' for kv in watch.driver.values),
         'the driver inactive', procs)
-    end = time.monotonic() + 1.0
-    while time.monotonic() < end:
-        watch.executor.spin_once(timeout_sec=0.02)
-    assert watch.running - seen <= 5       # only what was on the way
     code, out = stop_process(driver)
     assert code == 0 and 'Traceback' not in out, out[-3000:]
 
