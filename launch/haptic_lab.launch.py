@@ -9,15 +9,16 @@
 Starts what ``haptic-topology run`` starts, with the same parameters: the processes of the
 layout (``hosted``: ``recorder``, ``ve_sim`` and ``device_driver``, which runs
 ``lmi_controller`` in its loop thread; ``separate``: the four nodes as four processes;
-``composed``: all four in one process; ``process``: as ``hosted``, the cycle in the driver's
-loop process), each with the params file, then ``scenario``,
+``composed``: all four in one process; ``thread``: as ``hosted``, the cycle in a loop thread
+of the driver's process instead of its loop process), each with the params file, then
+``scenario``,
 ``clock``, the controller's ``mode``, the recorder's ``output``, ``device_driver``'s
 ``min_subscribers = 2`` (controller and recorder see the device before it engages),
 ``run_duration`` and ``host_controller`` (:func:`ros_arguments`).
 
 Arguments (all optional): ``scenario`` (name or YAML file, default ``fig8``), ``mode``
 (``penalty`` | ``acceleration_only``; empty: the scenario's), ``layout`` (``hosted`` |
-``separate`` | ``composed`` | ``process``), ``params_file`` (default: the installed
+``separate`` | ``composed`` | ``thread``), ``params_file`` (default: the installed
 ``share/haptic_topology/config/haptic_topology.yaml``), ``clock`` (``wall`` | ``lockstep``),
 ``duration`` (s of engaged loop after which the driver deactivates itself; empty: the
 scenario's duration; ``0``: never), ``output`` (bag directory, must not exist; empty:
@@ -57,7 +58,7 @@ LAYOUTS = {
     'hosted': ('recorder', 've_sim', 'device_driver'),
     'separate': ('recorder', 've_sim', 'lmi_controller', 'device_driver'),
     'composed': ('composed',),
-    'process': ('recorder', 've_sim', 'device_driver'),
+    'thread': ('recorder', 've_sim', 'device_driver'),
 }
 MODES = ('', 'penalty', 'acceleration_only')
 CLOCKS = ('wall', 'lockstep')
@@ -74,8 +75,8 @@ def ros_arguments(params_file: str, scenario: str, mode: str, layout: str, clock
             '-p', 'device_driver:min_subscribers:=2',
             '-p', f'device_driver:run_duration:={float(duration)!r}',
             '-p', f'device_driver:host_controller:={host}']
-    if layout == 'process':
-        args += ['-p', 'device_driver:loop_process:=true']
+    if layout == 'thread':
+        args += ['-p', 'device_driver:loop_process:=false']
     if mode:
         args += ['-p', f'lmi_controller:mode:={mode}']
     if output:

@@ -1,12 +1,12 @@
 """``haptic-topology run SCENARIO --mode penalty|acceleration_only --duration S``: the bringup.
 
-Starts the graph in one of three layouts (``--layout``): ``hosted`` (default): ``recorder``,
-``ve_sim`` and ``device_driver``, which runs ``lmi_controller`` in its process and the 1 kHz
-cycle in one loop thread (``device_driver.host_controller``); ``separate``: the four nodes as
+Starts the graph in one of four layouts (``--layout``): ``hosted`` (default): ``recorder``,
+``ve_sim`` and ``device_driver``, which hosts ``lmi_controller`` (``device_driver.
+host_controller``) and runs the 1 kHz cycle in its loop process, a child without rclpy
+(``device_driver.loop_process``); ``thread``: the same with the cycle in a loop thread of the
+driver's process (``loop_process: false``); ``separate``: the four nodes as
 four processes, the state -> command hop over DDS; ``composed``: all four in one process on
-one executor (``--composed`` is short for it; the driver hosts the controller); ``process``:
-as ``hosted``, the cycle in the driver's loop process (``device_driver.loop_process``: a child
-without rclpy, shared memory to the node). All with
+one executor (``--composed`` is short for it; the driver hosts the controller). All with
 the params file (default ``config/haptic_topology.yaml``) plus ``scenario``, ``clock``
 (``wall`` or ``lockstep``), the controller's ``mode``, the recorder's ``output``,
 ``device_driver.min_subscribers = 2`` (controller and recorder must see the device before it
@@ -51,7 +51,7 @@ NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
 CLOCKS = ('wall', 'lockstep')
 #: Layout -> the processes it starts (node modules), in start order.
 LAYOUTS = {'hosted': ('recorder', 've_sim', 'device_driver'), 'separate': NODES,
-           'composed': ('composed',), 'process': ('recorder', 've_sim', 'device_driver')}
+           'composed': ('composed',), 'thread': ('recorder', 've_sim', 'device_driver')}
 
 
 #: Default port of ``--foxglove`` (the Foxglove app's default for a WebSocket connection).
@@ -206,8 +206,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
            '-p', f'recorder:output:={bag}', '-p', 'device_driver:min_subscribers:=2',
            '-p', f'device_driver:run_duration:={float(duration)!r}',
            '-p', f'device_driver:host_controller:={host}']
-    if layout == 'process':
-        ros += ['-p', 'device_driver:loop_process:=true']
+    if layout == 'thread':
+        ros += ['-p', 'device_driver:loop_process:=false']
     if clock == 'lockstep':
         ros += ['-p', 'lmi_controller:use_sim_time:=true', '-p', 've_sim:use_sim_time:=true']
     if backend:
@@ -273,7 +273,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                 if c0 is not None and c1 is not None and wall > 0.0:
                     cpu[p.name] = round((c1 - c0) / wall, 4)
             loop1 = reaped_children_cpu_seconds(drivers[0]) if drivers else None
-            if layout == 'process' and loop0 is not None and loop1 is not None and wall > 0:
+            if loop0 is not None and loop1 is not None and loop1 > loop0 and wall > 0:
                 cpu['loop_process'] = round((loop1 - loop0) / wall, 4)
             # The loop has stopped; the recorder must take everything it sent while every
             # writer is still there to resend (checked on the nodes' own counts).

@@ -239,12 +239,12 @@ class DeviceDriverSettings(NodeSettings):
                                   'the state -> command hop a function call (ros2_control '
                                   'pattern); false: commands come over DDS from a separate '
                                   'lmi_controller process')
-    loop_process: bool = param(False, 'with host_controller: run the loop (device backend, '
+    loop_process: bool = param(True, 'with host_controller: run the loop (device backend, '
                                'controller, pacing) in a child process without rclpy, '
                                'exchanging records with this node through shared memory, so '
-                               'the deadline never waits for a GIL that ROS threads hold; '
-                               'backends that use rclpy themselves (ros_topics) keep the loop '
-                               'thread')
+                               'the deadline never waits for a GIL that ROS threads hold '
+                               '(backends that use rclpy themselves, ros_topics, keep the '
+                               'loop thread); false: in a loop thread of this process')
     cpu_affinity: tuple[int, ...] = param(
         [-1], 'CPUs the loop runs on (the loop thread or loop process when hosting the '
         'controller, else the process), e.g. [1]; [-1] = no pinning')

@@ -25,15 +25,16 @@ Layouts (parameter ``host_controller``):
 
 * hosted (default, the ros2_control pattern): the process also runs the ``lmi_controller``
   node (its own name, parameters, topics and diagnostics); each cycle (read device ->
-  controller -> write) runs in one loop thread (:class:`~haptic_topology.nodes.hosting.
-  HostedLoop` around the core :class:`~haptic_topology.device.runner.LoopRunner`: absolute
-  deadlines, or lock-step), the state -> command hop is a function call, and a second
-  thread publishes the states, commands, hand inputs and ``/clock`` for observers. Commands
-  from DDS never reach the device: the node does not subscribe to them. ``sched_priority``,
-  ``cpu_affinity`` and ``lock_memory`` apply to the loop thread. With ``loop_process`` the
-  cycle runs in a child process without rclpy instead, which opens the device
-  (:mod:`haptic_topology.device.loop_process`); a backend that uses rclpy itself
-  (``ros_topics``) keeps the loop thread, and the node says so when it configures;
+  controller -> write) runs in the core :class:`~haptic_topology.device.runner.LoopRunner`
+  (absolute deadlines, or lock-step; :class:`~haptic_topology.nodes.hosting.HostedLoop`),
+  the state -> command hop is a function call, and a thread of this node publishes the
+  states, commands, hand inputs and ``/clock`` for observers. With ``loop_process``
+  (default) the cycle runs in a child process without rclpy, which opens the device
+  (:mod:`haptic_topology.device.loop_process`); else, and with a backend that uses rclpy
+  itself (``ros_topics``: the node says so when it configures), in a loop thread of this
+  process. Commands from DDS never reach the device: the node does not subscribe to them.
+  ``sched_priority``, ``cpu_affinity`` and ``lock_memory`` apply to the loop process or
+  thread;
 * separate: commands come over DDS from an ``lmi_controller`` process; executor timers and
   the command callback step the loop through the core
   :class:`~haptic_topology.device.executor_loop.ExecutorLoop`, as described above.

@@ -55,11 +55,11 @@ LOCKSTEP_RUNS = (('fig6', 'penalty'), ('fig6', 'acceleration_only'), ('fig8', 'p
 #: Also in the pool: the spatial scenario (0.5 s) and the swapped backend (1 s).
 SPATIAL, SPATIAL_DURATION = ('panda_link4', 'penalty'), 0.5
 SWAPPED, SWAPPED_DURATION = ('fig8', 'fake_backend'), 1.0
-#: The same in the separate-process layout and with the loop in the driver's loop process
-#: (the others run hosted with the loop thread, the default).
+#: The same in the separate-process layout and with the cycle in a loop thread of the driver
+#: (the others run hosted with the loop process, the default).
 SEPARATE_RUNS = (('fig6', 'penalty', 'separate'), ('fig8', 'acceleration_only', 'separate'),
-                 ('wall', 'penalty', 'separate'), ('fig8', 'penalty', 'process'),
-                 ('wall', 'penalty', 'process'))
+                 ('wall', 'penalty', 'separate'), ('fig8', 'penalty', 'thread'),
+                 ('wall', 'penalty', 'thread'))
 
 
 @pytest.fixture(scope='module')
@@ -159,10 +159,10 @@ def test_lockstep_graph_equals_offline_simulation(
 @pytest.mark.parametrize('key', SEPARATE_RUNS, ids=lambda k: '-'.join(k))
 def test_other_layouts_equal_hosted_layout_and_offline(
         lockstep_runs: dict[tuple[str, ...], GraphRun], key: tuple[str, str, str]) -> None:
-    """The separate-process layout (state -> command over DDS) and the loop process (the
-    cycle in a child of the driver without rclpy, shared memory to the node) compute in
-    lock-step the same as the hosted loop thread and ``simulate()``: every exact column bit
-    for bit."""
+    """The separate-process layout (state -> command over DDS) and the loop thread (the
+    cycle in a thread of the driver's process instead of its loop process) compute in
+    lock-step the same as the default hosted layout (the loop process) and ``simulate()``:
+    every exact column bit for bit."""
     scenario, mode, _ = key
     separate, hosted = lockstep_runs[key].trace, lockstep_runs[(scenario, mode)].trace
     _assert_equals_offline(separate, scenario, mode, DURATION)

@@ -222,7 +222,7 @@ def test_parameter_files_exist_and_are_installed(monkeypatch: pytest.MonkeyPatch
     ('hosted', 'wall', '', '', ''),
     ('separate', 'lockstep', 'penalty', 'bags/x', 'fake_backend:CircleBackend'),
     ('composed', 'wall', 'acceleration_only', '', 'sim_maglev'),
-    ('process', 'lockstep', '', '', ''),
+    ('thread', 'lockstep', '', '', ''),
 ])
 def test_ros_arguments_pass_the_nodes_checks_params_file_first(
         layout: str, clock: str, mode: str, output: str, backend: str) -> None:
@@ -249,7 +249,7 @@ def test_ros_arguments_pass_the_nodes_checks_params_file_first(
     assert (f'lmi_controller:mode:={mode}' in overrides) == bool(mode)
     assert (f'recorder:output:={output}' in overrides) == bool(output)
     assert (f'device_driver:backend:={backend}' in overrides) == bool(backend)
-    assert ('device_driver:loop_process:=true' in overrides) == (layout == 'process')
+    assert ('device_driver:loop_process:=false' in overrides) == (layout == 'thread')
     for call in _calls(tree, 'Node'):
         kwargs = {k.arg for k in call.keywords}
         assert kwargs <= NODE_KWARGS, f'not a Jazzy Node argument: {kwargs - NODE_KWARGS}'

@@ -61,7 +61,7 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
         ('autostart', True, None, None, None, True),
         ('run_duration', 0.0, 0.0, 1e6, None, True),
         ('host_controller', True, None, None, None, True),
-        ('loop_process', False, None, None, None, True),
+        ('loop_process', True, None, None, None, True),
         ('cpu_affinity', [-1], None, None, None, True),
         ('lock_memory', False, None, None, None, True)],
     LmiControllerSettings: [*_COMMON,
