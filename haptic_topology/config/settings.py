@@ -374,8 +374,9 @@ class RecorderSettings(NodeSettings):
     max_bag_size: int = param(0, 'split the bag (as rosbag2 does): start a new storage file '
                               'once the current one holds this many bytes; 0 = no limit',
                               lo=0, hi=1 << 50)
-    max_bag_duration: float = param(0.0, 'split the bag: start a new storage file once the '
-                                    'current one spans this many seconds of messages; 0.0 = '
+    max_bag_duration: float = param(600.0, 'split the bag: start a new storage file once the '
+                                    'current one spans this many seconds of messages (bounds '
+                                    "the writer's index in memory over long sessions); 0.0 = "
                                     'no limit', lo=0.0, hi=1e7)
     clock: str = param('wall', "the graph's clock: with lockstep the state and command topics "
                        'are reliable and are recorded so', choices=tuple(c.value for c in Clock))

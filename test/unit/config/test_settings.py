@@ -91,7 +91,7 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
         ('chunk_kib', 64, 4, 65536, None, True),
         ('compression', 'zstd', None, None, ('zstd', 'lz4', 'none'), True),
         ('max_bag_size', 0, 0, 1 << 50, None, True),
-        ('max_bag_duration', 0.0, 0.0, 1e7, None, True),
+        ('max_bag_duration', 600.0, 0.0, 1e7, None, True),
         ('clock', 'wall', None, None, ('wall', 'lockstep'), True)],
 }
 
