@@ -17,6 +17,12 @@ def _stat_fields(path: str) -> list[str] | None:
         return None
 
 
+def running(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie waiting to be reaped does not)."""
+    fields = _stat_fields(f'/proc/{pid}/stat')
+    return fields is not None and fields[0] != 'Z'
+
+
 def cpu_seconds(pid: int, tid: int | None = None) -> float | None:
     """User + system CPU time (s) of process ``pid`` (all its threads), or of its thread
     ``tid``, from ``/proc``; None once it is gone."""

@@ -16,7 +16,6 @@ import gc
 import json
 import os
 import pickle
-import select
 import signal
 import sys
 import time
@@ -41,6 +40,7 @@ from haptic_topology.device.loop_process import (
     bytes_dtype,
     payloads,
     put_bytes,
+    wait_eventfd,
 )
 from haptic_topology.device.pacing import PERIOD_WINDOW
 from haptic_topology.device.realtime import name_os_thread, set_thread_realtime
@@ -73,12 +73,7 @@ class _RingCycle(HostedCycle):
     def wait_offered(self, timeout: float) -> bool:
         if self.pull():
             return True
-        ready, _, _ = select.select([self._wake_fd], [], [], timeout)
-        if ready:
-            try:
-                os.eventfd_read(self._wake_fd)
-            except BlockingIOError:
-                pass
+        wait_eventfd(self._wake_fd, timeout)
         self._poll()
         return self.pull()
 

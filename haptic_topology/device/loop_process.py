@@ -164,6 +164,19 @@ class CycleCodec:
         return Published(HostedStep(tick, float(f[0]), ans, None, ()), i[0])
 
 
+def wait_eventfd(fd: int, timeout: float) -> bool:
+    """Block until the eventfd ``fd`` (non-blocking) is signalled or ``timeout`` s have
+    passed; reset it. Returns whether it was signalled."""
+    ready, _, _ = select.select([fd], [], [], timeout)
+    if not ready:
+        return False
+    try:
+        os.eventfd_read(fd)
+    except BlockingIOError:         # reset meanwhile: signalled all the same
+        pass
+    return True
+
+
 def put_bytes(ring: ShmRing, data: bytes, what: str, overwrite: bool = True) -> bool:
     """Put ``data`` into a ring of :func:`_bytes_dtype` records; too long is an error."""
     size = ring.dtype['b'].shape[0]
@@ -386,12 +399,7 @@ class LoopProcess:
         if self._fds is None:
             time.sleep(timeout)
             return
-        ready, _, _ = select.select([self._fds[0]], [], [], timeout)
-        if ready:
-            try:
-                os.eventfd_read(self._fds[0])
-            except BlockingIOError:
-                pass
+        wait_eventfd(self._fds[0], timeout)
 
     def drain(self) -> list[Published]:
         """The cycles the child has produced since the last call, oldest first."""

@@ -19,19 +19,12 @@ import pytest
 from procs import stop_process
 
 from haptic_topology.paths import config_dir
+from haptic_topology.processes import running
 
 pytestmark = pytest.mark.graph
 
 PARAMS = config_dir() / 'haptic_topology.yaml'
 WAIT = 60.0           # s: generous, a loaded machine is only slower
-
-
-def _alive(pid: int) -> bool:
-    """Whether process ``pid`` runs (a zombie waiting for its reaper does not)."""
-    try:
-        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z'
-    except (OSError, IndexError):
-        return False
 
 
 def _start(name: str, *extra: str) -> subprocess.Popen[bytes]:
@@ -141,8 +134,8 @@ def test_a_killed_driver_ends_its_loop_process(graph: Any) -> None:
     driver.kill()
     driver.wait()
     deadline = time.monotonic() + WAIT
-    while _alive(child[0]) and time.monotonic() < deadline:
+    while running(child[0]) and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert not _alive(child[0]), 'the loop process outlived its driver'
+    assert not running(child[0]), 'the loop process outlived its driver'
     out = driver.stdout.read().decode(errors='replace') if driver.stdout else ''
     assert 'parent gone: output zeroed, device released' in out, out[-3000:]

@@ -25,19 +25,12 @@ from haptic_topology.device.loop import DeviceTick
 from haptic_topology.device.loop_process import CycleCodec, LoopProcess
 from haptic_topology.device.runner import Published
 from haptic_topology.errors import DeviceError
+from haptic_topology.processes import running
 from haptic_topology.sim.lockstep import simulate, virtual_environment
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 SUPPORT = Path(__file__).resolve().parents[2] / 'support'
-
-
-def _alive(pid: int) -> bool:
-    """Whether process ``pid`` runs (a zombie waiting for its reaper does not)."""
-    try:
-        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z'
-    except (OSError, IndexError):
-        return False
 
 
 def _v(*x: float) -> np.ndarray:
@@ -170,9 +163,9 @@ def test_a_killed_parent_stops_the_child_with_zero_output_and_no_segment_left() 
         parent.wait()
     rest = parent.stdout.read()         # the child's last words (it shares the pipe)
     deadline = time.monotonic() + 30.0
-    while _alive(child) and time.monotonic() < deadline:
+    while running(child) and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert not _alive(child)
+    assert not running(child)
     assert 'parent gone: output zeroed, device released' in rest, rest
     while _segments(names) and time.monotonic() < deadline:   # the parent's tracker
         time.sleep(0.01)
