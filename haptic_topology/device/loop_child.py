@@ -84,14 +84,13 @@ class _Child:
     def __init__(self, spec: LoopSpec) -> None:
         self.spec = spec
         rings = spec.rings
-        self.cycles = ShmRing.attach(rings['cycles'], CycleCodec(spec.limit.size).dtype,
-                                     CYCLE_RECORDS)
+        self.codec = CycleCodec(spec.limit.size)
+        self.cycles = ShmRing.attach(rings['cycles'], self.codec.dtype, CYCLE_RECORDS)
         self.control = ShmRing.attach(rings['control'], bytes_dtype(CONTROL_BYTES), 64)
         self.status_ring = ShmRing.attach(rings['status'], bytes_dtype(STATUS_BYTES), 4)
         updates = ShmRing.attach(rings['updates'], bytes_dtype(spec.update_bytes),
                                  UPDATE_RECORDS)
         self.rings = [self.cycles, self.control, self.status_ring, updates]
-        self.codec = CycleCodec(spec.limit.size)
         self.backend = create_backend(spec.backend)
         self.backend.configure(spec.backend_config)
         dim = spec.limit.size

@@ -137,7 +137,7 @@ class HostedLoop:
                               controller.cfg.lockstep_wait)
         self.process: LoopProcess | None = None
         self.runner: LoopRunner | LoopProcess
-        if in_child(driver):
+        if driver.in_child:         # decided once, when the driver configured
             self.runner = self.process = LoopProcess(loop_spec(driver, controller.loop, pacing),
                                                      c.task_dim, controller.dof)
         else:
