@@ -1,8 +1,9 @@
 """Compute costs of the core, without ROS: controller cycle and VE update per chain size.
 
-Measured with ``time.perf_counter_ns`` around each call, after a warm-up; figures are
-percentiles over many calls. Used by ``bench/run.py`` (``make bench``); runnable alone:
-``.venv/bin/python bench/core_costs.py``.
+Measured as the calling thread's CPU time around each call (``time.thread_time_ns``: the
+time another process holds the core does not count, so the figures are the code's cost on a
+shared 2-core machine), after a warm-up; figures are percentiles over many calls. Used by
+``bench/run.py`` (``make bench``); runnable alone: ``.venv/bin/python bench/core_costs.py``.
 """
 
 from __future__ import annotations
@@ -16,14 +17,25 @@ import numpy as np
 
 from haptic_topology.control import HapticController
 from haptic_topology.device import MaglevModel, user_from_config
+from haptic_topology.device.hosted import HostedCycle
+from haptic_topology.device.loop_process import CycleCodec
+from haptic_topology.device.runner import Published
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.model import serial_chain
 from haptic_topology.sim import VirtualEnvironment, load_scenario
+from haptic_topology.sim.lockstep import (
+    build_controller_loop,
+    build_device_loop,
+    virtual_environment,
+)
 from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 BUDGET_US = 10_000.0  # one update period of a 100 Hz VE
 GOAL_FRACTION = 0.3   # issue 11: a 100-link chain within 30 % of the update period
 GRAPH_SCENARIO = 'circle'  # what make bench runs on the node graph
+CLOCK = time.thread_time_ns
+#: The loop process's cycle is timed on these scenarios (planar: the graph's; spatial: 6-D).
+LOOP_STEP_SCENARIOS = {'planar': GRAPH_SCENARIO, 'spatial': 'spatial_arm4'}
 CHAIN_SIZES = (3, 10, 30, 100, 150, 200)
 
 
@@ -54,16 +66,16 @@ def controller_step(mode: ControlMode, cycles: int = 20000) -> dict[str, float]:
         if k:
             dev.step(u, f_h, sc.dt)
         f_h = user.wrench(k * sc.dt, dev.pose, dev.twist)
-        t0 = time.perf_counter_ns()
+        t0 = CLOCK()
         out = ctrl.cycle(k, sc.dt, dev.pose, dev.twist, f_h)
-        t1 = time.perf_counter_ns()
+        t1 = CLOCK()
         u = out.wrench
         ve.push_input(k, k * sc.dt, out.vt_wrench)
         if (k + 1) % 10 == 0:
             snap = ve.snapshot(k)
-            t2 = time.perf_counter_ns()
+            t2 = CLOCK()
             ctrl.update(snap)
-            t3 = time.perf_counter_ns()
+            t3 = CLOCK()
             if k >= 500:
                 sync_ns.append(t3 - t2)
         if k >= 500:
@@ -78,6 +90,50 @@ def controller_step(mode: ControlMode, cycles: int = 20000) -> dict[str, float]:
     result['resync_p50_us'] = _pct(sync_ns)['p50_us']
     result['resync_p99_us'] = _pct(sync_ns)['p99_us']
     return result
+
+
+def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
+    """Cost of one cycle of the loop process without ROS: :meth:`HostedCycle.step` (the
+    device tick with the simulated maglev and user, the controller's answer: LMI step, eq. 14
+    or the scenario's law, and at every ``update_period``-th cycle the LMI re-sync) plus the
+    record it writes to the outbound ring (:meth:`CycleCodec.encode`), on ``scenario`` as
+    ``simulate`` runs it. The VE's own steps are not timed."""
+    sc = load_scenario(scenario)
+    ve = virtual_environment(sc)
+    cycle = HostedCycle(build_device_loop(sc),
+                        build_controller_loop(sc, sc.mode, update_period=sc.update_period))
+    codec = CycleCodec(sc.linkage.task.dim)
+    cycle.offer_update(ve.snapshot(seq=0))
+    step_ns: list[int] = []
+    dt = sc.dt
+    inputs = updates = 0
+    warm = 500
+    restart = int(round(sc.duration / dt))      # keep the run within the scenario's time
+    for k in range(cycles + warm):
+        t = (k % restart) * dt
+        t0 = CLOCK()
+        done = cycle.step(t, dt, t)
+        codec.encode(Published(done, k))
+        t1 = CLOCK()
+        if k >= warm:
+            step_ns.append(t1 - t0)
+        hand = done.answer.hand if done.answer is not None else None
+        if hand is not None:
+            ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
+            inputs += 1
+            if inputs % sc.update_period == 0:
+                updates += 1
+                cycle.offer_update(ve.snapshot(seq=updates))
+        if k % restart == restart - 1:
+            ve = virtual_environment(sc)
+            cycle = HostedCycle(build_device_loop(sc), build_controller_loop(
+                sc, sc.mode, update_period=sc.update_period))
+            inputs = 0
+            updates += 1
+            cycle.offer_update(ve.snapshot(seq=0))
+    out = _pct(step_ns)
+    out['task'] = sc.linkage.task.value      # type: ignore[assignment]
+    return out
 
 
 def _coupling(task: TaskSpace) -> tuple[np.ndarray, np.ndarray]:
@@ -110,13 +166,13 @@ def ve_update(n: int, task: TaskSpace, updates: int = 60,
     step_ns: list[int] = []
     seq = 0
     for i in range(updates + 3):
-        t0 = time.perf_counter_ns()
+        t0 = CLOCK()
         for _ in range(10):
             ve.push_input(seq, seq * 1e-3, wrench)
             seq += 1
-        t1 = time.perf_counter_ns()
+        t1 = CLOCK()
         ve.snapshot(i)
-        t2 = time.perf_counter_ns()
+        t2 = CLOCK()
         if i >= 3:
             step_ns.append(t1 - t0)
             snap_ns.append(t2 - t1)
@@ -164,6 +220,8 @@ def run(chain_sizes: tuple[int, ...] = CHAIN_SIZES) -> dict[str, Any]:
     out['controller_step_p50_us'] = out['controller_eq14']['p50_us']
     out['controller_step_p99_us'] = out['controller_eq14']['p99_us']
     out['controller_step_eq10_p99_us'] = out['controller_eq10']['p99_us']
+    for key, scenario in LOOP_STEP_SCENARIOS.items():
+        out[f'loop_step_{key}'] = loop_step(scenario)
     out.update(ve_costs(chain_sizes))
     return out
 
@@ -189,6 +247,15 @@ def print_table(res: dict[str, Any]) -> None:
         print(f'  {key:16s} p50 {r["p50_us"]:7.1f}  p99 {r["p99_us"]:7.1f}  max '
               f'{r["max_us"]:8.1f}  (LMI re-sync p50 {r["resync_p50_us"]:.1f}, p99 '
               f'{r["resync_p99_us"]:.1f})')
+    if 'loop_step_planar' in res:
+        print('loop process cycle (HostedCycle.step + ring record, no ROS; LMI re-sync '
+              'matrices prepared by the node), microseconds')
+        for key, scenario in LOOP_STEP_SCENARIOS.items():
+            r = res[f'loop_step_{key}']
+            print(f'  {key:8s} {scenario:14s} p50 {r["p50_us"]:7.1f}  p99 {r["p99_us"]:7.1f}  '
+                  f'max {r["max_us"]:8.1f}')
+    if 've_update' not in res:
+        return
     step_ms = 1e3 * res['ve_update'][0]['internal_step_s']
     print(f've_sim cost per 100 Hz update (budget 10000 us, goal <= 30 %), RK4 at {step_ms:g} ms '
           f'as ve_sim runs {GRAPH_SCENARIO}, with VT coupling, microseconds')
@@ -205,11 +272,15 @@ def print_table(res: dict[str, Any]) -> None:
 if __name__ == '__main__':
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--ve-only', action='store_true', help='only the VE update costs')
+    ap.add_argument('--loop-only', action='store_true',
+                    help="only the loop process's cycle (planar and spatial)")
     ap.add_argument('--sizes', default=','.join(map(str, CHAIN_SIZES)),
                     help='chain sizes, comma-separated (default %(default)s)')
     a = ap.parse_args()
     sizes = tuple(int(x) for x in a.sizes.split(','))
-    results = ve_costs(sizes) if a.ve_only else run(sizes)
+    results = (ve_costs(sizes) if a.ve_only else
+               {f'loop_step_{k}': loop_step(v) for k, v in LOOP_STEP_SCENARIOS.items()}
+               if a.loop_only else run(sizes))
     print_table(results)
     print(json.dumps({k: v for k, v in results.items() if not isinstance(v, (dict, list))},
                      indent=2))

@@ -258,6 +258,8 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'controller_step_p50_us': core['controller_step_p50_us'],
         'controller_step_p99_us': core['controller_step_p99_us'],
         'controller_step_eq10_p99_us': core['controller_step_eq10_p99_us'],
+        'loop_step_p99_us_planar': core['loop_step_planar']['p99_us'],
+        'loop_step_p99_us_spatial': core['loop_step_spatial']['p99_us'],
         've_update_p99_us_3_links': next(
             r['update_total_p99_us'] for r in core['ve_update']
             if r['links'] == 3 and r['task'] == 'planar'),
@@ -332,6 +334,10 @@ def goals(head: dict[str, Any]) -> str:
          and min(h['max_links_within_30pct_planar'], h['max_links_within_30pct_spatial']) >= 100),
         ('controller compute p99', f'{h["controller_step_p99_us"]:.0f} us', '<= 30 us',
          h['controller_step_p99_us'] <= 30.0),
+        ('loop process cycle p99 (no ROS), planar / spatial',
+         f'{h["loop_step_p99_us_planar"]:.0f} / {h["loop_step_p99_us_spatial"]:.0f} us',
+         '<= 50 / 100 us', h['loop_step_p99_us_planar'] <= 50.0
+         and h['loop_step_p99_us_spatial'] <= 100.0),
         (f'recorder at {RECORDER_HIGH:g}x', f'{h["recorder_high_msgs_per_s"]:.0f} of '
          f'{h["recorder_high_published_msgs_per_s"]:.0f} msg/s, lost '
          f'{h["recorder_high_lost"]}, {h["recorder_high_cpu"] or float("nan"):.2f} core',

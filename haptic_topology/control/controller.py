@@ -18,7 +18,7 @@ from haptic_topology.control.laws import (
     coordination_wrench,
     stable_hold,
 )
-from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LocalModel
+from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LmiSync, LocalModel
 from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
@@ -40,6 +40,19 @@ class CycleOutput:
     constraint_count: int
     mode: ControlMode
     env_wrench: np.ndarray | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class PreparedUpdate:
+    """An LMI update with everything a re-sync computes from it
+    (:meth:`HapticController.prepare`): the LMI's matrices and the stable step (s)."""
+
+    sync: LmiSync
+    stable_dt: float
+
+    @property
+    def snapshot(self) -> LmiSnapshot:
+        return self.sync.snapshot
 
 
 class HapticController:
@@ -64,20 +77,31 @@ class HapticController:
         #: Longest LMI step (s) this model integrates stably (see :meth:`_stable_dt`).
         self.stable_dt = math.inf
 
-    def update(self, snap: LmiSnapshot) -> None:
-        """Re-sync the LMI to an update of the full simulation (eqs. 17-19)."""
-        self.lmi.sync(snap)
-        self.stable_dt = self._stable_dt()
+    def prepare(self, snap: LmiSnapshot) -> PreparedUpdate:
+        """What :meth:`update` computes from ``snap`` alone (the LMI's matrices, eqs. 17-19,
+        and the stable step): a function of the update and of this controller's fixed
+        settings (task, LMI model, ``K_pc``, ``B_pc``, VT coupling), so any thread may call it
+        (the one that receives the update) and the loop only adopts the result."""
+        sync = self.lmi.prepare(snap)
+        return PreparedUpdate(sync, self._stable_dt(sync.lambda_inv))
 
-    def _stable_dt(self) -> float:
-        """Longest LMI step (s) that keeps the VT side of the coordination spring stable.
-        Eq. 17 is stepped (semi-implicit Euler) with ``F_vt = F_h - F_pc`` held over the
-        measured period, so a long period (a late device state) steps the spring explicitly
+    def update(self, update: LmiSnapshot | PreparedUpdate) -> None:
+        """Re-sync the LMI to an update of the full simulation (eqs. 17-19), or to its
+        :meth:`prepare`-d form."""
+        p = update if isinstance(update, PreparedUpdate) else self.prepare(update)
+        self.lmi.sync(p.sync)
+        self.stable_dt = p.stable_dt
+
+    def _stable_dt(self, lambda_inv: np.ndarray) -> float:
+        """Longest LMI step (s) that keeps the VT side of the coordination spring stable at
+        ``Lambda_h^-1`` = ``lambda_inv`` (eq. 19). Eq. 17 is stepped (semi-implicit Euler)
+        with ``F_vt = F_h - F_pc`` held over the measured period, so a long period (a late
+        device state) steps the spring explicitly
         (:func:`~haptic_topology.control.laws.stable_hold`). Without VT coupling
         (``F_vt = F_h``) nothing feeds back: inf."""
         if not self.vt_coupling:
             return math.inf
-        return stable_hold(self.lmi.lambda_inv, self.gains.k_pc, self.gains.b_pc)
+        return stable_hold(lambda_inv, self.gains.k_pc, self.gains.b_pc)
 
     def cycle(self, seq: int, dt: float, x_h: np.ndarray, xd_h: np.ndarray,
               f_h: np.ndarray) -> CycleOutput:

@@ -87,6 +87,24 @@ class LmiSnapshot:
                                     self.penalty_direction)
 
 
+@dataclass(frozen=True, slots=True)
+class LmiSync:
+    """An update with the matrices a re-sync takes (:meth:`LocalModel.prepare`): ``D^-1
+    J_h^T`` (d x m), ``D^-1 G`` (d; 0 for eq. 20), ``Lambda_h^-1`` (m x m, eq. 19), the
+    projector of eq. 13 (m x m), and with contacts ``(J_c^T, D^-1 J_c^T)``, the map from
+    contact forces to ``F_env`` and the held forces (N; None when evaluated locally)."""
+
+    snapshot: LmiSnapshot
+    accel_map: np.ndarray
+    accel_bias: np.ndarray
+    lambda_inv: np.ndarray
+    projector: np.ndarray
+    contacts: LocalContacts | None
+    contact_map: tuple[np.ndarray, np.ndarray]
+    env_map: np.ndarray
+    held_forces: np.ndarray | None
+
+
 @dataclass
 class _Input:
     seq: int
@@ -137,19 +155,47 @@ class LocalModel:
     def synced(self) -> bool:
         return self.snapshot is not None
 
-    def sync(self, snap: LmiSnapshot) -> None:
-        """Re-sync to an update: take its matrices and state, replay the newer inputs."""
+    def prepare(self, snap: LmiSnapshot) -> LmiSync:
+        """The matrices a re-sync to ``snap`` takes (eqs. 17-19), computed from the update
+        alone: any thread may call this (e.g. the one that receives the update), so that
+        :meth:`sync` on the loop's thread only adopts them."""
         if snap.task is not self.task:
             raise ValueError(f'task_dim must be {self.task.dim}, got {snap.task.dim}')
         factor = spd_factor(snap.mass_matrix)
         j = snap.hand_jacobian
-        self._accel_map = spd_solve(factor, j.T)
-        self._accel_bias = (spd_solve(factor, snap.gravity) if self.model is LmiModel.EQ17
-                            else np.zeros_like(snap.gravity))
-        self._jacobian = j
-        lam = j @ self._accel_map
-        self.lambda_inv = 0.5 * (lam + lam.T)      # eq. 19 (with J^T)
-        self.projector = snap.constraints().projector()
+        accel_map = spd_solve(factor, j.T)
+        accel_bias = (spd_solve(factor, snap.gravity) if self.model is LmiModel.EQ17
+                      else np.zeros_like(snap.gravity))
+        lam = j @ accel_map
+        lambda_inv = 0.5 * (lam + lam.T)      # eq. 19 (with J^T)
+        contacts = snap.contacts if snap.contacts is not None and len(snap.contacts) else None
+        contact_map = (np.zeros((0, 0)), np.zeros((0, 0)))
+        env_map = np.zeros((self.task.dim, 0))
+        held = None
+        if contacts is not None:
+            # Per contact force F (3c, flattened): joint torques J^T F, joint accelerations
+            # D^-1 J^T F (eq. 17) and F_env = Lambda^+ J_h D^-1 J^T F, as three matrices.
+            jt = contacts.stacked_jacobian.T
+            contact_map = (jt, spd_solve(factor, jt))
+            lambda_pinv = np.linalg.pinv(lambda_inv, rcond=1e-10, hermitian=True)
+            env_map = lambda_pinv @ (j @ contact_map[1])
+            if not contacts.local:
+                held = contacts.forces(snap.q, snap.dq)
+        return LmiSync(snap, accel_map, accel_bias, lambda_inv,
+                       snap.constraints().projector(), contacts, contact_map, env_map, held)
+
+    def sync(self, update: LmiSnapshot | LmiSync) -> None:
+        """Re-sync to an update (or to its :meth:`prepare`-d matrices): take its matrices and
+        state, replay the newer inputs."""
+        p = update if isinstance(update, LmiSync) else self.prepare(update)
+        snap = p.snapshot
+        if snap.task is not self.task:
+            raise ValueError(f'task_dim must be {self.task.dim}, got {snap.task.dim}')
+        self._accel_map = p.accel_map
+        self._accel_bias = p.accel_bias
+        self._jacobian = snap.hand_jacobian
+        self.lambda_inv = p.lambda_inv
+        self.projector = p.projector
         self.constraint_count = snap.constraint_count
         self.q = snap.q.copy()
         self.dq = snap.dq.copy()
@@ -157,18 +203,11 @@ class LocalModel:
         self.xd_vt = snap.hand_twist.copy()
         self.snapshot = snap
         self.consumed = snap.hand_input_seq
-        contacts = snap.contacts if snap.contacts is not None and len(snap.contacts) else None
-        self._contacts = contacts
-        self._held_forces = None
-        if contacts is not None:
-            # Per contact force F (3c, flattened): joint torques J^T F, joint accelerations
-            # D^-1 J^T F (eq. 17) and F_env = Lambda^+ J_h D^-1 J^T F, as three matrices.
-            jt = contacts.stacked_jacobian.T
-            self._contact_map = (jt, spd_solve(factor, jt))
-            lambda_pinv = np.linalg.pinv(self.lambda_inv, rcond=1e-10, hermitian=True)
-            self._env_map = lambda_pinv @ (j @ self._contact_map[1])
-            if not contacts.local:
-                self._held_forces = contacts.forces(self.q, self.dq)
+        self._contacts = p.contacts
+        self._held_forces = p.held_forces
+        if p.contacts is not None:
+            self._contact_map = p.contact_map
+            self._env_map = p.env_map
         self._update_contacts()
         self._replay(None)
 

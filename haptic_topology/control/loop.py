@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from haptic_topology.control.controller import CycleOutput, HapticController
+from haptic_topology.control.controller import CycleOutput, HapticController, PreparedUpdate
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.safety import SyncGuard, scaled_wrench
 from haptic_topology.dynamics.taskspace import pose_difference
@@ -128,7 +128,7 @@ class ControllerLoop:
         self._ve_seq: int | None = None
         self._ve_new_session = False
         self._ve_consumed = -1
-        self._pending: LmiSnapshot | None = None
+        self._pending: LmiSnapshot | PreparedUpdate | None = None
         self.notices: list[str] = []    # events for the node's log, drained by it
         self.ve_restarts = 0
         self.updates = 0
@@ -234,9 +234,10 @@ class ControllerLoop:
                             f'loop seq continues after {self.last_seq}')
 
     # -- LMI updates -------------------------------------------------------------------------
-    def on_update(self, snap: LmiSnapshot) -> str:
-        """Take an LMI update (arrival at the current loop time); returns an
-        :class:`UpdateVerdict` value."""
+    def on_update(self, update: LmiSnapshot | PreparedUpdate) -> str:
+        """Take an LMI update, or its :meth:`HapticController.prepare`-d form (arrival at
+        the current loop time); returns an :class:`UpdateVerdict` value."""
+        snap = update.snapshot if isinstance(update, PreparedUpdate) else update
         now = self.loop_time
         if self._ve_seq is not None and snap.seq < self._ve_seq:
             self.ve_restarts += 1
@@ -249,7 +250,7 @@ class ControllerLoop:
         if not self._seen_state:
             # No device state yet, so no loop time: sync (start-up); the guard starts counting
             # with the first update after the loop's first state.
-            self.ctrl.update(snap)
+            self.ctrl.update(update)
             return UpdateVerdict.APPLIED
         if snap.hand_input_seq < 0 and (self._ve_new_session or self.hand_seq > 0):
             # Consumed none of our inputs: a restarted VE that has not placed its VT at the
@@ -271,10 +272,10 @@ class ControllerLoop:
                 restart = True
                 self.jumps_held += 1
         if self.guard.update_arrived(now, restart, lag):
-            self.ctrl.update(snap)
+            self.ctrl.update(update)
             self._pending = None
             return UpdateVerdict.APPLIED
-        self._pending = snap
+        self._pending = update
         return UpdateVerdict.HELD
 
     def resync_jump(self, snap: LmiSnapshot) -> float:

@@ -23,10 +23,12 @@ became of the updates and the command. The wrench written is finite and within t
 limit whatever the controller computes (NaN, inf, huge): ``DeviceLoop`` clamps it.
 
 Threads: :meth:`HostedCycle.offer_update` may be called from any thread (the executor thread
-that receives ``LmiUpdate``). It appends to an inbox under a lock; the loop thread swaps the
-inbox out under the same lock and applies the updates outside it, so neither side holds the
-lock for more than a list append or swap. The inbox keeps at most ``max_pending`` updates (a
-loop that is not stepping, e.g. an inactive device, while the VE keeps sending): beyond that
+that receives ``LmiUpdate``). It computes there what a re-sync computes from the update alone
+(:meth:`~haptic_topology.control.controller.HapticController.prepare`: the LMI's matrices,
+eqs. 17-19), then appends to an inbox under a lock; the loop thread swaps the inbox out under
+the same lock and applies the updates outside it, so neither side holds the lock for more
+than a list append or swap. The inbox keeps at most ``max_pending`` updates (a loop that is
+not stepping, e.g. an inactive device, while the VE keeps sending): beyond that
 the oldest is dropped and counted in :attr:`HostedCycle.updates_dropped`. Every other method
 belongs to the loop thread.
 """
@@ -36,6 +38,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 
+from haptic_topology.control.controller import PreparedUpdate
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.loop import Answer, ControllerLoop, StateSample
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, ns_to_seconds, period_ns
@@ -80,15 +83,19 @@ class HostedCycle:
         self.controller = controller
         self.max_pending = max_pending
         self._offered = threading.Condition(threading.Lock())
-        self._inbox: list[LmiSnapshot] = []
+        self._inbox: list[PreparedUpdate] = []
         self.updates_offered = 0     # written under the lock (any thread)
         self.updates_dropped = 0     # written under the lock (any thread)
         self.updates_applied = 0     # loop thread
 
     # -- LMI updates (any thread) ------------------------------------------------------------
-    def offer_update(self, snap: LmiSnapshot) -> None:
+    def offer_update(self, snap: LmiSnapshot | PreparedUpdate) -> None:
         """Hand an LMI update to the loop thread (any thread; it is applied at the start of
-        the next :meth:`step`, after every update offered before it)."""
+        the next :meth:`step`, after every update offered before it). What a re-sync computes
+        from the update alone (:meth:`HapticController.prepare`) is computed here, in the
+        caller's thread, unless ``snap`` comes prepared: the loop only adopts it."""
+        if not isinstance(snap, PreparedUpdate):
+            snap = self.controller.ctrl.prepare(snap)
         with self._offered:
             if len(self._inbox) >= self.max_pending:
                 del self._inbox[0]

@@ -15,8 +15,10 @@ torn reads detected), never a lock:
   batches). A full ring drops its oldest record and counts it (wall clock: the deadline never
   waits for the node) or holds the loop until the node has taken some (lock-step: nothing
   recorded is lost);
-* node -> child, LMI updates (pickled :class:`~haptic_topology.control.lmi.LmiSnapshot`,
-  applied at the start of the next cycle as in-process) and control requests (engagement
+* node -> child, LMI updates (pickled
+  :class:`~haptic_topology.control.controller.PreparedUpdate`: the snapshot with the matrices
+  its re-sync takes, computed by the node; applied at the start of the next cycle as
+  in-process) and control requests (engagement
   permission, a live change of law or gains, stop);
 * child -> node, a status record every :data:`STATUS_PERIOD` s: the loop's, the device's and
   the controller's diagnostics values, and notices for the node's log.
@@ -100,9 +102,10 @@ def bytes_dtype(size: int) -> np.dtype[Any]:
 
 
 def update_bytes(dof: int) -> int:
-    """Bytes of one LMI update record for a linkage of ``dof`` joints (the pickled snapshot:
-    mass matrix, Jacobians, contacts; an update that does not fit is refused, never cut)."""
-    return (1 << 16) + 16 * dof * (dof + 64)
+    """Bytes of one LMI update record for a linkage of ``dof`` joints (the pickled prepared
+    update: mass matrix, Jacobians, contacts and the re-sync's matrices; an update that does
+    not fit is refused, never cut)."""
+    return (1 << 17) + 32 * dof * (dof + 64)
 
 
 class CycleCodec:
@@ -366,13 +369,17 @@ class LoopProcess:
 
     def offer_update(self, snap: LmiSnapshot) -> None:
         """Hand an LMI update to the child (applied at the start of its next cycle, after
-        every update offered before it). While the ring is full (the child starting up, or
-        not stepping) updates wait here, at most :data:`~haptic_topology.device.hosted.
-        MAX_PENDING` (then the oldest is dropped and counted, as in-process). Call from one
+        every update offered before it), with the matrices its re-sync takes computed here
+        (:meth:`~haptic_topology.control.controller.HapticController.prepare`, by the node's
+        copy of the controller, which is never stepped): the child only adopts them. While
+        the ring is full (the child starting up, or not stepping) updates wait here, at most
+        :data:`~haptic_topology.device.hosted.MAX_PENDING` (then the oldest is dropped and
+        counted, as in-process). Call from one
         thread (the executor's), as :meth:`flush_updates`."""
         if len(self._pending) == self._pending.maxlen:
             self.updates_dropped += 1
-        self._pending.append(pickle.dumps(snap, protocol=pickle.HIGHEST_PROTOCOL))
+        prepared = self._spec['controller'].ctrl.prepare(snap)
+        self._pending.append(pickle.dumps(prepared, protocol=pickle.HIGHEST_PROTOCOL))
         self.flush_updates()
 
     def flush_updates(self) -> None:

@@ -174,3 +174,29 @@ def test_controller_answers_zero_before_the_first_update() -> None:
     ctrl.update(_snapshot(dyn, np.array([0.0, math.pi / 6, -math.pi / 3]), np.zeros(3)))
     out = ctrl.cycle(1, 1e-3, np.zeros(3), np.zeros(3), np.array([0.4, 0, 0]))
     assert out.mode is ControlMode.PENALTY and np.all(np.isfinite(out.wrench))
+
+
+@pytest.mark.parametrize('scenario', ['fig8', 'wall', 'spatial_arm4'])
+def test_a_prepared_update_syncs_exactly_as_the_update_itself(scenario: str) -> None:
+    """``prepare`` (run by the thread or process that receives the update, on another copy of
+    the controller) and ``update`` with its result give the controller the state the update
+    itself gives, bit for bit: contacts (wall), spatial and planar."""
+    from haptic_topology.sim import load_scenario
+    from haptic_topology.sim.lockstep import build_controller_loop, virtual_environment
+    sc = load_scenario(scenario)
+    snap = virtual_environment(sc).snapshot(seq=0)
+    direct, adopted, preparer = (build_controller_loop(sc, sc.mode).ctrl for _ in range(3))
+    direct.update(snap)
+    adopted.update(preparer.prepare(snap))
+    assert adopted.stable_dt == direct.stable_dt
+    rng = np.random.default_rng(3)
+    x, xd = snap.hand_pose.copy(), snap.hand_twist.copy()
+    for k in range(20):
+        f_h = rng.normal(size=x.size)
+        a = direct.cycle(k + 1, sc.dt, x, xd, f_h)
+        b = adopted.cycle(k + 1, sc.dt, x, xd, f_h)
+        for name in ('wrench', 'coupling', 'vt_wrench', 'vt_pose', 'vt_twist', 'env_wrench'):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), (k, name)
+        x, xd = x + 1e-3 * rng.normal(size=x.size), xd + 1e-2 * rng.normal(size=x.size)
+    assert np.array_equal(direct.lmi.q, adopted.lmi.q)
+    assert np.array_equal(direct.lmi.projector, adopted.lmi.projector)

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from haptic_topology.control.controller import CycleOutput
+from haptic_topology.control.controller import CycleOutput, PreparedUpdate
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.loop import Answer, UpdateVerdict
 from haptic_topology.device.hosted import HostedCycle, HostedStep, state_sample
@@ -141,14 +141,16 @@ def _snapshots(sc: Scenario, n: int) -> list[LmiSnapshot]:
 
 
 def _record_updates(cycle: HostedCycle, monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """The seq of every update the controller takes, in order (asserting the loop thread)."""
+    """The seq of every update the controller takes, in order (asserting the loop thread, and
+    that the update comes prepared: its matrices were computed by the thread that offered it)."""
     seen: list[int] = []
     on_update = cycle.controller.on_update
 
-    def record(snap: LmiSnapshot) -> str:
+    def record(update: PreparedUpdate) -> str:
         assert threading.current_thread() is threading.main_thread()
-        seen.append(snap.seq)
-        return on_update(snap)
+        assert isinstance(update, PreparedUpdate)
+        seen.append(update.snapshot.seq)
+        return on_update(update)
 
     monkeypatch.setattr(cycle.controller, 'on_update', record)
     return seen
@@ -181,6 +183,30 @@ def test_updates_offered_from_another_thread_are_all_applied_in_order(
     assert sum(len(s.updates) for s in steps) == n
     assert (cycle.updates_offered, cycle.updates_applied, cycle.updates_dropped) == (n, n, 0)
     assert cycle.controller.updates == n
+
+
+def test_an_update_is_prepared_by_the_thread_that_offers_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The re-sync's matrices are computed where the update arrives (the executor thread),
+    never in the loop thread's step, which only adopts them."""
+    sc = load_scenario('fig8')
+    cycle, _ = _cycle(sc, ControlMode.PENALTY)
+    ctrl = cycle.controller.ctrl
+    prepared_in: list[str] = []
+    prepare = ctrl.prepare
+
+    def record(snap: LmiSnapshot) -> PreparedUpdate:
+        prepared_in.append(threading.current_thread().name)
+        return prepare(snap)
+
+    monkeypatch.setattr(ctrl, 'prepare', record)
+    offer = threading.Thread(target=cycle.offer_update, args=(_snapshots(sc, 1)[0],),
+                             name='executor')
+    offer.start()
+    offer.join()
+    done = cycle.step(0.0, sc.dt, 0.0)
+    assert done.updates == (UpdateVerdict.APPLIED,) and ctrl.lmi.synced
+    assert prepared_in == ['executor']
 
 
 def test_a_full_inbox_drops_the_oldest_and_counts_it(monkeypatch: pytest.MonkeyPatch) -> None:
