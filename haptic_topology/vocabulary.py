@@ -55,6 +55,18 @@ class DeviceStatus(enum.IntFlag):
     IDLE = 16       # not engaged yet (always with WATCHDOG): controllers integrate nothing
 
 
+_STATUS_MEMBERS: dict[int, DeviceStatus] = {}
+
+
+def device_status(bits: int) -> DeviceStatus:
+    """``DeviceStatus(bits)``, looked up: building an ``IntFlag`` value (or or-ing two) costs
+    microseconds, a lookup a tenth of one, and the device cycle makes one per state."""
+    status = _STATUS_MEMBERS.get(bits)
+    if status is None:
+        status = _STATUS_MEMBERS[bits] = DeviceStatus(bits)
+    return status
+
+
 class TaskSpace(enum.Enum):
     """Dimension of the hand's rigid-body motion: planar (3-DOF) or spatial (6-DOF)."""
 

@@ -19,6 +19,7 @@ from haptic_topology.control.laws import (
     stable_hold,
 )
 from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LmiSync, LocalModel
+from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
@@ -49,6 +50,9 @@ class PreparedUpdate:
 
     sync: LmiSync
     stable_dt: float
+    #: ``M_d Lambda_h^-1`` of eq. 10 (m x m), for the device inertia of the controller that
+    #: prepared it.
+    ml: np.ndarray
 
     @property
     def snapshot(self) -> LmiSnapshot:
@@ -76,6 +80,7 @@ class HapticController:
         self.lmi = LocalModel(task, lmi_model)
         #: Longest LMI step (s) this model integrates stably (see :meth:`_stable_dt`).
         self.stable_dt = math.inf
+        self._ml = np.zeros((m, m))           # M_d Lambda_h^-1 at the newest re-sync
 
     def prepare(self, snap: LmiSnapshot) -> PreparedUpdate:
         """What :meth:`update` computes from ``snap`` alone (the LMI's matrices, eqs. 17-19,
@@ -83,7 +88,8 @@ class HapticController:
         settings (task, LMI model, ``K_pc``, ``B_pc``, VT coupling), so any thread may call it
         (the one that receives the update) and the loop only adopts the result."""
         sync = self.lmi.prepare(snap)
-        return PreparedUpdate(sync, self._stable_dt(sync.lambda_inv))
+        return PreparedUpdate(sync, self._stable_dt(sync.lambda_inv),
+                              self.m_d @ sync.lambda_inv)
 
     def update(self, update: LmiSnapshot | PreparedUpdate) -> None:
         """Re-sync the LMI to an update of the full simulation (eqs. 17-19), or to its
@@ -91,6 +97,7 @@ class HapticController:
         p = update if isinstance(update, PreparedUpdate) else self.prepare(update)
         self.lmi.sync(p.sync)
         self.stable_dt = p.stable_dt
+        self._ml = p.ml
 
     def _stable_dt(self, lambda_inv: np.ndarray) -> float:
         """Longest LMI step (s) that keeps the VT side of the coordination spring stable at
@@ -116,12 +123,14 @@ class HapticController:
             zero = np.zeros(m)
             return CycleOutput(zero, zero, zero, x_h.copy(), xd_h.copy(), 0, ControlMode.ZERO)
         lmi.advance(seq, dt)
-        f_pc = coordination_wrench(lmi.x_vt, lmi.xd_vt, x_h, xd_h, self.gains.k_pc,
-                                   self.gains.b_pc, self.task)
+        g = self.gains
+        error = pose_difference(lmi.x_vt, x_h, self.task)   # for F_pc and eq. 13 alike
+        f_pc = coordination_wrench(lmi.x_vt, lmi.xd_vt, x_h, xd_h, g.k_pc, g.b_pc, self.task,
+                                   error=error)
         f_env = lmi.env_wrench
         u = control_wrench(self.mode, lmi.lambda_inv, self.m_d, self.c_d, f_h, f_pc, x_h,
-                           xd_h, lmi.x_vt, lmi.xd_vt, lmi.projector, self.gains, self.task,
-                           f_env)
+                           xd_h, lmi.x_vt, lmi.xd_vt, lmi.projector, g, self.task,
+                           f_env, ml=self._ml, error=error)
         f_vt = f_h - f_pc if self.vt_coupling else f_h.copy()
         lmi.record_input(seq, f_vt)
         return CycleOutput(u, f_pc, f_vt, lmi.x_vt.copy(), lmi.xd_vt.copy(),

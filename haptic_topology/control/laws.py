@@ -78,27 +78,32 @@ class ControlGains:
 
 def coordination_wrench(x_vt: np.ndarray, xd_vt: np.ndarray, x_h: np.ndarray,
                         xd_h: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray,
-                        task: TaskSpace) -> np.ndarray:
+                        task: TaskSpace, *, error: np.ndarray | None = None) -> np.ndarray:
     """``F_pc = K_pc (x_vt - x_h) + B_pc (xd_vt - xd_h)``: the spring-damper of Fig. 1.
 
-    Acts on the device towards the VT; the VT feels ``-F_pc``.
+    Acts on the device towards the VT; the VT feels ``-F_pc``. ``error``: ``x_vt (-) x_h``
+    when the caller has it (eq. 13 takes the same).
     """
-    return k_pc * pose_difference(x_vt, x_h, task) + b_pc * (xd_vt - xd_h)
+    e = pose_difference(x_vt, x_h, task) if error is None else error
+    return k_pc * e + b_pc * (xd_vt - xd_h)
 
 
 def acceleration_control(lambda_inv: np.ndarray, m_d: np.ndarray, c_d: np.ndarray,
                          f_h: np.ndarray, f_env: np.ndarray, f_pc: np.ndarray,
                          x_h: np.ndarray, xd_h: np.ndarray,
                          b_d: np.ndarray | None = None,
-                         k_d: np.ndarray | None = None) -> np.ndarray:
+                         k_d: np.ndarray | None = None, *,
+                         ml: np.ndarray | None = None) -> np.ndarray:
     """Impedance control at the acceleration level, eq. 10::
 
         u = (M_d L - I) F_h + M_d L (F_env + F_pc) + (C_d - M_d L b_d) xd_h - M_d L k_d x_h
 
     with ``L = Lambda_h^-1`` (eq. 6). Applied to the device of eq. 9 it gives
     ``xdd_h = Lambda_h^-1 (F_h + F_env + F_pc - b_d xd_h - k_d x_h)`` (eq. 5).
+    ``ml``: ``M_d L`` when the caller holds it (it changes only with ``L``, at a re-sync).
     """
-    ml = m_d @ lambda_inv
+    if ml is None:
+        ml = m_d @ lambda_inv
     u = ml @ (f_h + f_env + f_pc) - f_h + c_d @ xd_h
     if b_d is not None and b_d.size:
         u -= ml @ (b_d @ xd_h)
@@ -122,10 +127,14 @@ def penalty_control(lambda_inv: np.ndarray, m_d: np.ndarray, c_d: np.ndarray,
                     x_h: np.ndarray, xd_h: np.ndarray, x_vt: np.ndarray, xd_vt: np.ndarray,
                     projector: np.ndarray, k_tc: float, b_tc: float, task: TaskSpace,
                     b_d: np.ndarray | None = None,
-                    k_d: np.ndarray | None = None) -> np.ndarray:
-    """The proposed control, eq. 14: eq. 10 plus ``u_add = M_d * penalty`` (eq. 13)."""
-    u = acceleration_control(lambda_inv, m_d, c_d, f_h, f_env, f_pc, x_h, xd_h, b_d, k_d)
-    e = pose_difference(x_vt, x_h, task)
+                    k_d: np.ndarray | None = None, *, ml: np.ndarray | None = None,
+                    error: np.ndarray | None = None) -> np.ndarray:
+    """The proposed control, eq. 14: eq. 10 plus ``u_add = M_d * penalty`` (eq. 13).
+    ``ml``: see :func:`acceleration_control`; ``error``: ``x_vt (-) x_h`` when the caller
+    has it (the coordination wrench takes the same)."""
+    u = acceleration_control(lambda_inv, m_d, c_d, f_h, f_env, f_pc, x_h, xd_h, b_d, k_d,
+                             ml=ml)
+    e = pose_difference(x_vt, x_h, task) if error is None else error
     return u + m_d @ penalty_acceleration(projector, e, xd_vt - xd_h, k_tc, b_tc)
 
 
@@ -133,16 +142,19 @@ def control_wrench(mode: ControlMode, lambda_inv: np.ndarray, m_d: np.ndarray,
                    c_d: np.ndarray, f_h: np.ndarray, f_pc: np.ndarray, x_h: np.ndarray,
                    xd_h: np.ndarray, x_vt: np.ndarray, xd_vt: np.ndarray,
                    projector: np.ndarray, gains: ControlGains, task: TaskSpace,
-                   f_env: np.ndarray | None = None) -> np.ndarray:
-    """Device wrench ``u`` for ``mode``: eq. 14, eq. 10, or zero."""
+                   f_env: np.ndarray | None = None, *, ml: np.ndarray | None = None,
+                   error: np.ndarray | None = None) -> np.ndarray:
+    """Device wrench ``u`` for ``mode``: eq. 14, eq. 10, or zero (``ml``, ``error``: see
+    :func:`penalty_control`)."""
     if mode is ControlMode.ZERO:
         return np.zeros(task.dim)
     fe = np.zeros(task.dim) if f_env is None else f_env
     if mode is ControlMode.ACCELERATION_ONLY:
         return acceleration_control(lambda_inv, m_d, c_d, f_h, fe, f_pc, x_h, xd_h,
-                                    gains.b_d, gains.k_d)
+                                    gains.b_d, gains.k_d, ml=ml)
     return penalty_control(lambda_inv, m_d, c_d, f_h, fe, f_pc, x_h, xd_h, x_vt, xd_vt,
-                           projector, gains.k_tc, gains.b_tc, task, gains.b_d, gains.k_d)
+                           projector, gains.k_tc, gains.b_tc, task, gains.b_d, gains.k_d,
+                           ml=ml, error=error)
 
 
 def stable_hold(lambda_inv: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray) -> float:

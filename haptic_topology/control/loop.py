@@ -44,6 +44,9 @@ from haptic_topology.control.safety import SyncGuard, scaled_wrench
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
+#: Status bits as plain ints (an ``IntFlag`` operation costs microseconds, once per state).
+_IDLE_BIT = int(DeviceStatus.IDLE)
+
 #: Loop states whose VT hand is kept for comparing updates (> the LMI's input history).
 _VT_KEEP = 512
 
@@ -146,7 +149,7 @@ class ControllerLoop:
         if s.seq < self.device_seq:
             self._new_device_session(s.seq)
         self.device_seq = s.seq
-        if s.status & DeviceStatus.IDLE:
+        if s.status & _IDLE_BIT:
             # Not engaged (start-up, or a restarted driver): answer "alive" (zero wrench; our
             # mode once synced, which engages it) and integrate nothing.
             self._saw_idle = True

@@ -69,13 +69,16 @@ import numpy as np
 from haptic_topology.device.backend import DeviceBackend, DeviceReading
 from haptic_topology.device.maglev import saturate
 from haptic_topology.device.watchdog import CommandWatchdog
-from haptic_topology.vocabulary import ControlMode, DeviceStatus
+from haptic_topology.vocabulary import ControlMode, DeviceStatus, device_status
 
 #: Publish times kept for the command age and the round trip (states).
 _KEEP = 4096
 #: ``DeviceStatus.FAULT`` as a plain int: tested on every reading (an ``IntFlag`` operation
 #: costs ~0.7 us, ``int(status) & _FAULT_BIT`` ~0.07 us).
 _FAULT_BIT = int(DeviceStatus.FAULT)
+_WATCHDOG_BIT = int(DeviceStatus.WATCHDOG)
+_IDLE_BIT = int(DeviceStatus.IDLE)
+_SATURATED_BIT = int(DeviceStatus.SATURATED)
 #: Round-trip samples kept for the run's percentiles (10 min at 1 kHz).
 RTT_KEEP = 600_000
 #: Default silence (s) of the followed controller after which another controller's command
@@ -236,12 +239,12 @@ class DeviceLoop:
     def tick(self, now: float, dt: float) -> DeviceTick:
         """One device cycle at ``now`` (s), ``dt`` (s) after the previous one; returns the
         state to publish (see module doc)."""
-        status = DeviceStatus.OK
+        status = 0                    # DeviceStatus bits as a plain int until the end
         u = np.zeros(self.limit.size)
         env = None
         if not self.engaged:
             reading = self.backend.idle(dt)
-            status |= DeviceStatus.WATCHDOG | DeviceStatus.IDLE
+            status = _WATCHDOG_BIT | _IDLE_BIT
         elif self.run_index < 0:
             self.run_index = 0
             reading = self.backend.idle(dt)
@@ -268,12 +271,14 @@ class DeviceLoop:
                 # cannot step the output by more than 2 * limit * period / ramp_time.
                 u = self.watchdog.step(cmd, self.command_age(now), self._twist,
                                        min(dt, 2.0 * self.period))
-                u, saturated_out = saturate(u, self.limit)
+                saturated_out = False
+                if u is not cmd:      # faded: clamp again (cmd itself is clamped already)
+                    u, saturated_out = saturate(u, self.limit)
                 env = self._cmd_env
             if self.watchdog.active:
-                status |= DeviceStatus.WATCHDOG
+                status |= _WATCHDOG_BIT
             if saturated or saturated_out:
-                status |= DeviceStatus.SATURATED
+                status |= _SATURATED_BIT
                 self.saturated_cycles += 1
             np.maximum(self.max_applied, np.abs(u), out=self.max_applied)
             self.backend.write(u)
@@ -286,7 +291,7 @@ class DeviceLoop:
         self.seq += 1
         self._publish_times[self.seq % _KEEP] = now
         return DeviceTick(self.seq, self.run_index if self.engaged else -1, reading, u,
-                          DeviceStatus(status | reading.status), env)
+                          device_status(status | int(reading.status)), env)
 
     # -- statistics --------------------------------------------------------------------------
     @property

@@ -291,6 +291,14 @@ class MaglevModel:
         r = params.realism
         self._viscous = r.viscous if r.viscous.size else np.zeros(m)
         self._coulomb = r.coulomb if r.coulomb.size else np.zeros(m)
+        # Terms that are exactly zero are skipped in step (x - 0.0 is x): the paper's device
+        # has no C_d, no friction and no stops on some axes. Decided once, not per cycle.
+        self._has_christoffel = bool(np.any(params.christoffel))
+        self._has_viscous = bool(np.any(self._viscous))
+        self._has_coulomb = bool(np.any(self._coulomb))
+        self._has_stops = bool(np.any(np.isfinite(params.workspace_lo))
+                               or np.any(np.isfinite(params.workspace_hi)))
+        self._delay = bool(r.actuation_delay)
         self._rot_center = None
         if params.task is TaskSpace.SPATIAL and math.isfinite(params.max_angle):
             c = self.pose[3:6] if params.orientation_center is None else params.orientation_center
@@ -300,12 +308,16 @@ class MaglevModel:
         """Advance by ``dt`` (s) under control wrench ``u`` and hand wrench ``f_h`` (eq. 9)."""
         p = self.params
         u_sat, saturated = saturate(u, p.wrench_limit)
-        if p.realism.actuation_delay:
+        if self._delay:
             u_sat, self._pending = self._pending, u_sat
         self.applied = u_sat
-        force = f_h + u_sat - p.christoffel @ self.twist - self._viscous * self.twist
+        force = f_h + u_sat
+        if self._has_christoffel:
+            force = force - p.christoffel @ self.twist
+        if self._has_viscous:
+            force = force - self._viscous * self.twist
         twist = self.twist + self._mass_inv @ force * dt
-        if np.any(self._coulomb):
+        if self._has_coulomb:
             # Implicit Coulomb friction per axis: stick when the friction force that stops
             # the axis within this step is within its bound, else slide against the motion.
             stop = -self._mass_diag * twist / dt
@@ -315,14 +327,15 @@ class MaglevModel:
         self.twist = twist
         self.pose = integrate_pose(self.pose, self.twist, dt, p.task)
         status = DeviceStatus.SATURATED if saturated else DeviceStatus.OK
-        below = self.pose < p.workspace_lo
-        above = self.pose > p.workspace_hi
-        if below.any() or above.any():
-            # Inelastic hard stop: hold at the limit, cancel the velocity into it.
-            self.pose = np.clip(self.pose, p.workspace_lo, p.workspace_hi)
-            self.twist = np.where((below & (self.twist < 0)) | (above & (self.twist > 0)),
-                                  0.0, self.twist)
-            status |= DeviceStatus.WORKSPACE_LIMIT
+        if self._has_stops:
+            below = self.pose < p.workspace_lo
+            above = self.pose > p.workspace_hi
+            if below.any() or above.any():
+                # Inelastic hard stop: hold at the limit, cancel the velocity into it.
+                self.pose = np.clip(self.pose, p.workspace_lo, p.workspace_hi)
+                self.twist = np.where((below & (self.twist < 0)) | (above & (self.twist > 0)),
+                                      0.0, self.twist)
+                status |= DeviceStatus.WORKSPACE_LIMIT
         if self._rot_center is not None and self._orientation_stop():
             status |= DeviceStatus.WORKSPACE_LIMIT
         return status
@@ -362,6 +375,8 @@ class PositionSensor:
         r = params.realism
         self._quant = r.quantization if r.quantization.size else np.zeros(m)
         self._noise = r.noise_std if r.noise_std.size else np.zeros(m)
+        self._has_noise = bool(np.any(self._noise))
+        self._has_quant = bool(np.any(self._quant))
         self._rng = np.random.default_rng(r.seed)
         self._last: np.ndarray | None = None
         self._velocity = np.zeros(m)
@@ -370,10 +385,10 @@ class PositionSensor:
                 dt: float) -> tuple[np.ndarray, np.ndarray]:
         r = self.realism
         x = np.array(pose, dtype=float)
-        if np.any(self._noise):
+        if self._has_noise:
             x = x + self._noise * self._rng.standard_normal(x.size)
         q = self._quant
-        if np.any(q):
+        if self._has_quant:
             x = np.where(q > 0.0, np.round(x / np.where(q > 0.0, q, 1.0)) * q, x)
         if r.velocity is VelocitySource.MODEL:
             return x, np.array(twist, dtype=float)

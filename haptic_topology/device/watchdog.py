@@ -103,7 +103,8 @@ class CommandWatchdog:
     def step(self, command: np.ndarray, command_age: float, twist: np.ndarray,
              dt: float) -> np.ndarray:
         """The output for this cycle: ``command`` (finite, already clamped) of age
-        ``command_age`` (s), device ``twist``, ``dt`` (s) since the previous cycle."""
+        ``command_age`` (s), device ``twist``, ``dt`` (s) since the previous cycle. While the
+        output is the plain command (fresh, fully faded in) it is ``command`` itself."""
         stale = not command_age <= self.config.timeout     # NaN age counts as stale
         if stale and not self.stale:
             self.trips += 1
@@ -113,6 +114,6 @@ class CommandWatchdog:
         rate = max(dt, 0.0) / self.config.ramp_time
         self.scale = max(0.0, self.scale - rate) if stale else min(1.0, self.scale + rate)
         if self.scale >= 1.0:
-            return np.array(command, dtype=float)
+            return command
         fb = self.fallback(twist)
         return fb + self.scale * (np.asarray(command, dtype=float) - fb)
