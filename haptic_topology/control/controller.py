@@ -61,7 +61,7 @@ class HapticController:
         self.c_d = np.asarray(device_christoffel, dtype=float)
         self.vt_coupling = vt_coupling
         self.lmi = LocalModel(task, lmi_model)
-        #: Longest LMI step (s) this model integrates stably (see :meth:`_stable_dt`).
+        #: Longest LMI step (s) this model integrates stably (see ``_stable_dt``).
         self.stable_dt = math.inf
 
     def update(self, snap: LmiSnapshot) -> None:
