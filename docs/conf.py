@@ -36,6 +36,9 @@ root_doc = 'index'
 exclude_patterns = ['_build', 'Thumbs.db', '.DS_Store']
 # foxglove.md belongs to the Foxglove page of another change; it joins the toctree there.
 myst_heading_anchors = 3
+# Quotes in this documentation are mostly YAML, shell and Python quoting (parameter descriptions
+# too): keep them as typed.
+smartquotes = False
 myst_enable_extensions = ['colon_fence', 'deflist']
 
 html_theme = 'alabaster'
