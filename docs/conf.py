@@ -47,6 +47,9 @@ html_theme_options = {
     'description': 'The topology of a virtual serial linkage, rendered to a haptic device '
                    '(ROS 2 Jazzy)',
     'fixed_sidebar': True,
+    'page_width': '1280px',
+    'sidebar_width': '240px',
+    'body_max_width': 'none',
 }
 html_static_path: list[str] = []
 
