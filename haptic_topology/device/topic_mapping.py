@@ -312,7 +312,7 @@ class TopicMapping:
 @dataclass(frozen=True)
 class TopicOptions:
     """The ``ros_topics`` backend's ``backend_options``, checked (see
-    :func:`parse_topic_options` and the README's table)."""
+    :func:`parse_topic_options` and the table in docs/devices.md)."""
 
     pose_topic: str
     twist_topic: str
