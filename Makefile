@@ -1,6 +1,7 @@
 # Developer entry points. Everything runs from the venv that scripts/setup.sh maintains.
 #   make demo   set up (first time ~1-2 min), then run the demo
-#   make test   set up, then lint (ruff, lint-imports) + typecheck + pytest; fails if any fails
+#   make test   set up, then lint (ruff, lint-imports) + typecheck + docs + pytest; fails if any fails
+#   make docs   set up, then build the documentation site (docs/ -> docs/_build/html)
 #   make test-quick   set up, then pytest without the node-graph tests (-m 'not graph')
 SHELL := /bin/bash
 .SHELLFLAGS := -euo pipefail -c
@@ -20,11 +21,12 @@ export DEMO_CMD
 
 PYTEST_ARGS ?=
 
-.PHONY: help setup test test-quick lint typecheck pytest demo bench clean colcon-check
+.PHONY: help setup test test-quick lint typecheck docs pytest demo bench clean colcon-check
 
 help:
 	@echo 'make demo       set up the venv and run the demo'
-	@echo 'make test       set up, then lint (ruff + layer contracts) + typecheck + pytest'
+	@echo 'make test       set up, then lint (ruff + layer contracts) + typecheck + docs + pytest'
+	@echo 'make docs       set up, then build the Sphinx site: docs/_build/html/index.html'
 	@echo 'make test-quick set up, then pytest -m "not graph" (no ROS 2 node processes, no lint)'
 	@echo 'make setup      create/update .venv (idempotent, seconds when nothing changed)'
 	@echo 'make lint | typecheck | pytest   one check (assumes setup)'
@@ -37,7 +39,7 @@ setup:
 	@bash scripts/setup.sh
 
 test: setup
-	@$(MAKE) --no-print-directory lint typecheck pytest
+	@$(MAKE) --no-print-directory lint typecheck docs pytest
 
 # The quick loop: every test except those marked `graph` (they start ROS 2 node processes).
 test-quick: setup
@@ -50,6 +52,14 @@ lint:
 typecheck:
 	$(BIN)/mypy
 
+# The documentation site (docs/conf.py): every warning is an error (-W, all of them reported:
+# --keep-going) and so is every cross-reference that does not resolve (-n, nitpicky). The
+# build is offline: no intersphinx, no theme or extension fetched at build time.
+DOCS_OUT ?= docs/_build/html
+docs: setup
+	$(BIN)/sphinx-build -b html -W --keep-going -n -q docs $(DOCS_OUT)
+	@echo 'docs: $(DOCS_OUT)/index.html'
+
 # pytest exits 5 when it collects no tests; make treats every non-zero status as failure.
 pytest:
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
@@ -57,7 +67,7 @@ pytest:
 demo: setup
 	@eval "$$DEMO_CMD"
 
-# Benchmarks (about 6 min): prints a table, writes bench/latest.json, appends bench/RESULTS.md.
+# Benchmarks (about 13 min): prints a table, writes bench/latest.json, appends bench/RESULTS.md.
 bench: setup
 	$(BIN)/python bench/run.py
 
@@ -68,5 +78,5 @@ colcon-check:
 	bash scripts/colcon_check.sh
 
 clean:
-	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache *.egg-info
+	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache *.egg-info docs/_build
 	find . -path ./.venv -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

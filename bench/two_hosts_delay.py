@@ -40,7 +40,7 @@ the driver's fault onsets / cycles (its last ``/diagnostics``), the server's cou
 frames the link dropped per direction. One repetition per output directory: ``--out``
 another directory for a second one.
 
-The README's table and plot: ``--profiles loopback two_hosts default``, then ``--profiles
+The table and plot of docs/results.md: ``--profiles loopback two_hosts default``, then ``--profiles
 two_hosts --out bags/two_hosts_rep2 --plot /tmp/rep2.png``, then ``--reuse --profiles
 loopback two_hosts default --repeats bags/two_hosts_rep2/results.json`` (redraws the plot).
 

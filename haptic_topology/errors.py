@@ -38,7 +38,7 @@ class ReplayError(HapticTopologyError):
 class MessageError(HapticTopologyError):
     """An incoming message does not fit the graph (sizes, task_dim, non-finite values,
     integers out of range); ``reason`` is one of
-    :data:`haptic_topology.messages.check.REASONS`."""
+    ``haptic_topology.messages.check.REASONS``."""
 
     def __init__(self, reason: str, text: str) -> None:
         super().__init__(text)

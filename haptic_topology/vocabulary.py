@@ -4,11 +4,11 @@ topic names and types, and QoS roles.
 Every other module derives its strings, integers and labels from here (the CLI's choices, the
 parameters' choices, the message checks, the bag analysis, the nodes' publishers). This module
 imports nothing of the project but :mod:`haptic_topology.errors`, and no rclpy: the QoS roles
-are plain data that :mod:`haptic_topology.nodes.qos` turns into ``rclpy`` profiles.
+are plain data that ``haptic_topology.nodes.qos`` turns into ``rclpy`` profiles.
 
 The integer values of :class:`ControlMode` and :class:`DeviceStatus` are those of the
 messages' constants (``haptic_topology_msgs/DeviceCommand.MODE_*``,
-``DeviceState.STATUS_*``); :mod:`haptic_topology.nodes.convert` checks them against the
+``DeviceState.STATUS_*``); ``haptic_topology.nodes.convert`` checks them against the
 generated message classes at import.
 """
 
@@ -129,7 +129,7 @@ TOPIC_VT_TWIST = 'haptic/viz/vt_hand/twist'
 TOPIC_WRENCH_APPLIED = 'haptic/viz/wrench/applied'
 TOPIC_WRENCH_HAND = 'haptic/viz/wrench/hand'
 TOPIC_WRENCH_COUPLING = 'haptic/viz/wrench/coupling'
-#: The standard mirrors (geometry_msgs/*Stamped), at viz_rate_hz.
+#: The standard mirrors (``geometry_msgs/*Stamped``), at viz_rate_hz.
 MIRROR_TOPICS = (TOPIC_DEVICE_POSE, TOPIC_DEVICE_TWIST, TOPIC_VT_POSE, TOPIC_VT_TWIST,
                  TOPIC_WRENCH_APPLIED, TOPIC_WRENCH_HAND, TOPIC_WRENCH_COUPLING)
 #: The per-sample hand topic of bags recorded before ``haptic/hand_inputs`` (read, not
@@ -165,7 +165,7 @@ TOPIC_TYPES: dict[str, str] = {
 @dataclass(frozen=True)
 class QosRole:
     """What a topic's publisher offers: reliability, keep-last depth, durability (the table
-    of why in :mod:`haptic_topology.nodes.qos`, which turns a role into an rclpy profile)."""
+    of why in ``haptic_topology.nodes.qos``, which turns a role into an rclpy profile)."""
 
     reliable: bool
     depth: int

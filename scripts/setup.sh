@@ -4,6 +4,7 @@
 # Each step runs only when its inputs changed (sha256 stamps inside the venv), so a second run
 # with nothing changed takes a second or two. Safe with no stdin (CI).
 #
+#   0. chromium (apt-get), if missing: the docs tests render the site headless
 #   1. <venv> from python3.11, if missing
 #   2. pip install --no-deps -r requirements.lock                (stamp: hash of the lock)
 #   3. build msg_schemas/ with cmake, install into the venv prefix (stamp: msg_schemas/ + lock)
@@ -35,6 +36,24 @@ for tool in cmake gcc g++ make; do
 done
 command -v unshare >/dev/null 2>&1 \
   || die "unshare not found; the tests run the loop process without real-time privileges in a user namespace (apt-get install util-linux)."
+# chromium: the docs tests render the built site in a headless browser (test/docs). Installed
+# with apt only when missing, so a machine that has it is left alone.
+if ! command -v chromium >/dev/null 2>&1; then
+  if [[ $(id -u) -eq 0 ]]; then
+    apt=(apt-get)
+  elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
+    apt=(sudo apt-get)
+  else
+    die "chromium not found and no root to install it; the docs tests need it (apt-get install chromium)."
+  fi
+  command -v apt-get >/dev/null 2>&1 || die "chromium not found and no apt-get; install Chromium (the docs tests need it)."
+  say "installing chromium with apt-get (the docs tests render the site headless)"
+  export DEBIAN_FRONTEND=noninteractive
+  "${apt[@]}" update -qq > /dev/null || die "apt-get update failed; install chromium by hand."
+  "${apt[@]}" install -y -qq --no-install-recommends chromium > /dev/null \
+    || die "apt-get install chromium failed; install it by hand."
+  command -v chromium >/dev/null 2>&1 || die "apt-get installed chromium but it is not on PATH."
+fi
 
 hash_files() { # sha256 over the names and contents of the given files, in sorted order
   local f

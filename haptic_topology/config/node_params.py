@@ -2,7 +2,7 @@
 
 Each node's table is :func:`haptic_topology.config.settings.param_specs` of its settings class
 (:class:`~haptic_topology.config.settings.DeviceDriverSettings`, ...). The nodes declare them
-(:func:`haptic_topology.nodes.parameters.declare_settings`) and
+(``haptic_topology.nodes.parameters.declare_settings``) and
 :func:`haptic_topology.config.params.check_params_file` checks params files against the same tables
 before rclpy reads them. ``config/haptic_topology.yaml`` lists every one.
 """

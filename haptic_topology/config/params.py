@@ -4,7 +4,8 @@ against them before rclpy sees them.
 rclpy's own handling of a ROS 2 params file is lenient where it hurts: a misspelt parameter
 is silently ignored (the node runs on its default), and a YAML error comes back as an rcl
 error string without the file name. :func:`check_params_file` reads the file first and raises
-one :class:`ConfigError` naming the file, the node section, the key and what was expected:
+one :class:`~haptic_topology.errors.ConfigError` naming the file, the node section, the key and
+what was expected:
 
 * missing file, YAML syntax error (line and column), not a mapping;
 * a node section without ``ros__parameters``, an unknown node name;
@@ -83,7 +84,8 @@ def ros_type(value: Any) -> str:
 
 
 def check_value(spec: ParamSpec, value: Any, where: str) -> None:
-    """Raise :class:`ConfigError` (``where``: file and key) unless ``value`` fits ``spec``."""
+    """Raise :class:`~haptic_topology.errors.ConfigError` (``where``: file and key) unless
+    ``value`` fits ``spec``."""
     want, got = spec.kind(), ros_type(value)
     if got != want:
         hint = ''

@@ -1,6 +1,6 @@
 """Settings + scenario -> each node's final configuration, resolved once (no rclpy).
 
-A node declares its parameters (:func:`haptic_topology.nodes.parameters.declare_settings`), loads
+A node declares its parameters (``haptic_topology.nodes.parameters.declare_settings``), loads
 its scenario, and calls the ``resolve_*`` function of this module once; everything it needs
 afterwards is in the returned frozen config, in final form (enums, arrays of the task's size,
 periods in s and ns, "0 = the scenario's" replaced). Checks that need the scenario (array

@@ -4,7 +4,7 @@ Each field carries its parameter's description, range (``lo``/``hi``, inclusive)
 and ``read_only`` flag in ``field(metadata=...)`` (see :func:`param`); :func:`param_specs`
 generates the :class:`~haptic_topology.config.params.ParamSpec` table from the fields (as
 generate_parameter_library does from ``parameters.yaml``). That one table is what the node
-declares (:func:`haptic_topology.nodes.parameters.declare_settings`) and what params files and
+declares (``haptic_topology.nodes.parameters.declare_settings``) and what params files and
 ``-p`` overrides are checked against before rclpy reads them
 (:data:`haptic_topology.config.node_params.KNOWN`).
 
@@ -132,7 +132,8 @@ class NodeSettings:
         self.check()
 
     def check(self) -> None:
-        """Relations between fields (subclasses); raise :class:`ConfigError`."""
+        """Relations between fields (subclasses); raise
+        :class:`~haptic_topology.errors.ConfigError`."""
 
     @classmethod
     def defaults_from(cls, scenario: Scenario) -> dict[str, Any]:
@@ -392,7 +393,7 @@ class RecorderSettings(NodeSettings):
 @dataclass(frozen=True)
 class FoxgloveBridgeSettings(NodeSettings):
     """Parameters of ``foxglove_bridge`` (the graph's topics on the Foxglove WebSocket
-    protocol, :mod:`haptic_topology.nodes.foxglove_bridge`)."""
+    protocol, ``haptic_topology.nodes.foxglove_bridge``)."""
 
     NODE: ClassVar[str] = 'foxglove_bridge'
 

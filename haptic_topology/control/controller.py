@@ -78,7 +78,7 @@ class HapticController:
         self.c_d = np.asarray(device_christoffel, dtype=float)
         self.vt_coupling = vt_coupling
         self.lmi = LocalModel(task, lmi_model)
-        #: Longest LMI step (s) this model integrates stably (see :meth:`_stable_dt`).
+        #: Longest LMI step (s) this model integrates stably (see ``_stable_dt``).
         self.stable_dt = math.inf
         self._ml = np.zeros((m, m))           # M_d Lambda_h^-1 at the newest re-sync
 

@@ -25,8 +25,8 @@ VT at the hand and is synced at zero force once it has consumed one of our input
 that consumed no input (``hand_input_seq < 0``) from the VE we already send inputs to
 describes its initial state: it is ignored.
 
-Lock-step (:attr:`ControllerLoop.update_period` set): the VE sends an update after every
-``update_period``-th input; :meth:`waiting_for_update` says when the next state must not be
+Lock-step (``ControllerLoop.update_period`` set): the VE sends an update after every
+``update_period``-th input; ``waiting_for_update`` says when the next state must not be
 answered before that update has been taken, which is what makes the graph reproduce the
 offline simulation exactly.
 """

@@ -98,7 +98,8 @@ class ControllerPort:
 
     def on_state(self, sample: StateSample, state_ns: int, now: float) -> Outgoing | None:
         """A device state stamped ``state_ns`` arrived at ``now``: its answer, or None
-        (held in lock-step, or not answered: see :meth:`ControllerLoop.on_state`)."""
+        (held in lock-step, or not answered: see
+        :meth:`~haptic_topology.control.loop.ControllerLoop.on_state`)."""
         self._state_time = now
         if self.lockstep and self.loop.waiting_for_update():
             self._held = (sample, state_ns, now)

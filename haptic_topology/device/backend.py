@@ -11,7 +11,7 @@ all ROS I/O; a backend does no ROS.
 Backends are selected by name (the ``backend`` parameter of ``device_driver``):
 
 * a built-in name (:data:`BUILTIN_BACKENDS`): ``sim_maglev`` (:class:`SimMaglevBackend`),
-  ``ros_topics`` (:class:`~haptic_topology.nodes.topic_backend.RosTopicBackend`: a device with
+  ``ros_topics`` (``haptic_topology.nodes.topic_backend.RosTopicBackend``: a device with
   a ROS 2 driver, read from ``PoseStamped``/``TwistStamped`` and commanded with
   ``WrenchStamped``), ``network`` (:class:`~haptic_topology.remote.network.NetworkBackend`: a
   device controller on another computer, over UDP). The last two are imported only when
@@ -28,7 +28,7 @@ of the device is a status bit) is checked for each backend by the same tests
 (``test/support/backend_conformance.py``).
 
 **Faults.** A backend reports a fault of its device (amplifier fault, lost encoder, an
-emergency stop pressed on the device, ...) by setting :attr:`DeviceStatus.FAULT` in the status
+emergency stop pressed on the device, ...) by setting ``DeviceStatus.FAULT`` in the status
 of what :meth:`~DeviceBackend.read` (or ``idle``) returns, for as long as the fault lasts, and
 says why through :meth:`~DeviceBackend.fault_reason`. The driver then writes a zero wrench from
 the next cycle on until a reading comes without the bit, and fades the output back in over
@@ -167,7 +167,7 @@ class DeviceBackend(ABC):
         return {}
 
     def fault_reason(self) -> str:
-        """Why the newest reading carries :attr:`DeviceStatus.FAULT`, for the operator (the
+        """Why the newest reading carries ``DeviceStatus.FAULT``, for the operator (the
         diagnostics message at ERROR). Called from the diagnostics thread at 1 Hz while a fault
         is active, never in the device cycle: return text kept by ``read``, do no I/O. Default:
         a generic text; a backend that knows the cause overrides it."""
@@ -175,13 +175,15 @@ class DeviceBackend(ABC):
 
 
 class SimMaglevBackend(DeviceBackend):
-    """The simulated maglev of the paper's lab (eq. 9, :class:`MaglevModel`) with the
+    """The simulated maglev of the paper's lab (eq. 9,
+    :class:`~haptic_topology.device.maglev.MaglevModel`) with the
     scenario's simulated user.
 
     Until the first :meth:`write` from an engaged controller the model is parked at its
     initial pose (``idle`` does not integrate), so a run starts when the loop is closed, like
     the offline lock-step simulation. The user's clock starts at engagement too. What it
-    reports goes through the scenario's sensor model (:class:`PositionSensor`: exact unless
+    reports goes through the scenario's sensor model
+    (:class:`~haptic_topology.device.maglev.PositionSensor`: exact unless
     ``device.sensor`` says otherwise); the simulated user feels the true state.
     Options: none.
     """

@@ -1,4 +1,5 @@
-"""The device side of the *separate* layout: a :class:`DeviceLoop` stepped by executor
+"""The device side of the *separate* layout: a :class:`~haptic_topology.device.loop.DeviceLoop`
+stepped by executor
 callbacks, without ROS.
 
 In the separate layout (``device_driver`` with ``host_controller: false``) commands come from
@@ -17,10 +18,11 @@ stamp:
   computes with the offline simulation's times. :meth:`ExecutorLoop.stalled` names a state
   left unanswered for ``warn_after`` wall seconds.
 
-``run_duration`` (s, 0 = none): :attr:`Emitted.ends_run` marks the first state whose stamp is
+``run_duration`` (s, 0 = none): ``Emitted.ends_run`` marks the first state whose stamp is
 that far from the run's first state (the node then deactivates).
 
-Times ``now`` are monotonic seconds (the :class:`DeviceLoop`'s clock); stamps are integer ns.
+Times ``now`` are monotonic seconds (the :class:`~haptic_topology.device.loop.DeviceLoop`'s clock);
+stamps are integer ns.
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ class Emitted:
 
 @dataclass(frozen=True, slots=True)
 class CommandOutcome:
-    """What a command did: its :class:`CommandVerdict` value, a log line (``info``: the
+    """What a command did: its :class:`~haptic_topology.device.loop.CommandVerdict` value, a log
+    line (``info``: the
     controller engaged; ``warning``: another controller took over), and the lock-step step
     it released (or None)."""
 
@@ -90,7 +93,8 @@ class ExecutorLoop:
                    may_engage: bool, controller_id: int,
                    env_wrench: np.ndarray | None = None) -> CommandOutcome:
         """A command of ``controller_id`` answering ``state_seq`` arrived at ``now``
-        (:meth:`DeviceLoop.on_command`); in lock-step, an applied answer to the newest
+        (:meth:`~haptic_topology.device.loop.DeviceLoop.on_command`); in lock-step, an applied
+        answer to the newest
         state steps the loop one period."""
         loop = self.loop
         was_engaged, followed = loop.engaged, loop.controller_id

@@ -10,7 +10,8 @@ ROS, no clock: times are passed in (s).
 :meth:`HostedCycle.step` ``(now, dt, stamp)``, in the loop thread:
 
 1. apply the LMI updates offered since the previous step, oldest first
-   (:meth:`ControllerLoop.on_update`; each one, because the LMI's replay and the VE session
+   (:meth:`~haptic_topology.control.loop.ControllerLoop.on_update`; each one, because the LMI's
+   replay and the VE session
    tracking need every update);
 2. ``DeviceLoop.tick(now, dt)``: write the command held (clamp -> watchdog -> clamp), read
    the device; the state is stamped ``stamp`` (loop time: wall or simulated);
@@ -29,7 +30,7 @@ eqs. 17-19), then appends to an inbox under a lock; the loop thread swaps the in
 the same lock and applies the updates outside it, so neither side holds the lock for more
 than a list append or swap. The inbox keeps at most ``max_pending`` updates (a loop that is
 not stepping, e.g. an inactive device, while the VE keeps sending): beyond that
-the oldest is dropped and counted in :attr:`HostedCycle.updates_dropped`. Every other method
+the oldest is dropped and counted in ``HostedCycle.updates_dropped``. Every other method
 belongs to the loop thread.
 """
 
@@ -126,7 +127,7 @@ class HostedCycle:
     def waiting_for_update(self) -> bool:
         """Lock-step: apply the updates offered so far, then True while the update that the
         offline simulation applies before the next state has not come
-        (:meth:`ControllerLoop.waiting_for_update`)."""
+        (:meth:`~haptic_topology.control.loop.ControllerLoop.waiting_for_update`)."""
         self.apply_updates()
         return self.controller.waiting_for_update()
 
@@ -141,7 +142,7 @@ class HostedCycle:
     def step(self, now: float, dt: float, stamp: float, may_engage: bool = True) -> HostedStep:
         """One cycle at ``now`` (s, the device's clock), ``dt`` (s) after the previous one;
         the state is stamped ``stamp`` (s, loop time); ``may_engage``: whether the answer
-        may engage the device (see :meth:`DeviceLoop.on_command`)."""
+        may engage the device (see :meth:`~haptic_topology.device.loop.DeviceLoop.on_command`)."""
         updates = self.apply_updates()
         tick = self.device.tick(now, dt)
         ans = self.controller.on_state(state_sample(tick, stamp))

@@ -46,7 +46,7 @@ controller's output in like any recovery. The price of the rule: a foreign publi
 the device over when the engaged controller stalls for ``takeover_after`` (a stall that long
 is a failure of its own: the output has been at the fallback for most of it). This is
 identity, not authentication: any process on the domain can read the id from the command
-topic and copy it (DDS security is the answer to that, see the README).
+topic and copy it (DDS security is the answer to that, see docs/safety.md).
 
 Example (ids 7 and 9, ``takeover_after`` 0.5 s, states 1 to 4 published; the verdicts are
 checked by a test)::

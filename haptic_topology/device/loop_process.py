@@ -32,7 +32,8 @@ when its parent dies (``PR_SET_PDEATHSIG`` delivers SIGTERM, and the parent pid 
 every cycle), in both cases after writing zero wrench and releasing the device
 (:func:`~haptic_topology.device.backend.zero_and_release`). The node sees the child exit at
 its next check (every 20 ms) and reports it as the device's fault. The child unregisters the
-rings from its resource tracker (:meth:`ShmRing.attach`), so only the owner unlinks them:
+rings from its resource tracker (:meth:`~haptic_topology.device.shm_ring.ShmRing.attach`), so only
+the owner unlinks them:
 its :meth:`LoopProcess.close`, or its resource tracker when the node dies.
 
 In the child, after start-up, :func:`gc.freeze` moves every object built so far out of the
@@ -110,8 +111,8 @@ def update_bytes(dof: int) -> int:
 
 class CycleCodec:
     """One :class:`~haptic_topology.device.runner.Published` cycle as a fixed-layout record
-    of task dimension ``m`` and back (ints: :data:`_INTS`; floats: the state's stamp, the
-    hand input's stamp, then the m-vectors :data:`_VECS`)."""
+    of task dimension ``m`` and back (ints: ``_INTS``; floats: the state's stamp, the
+    hand input's stamp, then the m-vectors ``_VECS``)."""
 
     def __init__(self, m: int) -> None:
         self.m = m
@@ -181,7 +182,7 @@ def wait_eventfd(fd: int, timeout: float) -> bool:
 
 
 def put_bytes(ring: ShmRing, data: bytes, what: str, overwrite: bool = True) -> bool:
-    """Put ``data`` into a ring of :func:`_bytes_dtype` records; too long is an error."""
+    """Put ``data`` into a ring of ``_bytes_dtype`` records; too long is an error."""
     size = ring.dtype['b'].shape[0]
     if len(data) > size:
         raise DeviceError(f'loop process: {what} of {len(data)} bytes exceeds its record '
@@ -228,9 +229,10 @@ class LoopSpec:
 class LoopProcess:
     """The node's handle of the child (see module doc; a deactivation stops the child, an
     activation starts a new one on the same rings), with the interface the node's
-    publishing thread and checks use of an in-process :class:`LoopRunner`: :meth:`start`,
-    :meth:`stop`, :meth:`drain`, :attr:`may_engage`, :attr:`finished`, :attr:`error`,
-    :meth:`device_values`, :attr:`notices`; and :meth:`offer_update`, :meth:`change_law`
+    publishing thread and checks use of an in-process
+    :class:`~haptic_topology.device.runner.LoopRunner`: :meth:`start`,
+    :meth:`stop`, :meth:`drain`, ``may_engage``, ``finished``, ``error``,
+    ``device_values``, ``notices``; and :meth:`offer_update`, :meth:`change_law`
     for the hosted controller."""
 
     def __init__(self, spec: dict[str, Any], task_dim: int, dof: int) -> None:
@@ -332,7 +334,7 @@ class LoopProcess:
         return self._proc is not None and self._proc.poll() is None
 
     def check(self) -> None:
-        """Sets :attr:`error` when the child exited without being asked to; moves waiting
+        """Sets ``error`` when the child exited without being asked to; moves waiting
         updates into the ring (executor thread, every 20 ms)."""
         self.flush_updates()
         proc = self._proc

@@ -15,7 +15,7 @@ def set_realtime_priority(priority: int) -> str | None:
 
     Why: on 2 cores the 1 kHz pair (device_driver, lmi_controller) shares the CPU with ve_sim's
     RK4 and the recorder; measured on the circle scenario, 10 s, separate processes: cycles
-    answered in time 82 % -> 94 %, device period p99 1.76 -> 1.08 ms (README, benchmarks).
+    answered in time 82 % -> 94 %, device period p99 1.76 -> 1.08 ms (docs/results.md, benchmarks).
     Linux throttles real-time threads to 95 % of each second (sched_rt_runtime_us), so a
     runaway loop cannot lock the machine.
     """

@@ -1,7 +1,9 @@
-"""The loop thread of the hosted layout: one :class:`HostedCycle` per device cycle, paced.
+"""The loop thread of the hosted layout: one :class:`~haptic_topology.device.hosted.HostedCycle`
+per device cycle, paced.
 
 As ros2_control's controller manager runs ``read -> update -> write``, the hosted
-``device_driver`` runs :meth:`HostedCycle.step` (device tick, controller answer, command held
+``device_driver`` runs :meth:`~haptic_topology.device.hosted.HostedCycle.step` (device tick,
+controller answer, command held
 for the next write) in one thread of its own, and nothing else: no DDS, no diagnostics, no
 recording. What observers need (the state, the command, the hand input, the lock-step
 ``/clock``) goes into an *outbox* that the node's executor thread drains and publishes, as
@@ -9,7 +11,7 @@ recording. What observers need (the state, the command, the hand input, the lock
 clock, sleep and the executor's wake-up are injected, so the pacing logic is tested with a
 fake clock (``test/unit/device/test_core_runner.py``).
 
-Pacing (:attr:`RunnerConfig.lockstep`):
+Pacing (``RunnerConfig.lockstep``):
 
 * **wall**: a :class:`~haptic_topology.device.pacing.DeadlinePacer` releases cycle ``k`` at
   ``t0 + k * period`` (absolute deadlines; an overrun skips the passed deadlines and counts
@@ -19,20 +21,22 @@ Pacing (:attr:`RunnerConfig.lockstep`):
 * **lockstep**: simulated time. Before engagement the device idles at stamp 0, one cycle per
   period; once engaged, each state ``k`` is stamped ``k * period`` (integer ns) and the loop
   steps as soon as the controller has the LMI update that the offline simulation applies
-  before that state (:meth:`HostedCycle.waiting_for_update`), waiting at most
+  before that state (:meth:`~haptic_topology.device.hosted.HostedCycle.waiting_for_update`),
+  waiting at most
   ``lockstep_wait`` wall seconds for it (then a notice, counted in ``lockstep_timeouts``, and
   the answer from the local model). A full outbox makes it wait for the publisher (nothing
   recorded is lost); in wall mode the outbox drops its oldest entry instead and counts it
   (``outbox_dropped``): the deadline never waits for an observer.
 
 ``run_duration`` (s, 0 = none): the thread stops after the first state whose stamp is that
-far from the run's first state; :attr:`LoopRunner.finished` is then True (the node
+far from the run's first state; ``LoopRunner.finished`` is then True (the node
 deactivates).
 
-Threads: :meth:`start`, :meth:`stop`, :meth:`drain` and :meth:`submit` belong to the node's
-executor thread; :attr:`may_engage` is set by it and read by the loop thread (a bool).
-:meth:`submit` hands a function (a live parameter change) to the loop thread, which runs it
-between two cycles; when the thread is not running it runs at once.
+Threads: :meth:`LoopRunner.start`, :meth:`LoopRunner.stop`, :meth:`LoopRunner.drain` and
+:meth:`LoopRunner.submit` belong to the node's executor thread; ``may_engage`` is set by it and
+read by the loop thread (a bool). :meth:`LoopRunner.submit` hands a function (a live parameter
+change) to the loop thread, which runs it between two cycles; when the thread is not running it
+runs at once.
 """
 
 from __future__ import annotations
@@ -98,11 +102,12 @@ class Published:
 
 
 class LoopRunner:
-    """Runs a :class:`HostedCycle` in a paced loop thread (see module doc).
+    """Runs a :class:`~haptic_topology.device.hosted.HostedCycle` in a paced loop thread (see
+    module doc).
 
     ``wall_ns``: the wall clock that stamps states (ns; the node passes its ROS clock);
     ``clock``/``sleep``: monotonic time (s) and sleep, for the pacer and the waits; ``wake``
-    (attribute, settable before :meth:`start`): called after each outbox append, to wake the
+    (attribute, settable before ``start``): called after each outbox append, to wake the
     thread that publishes.
     """
 

@@ -65,7 +65,7 @@ def _segment_size(dtype: np.dtype[Any], capacity: int) -> int:
 
 
 class ShmRing:
-    """One ring (module doc). Use :meth:`create` (owner) or :meth:`attach` (peer); one
+    """One ring (module doc). Use ``create`` (owner) or ``attach`` (peer); one
     process puts, the other takes."""
 
     def __init__(self, shm: SharedMemory, dtype: np.dtype[Any], capacity: int,
@@ -91,7 +91,7 @@ class ShmRing:
 
     @property
     def name(self) -> str:
-        """The segment's name (``/dev/shm/<name>``), for :meth:`attach`."""
+        """The segment's name (``/dev/shm/<name>``), for ``attach``."""
         return str(self._shm.name)
 
     @classmethod
@@ -133,10 +133,10 @@ class ShmRing:
 
     # -- producer ------------------------------------------------------------------------------
     def put(self, record: Any, overwrite: bool = True) -> bool:
-        """Write ``record`` (anything numpy assigns to one element of :attr:`dtype`: a
+        """Write ``record`` (anything numpy assigns to one element of ``dtype``: a
         tuple, a ``np.void``) as the next record. A full ring: overwrite the oldest unread
         record (counted in :attr:`overwritten`) or, with ``overwrite=False``, write nothing
-        and return False (counted in :attr:`refused`)."""
+        and return False (counted in ``refused``)."""
         header = self._header
         k = int(header[_WRITTEN])
         if k - int(header[_TAKEN]) >= self.capacity:
@@ -159,7 +159,7 @@ class ShmRing:
     # -- consumer ------------------------------------------------------------------------------
     def take(self, limit: int | None = None) -> np.ndarray:
         """Copies of the records written since the last take, oldest first (at most
-        ``limit``), as an array of :attr:`dtype`; records overwritten meanwhile are skipped
+        ``limit``), as an array of ``dtype``; records overwritten meanwhile are skipped
         and counted in :attr:`lost`."""
         written = int(self._header[_WRITTEN])
         oldest = written - self.capacity
@@ -189,7 +189,7 @@ class ShmRing:
 
     @property
     def pending(self) -> int:
-        """Records written and not taken yet (at most :attr:`capacity` can still be taken)."""
+        """Records written and not taken yet (at most ``capacity`` can still be taken)."""
         return int(self._header[_WRITTEN]) - self._next
 
     # -- end -----------------------------------------------------------------------------------
@@ -211,8 +211,8 @@ class ShmRing:
 class SharedArray:
     """A float64 array in a shared-memory segment, written by one process and read by
     another (each 8-byte element is stored whole on x86-64: a reader sees an old or a new
-    value, never a mix). Lifetime as :class:`ShmRing`'s: :meth:`create` owns and unlinks it,
-    :meth:`attach` unregisters it from its process's resource tracker."""
+    value, never a mix). Lifetime as :class:`ShmRing`'s: ``create`` owns and unlinks it,
+    ``attach`` unregisters it from its process's resource tracker."""
 
     def __init__(self, shm: SharedMemory, size: int, owner: bool) -> None:
         self._shm = shm

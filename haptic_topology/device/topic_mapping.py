@@ -4,9 +4,9 @@ Haptic devices with ROS 2 drivers (Geomagic/3D Systems Touch, Force Dimension, H
 publish the handle's pose (``geometry_msgs/PoseStamped``) and twist (``TwistStamped``), some a
 measured force (``WrenchStamped``), and take a wrench command (``WrenchStamped``), each in the
 device's own base frame ``D`` and units. The ``ros_topics`` backend
-(:mod:`haptic_topology.nodes.topic_backend`) maps them to the task vectors of
+(``haptic_topology.nodes.topic_backend``) maps them to the task vectors of
 :mod:`haptic_topology.device.maglev` with a :class:`TopicMapping`; the device player of the
-tests (:mod:`haptic_topology.nodes.topic_device`) maps the other way. No ROS here: messages are
+tests (``haptic_topology.nodes.topic_device``) maps the other way. No ROS here: messages are
 taken apart by the caller.
 
 The mapping is a rigid transform plus units. ``M = R_o A`` is the rotation from ``D`` to the
@@ -54,7 +54,7 @@ BACKEND = 'ros_topics'
 _AXES = {'x': 0, 'y': 1, 'z': 2}
 #: |det - 1| and |A A^T - I| allowed for an axis matrix given as numbers.
 _ORTHO_TOL = 1e-6
-#: |q| allowed away from 1 for a device quaternion (farther: the sample is refused).
+#: ``|q|`` allowed away from 1 for a device quaternion (farther: the sample is refused).
 QUAT_NORM_TOL = 1e-2
 
 
@@ -312,7 +312,7 @@ class TopicMapping:
 @dataclass(frozen=True)
 class TopicOptions:
     """The ``ros_topics`` backend's ``backend_options``, checked (see
-    :func:`parse_topic_options` and the README's table)."""
+    :func:`parse_topic_options` and the table in docs/devices.md)."""
 
     pose_topic: str
     twist_topic: str
@@ -334,7 +334,7 @@ class TopicOptions:
 
 def parse_topic_options(options: Mapping[str, Any], task: TaskSpace) -> TopicOptions:
     """Check ``backend_options`` for the task space ``task``; a bad or unknown entry raises
-    :class:`DeviceError` naming the field and what it must be."""
+    :class:`~haptic_topology.errors.DeviceError` naming the field and what it must be."""
     if not isinstance(options, Mapping):
         raise DeviceError(f'{BACKEND}: backend_options: expected a mapping, got {options!r}')
     unknown = sorted(set(options) - set(DEFAULTS))

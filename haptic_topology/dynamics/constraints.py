@@ -27,7 +27,7 @@ tolerance band (``J_h`` nearly but not exactly singular) the ``n_i`` span the le
 of the rank-r truncation of ``J_h`` that the weighted SVD chose. The projector is
 ``P = sum_i w_i n_i n_i^T`` (symmetric, 0 <= P <= I).
 
-``penalty_direction: weighted`` keeps the projector used before issue 12,
+``penalty_direction: weighted`` uses the weighted projector
 ``P = W^-1 U_w diag(w) U_w^T W``: the penalty in the weighted coordinates ``e_w = W e``
 mapped back. Its force lies along ``W^-1 m`` instead of ``W m`` (m in ``N(J_w^T)``): tilted off
 ``N(J_h^T)`` by up to ~48 deg with Table I's L_c = 0.114 m, so it does work on allowed motion.

@@ -24,8 +24,9 @@ at both ends); a joint shared by two default capsules counts once (as the tip of
 link). Against the other shapes each capsule has one candidate, its closest point; where two
 links' closest points are both their common joint, that point is held by both (stiffer there,
 still passive). In a planar task the capsules are projected onto the xy plane (the planar
-obstacles extend along z). A solid's candidates are those of :func:`~haptic_topology.model.
-solids.solid_gaps` (a box's corners and a cylinder's deepest rim points against planes, the
+obstacles extend along z). A solid's candidates are those of
+:func:`~haptic_topology.model.solids.solid_gaps` (a box's corners and a cylinder's deepest rim
+points against planes, the
 closest or deepest point against the other shapes), each at its own point of the solid.
 
 **Contact model** (penalty with damping and regularized Coulomb friction), per candidate with
@@ -661,7 +662,7 @@ class ContactModel:
 
     def gaps(self, q: np.ndarray) -> np.ndarray:
         """The gaps (m) at ``q`` of every capsule candidate and of the solids' penetrating
-        candidates (the others are culled, see :meth:`_solid_hits`): all that ``U`` and the
+        candidates (the others are culled, see ``_solid_hits``): all that ``U`` and the
         penetration depth need, without normals or Jacobians."""
         gaps = self.candidates(*self._axes(q), gaps_only=True)[3]
         if self._solids:

@@ -18,7 +18,8 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class LinkageModel:
-    """Pinocchio model of a :class:`Linkage` with the grasp as an operational frame."""
+    """Pinocchio model of a :class:`~haptic_topology.model.linkage.Linkage` with the grasp as an
+    operational frame."""
 
     linkage: Linkage
     model: pin.Model

@@ -34,12 +34,12 @@ Izz; spatial: ``[ixx, iyy, izz]``, ``[ixx, iyy, izz, ixy, ixz, iyz]`` or a 3x3 l
 
 Instead of ``links``, ``urdf: file.urdf`` reads the chain from a URDF (a path relative to the
 YAML file, or ``package://NAME/PATH`` for a file of an installed package, see
-:func:`~haptic_topology.paths.resolve_package_uri`; ``revolute``,
+``haptic_topology.paths.resolve_package_uri``; ``revolute``,
 ``continuous``, ``prismatic`` and ``fixed`` joints; fixed links are merged into their parent).
 A URDF tree is reduced to the serial chain from the root through the grasped link, continued
 beyond it until the tree first branches; every other joint is locked at ``locked_joints:
 {name: position}`` (rad or m, default 0) with its mass kept (Pinocchio ``buildReducedModel``),
-and :attr:`Linkage.notes` says in one line what was locked. A bare ``.urdf`` file loads as
+and ``Linkage.notes`` says in one line what was locked. A bare ``.urdf`` file loads as
 spatial unless it holds ``<haptic_topology task="planar"/>`` under ``<robot>``.
 
 The default characteristic length (``constraints.characteristic_length``, m) is the reach: the

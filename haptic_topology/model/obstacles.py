@@ -185,7 +185,8 @@ def obstacles_from_config(raw: Any, where: str, task: TaskSpace) -> tuple[Obstac
     """Parse the scenario's ``contacts.obstacles`` list (see the module docstring).
 
     ``where`` is the path of the list, e.g. ``'fig.yaml: scenario.contacts.obstacles'``; item
-    ``i`` is reported as ``f'{where}[{i}]'``. Names must be unique. Raises :class:`ConfigError`.
+    ``i`` is reported as ``f'{where}[{i}]'``. Names must be unique. Raises
+    :class:`~haptic_topology.errors.ConfigError`.
     """
     if not isinstance(raw, list):
         raise ConfigError(f'{where}: expected a list of obstacles, got {type(raw).__name__}')

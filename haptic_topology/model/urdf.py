@@ -3,7 +3,7 @@
 :func:`linkage_urdf` writes the URDF of a :class:`~haptic_topology.model.linkage.Linkage`:
 a root link (``base_link``) at the world origin, then per link ``i`` the joint that moves it
 (``joint_label``; ``continuous`` for revolute joints, ``prismatic``) placed at ``origin`` in
-the previous link's frame exactly as :func:`~haptic_topology.model.linkage.build_model` places
+the previous link's frame exactly as :func:`~haptic_topology.model.build.build_model` places
 it (default ``[length of link i-1, 0, 0]``), and the link with its inertial (mass, COM, inertia
 about the COM in the link's axes) and a cylinder from its joint to the next joint (the distal
 link: ``length`` along its x axis) as visual. Link ``i``'s frame is joint ``i``'s frame, as in
@@ -70,7 +70,7 @@ def _vec(v: np.ndarray | list[float]) -> str:
 
 def joint_placement(linkage: Linkage, i: int) -> pin.SE3:
     """Placement of joint ``i`` (0-based) in the previous link's frame (the world for i = 0),
-    as :func:`~haptic_topology.model.linkage.build_model` computes it."""
+    as :func:`~haptic_topology.model.build.build_model` computes it."""
     link = linkage.links[i]
     if link.origin_xyz is not None:
         xyz = np.asarray(link.origin_xyz, dtype=float)
@@ -181,7 +181,7 @@ class RobotDescription:
     source: UrdfSource | None = None
 
     def positions(self, q: np.ndarray) -> np.ndarray:
-        """Positions of every joint of :attr:`joint_names`: ``q``, then the locked ones."""
+        """Positions of every joint of ``joint_names``: ``q``, then the locked ones."""
         return np.concatenate([np.asarray(q, dtype=float), self.locked])
 
 
@@ -246,7 +246,7 @@ class LinkFrames:
     """The transforms of ``/tf`` for a :class:`RobotDescription` (module doc): a Pinocchio
     model of its URDF (built from the text, meshes are not read) and data, allocated once.
 
-    :attr:`edges` lists ``(parent, child)`` of every transform :meth:`transforms` returns, in
+    ``edges`` lists ``(parent, child)`` of every transform :meth:`transforms` returns, in
     its row order: ``world -> root link`` (left out when the root link is ``world``), one per
     URDF joint (fixed ones included), then ``grasped link -> vt_hand``.
     """
@@ -296,7 +296,7 @@ class LinkFrames:
 
     def transforms(self, q: np.ndarray) -> np.ndarray:
         """Rows ``[tx, ty, tz, qx, qy, qz, qw]`` (m; unit quaternion) of the child frame in
-        the parent frame for every edge of :attr:`edges`, at the linkage's joint positions
+        the parent frame for every edge of ``edges``, at the linkage's joint positions
         ``q``. The array is reused by the next call."""
         dof = self.description.linkage.dof
         if np.shape(q) != (dof,):

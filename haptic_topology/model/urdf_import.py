@@ -221,7 +221,7 @@ def links_from_urdf(src: UrdfSource, grasp_link: str | None, locked: dict[str, f
     """Read the serial chain of a URDF into LinkSpecs (plus a one-line note of what was locked).
 
     Fixed joints are merged by Pinocchio (``buildModelFromXML``). Joints off the chain
-    (:func:`_serial_chain_ids`) are locked at ``locked`` (default 0) with
+    (``_serial_chain_ids``) are locked at ``locked`` (default 0) with
     ``buildReducedModel``, which keeps their bodies' mass and inertia on the chain link that
     carries them.
     """

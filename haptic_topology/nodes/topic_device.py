@@ -19,7 +19,7 @@ received is kept (arrival time, raw device values, task values) and written with
 ``--record PATH`` (``.npz``) at exit; its counters go to ``/diagnostics`` (status
 ``topic_device: device``) four times a second, so a test can wait on them. Ends on SIGINT or
 SIGTERM. The tests (``test/graph/test_topic_backend.py``) run it in its own process; it is also a
-way to try the ``ros_topics`` backend without a device (README, "Bring your own device").
+way to try the ``ros_topics`` backend without a device (docs/devices.md).
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ given to ``write`` is sent as 0 on that axis and counted (the driver clamps befo
 does not happen through it).
 
 **Faults** (the driver's fault machinery, :mod:`haptic_topology.device.backend`): a read
-carries :attr:`~haptic_topology.device.maglev.DeviceStatus.FAULT`, and the driver writes zero
+carries ``DeviceStatus.FAULT``, and the driver writes zero
 from the next cycle until a read comes without it and then fades back in, while
 
 * no valid STATE arrived within ``stale_ms`` (server stopped, network down, all lost): the

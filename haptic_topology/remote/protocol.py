@@ -58,9 +58,10 @@ STATE body (device -> client), 16 + 32 m bytes, then the CRC:
 ========  ======  ============  ================================================================
 offset    bytes   type          field
 ========  ======  ============  ================================================================
-48        4       uint32        ``status``: :class:`DeviceStatus` bits the device may report
-                                (``WORKSPACE_LIMIT`` 1, ``SATURATED`` 2, ``FAULT`` 8) and the
-                                server's :class:`ServerStatus` bits (from bit 16)
+48        4       uint32        ``status``: :class:`~haptic_topology.vocabulary.DeviceStatus`
+                                bits the device may report (``WORKSPACE_LIMIT`` 1,
+                                ``SATURATED`` 2, ``FAULT`` 8) and the server's
+                                :class:`ServerStatus` bits (from bit 16)
 52        4       -             reserved, sent as 0, ignored
 56        8       uint64        ``applied_seq``: ``seq`` of the command applied in the cycle
                                 this state ends (0: none, the output was zero)
@@ -147,7 +148,7 @@ _COMMAND_FLAGS = int(CommandFlags.ENGAGED | CommandFlags.RELEASE)
 
 class ServerStatus(enum.IntFlag):
     """``status`` bits of a STATE that the device server adds (bit 16 up; the low bits are
-    :class:`DeviceStatus`)."""
+    :class:`~haptic_topology.vocabulary.DeviceStatus`)."""
 
     NONE = 0
     #: No valid command within the server's command timeout (or the command's ttl): the output
@@ -176,7 +177,7 @@ class Malformed(enum.Enum):
 
 
 class ProtocolError(DeviceError):
-    """A datagram that is not a valid packet (:attr:`reason`), or values that cannot be sent."""
+    """A datagram that is not a valid packet (``reason``), or values that cannot be sent."""
 
     def __init__(self, reason: Malformed, message: str) -> None:
         super().__init__(message)
@@ -445,7 +446,7 @@ class SessionFollower:
     takes over once the followed one has been silent ``takeover_after`` s (a restarted peer
     draws a new session id), else its packets are refused (``foreign``). A session that
     ended (:meth:`end`) is never followed again (``ended``). Each followed session has its own
-    :class:`SeqTracker`; the counts of earlier sessions are kept in :attr:`previous`."""
+    :class:`SeqTracker`; the counts of earlier sessions are kept in ``previous``."""
 
     _ENDED_KEPT = 16
 
@@ -464,7 +465,7 @@ class SessionFollower:
 
     def check(self, session: int, now: float) -> SessionVerdict:
         """Whether to take a valid packet of ``session`` arrived at ``now`` (s); switches to a
-        new session when it may take over (counted in :attr:`sessions`)."""
+        new session when it may take over (counted in ``sessions``)."""
         if session == self.session:
             return SessionVerdict.CURRENT
         if session in self._ended:

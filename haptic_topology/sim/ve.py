@@ -61,7 +61,7 @@ class VirtualEnvironment:
     """Full VT simulation (eq. 2, with the contacts of ``contacts`` when given) with RK4 at
     ``internal_step`` seconds.
 
-    :attr:`q` (rad / m) and :attr:`dq` (rad/s / m/s) are replaced by new arrays when the VE
+    ``q`` (rad / m) and ``dq`` (rad/s / m/s) are replaced by new arrays when the VE
     moves, never changed in place; the arrays the VE makes itself are read-only.
     """
 
@@ -79,7 +79,7 @@ class VirtualEnvironment:
         self.internal_step = internal_step
         self.max_gap = max_gap
         #: ``(K_pc, B_pc)`` when the hand input carries the coordination wrench (VT
-        #: coupling): a held input is then integrated for at most :attr:`hold_limit`.
+        #: coupling): a held input is then integrated for at most ``hold_limit``.
         self.coupling = coupling
         self._stable_hold = None if coupling is None else StableHold(*coupling)
         self.hold_limit = max_gap
@@ -129,7 +129,7 @@ class VirtualEnvironment:
         return self.contact_work + self.contacts.potential(self.q) - self._potential0
 
     def _hand_now(self) -> tuple[np.ndarray, np.ndarray]:
-        """The grasp frame's 6 x d Jacobian and task pose at the current :attr:`q`."""
+        """The grasp frame's 6 x d Jacobian and task pose at the current ``q``."""
         if self._hand is not None and self._hand[0] is self.q:
             return self._hand[1], self._hand[2]
         j6 = self.dyn.hand_frame_jacobian(self.q)
@@ -326,7 +326,7 @@ class HandFeed:
 
     * ``seq`` (the controller's input counter) not above the previous one: a restarted
       controller; the held input is dropped (:meth:`VirtualEnvironment.reset_inputs`);
-    * ``seq`` jumping: the inputs in between were lost (counted in :attr:`lost`);
+    * ``seq`` jumping: the inputs in between were lost (counted in ``lost``);
     * the first input, if not the controller's first (``seq > 1``): this VE joins a running
       loop (it was restarted): the VT is placed where the hand is
       (:meth:`VirtualEnvironment.place_hand`), not left at ``q0``;
@@ -334,7 +334,7 @@ class HandFeed:
     * every ``update_period``-th input the caller publishes an LMI update (``take`` returns
       True), also when that input is in the middle of a batch.
 
-    Events for the node's log go to :attr:`notices` (drained by the node).
+    Events for the node's log go to ``notices`` (drained by the node).
     """
 
     def __init__(self, ve: VirtualEnvironment, update_period: int) -> None:
