@@ -33,11 +33,12 @@ import asyncio
 import itertools
 import threading
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.asyncio.server import Server, ServerConnection, serve
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, NegotiationError
 from websockets.typing import Data, Subprotocol
 
 from haptic_topology.errors import ConfigError
@@ -52,11 +53,13 @@ SUBPROTOCOLS = (SDK_SUBPROTOCOL, WS_SUBPROTOCOL)
 MESSAGE_DATA = 1
 #: Close code for a client too slow to take even the control frames (policy violation).
 CLOSE_TOO_SLOW = 1008
+#: Seconds a closing handshake may take (a client that does not read never answers it).
+CLOSE_TIMEOUT = 1.0
 
 
 @dataclass
 class ClientStats:
-    """What one connected client got: ``sent`` frames written to it, ``dropped``
+    """What one connected client got: ``sent`` frames handed to its connection, ``dropped``
     ``messageData`` frames it was too slow for, ``queued`` now waiting and ``peak_queued``."""
 
     address: str
@@ -116,6 +119,16 @@ class Outbox:
         return frame
 
 
+def _select_subprotocol(_connection: ServerConnection,
+                        offered: Sequence[Subprotocol]) -> Subprotocol:
+    """The first of :data:`SUBPROTOCOLS` the client offers, else HTTP 400 naming both."""
+    for name in SUBPROTOCOLS:
+        if name in offered:
+            return name
+    raise NegotiationError(f'expected subprotocol {" or ".join(SUBPROTOCOLS)}, offered '
+                           f'{", ".join(offered) or "none"}')
+
+
 class FoxgloveFront:
     """Serves ``host:port`` (0: any free port, see :attr:`port`) to Foxglove clients of
     either subprotocol by relaying to the SDK server at ``ws://127.0.0.1:upstream_port``
@@ -145,7 +158,8 @@ class FoxgloveFront:
         # ping_interval=None: a client on a saturated link is kept (and dropped for), as the
         # SDK's server keeps it; max_size=None: frames are the SDK's, relayed whole.
         return await serve(self._relay, host, port, subprotocols=list(SUBPROTOCOLS),
-                           compression=None, ping_interval=None, max_size=None)
+                           select_subprotocol=_select_subprotocol, compression=None,
+                           ping_interval=None, max_size=None, close_timeout=CLOSE_TIMEOUT)
 
     def stats(self) -> list[ClientStats]:
         """A copy of the connected clients' counts."""
@@ -158,7 +172,8 @@ class FoxgloveFront:
         self.clients[key] = stats
         try:
             async with connect(self.upstream, subprotocols=[SDK_SUBPROTOCOL], compression=None,
-                               ping_interval=None, max_size=None, proxy=None) as upstream:
+                               ping_interval=None, max_size=None, proxy=None,
+                               close_timeout=CLOSE_TIMEOUT) as upstream:
                 outbox = Outbox(self.backlog, stats)
                 tasks = [asyncio.create_task(c) for c in (
                     self._take(upstream, outbox), self._write(client, outbox),
@@ -176,15 +191,21 @@ class FoxgloveFront:
 
     @staticmethod
     async def _take(upstream: ClientConnection, outbox: Outbox) -> None:
+        half = outbox.backlog // 2
         async for frame in upstream:
             outbox.put(frame)
+            if outbox.stats.queued > half:
+                # A burst already read from the socket does not yield to the writer: let it
+                # write what the client's socket takes before anything is dropped.
+                await asyncio.sleep(0)
 
     @staticmethod
     async def _write(client: ServerConnection, outbox: Outbox) -> None:
         while True:
             await outbox.ready.wait()
-            await client.send(outbox.pop())
-            outbox.stats.sent += 1
+            frame = outbox.pop()
+            outbox.stats.sent += 1      # handed to the connection (it waits while it is full)
+            await client.send(frame)
 
     @staticmethod
     async def _forward(client: ServerConnection, upstream: ClientConnection) -> None:
