@@ -218,11 +218,24 @@ class FoxgloveFront:
             return
 
         async def close() -> None:
-            if self._server is not None:
-                self._server.close()
-                await self._server.wait_closed()
+            if self._server is None:
+                return
+            self._server.close(close_connections=False)      # stop accepting
+            connections = list(self._server.connections)
+            if connections:
+                # Going away (1001) for clients that read; a client that does not read never
+                # completes the handshake (its socket is full): after CLOSE_TIMEOUT, cut.
+                await asyncio.wait([asyncio.create_task(c.close(1001, 'server stopping'))
+                                    for c in connections], timeout=CLOSE_TIMEOUT)
+                for c in connections:
+                    c.transport.abort()
+            await asyncio.wait_for(self._server.wait_closed(), timeout=CLOSE_TIMEOUT)
 
-        asyncio.run_coroutine_threadsafe(close(), self._loop).result(timeout=10.0)
+        try:
+            asyncio.run_coroutine_threadsafe(close(), self._loop).result(
+                timeout=4 * CLOSE_TIMEOUT)
+        except TimeoutError:
+            pass        # the loop stops below all the same; the process is ending
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(timeout=10.0)
         self._loop.close()

@@ -27,7 +27,7 @@ command in real time; ``/robot_description`` transient local, so a late bridge s
 Diagnostics (``foxglove_bridge: server``, 1 Hz): ``url``, ``port`` (the one taken: with
 ``port`` 0 the OS chooses), ``channels``, ``clients``, ``dropped`` (messages dropped for slow
 clients since the start, all clients), per connected client ``client <address>``
-(subprotocol, messages sent, dropped, waiting) and per topic ``forwarded <topic>`` and
+(subprotocol, messages sent, dropped, waiting now, most ever waiting) and per topic ``forwarded <topic>`` and
 ``lost <topic>`` (see :class:`~haptic_topology.nodes.take.BatchTaker`).
 """
 
@@ -179,7 +179,7 @@ class FoxgloveBridge(Node):
         values = {'url': self.url, 'port': str(self.port), 'channels': str(len(self.channels)),
                   'clients': str(len(clients)), 'dropped': str(dropped),
                   **{f'client {c.address}': f'{c.subprotocol} sent {c.sent} dropped '
-                     f'{c.dropped} waiting {c.queued}' for c in clients},
+                     f'{c.dropped} waiting {c.queued} peak {c.peak_queued}' for c in clients},
                   **{f'forwarded {t}': str(n) for t, n in zip(self.topics, self.taker.taken,
                                                                strict=True)},
                   **{f'lost {t}': str(n) for t, n in zip(self.topics, self.taker.lost,

@@ -161,7 +161,7 @@ def _never_reading_client(port: int) -> ClientConnection:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     sock.connect(('127.0.0.1', port))
     return connect(f'ws://127.0.0.1:{port}', sock=sock, subprotocols=[WS_SUBPROTOCOL],
-                   max_queue=1)
+                   max_queue=1, close_timeout=1)
 
 
 def test_a_client_that_never_reads_is_dropped_for_alone_and_counted(sdk: Sdk) -> None:
@@ -199,6 +199,19 @@ def test_a_client_that_never_reads_is_dropped_for_alone_and_counted(sdk: Sdk) ->
     assert slow_stats.peak_queued <= BACKLOG
     _wait(lambda: sdk.front.stats() == [], 'the slow client is gone')
     assert sdk.front.dropped_closed == slow_stats.dropped
+
+
+def test_stop_is_prompt_with_a_client_that_never_reads(sdk: Sdk) -> None:
+    with _never_reading_client(sdk.front.port) as slow_client:
+        _subscribe(slow_client)
+        _wait(lambda: sdk.channel.has_sinks(), 'subscribed')
+        for i in range(2_000):      # 8 MB: the client's socket is full
+            sdk.channel.log(_cdr(i) + bytes(PAD), log_time=i)
+        _wait(lambda: sdk.front.stats()[0].dropped > 0, 'dropping')
+        t0 = time.monotonic()
+        sdk.front.stop()
+        took = time.monotonic() - t0
+    assert took < 4 * foxglove_front.CLOSE_TIMEOUT + 5.0, took     # a bound, not a rate
 
 
 # -- the outbox ----------------------------------------------------------------------------------
