@@ -23,14 +23,15 @@ into the client's :class:`Outbox`; a writer sends them on as fast as the client 
 When more than ``backlog`` ``messageData`` frames wait, the oldest is dropped and counted
 (:attr:`ClientStats.dropped`); a client whose waiting control frames (JSON) exceed
 ``backlog`` is disconnected (close code 1008). A client that stops reading therefore holds at
-most ``backlog`` frames, its socket buffers and the library's write buffer
-(``write_limit``), and never slows the SDK's server or another client.
+most ``backlog`` frames, its socket's send buffer (:data:`SEND_BUFFER`) and the library's
+write buffer (``write_limit``), and never slows the SDK's server or another client.
 """
 
 from __future__ import annotations
 
 import asyncio
 import itertools
+import socket
 import threading
 from collections import deque
 from collections.abc import Sequence
@@ -55,6 +56,11 @@ MESSAGE_DATA = 1
 CLOSE_TOO_SLOW = 1008
 #: Seconds a closing handshake may take (a client that does not read never answers it).
 CLOSE_TIMEOUT = 1.0
+#: Kernel send buffer of each client's socket (bytes; the kernel doubles it). Without it the
+#: kernel grows it up to ``net.ipv4.tcp_wmem`` (4 MB here): seconds of the whole stream held for
+#: a client that does not read, before its outbox drops anything. 256 kB still carries the
+#: stream (~1 MB/s with every topic) over a link with 100 ms round trip.
+SEND_BUFFER = 256 * 1024
 
 
 @dataclass
@@ -166,6 +172,9 @@ class FoxgloveFront:
         return [ClientStats(**vars(s)) for s in list(self.clients.values())]
 
     async def _relay(self, client: ServerConnection) -> None:
+        sock = client.transport.get_extra_info('socket')
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
         peer = client.remote_address
         stats = ClientStats(f'{peer[0]}:{peer[1]}', str(client.subprotocol))
         key = id(client)

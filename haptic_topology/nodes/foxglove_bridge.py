@@ -27,8 +27,8 @@ command in real time; ``/robot_description`` transient local, so a late bridge s
 Diagnostics (``foxglove_bridge: server``, 1 Hz): ``url``, ``port`` (the one taken: with
 ``port`` 0 the OS chooses), ``channels``, ``clients``, ``dropped`` (messages dropped for slow
 clients since the start, all clients), per connected client ``client <address>``
-(subprotocol, messages sent, dropped, waiting now, most ever waiting) and per topic ``forwarded <topic>`` and
-``lost <topic>`` (see :class:`~haptic_topology.nodes.take.BatchTaker`).
+(subprotocol, messages sent, dropped, waiting now, most ever waiting) and per topic
+``forwarded <topic>`` and ``lost <topic>`` (see :class:`~haptic_topology.nodes.take.BatchTaker`).
 """
 
 from __future__ import annotations

@@ -161,7 +161,7 @@ def _never_reading_client(port: int) -> ClientConnection:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     sock.connect(('127.0.0.1', port))
     return connect(f'ws://127.0.0.1:{port}', sock=sock, subprotocols=[WS_SUBPROTOCOL],
-                   max_queue=1, close_timeout=1)
+                   max_queue=1, close_timeout=1, ping_interval=None)
 
 
 def test_a_client_that_never_reads_is_dropped_for_alone_and_counted(sdk: Sdk) -> None:
