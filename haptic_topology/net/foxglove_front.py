@@ -190,8 +190,13 @@ class FoxgloveFront:
                 done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
                 for task in pending:
                     task.cancel()
-                if any(isinstance(t.exception(), OutboxOverflow) for t in done):
-                    await client.close(CLOSE_TOO_SLOW, 'too slow: control frames backlog full')
+                await asyncio.gather(*pending, return_exceptions=True)
+                for task in done:
+                    exc = task.exception()
+                    if isinstance(exc, OutboxOverflow):
+                        await client.close(CLOSE_TOO_SLOW, f'too slow: {exc}')
+                    elif exc is not None:
+                        raise exc       # closed below; anything but a closed peer is logged
         except (OSError, ConnectionClosed):
             pass        # the SDK's server or the client went away: the client is closed below
         finally:
@@ -238,7 +243,15 @@ class FoxgloveFront:
                                     for c in connections], timeout=CLOSE_TIMEOUT)
                 for c in connections:
                     c.transport.abort()
-            await asyncio.wait_for(self._server.wait_closed(), timeout=CLOSE_TIMEOUT)
+            try:
+                await asyncio.wait_for(self._server.wait_closed(), timeout=CLOSE_TIMEOUT)
+            finally:
+                # No task may outlive the loop: a pending task destroyed later by the garbage
+                # collector runs Python code wherever that happens.
+                rest = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+                for task in rest:
+                    task.cancel()
+                await asyncio.wait(rest, timeout=CLOSE_TIMEOUT) if rest else None
 
         try:
             asyncio.run_coroutine_threadsafe(close(), self._loop).result(
