@@ -78,5 +78,6 @@ colcon-check:
 	bash scripts/colcon_check.sh
 
 clean:
-	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache *.egg-info docs/_build
+	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache *.egg-info docs/_build \
+		test/foxglove_client/node_modules
 	find . -path ./.venv -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

@@ -13,6 +13,8 @@
 #   4. pip install -e . (editable: Python edits need no reinstall)  (stamp: packaging files)
 #      + share/haptic_topology/{package.xml,config} as symlinks, ament index marker
 #   5. <site-packages>/haptic_topology_env.pth: AMENT_PREFIX_PATH for every venv process
+#   6. test/foxglove_client/: npm ci (the @foxglove/ws-protocol client of the live-view test),
+#      only where node and npm exist           (stamp: package.json + package-lock.json)
 #
 # Environment: HAPTIC_VENV (default <repo>/.venv), PYTHON (default python3.11).
 set -euo pipefail
@@ -180,6 +182,22 @@ pth="$site/haptic_topology_env.pth"
 line="import os, sys; _p = os.environ.get('AMENT_PREFIX_PATH', ''); sys.prefix in _p.split(os.pathsep) or os.environ.__setitem__('AMENT_PREFIX_PATH', os.pathsep.join(x for x in (sys.prefix, _p) if x))"
 if [[ ! -f "$pth" || "$(cat "$pth")" != "$line" ]]; then
   printf '%s\n' "$line" > "$pth"
+fi
+
+# --- 6. the Node client of test/graph/test_foxglove_clients.py ------------------------------
+# Exact versions from package-lock.json; the tests themselves never use the network. Without
+# node/npm the step is skipped with one line and that test skips saying so.
+client="$root/test/foxglove_client"
+if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
+  say "node/npm not found: skipping test/foxglove_client (its live-view test will be skipped; install Node.js >= 20 with npm to run it)"
+else
+  npm_hash=$(hash_files "$client/package.json" "$client/package-lock.json")
+  if ! stamp_ok npm "$npm_hash" || [[ ! -d "$client/node_modules" ]]; then
+    say "installing test/foxglove_client (npm ci, exact versions of package-lock.json)"
+    (cd "$client" && npm ci --ignore-scripts --no-audit --no-fund --loglevel=error > /dev/null) \
+      || die "npm ci failed in test/foxglove_client (needs the npm registry once)"
+    stamp_set npm "$npm_hash"
+  fi
 fi
 
 say "ready: $venv ($(awk "BEGIN { printf \"%.1f\", $(date +%s.%N) - $t0 }") s)"

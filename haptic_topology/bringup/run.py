@@ -22,8 +22,9 @@ the loop figures. Several ``--mode`` options run one after the other.
 
 ``--foxglove [PORT]`` also starts ``foxglove_bridge`` (first; the device starts once it
 serves): the live topics on the Foxglove WebSocket protocol at ``ws://127.0.0.1:PORT``
-(default 8765; ``--foxglove-host`` for another address), for the Foxglove app without a ROS
-install (layout: ``docs/foxglove_layout.json``).
+(default 8765; ``--foxglove-host`` for another address), for Foxglove or Lichtblick without a
+ROS install, under either subprotocol name (docs/foxglove.md; layout:
+``docs/foxglove_layout.json``).
 
 The processes inherit the environment (``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE``).
 Their logs are kept in ``<bag>/logs/``.
@@ -135,9 +136,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "line, e.g. 've_sim=ip netns exec ht_ve' (the VE on another network "
                         'namespace: scripts/two_hosts.sh); repeatable')
     parser.add_argument('--foxglove', type=int, nargs='?', const=FOXGLOVE_PORT, metavar='PORT',
-                        help='also serve the live topics to the Foxglove app on the Foxglove '
-                        f'WebSocket protocol (foxglove_bridge), on PORT (default {FOXGLOVE_PORT})'
-                        '; layout: docs/foxglove_layout.json')
+                        help='also serve the live topics to Foxglove or Lichtblick on the '
+                        'Foxglove WebSocket protocol (foxglove_bridge), on PORT (default '
+                        f'{FOXGLOVE_PORT}); docs/foxglove.md')
     parser.add_argument('--foxglove-host', default='127.0.0.1', metavar='HOST',
                         help='address the Foxglove server listens on (default 127.0.0.1; '
                         '0.0.0.0 for an app on another machine)')
@@ -242,8 +243,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             if foxglove is not None:
                 watch.wait(lambda: FOXGLOVE_STATUS in watch.status, startup_timeout,
                            'foxglove_bridge serving')
-                print(f'foxglove: {watch.status[FOXGLOVE_STATUS].get("url")} (Foxglove app: '
-                      'Open connection, Foxglove WebSocket)', flush=True)
+                print(f'foxglove: {watch.status[FOXGLOVE_STATUS].get("url")} (Foxglove or '
+                      'Lichtblick: Open connection, Foxglove WebSocket)', flush=True)
             if not composed:
                 # As a lifecycle manager: the loop starts with the device, only once the
                 # recorder is matched to the controller's and the VE's publishers (discovery

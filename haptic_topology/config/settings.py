@@ -408,6 +408,9 @@ class FoxgloveBridgeSettings(NodeSettings):
                                     'graph, haptic_topology.vocabulary.TOPIC_ROLES)')
     forward_period: float = param(0.02, 'the serialized messages DDS holds are taken and '
                                   'forwarded this often (s)', lo=0.001, hi=1.0)
+    message_backlog: int = param(1024, 'messages that may wait for one client; beyond it the '
+                                 'oldest is dropped and counted for that client only (a slow '
+                                 'client holds at most this many)', lo=1, hi=1_000_000)
     clock: str = param('wall', "the graph's clock: with lockstep the state and command topics "
                        'are reliable, and are subscribed so',
                        choices=tuple(c.value for c in Clock))

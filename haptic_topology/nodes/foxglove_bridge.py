@@ -1,11 +1,13 @@
 """``foxglove_bridge``: the graph's live topics on the Foxglove WebSocket protocol.
 
-For a Foxglove app (desktop or browser) without a ROS install: the node serves every topic of
-the graph's vocabulary (:data:`~haptic_topology.nodes.TOPIC_QOS`, or those named in
-``topics``) with the WebSocket server of the Foxglove SDK (``foxglove-sdk`` on PyPI;
-subprotocol ``foxglove.sdk.v1``, the successor name of ``foxglove.websocket.v1``) on
-``host:port`` (default ``127.0.0.1:8765``). In the app: *Open connection* -> *Foxglove
-WebSocket* -> ``ws://127.0.0.1:8765``; ``docs/foxglove_layout.json`` is a layout for it.
+For a Foxglove app or Lichtblick without a ROS install (docs/foxglove.md): the node serves every
+topic of the graph's vocabulary (:data:`~haptic_topology.nodes.TOPIC_QOS`, or those named in
+``topics``) on ``ws://host:port`` (default ``127.0.0.1:8765``) under both names of the
+protocol, ``foxglove.sdk.v1`` and ``foxglove.websocket.v1``. The channels are the Foxglove
+SDK's (``foxglove-sdk``: its server listens on a free loopback port); the public port is
+:class:`~haptic_topology.net.foxglove_front.FoxgloveFront`, which accepts either name, relays
+the frames unchanged and bounds each client's outbox to ``message_backlog`` messages (the
+oldest dropped and counted for that client only). ``docs/foxglove_layout.json`` is a layout.
 
 Each topic is one channel: message encoding ``cdr``, schema encoding ``ros2msg``, schema name
 the ROS type (:data:`~haptic_topology.nodes.TOPIC_TYPES`) and schema text the
@@ -14,15 +16,19 @@ carry, :func:`haptic_topology.bag.writer.schema_text`). The serialized CDR bytes
 as DDS delivered them, never deserialised: as the recorder, the node takes what DDS holds in
 each reader every ``forward_period`` (:class:`~haptic_topology.nodes.take.BatchTaker`, one
 thread, no executor callback per message) and logs it on the channel, timestamped with the
-DDS receive time. A channel without a subscribed client costs the take only.
+DDS receive time. A channel without a subscribed client costs the take only. A latched
+topic (``/robot_description``) is logged again when a client subscribes to it, so an app that
+connects after the VE started still gets the linkage's URDF.
 
 Off the deadline path: its own process (``haptic-topology run ... --foxglove``), reading the
 topics with the reliability and durability their publishers offer (best effort state and
 command in real time; ``/robot_description`` transient local, so a late bridge still gets it).
 
 Diagnostics (``foxglove_bridge: server``, 1 Hz): ``url``, ``port`` (the one taken: with
-``port`` 0 the OS chooses), ``channels``, and per topic ``forwarded <topic>`` and
-``lost <topic>`` (see :class:`~haptic_topology.nodes.take.BatchTaker`).
+``port`` 0 the OS chooses), ``channels``, ``clients``, ``dropped`` (messages dropped for slow
+clients since the start, all clients), per connected client ``client <address>``
+(subprotocol, messages sent, dropped, waiting now, most ever waiting) and per topic
+``forwarded <topic>`` and ``lost <topic>`` (see :class:`~haptic_topology.nodes.take.BatchTaker`).
 """
 
 from __future__ import annotations
@@ -42,12 +48,13 @@ from haptic_topology.config import node_params
 from haptic_topology.config.settings import FoxgloveBridgeSettings
 from haptic_topology.errors import ConfigError
 from haptic_topology.messages.definitions import message_definitions, typestore_with_haptic_msgs
+from haptic_topology.net.foxglove_front import FoxgloveFront
 from haptic_topology.nodes.diagnostics import diagnostics
 from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, TOPIC_QOS, publisher_qos
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.take import BatchTaker
-from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS, TOPIC_TYPES, Clock
+from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS, TOPIC_ROLES, TOPIC_TYPES, Clock
 
 #: Messages each reader holds between two takes (1 kHz topics: 20 per default period).
 READER_DEPTH = 200
@@ -84,6 +91,18 @@ def reader_qos(topic: str, clock: Clock) -> QoSProfile:
                       reliability=pub.reliability, durability=pub.durability)
 
 
+class _Relatch(foxglove.websocket.ServerListener):
+    """Logs a latched topic's last message again when a client subscribes to its channel."""
+
+    def __init__(self) -> None:
+        self.last: dict[int, tuple[foxglove.Channel, bytes, int]] = {}   # channel id ->
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        held = self.last.get(channel.id)
+        if held is not None:
+            held[0].log(held[1], log_time=held[2])
+
+
 class FoxgloveBridge(Node):
     """Serves the graph's topics to Foxglove clients (see module doc)."""
 
@@ -114,14 +133,19 @@ class FoxgloveBridge(Node):
                                                   context=self.context_fg))
             self.topics.append(topic)
             readers.append((name, cls, reader_qos(topic, clock)))
+        self.latched = {i for i, t in enumerate(self.topics) if TOPIC_ROLES[t].transient_local}
+        self.relatch = _Relatch()
+        # The SDK's server, reached through the front only: loopback, any free port.
+        self.server = foxglove.start_server(name=f'haptic_topology ({s.scenario})',
+                                            host='127.0.0.1', port=0, context=self.context_fg,
+                                            server_listener=self.relatch,
+                                            message_backlog_size=s.message_backlog)
         try:
-            self.server = foxglove.start_server(name=f'haptic_topology ({s.scenario})',
-                                                host=s.host, port=s.port,
-                                                context=self.context_fg)
-        except RuntimeError as exc:     # the SDK's error for an address in use, ...
-            raise ConfigError(f'foxglove_bridge: cannot serve on {s.host}:{s.port}: '
-                              f'{exc}') from None
-        self.port = int(self.server.port)
+            self.front = FoxgloveFront(s.host, s.port, int(self.server.port), s.message_backlog)
+        except ConfigError:
+            self.server.stop()
+            raise
+        self.port = self.front.port
         self.url = f'ws://{s.host}:{self.port}'
         self.taker = BatchTaker(self, readers)
         self._stop = threading.Event()
@@ -138,6 +162,8 @@ class FoxgloveBridge(Node):
         channels = self.channels
         wanted = [c.has_sinks() for c in channels]
         for i, t_ns, data in items:
+            if i in self.latched:
+                self.relatch.last[channels[i].id()] = (channels[i], data, t_ns)
             if wanted[i]:
                 channels[i].log(data, log_time=t_ns)
 
@@ -148,7 +174,12 @@ class FoxgloveBridge(Node):
             self.taker.drain(self._forward)
 
     def _publish_status(self) -> None:
+        clients = self.front.stats()
+        dropped = self.front.dropped_closed + sum(c.dropped for c in clients)
         values = {'url': self.url, 'port': str(self.port), 'channels': str(len(self.channels)),
+                  'clients': str(len(clients)), 'dropped': str(dropped),
+                  **{f'client {c.address}': f'{c.subprotocol} sent {c.sent} dropped '
+                     f'{c.dropped} waiting {c.queued} peak {c.peak_queued}' for c in clients},
                   **{f'forwarded {t}': str(n) for t, n in zip(self.topics, self.taker.taken,
                                                                strict=True)},
                   **{f'lost {t}': str(n) for t, n in zip(self.topics, self.taker.lost,
@@ -164,6 +195,7 @@ class FoxgloveBridge(Node):
         self._stop.set()
         self._thread.join(timeout=5.0)
         self.taker.destroy()
+        self.front.stop()
         self.server.stop()
 
 
