@@ -238,8 +238,9 @@ class ControllerLoop:
 
     # -- LMI updates -------------------------------------------------------------------------
     def on_update(self, update: LmiSnapshot | PreparedUpdate) -> str:
-        """Take an LMI update, or its :meth:`HapticController.prepare`-d form (arrival at
-        the current loop time); returns an :class:`UpdateVerdict` value."""
+        """Take an LMI update, or its prepared form
+        (:meth:`~haptic_topology.control.controller.HapticController.prepare`), arriving at
+        the current loop time; returns an :class:`UpdateVerdict` value."""
         snap = update.snapshot if isinstance(update, PreparedUpdate) else update
         now = self.loop_time
         if self._ve_seq is not None and snap.seq < self._ve_seq:

@@ -93,8 +93,10 @@ class HostedCycle:
     def offer_update(self, snap: LmiSnapshot | PreparedUpdate) -> None:
         """Hand an LMI update to the loop thread (any thread; it is applied at the start of
         the next :meth:`step`, after every update offered before it). What a re-sync computes
-        from the update alone (:meth:`HapticController.prepare`) is computed here, in the
-        caller's thread, unless ``snap`` comes prepared: the loop only adopts it."""
+        from the update alone
+        (:meth:`~haptic_topology.control.controller.HapticController.prepare`) is computed
+        here, in the caller's thread, unless ``snap`` comes prepared: the loop only adopts
+        it."""
         if not isinstance(snap, PreparedUpdate):
             snap = self.controller.ctrl.prepare(snap)
         with self._offered:
