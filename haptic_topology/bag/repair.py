@@ -16,7 +16,6 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
 from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
@@ -25,7 +24,13 @@ from rosbags.rosbag2.metadata import parse_qos
 
 from haptic_topology import __version__
 from haptic_topology.bag.reader import iter_records, open_bag
-from haptic_topology.bag.writer import FileInfo, TopicSpec, metadata_info, write_metadata
+from haptic_topology.bag.writer import (
+    FileInfo,
+    TopicSpec,
+    dump_yaml,
+    metadata_info,
+    write_metadata,
+)
 from haptic_topology.errors import BagError, TruncatedError
 
 
@@ -85,8 +90,7 @@ def _rewrite(src: Path, dst: Path) -> tuple[list[TopicSpec], dict[str, str], lis
             truncated = True
         info = metadata_info([FileInfo(dst.name, start, end, sum(counts))], topics, hashes,
                              counts, start, end)
-        writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
-            info, sort_keys=False)})
+        writer.add_metadata('rosbag2', {'serialized_metadata': dump_yaml(info)})
         writer.finish()
         out.flush()
         os.fsync(out.fileno())

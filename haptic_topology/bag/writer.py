@@ -95,17 +95,27 @@ def schema_text(typestore: Typestore, msgtype: str,
     return generated
 
 
+#: libyaml's emitter where PyYAML has it (its wheels do): the same text as the pure-Python
+#: ``yaml.safe_dump``, about 5x faster; the recorder rewrites ``metadata.yaml`` at every flush.
+_DUMPER = getattr(yaml, 'CSafeDumper', yaml.SafeDumper)
+
+
+def dump_yaml(data: Any) -> str:
+    """``yaml.safe_dump(data, sort_keys=False)``, with libyaml's emitter when available."""
+    return yaml.dump(data, Dumper=_DUMPER, sort_keys=False)
+
+
 def qos_yaml(qos: Sequence[Qos]) -> str:
     """``offered_qos_profiles`` as rosbag2 (metadata version 9) stores it in MCAP channels."""
     if not qos:
         return ''
-    return yaml.safe_dump(dump_qos_v9(list(qos)), sort_keys=False).strip()
+    return dump_yaml(dump_qos_v9(list(qos))).strip()
 
 
 def write_metadata(path: Path, info: dict[str, Any]) -> None:
     """Write ``path/metadata.yaml`` atomically (temporary file, then rename)."""
     tmp = path / f'.{METADATA}.tmp'
-    text = yaml.safe_dump({'rosbag2_bagfile_information': info}, sort_keys=False)
+    text = dump_yaml({'rosbag2_bagfile_information': info})
     with tmp.open('w', encoding='utf-8') as f:
         f.write(text)
         f.flush()
@@ -360,8 +370,7 @@ class BagWriter:
         c = self._counts
         info = metadata_info([*self._files, self._current()], self.topics, self.hashes,
                              c.per_topic, c.start_ns, c.end_ns, self.custom)
-        self._mcap.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
-            info, sort_keys=False)})
+        self._mcap.add_metadata('rosbag2', {'serialized_metadata': dump_yaml(info)})
         self._mcap.finish()
         self._file.flush()
         os.fsync(self._file.fileno())
