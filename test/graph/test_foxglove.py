@@ -19,7 +19,6 @@ import json
 import math
 import re
 import struct
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -272,52 +271,15 @@ def _decode_with_schema(schema: str, type_name: str, data: bytes) -> Any:
 @pytest.mark.graph
 @pytest.mark.timeout(240)
 def test_bridge_serves_the_live_graph_to_a_websocket_client(tmp_path: Path) -> None:
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import SingleThreadedExecutor
+    from bridge_graph import BridgeGraph
     from rclpy.serialization import deserialize_message
     from visualization_msgs.msg import MarkerArray
     from websockets.sync.client import connect
 
-    from haptic_topology.bringup.run import FOXGLOVE_NODE, FOXGLOVE_STATUS, run_graph
-    from haptic_topology.nodes.qos import QOS_DIAGNOSTICS
-    from haptic_topology.paths import config_dir
     from haptic_topology_msgs.msg import DeviceState
 
-    outcome: dict[str, Any] = {}
-
-    def graph() -> None:
-        try:
-            outcome['codes'] = run_graph('fig8', 'penalty', 6.0, tmp_path / 'bag',
-                                         config_dir() / 'haptic_topology.yaml',
-                                         foxglove=('127.0.0.1', 0))
-        except BaseException as exc:    # reported by the test thread
-            outcome['error'] = exc
-
-    runner = threading.Thread(target=graph, daemon=True)
-    runner.start()
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('foxglove_test', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    bridge: dict[str, str] = {}
-
-    def on_diagnostics(msg: Any) -> None:
-        for st in msg.status:
-            if st.name == FOXGLOVE_STATUS:
-                bridge.update({kv.key: kv.value for kv in st.values})
-
-    node.create_subscription(DiagnosticArray, vocab.TOPIC_DIAGNOSTICS,
-                             on_diagnostics, QOS_DIAGNOSTICS)
-    deadline = time.monotonic() + WAIT
-
-    def spin_until(cond: Any, what: str) -> None:
-        while not cond():
-            assert 'error' not in outcome, f'{what}: the run failed: {outcome.get("error")}'
-            assert time.monotonic() < deadline, f'{what}: not within {WAIT:g} s'
-            executor.spin_once(timeout_sec=0.1)
-
+    run = BridgeGraph('fig8', 6.0, tmp_path / 'bag', 'foxglove_test', WAIT)
+    bridge, spin_until, deadline = run.bridge, run.spin_until, run.deadline
     state_topic = _absolute(vocab.TOPIC_STATE)
     marker_topic = _absolute(vocab.TOPIC_MARKERS)
     try:
@@ -354,7 +316,7 @@ def test_bridge_serves_the_live_graph_to_a_websocket_client(tmp_path: Path) -> N
             assert ch['schema'] == schema_text(store, types[topic], sources), topic
         # The graph's publishers use the vocabulary's types.
         for topic, type_name in types.items():
-            for info in node.get_publishers_info_by_topic(topic):
+            for info in run.node.get_publishers_info_by_topic(topic):
                 assert info.topic_type == type_name, (topic, info.node_name)
         # The forwarded bytes are the messages: rclpy's and the advertised schema agree.
         for data in received[state_topic]:
@@ -368,13 +330,6 @@ def test_bridge_serves_the_live_graph_to_a_websocket_client(tmp_path: Path) -> N
         for data in received[marker_topic]:
             markers = deserialize_message(data, MarkerArray)
             assert {'linkage', 'grasp'} <= {m.ns for m in markers.markers}
-        runner.join(timeout=WAIT)
-        assert not runner.is_alive(), 'the run did not end'
-        assert 'error' not in outcome, outcome.get('error')
-        assert outcome['codes'][FOXGLOVE_NODE] == 0
-        assert set(outcome['codes'].values()) == {0}, outcome['codes']
+        run.join()
     finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
-        runner.join(timeout=WAIT)
+        run.close()

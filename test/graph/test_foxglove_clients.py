@@ -25,7 +25,6 @@ import re
 import shutil
 import socket
 import subprocess
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -85,51 +84,13 @@ def _subscribe_all(ws: Any, deadline: float) -> None:
 def test_ws_protocol_clients_of_both_names_decode_every_channel_beside_a_slow_client(
         tmp_path: Path) -> None:
     node_exe = _node()
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import SingleThreadedExecutor
+    from bridge_graph import BridgeGraph
 
     from haptic_topology.bag.graph_trace import read_graph_bag
-    from haptic_topology.bringup.run import FOXGLOVE_NODE, FOXGLOVE_STATUS, run_graph
-    from haptic_topology.nodes.qos import QOS_DIAGNOSTICS
-    from haptic_topology.paths import config_dir
 
-    outcome: dict[str, Any] = {}
     bag = tmp_path / 'bag'
-
-    def graph() -> None:
-        try:
-            outcome['codes'] = run_graph('fig8', 'penalty', 14.0, bag,
-                                         config_dir() / 'haptic_topology.yaml',
-                                         foxglove=('127.0.0.1', 0))
-        except BaseException as exc:    # reported by the test thread
-            outcome['error'] = exc
-
-    runner = threading.Thread(target=graph, daemon=True)
-    runner.start()
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('foxglove_clients_test', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    bridge: dict[str, str] = {}
-
-    def on_diagnostics(msg: Any) -> None:
-        for st in msg.status:
-            if st.name == FOXGLOVE_STATUS:
-                bridge.clear()
-                bridge.update({kv.key: kv.value for kv in st.values})
-
-    node.create_subscription(DiagnosticArray, vocab.TOPIC_DIAGNOSTICS, on_diagnostics,
-                             QOS_DIAGNOSTICS)
-    deadline = time.monotonic() + WAIT
-
-    def spin_until(cond: Any, what: str) -> None:
-        while not cond():
-            assert 'error' not in outcome, f'{what}: the run failed: {outcome.get("error")}'
-            assert time.monotonic() < deadline, f'{what}: not within {WAIT:g} s'
-            executor.spin_once(timeout_sec=0.1)
-
+    run = BridgeGraph('fig8', 14.0, bag, 'foxglove_clients_test', WAIT)
+    bridge, spin_until, deadline = run.bridge, run.spin_until, run.deadline
     stack = contextlib.ExitStack()
     try:
         spin_until(lambda: 'port' in bridge, 'the bridge reports its port')
@@ -182,16 +143,9 @@ def test_ws_protocol_clients_of_both_names_decode_every_channel_beside_a_slow_cl
             bins = report['stateBins']
             assert sum(bins[int(CLIENT_SECONDS):]) > 0, (p, bins)
 
-        runner.join(timeout=WAIT)
-        assert not runner.is_alive(), 'the run did not end'
-        assert 'error' not in outcome, outcome.get('error')
-        assert outcome['codes'][FOXGLOVE_NODE] == 0
-        assert set(outcome['codes'].values()) == {0}, outcome['codes']
+        run.join()
         loop = read_graph_bag(bag, 'fig8').loop
         print('loop figures of the run:', {k: loop[k] for k in sorted(loop)})
     finally:
         stack.close()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
-        runner.join(timeout=WAIT)
+        run.close()
