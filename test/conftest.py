@@ -101,3 +101,17 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
 
     items.sort(key=key)
+
+
+@pytest.hookimpl(hookwrapper=True, tryfirst=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    """Every test runs holding the machine's CPU lock shared, so a ``whole_machine`` test can
+    hold it exclusive (``support/cpu_share.py``); outermost, so pytest-timeout's clock does
+    not run while a test waits for it."""
+    from cpu_share import cpu_share
+
+    if item.get_closest_marker('whole_machine') is not None:
+        yield
+        return
+    with cpu_share(exclusive=False):
+        yield

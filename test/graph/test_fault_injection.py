@@ -16,11 +16,13 @@ import numpy as np
 import pytest
 from cpu_share import cpu_share
 
-pytestmark = pytest.mark.graph
+# The run waits for the rest of the suite to pause (its current test may take minutes), then
+# takes ~40-90 s: more than the default per-test timeout.
+pytestmark = [pytest.mark.graph, pytest.mark.whole_machine, pytest.mark.timeout(900)]
 
 @pytest.fixture(scope='module')
 def run(tmp_path_factory: pytest.TempPathFactory) -> fh.FaultRun:
-    # Recovery needs the graph to keep real time: no pool of graphs beside it (cpu_share).
+    # Recovery needs the graph to keep real time: nothing else of the suite beside it.
     with cpu_share(exclusive=True):
         return fh.run_faults(tmp_path_factory.mktemp('faults'))
 

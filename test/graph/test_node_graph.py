@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cpu_share import cpu_share
 from procs import stop_process
 
 from haptic_topology.bag.graph_trace import GraphRun, read_graph_bag
@@ -83,9 +82,7 @@ def lockstep_runs(tmp_path_factory: pytest.TempPathFactory,
     for key in jobs:
         (tmp / '_'.join(key)).mkdir()
     try:
-        # Shared: lock-step graphs may load the cores together, never beside a wall-clock
-        # graph that needs real time (cpu_share).
-        with cpu_share(exclusive=False), ThreadPoolExecutor(CONCURRENT_RUNS) as pool:
+        with ThreadPoolExecutor(CONCURRENT_RUNS) as pool:
             futures = {key: pool.submit(_graph_run, tmp / '_'.join(key), sc, mode, duration,
                                         backend, domain_id=domain, layout=layout)
                        for (key, (sc, mode, duration, backend, layout)), domain

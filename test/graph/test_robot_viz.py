@@ -29,7 +29,6 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
-from cpu_share import cpu_share
 from procs import stop_process
 
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
@@ -114,8 +113,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory,
         assert all(c == 0 for c in codes.values()), codes
         return Recorded(bag, scenario)
 
-    # Shared: never beside a wall-clock graph that needs real time (cpu_share).
-    with cpu_share(exclusive=False), ThreadPoolExecutor(len(RUNS)) as pool:
+    with ThreadPoolExecutor(len(RUNS)) as pool:
         futures = {sc: pool.submit(one, sc, d, dom)
                    for (sc, d), dom in zip(RUNS, spare_domains, strict=False)}
         return {sc: f.result() for sc, f in futures.items()}
