@@ -108,6 +108,21 @@ def node_prefixes(items: list[str], layout: str) -> dict[str, list[str]]:
     return out
 
 
+def param_overrides(items: list[str]) -> list[str]:
+    """``-p NODE:NAME:=VALUE`` items as ROS arguments (each checked for its form here; the
+    node checks the name and the value when it starts)."""
+    out: list[str] = []
+    known = (*NODES, FOXGLOVE_NODE)
+    for item in items:
+        target, sep, value = item.partition(':=')
+        node, colon, name = target.partition(':')
+        if not sep or not colon or node not in known or not name or not value.strip():
+            raise ConfigError(f'-p: expected NODE:NAME:=VALUE with NODE one of '
+                              f'{", ".join(known)}, got {item!r}')
+        out += ['-p', item]
+    return out
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('scenario', help='scenario name (fig6, fig8) or a scenario YAML file')
     parser.add_argument('--mode', action='append', choices=LAW_MODES,
@@ -142,6 +157,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--foxglove-host', default='127.0.0.1', metavar='HOST',
                         help='address the Foxglove server listens on (default 127.0.0.1; '
                         '0.0.0.0 for an app on another machine)')
+    parser.add_argument('-p', '--param', action='append', default=[],
+                        metavar='NODE:NAME:=VALUE',
+                        help='a node parameter over the params file, e.g. '
+                        "'device_driver:sched_priority:=50' or 've_sim:nice:=0'; repeatable")
 
 
 def _read(path: Path) -> str:
@@ -179,7 +198,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
               startup_timeout: float = 30.0, clock: str = 'wall',
               domain_id: int | None = None,
               foxglove: tuple[str, int] | None = None,
-              node_prefix: dict[str, list[str]] | None = None) -> dict[str, int]:
+              node_prefix: dict[str, list[str]] | None = None,
+              overrides: list[str] | None = None) -> dict[str, int]:
     """Run the graph once in ``layout`` (a key of :data:`LAYOUTS`), recording to ``bag``;
     return the processes' exit codes.
 
@@ -191,6 +211,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     the device starts once it serves).
     ``node_prefix``: process name -> argv put before its command (``--node-prefix``: e.g.
     ``ip netns exec ht_ve`` for ``ve_sim``, which then keeps its pid and gets the signals).
+    ``overrides``: ROS ``-p`` arguments after the run's own (:func:`param_overrides`).
     """
     from haptic_topology.bringup.watch import GraphWatcher
     from haptic_topology.errors import WaitTimeout
@@ -213,6 +234,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
         ros += ['-p', 'lmi_controller:use_sim_time:=true', '-p', 've_sim:use_sim_time:=true']
     if backend:
         ros += ['-p', f'device_driver:backend:={backend}']
+    ros += overrides or []
     log_dir = Path(tempfile.mkdtemp(prefix='haptic_run_'))
     procs: list[_Proc] = []
     codes: dict[str, int] = {}
@@ -321,6 +343,7 @@ def run(args: argparse.Namespace) -> int:
     scenario_ref = args.scenario if Path(args.scenario).suffix == '' else str(
         Path(args.scenario).resolve())
     layout = 'composed' if args.composed else args.layout
+    overrides = param_overrides(args.param)
     summaries = []
     loops = []
     for mode in modes:
@@ -331,7 +354,8 @@ def run(args: argparse.Namespace) -> int:
                   args.startup_timeout, args.clock,
                   foxglove=None if args.foxglove is None else (args.foxglove_host,
                                                                args.foxglove),
-                  node_prefix=node_prefixes(args.node_prefix, layout))
+                  node_prefix=node_prefixes(args.node_prefix, layout),
+                  overrides=overrides)
         result = read_graph_bag(bag, sc.name, sc.linkage.dof, task_dim=sc.linkage.task.dim)
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')

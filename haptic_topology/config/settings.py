@@ -165,6 +165,12 @@ def _sched_priority() -> Any:
                  'warning and normal scheduling', lo=0, hi=99)
 
 
+def _nice(default: int) -> Any:
+    return param(default, 'nice increment of the process (all its threads) at start-up: a '
+                 'node off the 1 kHz deadline path yields the CPU to the loop when the cores '
+                 'are busy; raising nice needs no privilege. 0 = unchanged', lo=0, hi=19)
+
+
 def _clock(lockstep: str) -> Any:
     return param('wall', f'wall: the graph runs in real time; {lockstep}',
                  choices=tuple(c.value for c in Clock))
@@ -252,6 +258,12 @@ class DeviceDriverSettings(NodeSettings):
     lock_memory: bool = param(False, 'mlockall(MCL_CURRENT | MCL_FUTURE) at activation, so '
                               'the loop never waits for a page fault; needs CAP_IPC_LOCK or '
                               'a memlock limit (else one warning)')
+    publisher_nice: int = param(5, 'with the loop process: nice increment of the thread '
+                                'that publishes its records (DeviceState, DeviceCommand, '
+                                'hand inputs), so it yields the CPU to the loop process '
+                                'when the cores are busy; 0 = unchanged. Not applied to a '
+                                'loop thread layout, where it would hold the GIL the loop '
+                                'waits for', lo=0, hi=19)
 
     def check(self) -> None:
         if self.rate_hz != 0.0 and not RATE_MIN <= self.rate_hz <= RATE_MAX:
@@ -336,6 +348,7 @@ class VeSimSettings(NodeSettings):
     scenario: str = _scenario('linkage, initial state, internal step, VT coupling')
     executor: str = _executor()
     sched_priority: int = _sched_priority()
+    nice: int = _nice(5)
     update_period: int = param(0, 'hand inputs per LMI update (10 at 1 kHz = 100 Hz); 0 = the '
                                "scenario's lmi.update_period", lo=0, hi=10000)
     idle_update_rate_hz: float = param(50.0, 'LMI updates per second while no hand input '
@@ -363,6 +376,7 @@ class RecorderSettings(NodeSettings):
     scenario: str = param('fig8', 'scenario name, used in the default bag name')
     executor: str = _executor()
     sched_priority: int = _sched_priority()
+    nice: int = _nice(10)
     output: str = param('', 'bag directory to create (must not exist); empty: '
                         'bags/<scenario>_<timestamp>')
     topics: tuple[str, ...] = param([''], 'topics to record (empty: all of the graph)')
@@ -400,6 +414,7 @@ class FoxgloveBridgeSettings(NodeSettings):
     scenario: str = param('fig8', 'scenario name (only named in the server name; accepted so '
                           "that the graph's common -p scenario:=... applies)")
     executor: str = _executor()
+    nice: int = _nice(10)
     host: str = param('127.0.0.1', 'address the WebSocket server listens on (0.0.0.0: every '
                       'interface, for a Foxglove app on another machine)')
     port: int = param(8765, 'TCP port of the WebSocket server (0: any free port; the port '

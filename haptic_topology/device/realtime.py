@@ -34,6 +34,36 @@ def set_realtime_priority(priority: int) -> str | None:
     return None
 
 
+def renice_process(increment: int) -> str | None:
+    """Raise the nice value of every thread of this process by ``increment`` (threads started
+    later inherit their creator's). Linux keeps a nice value per thread, so
+    ``os.nice`` alone would change only the calling one. Raising nice needs no privilege.
+    Returns None, or why it failed."""
+    try:
+        tids = [int(t) for t in os.listdir('/proc/self/task')]
+    except OSError:
+        tids = [0]
+    try:
+        for tid in tids:
+            old = os.getpriority(os.PRIO_PROCESS, tid)
+            os.setpriority(os.PRIO_PROCESS, tid, min(old + increment, 19))
+    except ProcessLookupError:
+        pass                # a thread ended meanwhile
+    except OSError as exc:
+        return f'nice {increment}: {exc}; priority unchanged'
+    return None
+
+
+def renice_thread(increment: int) -> str | None:
+    """Raise the calling thread's nice value by ``increment``; None, or why it failed."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, min(os.getpriority(os.PRIO_PROCESS, 0)
+                                               + increment, 19))
+    except OSError as exc:
+        return f'nice {increment}: {exc}; priority unchanged'
+    return None
+
+
 def set_thread_realtime(priority: int, cpus: Sequence[int], lock_memory: bool) -> list[str]:
     """Real-time settings of the calling thread (the hosted device loop thread): SCHED_FIFO
     at ``priority`` (0: keep normal scheduling), pinned to ``cpus`` (``[-1]``: no pinning),

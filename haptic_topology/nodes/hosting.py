@@ -32,7 +32,7 @@ import numpy as np
 from haptic_topology.control.loop import ControllerLoop
 from haptic_topology.device.hosted import HostedCycle
 from haptic_topology.device.loop_process import LoopProcess
-from haptic_topology.device.realtime import name_os_thread, set_thread_realtime
+from haptic_topology.device.realtime import name_os_thread, renice_thread, set_thread_realtime
 from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.nodes.convert import CONTROLLER_ID, ns_to_stamp
@@ -54,8 +54,11 @@ class OutboxThread:
 
     def __init__(self, runner: LoopRunner | LoopProcess,
                  publish: Callable[[list[Published]], None], idle: Callable[[], None],
-                 period: float, wait: Callable[[float], None] | None = None) -> None:
+                 period: float, wait: Callable[[float], None] | None = None,
+                 nice: int = 0) -> None:
         self.runner = runner
+        self._nice = nice
+        self.problem: str | None = None     # the nice increment was refused
         self._wait = wait
         self._publish = publish
         self._idle = idle
@@ -99,6 +102,8 @@ class OutboxThread:
 
     def _body(self) -> None:
         name_os_thread('device_publish')
+        if self._nice:
+            self.problem = renice_thread(self._nice)
         try:
             while True:
                 if self._wait is not None:     # a loop process: its eventfd, or a poll
@@ -149,7 +154,8 @@ class HostedLoop:
             self.runner, self._observe, controller.flush_hand,
             min(controller.flush_period, PUBLISH_PERIOD if not driver.lockstep else
                 PROCESS_IDLE_WAKE if self.process is not None else 1.0),
-            self.process.wait if self.process is not None else None)
+            self.process.wait if self.process is not None else None,
+            c.settings.publisher_nice if self.process is not None else 0)
         if driver.lockstep and isinstance(self.runner, LoopRunner):
             self.runner.wake = self.outbox.wake
         controller.attach(self.runner)
@@ -183,6 +189,9 @@ class HostedLoop:
         if self.process is not None:
             self.process.check()
         runner.may_engage = d.may_engage()
+        if self.outbox.problem:
+            self._problems.append(self.outbox.problem)
+            self.outbox.problem = None
         while self._problems:
             d.get_logger().warn(self._problems.pop(0))
         error = runner.error or self.outbox.error

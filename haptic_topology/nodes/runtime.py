@@ -22,7 +22,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from haptic_topology.config.params import NodeParams
-from haptic_topology.device.realtime import set_realtime_priority
+from haptic_topology.device.realtime import renice_process, set_realtime_priority
 from haptic_topology.errors import ConfigError, HapticTopologyError
 from haptic_topology.nodes.dds_env import localhost_discovery_default
 from haptic_topology.nodes.parameters import check_config_args
@@ -128,6 +128,13 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
                 nodes[0].get_logger().warn(problem)
             else:
                 nodes[0].get_logger().info(f'SCHED_FIFO priority {priority}')
+        # Nodes off the deadline path yield the CPU (``nice``); a process that also holds a
+        # node without the parameter (the composed graph, with the loop) stays as it is.
+        if nodes and all(n.has_parameter('nice') for n in nodes):
+            nice = min(int(n.get_parameter('nice').value) for n in nodes)
+            problem = renice_process(nice) if nice else None
+            if problem:
+                nodes[0].get_logger().warn(problem)
         spin(nodes, kind)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -42,3 +42,23 @@ def test_console_script_runs() -> None:
     out = subprocess.run([str(exe), '--help'], capture_output=True, text=True, timeout=60,
                          check=True).stdout
     assert 'info' in out
+
+
+def test_run_param_overrides_pass_node_parameters_and_refuse_other_forms(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from haptic_topology.bringup.run import param_overrides
+    from haptic_topology.errors import ConfigError
+
+    assert param_overrides(['ve_sim:nice:=0', 'device_driver:sched_priority:=50']) == [
+        '-p', 've_sim:nice:=0', '-p', 'device_driver:sched_priority:=50']
+    for bad in ('nice:=0', 've_sim:nice=0', 'nosuch:nice:=0', 've_sim::=1', 've_sim:nice:='):
+        with pytest.raises(ConfigError, match=r'-p: expected NODE:NAME:=VALUE with NODE '
+                           r'one of recorder, ve_sim, lmi_controller, device_driver'):
+            param_overrides([bad])
+    # as a user types it: one line naming the form, before any node starts
+    assert cli.main(['run', 'circle', '-p', 've_sim:nice']) == 1
+    out = capsys.readouterr()
+    assert out.out == ''
+    assert out.err == ("haptic-topology run: error: -p: expected NODE:NAME:=VALUE with NODE "
+                       "one of recorder, ve_sim, lmi_controller, device_driver, "
+                       "foxglove_bridge, got 've_sim:nice'\n")
