@@ -52,6 +52,10 @@ class Run:
     trace: Trace
     loop: dict[str, float] = field(default_factory=dict)
     skipped: dict[str, int] = field(default_factory=dict)
+    #: A bag's graph (its recorder's ``graph_id``) and the messages of other graphs per topic
+    graph_id: str | None = None
+    foreign_messages: dict[str, int] = field(default_factory=dict)
+    foreign_publishers: dict[str, list[str]] = field(default_factory=dict)
 
 
 class _ProgressLine:
@@ -112,7 +116,8 @@ def load_run(path: str | Path) -> Run:
         if scenario:
             result.trace.meta.setdefault('scenario_ref', scenario)
         return Run(p.name if p.is_dir() else p.stem, p, result.trace, loop,
-                   dict(result.skipped))
+                   dict(result.skipped), result.graph_id, dict(result.foreign_messages),
+                   dict(result.foreign_publishers))
     csv_path = p / 'trace.csv' if p.is_dir() else p
     if not csv_path.is_file():
         raise BagError(f'{p}: not a bag (no {METADATA} and no .mcap file) and no trace.csv')
@@ -224,6 +229,9 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
         row.update({k: (v if math.isfinite(v) else None) for k, v in r.loop.items()})
         if row['source'] == 'graph':
             row['skipped_messages'] = dict(r.skipped)
+            row['graph_id'] = r.graph_id
+            row['foreign_messages'] = dict(r.foreign_messages)
+            row['foreign_publishers'] = dict(r.foreign_publishers)
         rows.append(row)
         if plots:
             from haptic_topology.sim.plots import plot_trace

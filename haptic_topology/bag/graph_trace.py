@@ -15,7 +15,10 @@ the state at which the controller engaged; ``t = 0`` there), in sequence order:
 
 Messages that do not belong to the run are skipped and counted per ``<kind>_<reason>`` in
 :attr:`GraphRun.skipped` (``analyze`` writes them to ``summary.json`` as
-``skipped_messages``): messages on the graph's topics that do not decode (``<kind>_decode``),
+``skipped_messages``): messages of another graph than the recorder's (``graph_id`` field
+against the bag's ``custom_data.graph_id``: ``<kind>_foreign_graph``, also counted per topic
+in :attr:`GraphRun.foreign_messages`; ``/diagnostics`` statuses of another graph are not
+read), messages on the graph's topics that do not decode (``<kind>_decode``),
 fail the nodes' own checks (:mod:`haptic_topology.messages.check`: task_dim, dof, sizes,
 non-finite values, integer ranges; the run's task_dim is the scenario's, else the most common
 one among the states, its dof the scenario's, else the most common among the updates), repeat
@@ -55,6 +58,7 @@ from haptic_topology.bag.reader import (
 )
 from haptic_topology.errors import BagError, MessageError
 from haptic_topology.messages.check import (
+    GraphFilter,
     array,
     check_command,
     check_state,
@@ -96,6 +100,13 @@ class GraphRun:
     diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
     #: Skipped messages per ``<kind>_<reason>`` (module doc).
     skipped: dict[str, int] = field(default_factory=dict)
+    #: The recorder's graph (``graph_id``; empty: the default graph) and the messages of
+    #: other graphs on the loop topics, per topic (skipped: ``<kind>_foreign_graph``).
+    graph_id: str = ''
+    foreign_messages: dict[str, int] = field(default_factory=dict)
+    #: Publishers of another node than the graph expects on its input topics, as the nodes
+    #: reported them any time in the bag (``foreign_publishers``): name -> topics
+    foreign_publishers: dict[str, list[str]] = field(default_factory=dict)
 
 
 def _stamp(header: Any) -> float:
@@ -133,21 +144,39 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
     updates_in: list[Any] = []
     paths_in: list[Any] = []
     diags: dict[str, dict[str, str]] = {}
+    publishers: dict[str, set[str]] = {}    # foreign publisher -> topics (nodes' reports)
     followed: set[int] = set()     # controller ids the device driver reported following
+    # The recorder's graph (bag metadata; none: a bag of the default graph): messages and
+    # statuses of another graph are skipped and counted as foreign.
+    graph = GraphFilter(str(((bag.metadata or {}).get('custom_data') or {}).get('graph_id')
+                            or ''))
+    kinds = ((vocab.TOPIC_STATE, 'state', raw_states), (vocab.TOPIC_COMMAND, 'command',
+                                                        raw_commands),
+             (vocab.TOPIC_LMI, 'update', updates_in), (PATH_TOPIC, 'path', paths_in))
     for raw in iter_messages(bag, progress=progress):
         topic = raw.topic
-        if topic.endswith(vocab.TOPIC_STATE):
-            raw_states.append(decoded('state', raw))
-        elif topic.endswith(vocab.TOPIC_COMMAND):
-            raw_commands.append(decoded('command', raw))
-        elif topic.endswith(vocab.TOPIC_LMI):
-            updates_in.append(decoded('update', raw))
-        elif topic.endswith(PATH_TOPIC):
-            paths_in.append(decoded('path', raw))
-        elif topic == '/diagnostics':
+        for suffix, kind, out in kinds:
+            if topic.endswith(suffix):
+                msg = decoded(kind, raw)
+                if msg is not None and not graph.own(msg, suffix.lstrip('/')):
+                    skip(kind, 'foreign_graph')
+                    msg = None
+                out.append(msg)
+                break
+        else:
+            if topic != '/diagnostics':
+                continue
             msg = decoded('diagnostics', raw)
             for st in getattr(msg, 'status', None) or []:
-                diags[st.name] = pairs = {kv.key: kv.value for kv in st.values}
+                pairs = {kv.key: kv.value for kv in st.values}
+                if pairs.get('graph_id', graph.graph_id) != graph.graph_id:
+                    skip('diagnostics', 'foreign_graph')
+                    continue
+                diags[st.name] = pairs
+                for part in filter(None, pairs.get('foreign_publishers', '').split('; ')):
+                    topic, _, names = part.partition(': ')
+                    for name in names.split(', '):
+                        publishers.setdefault(name, set()).add(topic)
                 if st.name == _DEVICE_STATUS and pairs.get('controller_id', '').isdigit():
                     followed.add(int(pairs['controller_id']))
     m = task_dim if task_dim is not None else _most_common(
@@ -256,7 +285,8 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
                                 [float(known[r].contact_energy) for r in rows])
     figures = loop_figures(states, commands, seqs, diags)
     figures['ve_update_rate_hz'] = _update_rate(trace.t, sorted(known))
-    return GraphRun(trace, figures, diags, skipped)
+    return GraphRun(trace, figures, diags, skipped, graph.graph_id, dict(graph.foreign),
+                    {n: sorted(t) for n, t in sorted(publishers.items())})
 
 
 def _update_rate(t: np.ndarray, rows: list[int]) -> float:

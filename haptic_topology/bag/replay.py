@@ -27,6 +27,7 @@ from haptic_topology.bag.reader import (
     upgraders,
 )
 from haptic_topology.errors import BagError
+from haptic_topology.messages.check import GraphFilter
 from haptic_topology.messages.definitions import type_name
 from haptic_topology.vocabulary import ControlMode
 
@@ -124,6 +125,8 @@ class ControllerPlan:
     mode: str
     matched_updates: int
     updates: int
+    #: The recorder's graph: the replayed controller is of it (its messages only are read)
+    graph_id: str = ''
 
 
 def _stamp(header: Any) -> float:
@@ -139,18 +142,24 @@ def controller_plan(bag: Bag) -> ControllerPlan:
     commands: dict[int, Any] = {}
     updates: list[tuple[BagMessage, Any]] = []
     answered: set[int] = set()
+    graph = GraphFilter(str(((bag.metadata or {}).get('custom_data') or {}).get('graph_id')
+                            or ''))
     for m in iter_messages(bag):
+        if not m.topic.endswith((STATE, COMMAND, UPDATE, HAND_INPUTS)):
+            if m.topic.endswith(HAND):
+                answered.add(int(decode(m).state_seq))
+            continue
+        msg = decode(m)
+        if not graph.own(msg, m.topic):
+            continue            # another graph's (module doc)
         if m.topic.endswith(STATE):
-            states.append((m, decode(m)))
+            states.append((m, msg))
         elif m.topic.endswith(COMMAND):
-            c = decode(m)
-            commands.setdefault(int(c.state_seq), c)
+            commands.setdefault(int(msg.state_seq), msg)
         elif m.topic.endswith(UPDATE):
-            updates.append((m, decode(m)))
+            updates.append((m, msg))
         elif m.topic.endswith(HAND_INPUTS):
-            answered.update(int(s) for s in decode(m).state_seq)
-        elif m.topic.endswith(HAND):
-            answered.add(int(decode(m).state_seq))
+            answered.update(int(s) for s in msg.state_seq)
     answered |= set(commands)
     if not commands:
         raise BagError(f'{bag.path}: no {COMMAND} messages: nothing to compare')
@@ -172,7 +181,7 @@ def controller_plan(bag: Bag) -> ControllerPlan:
         items, groups = _items_from_update_seqs(answered_states, commands, updates, data)
     return ControllerPlan(items, {s: c for s, c in commands.items()
                                   if s in {int(st.seq) for _, st in answered_states}},
-                          scenario, mode, groups, len(updates))
+                          scenario, mode, groups, len(updates), graph.graph_id)
 
 
 def _items_from_update_seqs(answered_states: list[tuple[BagMessage, Any]],

@@ -27,14 +27,18 @@ ROS install, under either subprotocol name (docs/foxglove.md; layout:
 ``docs/foxglove_layout.json``).
 
 The processes inherit the environment (``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE``).
-Their logs are kept in ``<bag>/logs/``.
+Their logs are kept in ``<bag>/logs/``. One run at a time uses a ROS domain on one machine
+(:func:`claim_domain`): a second run on the same domain refuses to start, in one line; two
+graphs on one domain would share node names, lifecycle services and topics.
 """
 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import os
+import secrets
 import shutil
 import subprocess
 import sys
@@ -42,11 +46,14 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, TYPE_CHECKING
 
 from haptic_topology.errors import BringupError, ConfigError
 from haptic_topology.processes import cpu_seconds, reaped_children_cpu_seconds, terminate
 from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE
+
+if TYPE_CHECKING:
+    from haptic_topology.sim.scenario import Scenario
 
 NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
 CLOCKS = ('wall', 'lockstep')
@@ -106,6 +113,49 @@ def node_prefixes(items: list[str], layout: str) -> dict[str, list[str]]:
                               f'{", ".join(LAYOUTS.get(layout, ()))}, got {item!r}')
         out[node] = shlex.split(command)
     return out
+
+
+#: One lock file per ROS domain: held by the run that uses the domain (:func:`claim_domain`)
+RUN_LOCKS = Path(tempfile.gettempdir()) / 'haptic_topology_runs'
+
+
+def claim_domain(domain: int) -> int:
+    """Claim ROS domain ``domain`` for this run on this machine; returns the descriptor of its
+    lock (``flock``: released when closed, or when the process dies). Raises ConfigError,
+    naming the other run's pid, while another run holds it."""
+    RUN_LOCKS.mkdir(exist_ok=True)
+    try:
+        RUN_LOCKS.chmod(0o1777)     # any user's runs, as /tmp
+    except OSError:
+        pass                        # another user's directory: it is already so
+    fd = os.open(RUN_LOCKS / f'domain_{domain}.lock', os.O_CREAT | os.O_RDWR, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        other = os.pread(fd, 32, 0).decode(errors='replace').strip() or '?'
+        os.close(fd)
+        raise ConfigError(f'ROS domain {domain}: another haptic-topology run uses it on this '
+                          f'machine (pid {other}); stop it, or give this run another domain, '
+                          f'e.g. ROS_DOMAIN_ID={(domain + 1) % 102}') from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f'{os.getpid()}\n'.encode(), 0)
+    return fd
+
+
+def new_graph_id(scenario: str) -> str:
+    """A graph identity for one run: ``<scenario>-<16 hex digits>`` (random)."""
+    return f'{Path(scenario).stem}-{secrets.token_hex(8)}'
+
+
+def environment_domain() -> int:
+    """The ROS domain of this environment (``ROS_DOMAIN_ID``; 0 when unset)."""
+    text = os.environ.get('ROS_DOMAIN_ID', '').strip()
+    if not text:
+        return 0
+    try:
+        return int(text)
+    except ValueError:
+        raise ConfigError(f'ROS_DOMAIN_ID: expected an integer 0-232, got {text!r}') from None
 
 
 def param_overrides(items: list[str]) -> list[str]:
@@ -199,7 +249,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
               domain_id: int | None = None,
               foxglove: tuple[str, int] | None = None,
               node_prefix: dict[str, list[str]] | None = None,
-              overrides: list[str] | None = None) -> dict[str, int]:
+              overrides: list[str] | None = None, claim: bool = True,
+              graph_id: str | None = None) -> dict[str, int]:
     """Run the graph once in ``layout`` (a key of :data:`LAYOUTS`), recording to ``bag``;
     return the processes' exit codes.
 
@@ -212,6 +263,9 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``node_prefix``: process name -> argv put before its command (``--node-prefix``: e.g.
     ``ip netns exec ht_ve`` for ``ve_sim``, which then keeps its pid and gets the signals).
     ``overrides``: ROS ``-p`` arguments after the run's own (:func:`param_overrides`).
+    ``claim``: claim the domain for the run (:func:`claim_domain`); False: the caller has.
+    ``graph_id``: the nodes' ``graph_id`` (default: a new one, :func:`new_graph_id`), so a
+    message of another graph on the domain (another run, a replayed bag) is never applied.
     """
     from haptic_topology.bringup.watch import GraphWatcher
     from haptic_topology.errors import WaitTimeout
@@ -223,11 +277,13 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     composed = layout == 'composed'
     host = 'false' if layout == 'separate' else 'true'
 
+    graph = graph_id or new_graph_id(scenario)
     ros = ['--ros-args', '--params-file', str(params), '-p', f'scenario:={scenario}',
            '-p', f'clock:={clock}', '-p', f'lmi_controller:mode:={mode}',
            '-p', f'recorder:output:={bag}', '-p', 'device_driver:min_subscribers:=2',
            '-p', f'device_driver:run_duration:={float(duration)!r}',
-           '-p', f'device_driver:host_controller:={host}']
+           '-p', f'device_driver:host_controller:={host}',
+           '-p', f'graph_id:={graph}']
     if layout == 'thread':
         ros += ['-p', 'device_driver:loop_process:=false']
     if clock == 'lockstep':
@@ -235,6 +291,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     if backend:
         ros += ['-p', f'device_driver:backend:={backend}']
     ros += overrides or []
+    domain_lock = (claim_domain(environment_domain() if domain_id is None else domain_id)
+                   if claim else None)
     log_dir = Path(tempfile.mkdtemp(prefix='haptic_run_'))
     procs: list[_Proc] = []
     codes: dict[str, int] = {}
@@ -248,7 +306,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
 
     try:
         env = {} if domain_id is None else {'ROS_DOMAIN_ID': str(domain_id)}
-        with GraphWatcher('haptic_bringup', alive, domain_id=domain_id) as watch:
+        with GraphWatcher('haptic_bringup', alive, domain_id=domain_id,
+                          graph_id=graph) as watch:
             py = [sys.executable, '-m']
             if foxglove is not None:
                 host, port = foxglove
@@ -313,6 +372,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             shutil.copytree(log_dir, bag / 'logs', dirs_exist_ok=True)
             (bag / 'logs' / 'cpu.json').write_text(json.dumps(cpu) + '\n', encoding='utf-8')
         shutil.rmtree(log_dir, ignore_errors=True)
+        if domain_lock is not None:
+            os.close(domain_lock)
     bad = {n: c for n, c in codes.items() if c != 0}
     if bad:
         logs = bag / 'logs' if bag.is_dir() else log_dir
@@ -325,10 +386,8 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.messages.package import require_msgs_package
 
     require_msgs_package()      # before anything starts: one line if the messages are missing
-    from haptic_topology.bag.graph_trace import format_loop, read_graph_bag
     from haptic_topology.paths import config_dir
     from haptic_topology.sim.scenario import load_scenario
-    from haptic_topology.sim.trace import format_summary
 
     sc = load_scenario(args.scenario)  # validate before starting anything
     modes: list[str] = args.mode or [sc.mode.label]
@@ -344,6 +403,19 @@ def run(args: argparse.Namespace) -> int:
         Path(args.scenario).resolve())
     layout = 'composed' if args.composed else args.layout
     overrides = param_overrides(args.param)
+    domain_lock = claim_domain(environment_domain())    # before any output: one line
+    try:
+        return _run_modes(args, sc, modes, duration, params, scenario_ref, layout, overrides)
+    finally:
+        os.close(domain_lock)
+
+
+def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duration: float,
+               params: Path, scenario_ref: str, layout: str, overrides: list[str]) -> int:
+    """:func:`run`'s runs, one per mode, on the domain it has claimed."""
+    from haptic_topology.bag.graph_trace import format_loop, read_graph_bag
+    from haptic_topology.sim.trace import format_summary
+
     summaries = []
     loops = []
     for mode in modes:
@@ -355,13 +427,19 @@ def run(args: argparse.Namespace) -> int:
                   foxglove=None if args.foxglove is None else (args.foxglove_host,
                                                                args.foxglove),
                   node_prefix=node_prefixes(args.node_prefix, layout),
-                  overrides=overrides)
+                  overrides=overrides, claim=False)
         result = read_graph_bag(bag, sc.name, sc.linkage.dof, task_dim=sc.linkage.task.dim)
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')
         summary = dict(trace.summary(), **{k: v for k, v in result.loop.items()})
         summary['layout'] = layout
         summary['skipped_messages'] = dict(result.skipped)
+        summary['graph_id'] = result.graph_id
+        summary['foreign_messages'] = result.foreign_messages
+        summary['foreign_publishers'] = result.foreign_publishers
+        if result.foreign_publishers:
+            print(f'foreign publishers on the graph\'s topics (nothing of theirs applied): '
+                  f'{", ".join(result.foreign_publishers)}', flush=True)
         if result.skipped:
             print(f'skipped {sum(result.skipped.values())} foreign or malformed messages in '
                   f'the bag: {result.skipped}', flush=True)

@@ -66,7 +66,7 @@ class GraphWatcher:
     def __init__(self, name: str = 'haptic_watch', alive: Callable[[], None] | None = None,
                  args: list[str] | None = None,
                  lifecycle_nodes: tuple[str, ...] = ('device_driver',),
-                 domain_id: int | None = None) -> None:
+                 domain_id: int | None = None, graph_id: str | None = None) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from lifecycle_msgs.srv import GetState
@@ -94,6 +94,8 @@ class GraphWatcher:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.alive = alive or (lambda: None)
+        #: The graph watched (None: any): statuses naming another ``graph_id`` are not read.
+        self.graph_id = graph_id
         self.status: dict[str, dict[str, str]] = {}
         #: Topics whose recorded counts stop growing once the loop has stopped (the hand
         #: inputs a little after the states: the controller flushes its last partial batch).
@@ -130,6 +132,9 @@ class GraphWatcher:
     def _on_diagnostics(self, msg: Any) -> None:
         for st in msg.status:
             values = {kv.key: kv.value for kv in st.values}
+            if self.graph_id is not None and values.get('graph_id',
+                                                        self.graph_id) != self.graph_id:
+                continue
             if st.name == RECORDER_STATUS:
                 # The run's topics only: keep-alive updates, visualisation and diagnostics
                 # go on after the run.
@@ -180,7 +185,7 @@ class GraphWatcher:
         the device's loop has stopped (``loop_running`` false: its ``sent`` count of states
         is final), the controller has nothing pending (``hand_pending`` 0) and, when the
         loop topics are reliable (``reliable_loop``, lock-step), has seen the last state
-        (so its counts are final too), the VE has taken every hand-input batch the
+        (so its counts are final too), the VE has consumed the last hand input the
         controller sent and sent every path sample, and the recorder received as many
         messages of each reliable topic as were sent (at least as many: a foreign publisher
         adds to the recorder's count). With best-effort loop topics (wall
@@ -192,8 +197,11 @@ class GraphWatcher:
         ve = self.status.get('ve_sim: loop', {})
         rec = self.status.get(RECORDER_STATUS, {})
         hand = ctl.get(f'sent {TOPIC_HAND_INPUTS}')
+        # The VE has taken the last hand input sent (by its seq: a batch that DDS dropped on
+        # a starved VE, counted in its lost_hand_inputs, never comes).
+        last = ctl.get('hand_last_seq')
         if (dev.get('loop_running') != 'false' or ctl.get('hand_pending') != '0'
-                or ve.get(f'received {TOPIC_HAND_INPUTS}') != hand
+                or last is None or ve.get('hand_last_seq') != last
                 or ve.get('path_pending') != '0'):
             return False
         sent = {TOPIC_HAND_INPUTS: hand,
@@ -213,7 +221,8 @@ class GraphWatcher:
 
     def run_counts(self) -> dict[str, dict[str, str]]:
         """What :meth:`recorder_has_the_run` compares, as the nodes last reported it."""
-        keys = ('loop_running', 'seq', 'hand_pending', 'last_state_seq', 'path_pending')
+        keys = ('loop_running', 'seq', 'hand_pending', 'last_state_seq', 'path_pending',
+                'hand_last_seq', 'lost_hand_inputs')
         return {name: {k: v for k, v in values.items()
                        if k in keys or k.startswith(('sent ', 'received '))}
                 for name, values in self.status.items()}

@@ -165,6 +165,13 @@ def _sched_priority() -> Any:
                  'warning and normal scheduling', lo=0, hi=99)
 
 
+def _graph_id() -> Any:
+    return param('', "the graph this node belongs to: it publishes this identity in every "
+                 "message on the graph's topics and applies only messages that carry it "
+                 "(others are foreign: counted in /diagnostics, never applied). "
+                 "haptic-topology run gives each run its own; empty: the default graph")
+
+
 def _nice(default: int) -> Any:
     return param(default, 'nice increment of the process (all its threads) at start-up: a '
                  'node off the 1 kHz deadline path yields the CPU to the loop when the cores '
@@ -198,6 +205,7 @@ class DeviceDriverSettings(NodeSettings):
 
     scenario: str = _scenario('device model, limits, initial pose and simulated user')
     executor: str = _executor()
+    graph_id: str = _graph_id()
     sched_priority: int = param(0, 'SCHED_FIFO priority 1-99 of the loop thread (with '
                                 'host_controller; else of the process, all its threads); 0 = '
                                 'normal scheduling. Needs CAP_SYS_NICE (root or an rtprio '
@@ -286,6 +294,7 @@ class LmiControllerSettings(NodeSettings):
 
     scenario: str = _scenario('linkage, gains, device inertia, LMI model')
     executor: str = _executor()
+    graph_id: str = _graph_id()
     sched_priority: int = _sched_priority()
     mode: str | None = param(None, 'control law: penalty (eq. 14) or acceleration_only '
                              "(eq. 10); live; default: the scenario's", read_only=False,
@@ -347,6 +356,7 @@ class VeSimSettings(NodeSettings):
 
     scenario: str = _scenario('linkage, initial state, internal step, VT coupling')
     executor: str = _executor()
+    graph_id: str = _graph_id()
     sched_priority: int = _sched_priority()
     nice: int = _nice(5)
     update_period: int = param(0, 'hand inputs per LMI update (10 at 1 kHz = 100 Hz); 0 = the '
@@ -375,6 +385,7 @@ class RecorderSettings(NodeSettings):
 
     scenario: str = param('fig8', 'scenario name, used in the default bag name')
     executor: str = _executor()
+    graph_id: str = _graph_id()
     sched_priority: int = _sched_priority()
     nice: int = _nice(10)
     output: str = param('', 'bag directory to create (must not exist); empty: '
@@ -414,6 +425,9 @@ class FoxgloveBridgeSettings(NodeSettings):
     scenario: str = param('fig8', 'scenario name (only named in the server name; accepted so '
                           "that the graph's common -p scenario:=... applies)")
     executor: str = _executor()
+    graph_id: str = param('', "the graph served (named in /diagnostics; accepted so that the "
+                          "graph's common -p graph_id:=... applies): the bridge serves what "
+                          'is on the topics')
     nice: int = _nice(10)
     host: str = param('127.0.0.1', 'address the WebSocket server listens on (0.0.0.0: every '
                       'interface, for a Foxglove app on another machine)')

@@ -85,6 +85,8 @@ class HandBatcher:
         #: Batches handed out, and how many of them were partial (by :meth:`due`/:meth:`flush`).
         self.batches = 0
         self.partial = 0
+        #: ``seq`` of the newest sample added (0: none yet)
+        self.last_seq = 0
 
     @property
     def pending(self) -> int:
@@ -98,6 +100,7 @@ class HandBatcher:
         if i == 0:
             self._since = now
         self._ints[:, i] = (sample.seq, sample.state_seq, stamp_ns)
+        self.last_seq = sample.seq
         rows = self._rows
         rows[0, i] = sample.pose
         rows[1, i] = sample.twist

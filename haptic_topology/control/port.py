@@ -175,7 +175,8 @@ class ControllerPort:
                     'lockstep_timeouts': str(self.lockstep_timeouts),
                     'hand_batches_sent': str(self.batcher.batches),
                     'hand_batches_partial': str(self.batcher.partial),
-                    'hand_pending': str(self.batcher.pending)})
+                    'hand_pending': str(self.batcher.pending),
+                    'hand_last_seq': str(self.batcher.last_seq)})
         return out
 
     def health(self, now: float) -> tuple[int, str]:

@@ -29,7 +29,9 @@ Example::
 
 from __future__ import annotations
 
+import hashlib
 import secrets
+from collections import Counter
 from itertools import pairwise
 from typing import Any
 
@@ -57,6 +59,44 @@ def new_controller_id() -> int:
     """A random controller id in [1, :data:`MAX_CONTROLLER_ID`] (``secrets``, 63 bits): two
     controller processes share one with probability 2**-63."""
     return 1 + secrets.randbelow(MAX_CONTROLLER_ID)
+
+
+def graph_wire(graph_id: str) -> int:
+    """The ``graph_id`` field of a graph's messages for the nodes' ``graph_id`` parameter:
+    0 for the default graph (``''``), else the first 63 bits of its BLAKE2b hash, made
+    nonzero. Two graphs named differently share a value with probability 2**-63."""
+    if not graph_id:
+        return 0
+    h = int.from_bytes(hashlib.blake2b(graph_id.encode(), digest_size=8).digest(), 'little')
+    return (h >> 1) or 1
+
+
+class GraphFilter:
+    """Which messages belong to this node's graph (``graph_id`` equals the graph's
+    :func:`graph_wire`); the others are foreign, counted per topic, never applied.
+
+    A message recorded before the field existed reads as graph 0 (the default graph)."""
+
+    def __init__(self, graph_id: str) -> None:
+        self.graph_id = graph_id
+        self.wire = graph_wire(graph_id)
+        self.foreign: Counter[str] = Counter()
+
+    def own(self, msg: Any, topic: str) -> bool:
+        """True if ``msg`` (on ``topic``) is of this graph; else counts it."""
+        if getattr(msg, 'graph_id', 0) == self.wire:
+            return True
+        self.foreign[topic] += 1
+        return False
+
+    @property
+    def total(self) -> int:
+        return sum(self.foreign.values())
+
+    def values(self) -> dict[str, str]:
+        """``/diagnostics`` values: the graph and the foreign messages per topic."""
+        return {'graph_id': self.graph_id, 'foreign_messages': str(self.total),
+                **{f'foreign {t}': str(n) for t, n in sorted(self.foreign.items())}}
 
 
 class RejectCounter:

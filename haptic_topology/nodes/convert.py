@@ -40,6 +40,7 @@ from haptic_topology.messages.check import (
     MAX_SEQ,
     MODES,
     REASONS,
+    GraphFilter,
     RejectCounter,
     array,
     check_command,
@@ -278,6 +279,6 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
 
 
 __all__ = ['CONTROLLER_ID', 'MAX_CONTROLLER_ID', 'MAX_SEQ', 'REASONS', 'MessageError',
-           'RejectCounter', 'command_from_msg', 'command_msg', 'hand_inputs_msg',
+           'GraphFilter', 'RejectCounter', 'command_from_msg', 'command_msg', 'hand_inputs_msg',
            'lmi_from_msg', 'lmi_msg', 'ns_to_stamp', 'seconds_to_stamp', 'stamp_ns',
            'stamp_seconds', 'state_from_msg', 'state_msg', 'vt_wrenches_from_hand_inputs']

@@ -59,8 +59,8 @@ from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, h
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
 from haptic_topology.model.frames import DEVICE_BASE
-from haptic_topology.nodes.convert import RejectCounter, ns_to_stamp, state_msg
-from haptic_topology.nodes.diagnostics import diagnostics, matched, monotonic
+from haptic_topology.nodes.convert import GraphFilter, RejectCounter, ns_to_stamp, state_msg
+from haptic_topology.nodes.diagnostics import PublisherWatch, diagnostics, matched, monotonic
 from haptic_topology.nodes.hosting import HostedLoop, driver_layout, in_child
 from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import QOS_CLOCK, QOS_DIAGNOSTICS, loop_qos
@@ -98,6 +98,8 @@ class DeviceDriver(LifecycleNode):
         self._active = False          # between activate and deactivate
         self._msg, self._clock_msg = DeviceState(), ClockMsg()
         self._msg.header.frame_id = DEVICE_BASE   # set once: the message is reused
+        self.graph = GraphFilter(s.graph_id)
+        self._msg.graph_id = self.graph.wire
         # Real-time settings go to the loop thread when hosting (run_main leaves the rest).
         self.process_sched_priority = 0 if s.host_controller else s.sched_priority
         qos = loop_qos(self.cfg.clock)
@@ -109,6 +111,9 @@ class DeviceDriver(LifecycleNode):
         if not s.host_controller:
             self._endpoints[TOPIC_COMMAND] = self.create_subscription(
                 DeviceCommand, TOPIC_COMMAND, self._on_command, qos)
+        self.input_publishers = PublisherWatch(
+            self, {} if s.host_controller else {TOPIC_COMMAND: ('lmi_controller',)},
+            self._publish_diagnostics)
         self.create_timer(1.0, self._publish_diagnostics,
                           clock=RosClock(clock_type=ClockType.STEADY_TIME))
 
@@ -207,7 +212,7 @@ class DeviceDriver(LifecycleNode):
         return self.state_pub.get_subscription_count() + hosted >= self.cfg.min_subscribers
 
     def _on_command(self, msg: DeviceCommand) -> None:
-        if isinstance(self.layout, SeparateLoop):
+        if isinstance(self.layout, SeparateLoop) and self.graph.own(msg, TOPIC_COMMAND):
             self.layout.on_command(msg)
 
     def publish_state(self, tick: DeviceTick, ns: int, clock: bool = False) -> None:
@@ -236,7 +241,9 @@ class DeviceDriver(LifecycleNode):
         values = {'backend': self.cfg.backend, 'clock': self.cfg.clock.value,
                   'loop_running': str(layout is not None and layout.running).lower(),
                   f'sent {TOPIC_STATE}': str(self.states_sent),
-                  **self.rejected.values(), **matched(self._endpoints), **loop_values}
+                  **self.rejected.values(), **self.graph.values(), **matched(self._endpoints),
+                  **loop_values}
+        level, message = self.input_publishers.merge(values, level, message)
         self.diag_pub.publish(diagnostics(
             self, 'device_driver: loop', values, level, message,
             child.status.get('hardware_id', self.cfg.backend) if child is not None

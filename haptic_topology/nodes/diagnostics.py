@@ -57,3 +57,70 @@ def log_notices(node: Node, notices: Any) -> None:
 
 def monotonic() -> float:
     return time.monotonic()
+
+
+#: The name the graph cache gives an endpoint whose node it has not discovered yet
+UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
+
+
+class PublisherWatch:
+    """Publishers of a node's input topics that its graph does not expect.
+
+    ``expected``: topic -> the node names that publish it in this graph (in this node's
+    namespace). Every ``period`` s (steady clock) the node's graph cache is asked for the
+    topic's publishers (``get_publishers_info_by_topic``); one of another name or another
+    namespace is *foreign*: named in :meth:`values` and :meth:`problem` (the node reports
+    ERROR while one is there) and logged once at ERROR when it appears, and ``on_new`` is
+    called so the node reports it at once rather than at its next diagnostics period.
+    Messages are kept out by the graph identity (``graph_id``), not by this: DDS gives a
+    message no publisher identity here, so this names who is there.
+    """
+
+    def __init__(self, node: Node, expected: Mapping[str, tuple[str, ...]],
+                 on_new: Any = None, period: float = 0.05) -> None:
+        from rclpy.clock import Clock, ClockType
+
+        self.node = node
+        self.expected = {node.resolve_topic_name(t): (t, names) for t, names in expected.items()}
+        self.foreign: dict[str, tuple[str, ...]] = {}     # topic -> 'namespace/name', sorted
+        self.seen: set[str] = set()                       # every foreign publisher so far
+        self._on_new = on_new
+        node.create_timer(period, self.check, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def check(self) -> None:
+        ns = self.node.get_namespace()
+        found: dict[str, tuple[str, ...]] = {}
+        for resolved, (topic, names) in self.expected.items():
+            others = {f'{i.node_namespace.rstrip("/")}/{i.node_name}'
+                      for i in self.node.get_publishers_info_by_topic(resolved)
+                      if (i.node_name not in names or i.node_namespace != ns)
+                      and i.node_name != UNKNOWN_NODE}     # its name not discovered yet
+            if others:
+                found[topic] = tuple(sorted(others))
+        new = {p for names in found.values() for p in names} - self.seen
+        self.foreign = found
+        if new:
+            self.seen |= new
+            self.node.get_logger().error(f'foreign publisher(s) on the graph\'s topics: '
+                                         f'{self.describe()}; their messages are not applied '
+                                         'unless they carry this graph\'s graph_id')
+            if self._on_new is not None:
+                self._on_new()
+
+    def describe(self) -> str:
+        return '; '.join(f'{t}: {", ".join(p)}' for t, p in sorted(self.foreign.items()))
+
+    def problem(self) -> str | None:
+        """The ERROR message while a foreign publisher is there (None: none)."""
+        return f'foreign publisher(s): {self.describe()}' if self.foreign else None
+
+    def values(self) -> dict[str, str]:
+        """``foreign_publishers``: the foreign publishers now, ``topic: name, ...; ...``."""
+        return {'foreign_publishers': self.describe()}
+
+    def merge(self, values: dict[str, str], level: int, message: str) -> tuple[int, str]:
+        """Add :meth:`values` to a node's ``values``; its ``(level, message)``, ERROR while a
+        foreign publisher is there."""
+        values.update(self.values())
+        problem = self.problem()
+        return (2, f'{problem}; {message}') if problem else (level, message)

@@ -54,6 +54,7 @@ from haptic_topology.device.runner import LoopRunner
 from haptic_topology.model.frames import DEVICE_BASE
 from haptic_topology.nodes.convert import (
     CONTROLLER_ID,
+    GraphFilter,
     MessageError,
     RejectCounter,
     command_msg,
@@ -62,7 +63,13 @@ from haptic_topology.nodes.convert import (
     stamp_ns,
     state_from_msg,
 )
-from haptic_topology.nodes.diagnostics import diagnostics, log_notices, matched, monotonic
+from haptic_topology.nodes.diagnostics import (
+    PublisherWatch,
+    diagnostics,
+    log_notices,
+    matched,
+    monotonic,
+)
 from haptic_topology.nodes.parameters import declare_settings, declare_spec
 from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, QOS_LMI, hand_inputs_qos, loop_qos
 from haptic_topology.nodes.runtime import run_main
@@ -117,9 +124,14 @@ class LmiController(Node):
         self._cmd, self._hand = DeviceCommand(), HandInputs()
         # set once (the messages are reused): device-side quantities
         self._cmd.header.frame_id = self._hand.header.frame_id = DEVICE_BASE
+        self.graph = GraphFilter(s.graph_id)
+        self._cmd.graph_id = self._hand.graph_id = self.graph.wire
         self.rejected = RejectCounter()
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
+        # who publishes its inputs in the graph (the driver's states: separate layout only)
+        inputs = {TOPIC_LMI: ('ve_sim',), **({} if hosted else {TOPIC_STATE: ('device_driver',)})}
+        self.input_publishers = PublisherWatch(self, inputs, self._publish_diagnostics)
         if hosted:
             self.process_sched_priority = 0       # the driver's loop thread has its own
             return
@@ -149,6 +161,8 @@ class LmiController(Node):
 
     # -- separate ------------------------------------------------------------------------------
     def _on_state(self, msg: DeviceState) -> None:
+        if not self.graph.own(msg, TOPIC_STATE):
+            return None
         try:
             seq, stamp, pose, twist, f_h, status = state_from_msg(msg, self.task)
         except MessageError as exc:
@@ -183,6 +197,8 @@ class LmiController(Node):
             self._publish_hand(batch)
 
     def _on_update(self, msg: LmiUpdate) -> None:
+        if not self.graph.own(msg, TOPIC_LMI):
+            return
         try:
             snap = lmi_from_msg(msg, self.task, self.dof, self.penalty_direction)
         except MessageError as exc:
@@ -212,11 +228,12 @@ class LmiController(Node):
                        f'sent {TOPIC_HAND_INPUTS}': str(self.port.batcher.batches),
                        'controller_id': str(CONTROLLER_ID),
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
-                       **matched(self._endpoints)})
+                       **self.graph.values(), **matched(self._endpoints)})
         level, message = self.port.health(now)
         if isinstance(self.host, LoopProcess):      # the loop's controller is the child's
             values.update(self.host.controller_values())
             level, message = self.host.controller_health() or (level, message)
+        level, message = self.input_publishers.merge(values, level, message)
         self.diag_pub.publish(diagnostics(self, 'lmi_controller: loop', values, level,
                                                  message))
 

@@ -140,13 +140,15 @@ class Recorder(Node):
         topics = list(config.topics)
         self.flush_period = config.flush_period
         self.path = config.path
+        self.graph_id = settings.graph_id   # records every graph's messages; names its own
         specs = [TopicSpec(self.resolve_topic_name(t), RECORDED[t][1],
                            (_bag_qos(TOPIC_QOS[t]),)) for t in topics]
         self.writer = BagWriter(self.path, specs, typestore_with_haptic_msgs(),
                                 sources=message_definitions(), chunk_size=config.chunk_size,
                                 compression=config.compression,
                                 custom={'recorded_by': 'haptic_topology recorder',
-                                        'scenario': settings.scenario},
+                                        'scenario': settings.scenario,
+                                        'graph_id': settings.graph_id},
                                 max_bag_size=config.max_bag_size,
                                 max_bag_duration=config.max_bag_duration)
         self._error: BaseException | None = None
@@ -209,7 +211,8 @@ class Recorder(Node):
         driver once its state publisher is matched here, so the bag holds the run's first
         state)."""
         lost = dict(zip(self.subscriptions_by_topic, self.taker.lost, strict=True))
-        values = {'path': str(self.path), 'connected': str(self.connected).lower(),
+        values = {'path': str(self.path), 'graph_id': self.graph_id,
+                  'connected': str(self.connected).lower(),
                   **{f'received {t}': str(n) for t, n in self.counts.items()},
                   'lost': str(sum(lost.values())),
                   **{f'lost {t}': str(n) for t, n in lost.items() if n},

@@ -123,6 +123,8 @@ def check_controller(bag_path: str | Path, params: Path,
     argv = [sys.executable, '-m', 'haptic_topology.nodes.lmi_controller', '--ros-args',
             '--params-file', str(params), '-p', f'scenario:={scenario}', '-p',
             f'mode:={cp.mode}', '-p', 'ack_updates:=true', '-r', f'__ns:={ns}']
+    if cp.graph_id:             # the recorded graph's (none: the default graph)
+        argv[-2:-2] = ['-p', f'graph_id:={cp.graph_id}']
     live: dict[int, Any] = {}
     spinner = _spinner('haptic_replay_check')
     with log.open('wb') as handle:

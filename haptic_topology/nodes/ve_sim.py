@@ -59,12 +59,13 @@ from haptic_topology.config.settings import VeSimSettings
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.stats import LoopStats
 from haptic_topology.nodes.convert import (
+    GraphFilter,
     MessageError,
     RejectCounter,
     lmi_msg,
     vt_wrenches_from_hand_inputs,
 )
-from haptic_topology.nodes.diagnostics import diagnostics, matched, monotonic
+from haptic_topology.nodes.diagnostics import PublisherWatch, diagnostics, matched, monotonic
 from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import (
     QOS_DIAGNOSTICS,
@@ -105,7 +106,8 @@ class VeSim(Node):
         self.task = sc.linkage.task
         self.ve = virtual_environment(sc)     # as `simulate` builds it (contacts included)
         self.dyn = self.ve.dyn
-        self.viz = VeViz(self, sc, c.frame_id, self.ve.q)
+        self.graph = GraphFilter(s.graph_id)
+        self.viz = VeViz(self, sc, c.frame_id, self.ve.q, self.graph)
 
         self.lmi_pub = self.create_publisher(LmiUpdate, TOPIC_LMI, QOS_LMI)
         self.path_pub = self.create_publisher(VtPath, TOPIC_VT_PATH, QOS_LMI)
@@ -118,6 +120,7 @@ class VeSim(Node):
         self._lmi = LmiUpdate()
         self._path = VtPath()
         self._lmi.header.frame_id = self._path.header.frame_id = c.frame_id
+        self._lmi.graph_id = self._path.graph_id = self.graph.wire
         self._update_seq = 0
         self.feed = HandFeed(self.ve, self.update_period)
         self.batches = 0
@@ -137,6 +140,8 @@ class VeSim(Node):
                               IDLE_CHECK_MIN_PERIOD), self._publish_idle, clock=steady)
         self.create_timer(c.viz_period, self._publish_viz, clock=steady)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
+        self.input_publishers = PublisherWatch(self, {TOPIC_HAND_INPUTS: ('lmi_controller',)},
+                                         self._publish_diagnostics)
 
     def _publish_update(self) -> None:
         self._last_snap = self.ve.snapshot(seq=self._update_seq)
@@ -161,6 +166,8 @@ class VeSim(Node):
             self._publish_update()
 
     def _on_hand(self, msg: HandInputs) -> None:
+        if not self.graph.own(msg, TOPIC_HAND_INPUTS):
+            return
         try:
             seqs, state_seqs, stamps, pose, twist, f_vt = vt_wrenches_from_hand_inputs(
                 msg, self.task, self.scenario.vt_coupling, self.max_hand_wrench)
@@ -209,11 +216,14 @@ class VeSim(Node):
             'path_pending': str(len(self.ve.path)),
             f'sent {TOPIC_VT_PATH}': str(self.paths_sent),
             'lost_hand_inputs': str(feed.lost),
+            'hand_last_seq': str(feed.last_seq),
             'hand_input_seq': str(self.ve.hand_input_seq),
             'lmi_updates': str(self._update_seq),
             'controller_restarts': str(feed.controller_restarts),
             'rejected_messages': str(self.rejected.total),
             **self.rejected.values(),
+            **self.graph.values(),
+            **self.input_publishers.values(),
             'kinetic_energy_j': f'{self.ve.kinetic_energy():.6g}',
             'held_capped': str(self.ve.held_capped),
             'viz_device_states': str(self.viz.device_states),
@@ -221,8 +231,10 @@ class VeSim(Node):
             **matched(self._endpoints),
         })
         ok = all(math.isfinite(v) for v in self.ve.q)
-        self.diag_pub.publish(diagnostics(
-            self, 've_sim: loop', values, 0 if ok else 2, 'ok' if ok else 'VE state not finite'))
+        problem = None if ok else 'VE state not finite'
+        problem = problem or self.input_publishers.problem()
+        self.diag_pub.publish(diagnostics(self, 've_sim: loop', values, 2 if problem else 0,
+                                          problem or 'ok'))
 
     def _publish_viz(self) -> None:
         self.viz.publish(self.ve.q, self.ve.dq, self._last_snap)

@@ -23,7 +23,7 @@ from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.model.urdf import robot_description
 from haptic_topology.nodes import markers, viz
-from haptic_topology.nodes.convert import MessageError, stamp_ns
+from haptic_topology.nodes.convert import GraphFilter, MessageError, stamp_ns
 from haptic_topology.nodes.qos import QOS_LATCHED, QOS_LOOP, QOS_TF, QOS_VIZ
 from haptic_topology.nodes.take import LatestTaker
 from haptic_topology.sim.scenario import Scenario
@@ -48,8 +48,10 @@ class VeViz:
     """The viz publishers of ``node`` (the VE) for ``scenario``, with a Pinocchio workspace
     of their own; ``q0``: the VE's initial joint positions (the plane of a planar picture)."""
 
-    def __init__(self, node: Node, scenario: Scenario, frame_id: str, q0: np.ndarray) -> None:
+    def __init__(self, node: Node, scenario: Scenario, frame_id: str, q0: np.ndarray,
+                 graph: GraphFilter) -> None:
         self.node = node
+        self.graph = graph          # device states of other graphs are not drawn
         self.task = scenario.linkage.task
         self._viz_dyn = LinkageDynamics(scenario.linkage)     # separate Pinocchio workspace
         self.robot = robot_description(scenario.linkage)
@@ -104,7 +106,7 @@ class VeViz:
         if self._state_taker is None:
             return
         msg = self._state_taker.take()
-        if msg is None:
+        if msg is None or not self.graph.own(msg, TOPIC_STATE):
             return
         try:
             sample = markers.device_sample(msg, self.task)

@@ -4,9 +4,10 @@
   ``lmi_controller`` and ``ve_sim``: rejected and counted per reason in ``/diagnostics`` (a
   hand input batch with one bad sample as a whole), and both nodes still answer afterwards
   (one message must never end a node);
-* an impostor controller (another ``controller_id``) answering every running device state of
-  a lock-step graph with a well-formed command: none is applied (the run equals the offline
-  simulation exactly), and the device driver counts them as ``foreign_commands``;
+* an impostor controller (another ``controller_id``, the graph's own ``graph_id``) answering
+  every running device state of a lock-step graph with a well-formed command: none is
+  applied (the run equals the offline simulation exactly), and the device driver counts
+  them as ``foreign_commands``;
 
 Every wait is on a message, with a deadline; nothing is timed.
 """
@@ -258,9 +259,11 @@ class Impostor:
     def _on_state(self, msg: Any) -> None:
         if msg.status & 16:       # idle: only the controller's answer may engage the device
             return
+        # With the graph's own id, read off its states (the id is no secret): so the
+        # controller id is what keeps these out.
         cmd = self.cmd_t(state_seq=msg.seq, controller_id=IMPOSTOR_ID, mode=0, task_dim=3,
                          wrench=IMPOSTOR_WRENCH, vt_pose=list(msg.pose),
-                         vt_twist=list(msg.twist))
+                         vt_twist=list(msg.twist), graph_id=msg.graph_id)
         cmd.header.stamp = msg.header.stamp
         self.pub.publish(cmd)
         self.sent += 1

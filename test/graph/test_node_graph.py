@@ -12,20 +12,17 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from offline_check import EXACT_COLUMNS, assert_equals_offline
 from procs import stop_process
 
 from haptic_topology.bag.graph_trace import GraphRun, read_graph_bag
 from haptic_topology.bringup.run import run_graph
 from haptic_topology.paths import config_dir
-from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
-from haptic_topology.sim.trace import Trace
-from haptic_topology.vocabulary import ControlMode
 
 pytestmark = pytest.mark.graph
 
@@ -97,45 +94,6 @@ def lockstep_runs(tmp_path_factory: pytest.TempPathFactory,
 
 #: Columns of a trace that the lock-step graph reproduces exactly (the VE's joint positions
 #: and constraint counts are sampled at the updates in a bag, every cycle offline).
-EXACT_COLUMNS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'applied',
-                 'vt_pose', 'lmi_pose')
-
-
-def _assert_equals_offline(graph: Trace, scenario: str, mode: str, duration: float) -> None:
-    """``graph`` (a lock-step run's trace) equals ``simulate()`` of the same scenario, mode
-    and duration: same rows and times, the exact columns to 1e-9 at every cycle, the drift
-    summary to 1e-9 relative."""
-    sc = load_scenario(scenario)
-    offline = simulate(replace(sc, duration=duration), ControlMode.parse(mode))
-    assert len(graph) == len(offline) == round(duration / sc.dt) + 1
-    if scenario in ('fig6', 'fig8'):        # the run crosses the LMI's rank switch
-        assert np.any(np.diff(offline.columns['lmi_constraint_count']))
-    np.testing.assert_array_equal(graph.seq - graph.seq[0], np.arange(len(graph)))
-    np.testing.assert_allclose(graph.t, offline.t, rtol=0.0, atol=1e-12)
-    for col in EXACT_COLUMNS:
-        np.testing.assert_allclose(graph.columns[col], offline.columns[col], rtol=0.0,
-                                   atol=1e-9, err_msg=col)
-    g, o = graph.summary(), offline.summary()
-    for key in ('final_distance_m', 'max_distance_m', 'rms_distance_m'):
-        assert g[key] == pytest.approx(o[key], rel=1e-9, abs=0.0), key
-    assert graph.has_contacts == offline.has_contacts
-    if offline.has_contacts:
-        # F_env as the controller rendered it (DeviceCommand.env_wrench) at every cycle; the
-        # VE's deepest contact and contact energy as each LmiUpdate reported them, held to
-        # the next update, as the offline trace samples them: every row, and the summary.
-        assert np.abs(offline.columns['env_wrench']).max() > 0.1
-        np.testing.assert_allclose(graph.columns['env_wrench'], offline.columns['env_wrench'],
-                                   rtol=0.0, atol=1e-9)
-        assert np.count_nonzero(np.diff(offline.columns['contact_energy'])) > 10
-        for col in ('penetration', 'contact_energy'):
-            np.testing.assert_allclose(graph.columns[col], offline.columns[col],
-                                       rtol=0.0, atol=1e-12, err_msg=col)
-        for key in ('max_penetration_m', 'rms_penetration_m', 'contact_time_s',
-                    'energy_dissipated_j'):
-            assert g[key] == pytest.approx(o[key], rel=1e-9, abs=1e-15), key
-        assert g['energy_injected_j'] == o['energy_injected_j'] == 0.0
-
-
 @pytest.mark.parametrize(('scenario', 'mode'), LOCKSTEP_RUNS)
 def test_lockstep_graph_equals_offline_simulation(
         lockstep_runs: dict[tuple[str, ...], GraphRun], scenario: str, mode: str) -> None:
@@ -144,7 +102,7 @@ def test_lockstep_graph_equals_offline_simulation(
     computes: device and VT poses equal to 1e-9 m at every cycle (bit-identical in practice:
     the same core objects, the same floating-point times), and the same drift summary."""
     run = lockstep_runs[(scenario, mode)]
-    _assert_equals_offline(run.trace, scenario, mode, DURATION)
+    assert_equals_offline(run.trace, scenario, mode, DURATION)
     # Lock-step answers every state before the next, and the VE updates every update_period
     # device cycles of simulated time.
     sc = load_scenario(scenario)
@@ -162,7 +120,7 @@ def test_other_layouts_equal_hosted_layout_and_offline(
     every exact column bit for bit."""
     scenario, mode, _ = key
     separate, hosted = lockstep_runs[key].trace, lockstep_runs[(scenario, mode)].trace
-    _assert_equals_offline(separate, scenario, mode, DURATION)
+    assert_equals_offline(separate, scenario, mode, DURATION)
     for col in EXACT_COLUMNS:
         np.testing.assert_array_equal(separate.columns[col], hosted.columns[col],
                                       err_msg=col)
@@ -175,7 +133,7 @@ def test_lockstep_graph_equals_offline_simulation_spatial(
     (J_h 6 x 7, t >= 2), a 6-DOF device with an orientation stop, eq. 14, for 0.5 s."""
     graph = lockstep_runs[SPATIAL].trace
     assert graph.task_dim == 6
-    _assert_equals_offline(graph, SPATIAL[0], 'penalty', SPATIAL_DURATION)
+    assert_equals_offline(graph, SPATIAL[0], 'penalty', SPATIAL_DURATION)
 
 
 def test_swapping_the_backend_needs_no_change_in_other_nodes(

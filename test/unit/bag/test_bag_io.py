@@ -70,7 +70,7 @@ def _state_bytes(seq: int) -> bytes:
     header = ts.types['std_msgs/msg/Header'](ts.types['builtin_interfaces/msg/Time'](1, 2),
                                              'base')
     v = np.array([0.1, 0.2, 0.3])
-    return bytes(ts.serialize_cdr(cls(header, seq, 3, v, v, v, v, 0, np.zeros(0)), STATE))
+    return bytes(ts.serialize_cdr(cls(header, seq, 3, v, v, v, v, 0, np.zeros(0), 0), STATE))
 
 
 def _write(path: Path, n: int, flush_at: int | None = None) -> BagWriter:
@@ -301,7 +301,7 @@ def _hostile_copy(src: Path, dst: Path) -> dict[str, int]:
         add('update', msg, um.log_time + 1)
     path_type = type_name('VtPath')
     path = ts.types[path_type](upd.header, 1, 3, np.array([2 ** 63 - 1], dtype=np.uint64),
-                               np.zeros(3))
+                               np.zeros(3), 0)
     for msg in (path, dc_replace(path, hand_input_seqs=np.array([5], dtype=np.uint64),
                                  hand_pose=np.zeros(4))):
         w.write(index['/haptic/ve/path'], um.log_time + 2,
@@ -354,8 +354,9 @@ def test_bags_recorded_before_controller_id_decode_with_their_own_definition() -
 
     bag = open_bag(REFERENCE)
     lmi = type_name('LmiUpdate')
-    assert outdated_types(bag) == {COMMAND, STATE, lmi}
-    assert set(upgraders(bag)) == {STATE, lmi}
+    path = type_name('VtPath')      # recorded before graph_id, appended since
+    assert outdated_types(bag) == {COMMAND, STATE, lmi, path}
+    assert set(upgraders(bag)) == {STATE, lmi, path}
     assert left_out(bag) == {'/haptic/device/command': COMMAND}
     current = decoder()
     for topic, kind in (('/haptic/device/state', STATE), ('/haptic/lmi/update', lmi)):
@@ -365,7 +366,7 @@ def test_bags_recorded_before_controller_id_decode_with_their_own_definition() -
         assert int(new.seq) == int(old.seq) and new.header.stamp == old.header.stamp
         if kind == STATE:
             np.testing.assert_array_equal(new.pose, old.pose)
-            assert new.env_wrench.size == 0
+            assert new.env_wrench.size == 0 and new.graph_id == 0   # the default graph's
         else:
             np.testing.assert_array_equal(new.mass_matrix, old.mass_matrix)
             assert new.contact_count == 0 and new.contact_stiffness == 0.0
@@ -417,7 +418,7 @@ def _batched_copy(src: Path, dst: Path, drop_commands: set[int]) -> int:
             state_seq=np.array([h.state_seq for h in pending], dtype=np.uint64),
             stamp=[h.header.stamp for h in pending],
             **{f: np.concatenate([getattr(h, f) for h in pending])
-               for f in ('pose', 'twist', 'hand_wrench', 'coupling_wrench')})
+               for f in ('pose', 'twist', 'hand_wrench', 'coupling_wrench')}, graph_id=0)
         w.write(index['/haptic/hand_inputs'], log_time,
                 bytes(ts.serialize_cdr(msg, batch_type)))
         pending.clear()

@@ -30,7 +30,7 @@ def _state_bytes(seq: int) -> bytes:
     header = ts.types['std_msgs/msg/Header'](ts.types['builtin_interfaces/msg/Time'](1, 2),
                                              'base')
     v = np.array([0.1, 0.2, 0.3]) * seq
-    return bytes(ts.serialize_cdr(ts.types[STATE](header, seq, 3, v, v, v, v, 0, np.zeros(0)),
+    return bytes(ts.serialize_cdr(ts.types[STATE](header, seq, 3, v, v, v, v, 0, np.zeros(0), 0),
                                   STATE))
 
 

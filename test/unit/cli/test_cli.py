@@ -62,3 +62,30 @@ def test_run_param_overrides_pass_node_parameters_and_refuse_other_forms(
     assert out.err == ("haptic-topology run: error: -p: expected NODE:NAME:=VALUE with NODE "
                        "one of recorder, ve_sim, lmi_controller, device_driver, "
                        "foxglove_bridge, got 've_sim:nice'\n")
+
+
+def test_a_second_run_on_a_claimed_domain_refuses_in_one_line(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    from haptic_topology.bringup.run import claim_domain
+    from haptic_topology.errors import ConfigError
+
+    domain = 232        # the largest valid id: no test session's graphs use it
+    fd = claim_domain(domain)
+    try:
+        with pytest.raises(ConfigError, match=rf'^ROS domain {domain}: another haptic-topology '
+                           rf'run uses it on this machine \(pid {os.getpid()}\); stop it, or '
+                           r'give this run another domain, e.g. ROS_DOMAIN_ID=\d+$'):
+            claim_domain(domain)
+        # as a user meets it: `haptic-topology run` on that domain, before any output
+        monkeypatch.setenv('ROS_DOMAIN_ID', str(domain))
+        assert cli.main(['run', 'circle', '--duration', '1']) == 1
+        out = capsys.readouterr()
+        assert out.out == ''
+        assert out.err.startswith(f'haptic-topology run: error: ROS domain {domain}: another '
+                                  'haptic-topology run uses it')
+        assert out.err.count('\n') == 1
+    finally:
+        os.close(fd)
+    os.close(claim_domain(domain))          # released: the next run gets it

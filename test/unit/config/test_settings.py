@@ -38,6 +38,7 @@ _EX = ('events', 'single_threaded')
 _COMMON: list[tuple[str, Any, float | None, float | None, tuple[str, ...] | None, bool]] = [
     ('scenario', 'fig8', None, None, None, True),
     ('executor', 'events', None, None, _EX, True),
+    ('graph_id', '', None, None, None, True),
     ('sched_priority', 0, 0, 99, None, True),
 ]
 #: name, ROS default, lo, hi, choices, read_only: the tables before the settings classes, plus
