@@ -7,6 +7,20 @@ import os
 from collections.abc import Sequence
 
 
+def _thread_ids() -> list[int]:
+    """The ids of this process's threads (``[0]``, the caller, where /proc is not there)."""
+    try:
+        return [int(t) for t in os.listdir('/proc/self/task')]
+    except OSError:
+        return [0]
+
+
+def _renice(tid: int, increment: int) -> None:
+    """Raise thread ``tid``'s nice value by ``increment`` (at most to 19)."""
+    os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + increment,
+                                             19))
+
+
 def set_realtime_priority(priority: int) -> str | None:
     """Put every thread of this process (DDS's receive threads included, which run the
     subscription callbacks' wake-ups) under SCHED_FIFO at ``priority``; threads started later
@@ -20,11 +34,7 @@ def set_realtime_priority(priority: int) -> str | None:
     runaway loop cannot lock the machine.
     """
     try:
-        tids = [int(t) for t in os.listdir('/proc/self/task')]
-    except OSError:
-        tids = [0]
-    try:
-        for tid in tids:
+        for tid in _thread_ids():
             os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
     except PermissionError:
         return (f'sched_priority {priority}: not permitted (needs CAP_SYS_NICE or an rtprio '
@@ -39,26 +49,20 @@ def renice_process(increment: int) -> str | None:
     later inherit their creator's). Linux keeps a nice value per thread, so
     ``os.nice`` alone would change only the calling one. Raising nice needs no privilege.
     Returns None, or why it failed."""
-    try:
-        tids = [int(t) for t in os.listdir('/proc/self/task')]
-    except OSError:
-        tids = [0]
-    try:
-        for tid in tids:
-            old = os.getpriority(os.PRIO_PROCESS, tid)
-            os.setpriority(os.PRIO_PROCESS, tid, min(old + increment, 19))
-    except ProcessLookupError:
-        pass                # a thread ended meanwhile
-    except OSError as exc:
-        return f'nice {increment}: {exc}; priority unchanged'
+    for tid in _thread_ids():
+        try:
+            _renice(tid, increment)
+        except ProcessLookupError:
+            continue            # the thread ended meanwhile
+        except OSError as exc:
+            return f'nice {increment}: {exc}; priority unchanged'
     return None
 
 
 def renice_thread(increment: int) -> str | None:
     """Raise the calling thread's nice value by ``increment``; None, or why it failed."""
     try:
-        os.setpriority(os.PRIO_PROCESS, 0, min(os.getpriority(os.PRIO_PROCESS, 0)
-                                               + increment, 19))
+        _renice(0, increment)
     except OSError as exc:
         return f'nice {increment}: {exc}; priority unchanged'
     return None
