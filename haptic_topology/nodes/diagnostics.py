@@ -70,8 +70,9 @@ class PublisherWatch:
     namespace). Every ``period`` s (steady clock) the node's graph cache is asked for the
     topic's publishers (``get_publishers_info_by_topic``); one of another name or another
     namespace is *foreign*: named in :meth:`values` and :meth:`problem` (the node reports
-    ERROR while one is there) and logged once at ERROR when it appears, and ``on_new`` is
-    called so the node reports it at once rather than at its next diagnostics period.
+    ERROR while one is there) and logged once at ERROR the first time it appears; ``on_new``
+    is called whenever one appears, so the node reports it at once rather than at its next
+    diagnostics period.
     Messages are kept out by the graph identity (``graph_id``), not by this: DDS gives a
     message no publisher identity here, so this names who is there.
     """
@@ -97,15 +98,16 @@ class PublisherWatch:
                       and i.node_name != UNKNOWN_NODE}     # its name not discovered yet
             if others:
                 found[topic] = tuple(sorted(others))
-        new = {p for names in found.values() for p in names} - self.seen
+        before = {p for names in self.foreign.values() for p in names}
+        now = {p for names in found.values() for p in names}
         self.foreign = found
-        if new:
-            self.seen |= new
+        if now - self.seen:
+            self.seen |= now
             self.node.get_logger().error(f'foreign publisher(s) on the graph\'s topics: '
                                          f'{self.describe()}; their messages are not applied '
                                          'unless they carry this graph\'s graph_id')
-            if self._on_new is not None:
-                self._on_new()
+        if now - before and self._on_new is not None:
+            self._on_new()          # reported at once, also when one comes back
 
     def describe(self) -> str:
         return '; '.join(f'{t}: {", ".join(p)}' for t, p in sorted(self.foreign.items()))
