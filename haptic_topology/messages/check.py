@@ -3,9 +3,10 @@
 Every field of an incoming ``haptic_topology_msgs`` message is checked before the core sees
 it: ``task_dim`` and ``dof`` against the linkage, every array's size, every float finite (where
 the core computes with it), every integer against its range. A failed check raises
-:class:`MessageError` naming the message type, the field, the expected value and the value
-received, with a ``reason`` (one of :data:`REASONS`) that the nodes count per reason in their
-diagnostics (``rejected_<reason>``) and the bag analysis counts per reason in its summary.
+:class:`~haptic_topology.errors.MessageError` naming the message type, the field, the
+expected value and the value received, with a ``reason`` (one of :data:`REASONS`) that the
+nodes count per reason in their diagnostics (``rejected_<reason>``) and the bag analysis
+counts per reason in its summary.
 
 The functions take any object with the message's attributes: an rclpy message in the nodes, a
 ``rosbags`` message in the bag tools.
@@ -32,6 +33,7 @@ from __future__ import annotations
 import hashlib
 import secrets
 from collections import Counter
+from collections.abc import Callable
 from itertools import pairwise
 from typing import Any
 
@@ -41,7 +43,8 @@ from haptic_topology import vocabulary as vocab
 from haptic_topology.errors import MessageError
 
 #: Why a message was rejected (diagnostics keys ``rejected_<reason>``).
-REASONS = ('task_dim', 'dof', 'size', 'non_finite', 'range')
+REASONS = ('task_dim', 'dof', 'size', 'non_finite', 'range', 'session', 'source', 'model',
+           'continuity')
 
 #: Largest sequence number accepted (see module doc).
 MAX_SEQ = 2 ** 53
@@ -99,6 +102,82 @@ class GraphFilter:
                 **{f'foreign {t}': str(n) for t, n in sorted(self.foreign.items())}}
 
 
+class SourceGate:
+    """Which publishers of one input topic are the graph's own, and whether a message may
+    open a new session of its sender.
+
+    A message carries no publisher identity here (rclpy gives none per message), so the gate
+    works from the graph: the node feeds it the topic's publishers with :meth:`observe`
+    (endpoint gids of the node names the graph expects on the topic, in its namespace, and the
+    names of the others). Two decisions follow:
+
+    * :meth:`new_session`: a message numbered below its predecessor (seq 0 after seq 5,000)
+      claims that its sender restarted. That is believed only when an own endpoint is there
+      that the current session never saw (the restarted node's new publisher); a message that
+      only *says* so, from the same endpoints, is refused (reason ``session``).
+    * :meth:`distinct`: the graph can tell its own messages from foreign ones while an own
+      publisher is there or no foreign one is. With the own one gone and a foreign one left,
+      a message with this graph's ``graph_id`` can only be foreign: refused (reason
+      ``source``). Before an own publisher has been seen once, none is *gone*: the node may
+      have discovered a foreign one first, or a user's node under another name may be the
+      graph's only source (``PublisherWatch`` names it at ERROR either way).
+    """
+
+    def __init__(self, topic: str, owner: str, refresh: Callable[[], None] | None = None
+                 ) -> None:
+        self.topic = topic
+        self.owner = owner                  # the expected publisher, for messages
+        self.own: frozenset[bytes] = frozenset()
+        self.foreign: tuple[str, ...] = ()
+        self._session: set[bytes] = set()   # own endpoints seen while the session ran
+        self._had_own = False               # an own publisher was seen once
+        #: Asks the graph again (it calls :meth:`observe`) before a refusal: a publisher that
+        #: has just appeared may send before the node's periodic look at the graph.
+        self.refresh = refresh
+
+    def observe(self, own: frozenset[bytes], foreign: tuple[str, ...]) -> None:
+        """The topic's publishers now: the own endpoints' gids and the foreign ones' names."""
+        self.own, self.foreign = own, foreign
+        self._had_own = self._had_own or bool(own)
+
+    def accepted(self) -> None:
+        """A message of the current session was applied: its endpoints belong to it."""
+        self._session |= self.own
+
+    def new_session(self) -> bool:
+        """Whether a message that restarts its sender's numbering may be believed: an own
+        endpoint is there that this session never saw (see class doc). If so, the session
+        starts over with the endpoints there now."""
+        if not self.own - self._session and self.refresh is not None:
+            self.refresh()
+        if not self.own - self._session:
+            return False
+        self._session = set(self.own)
+        return True
+
+    def distinct(self) -> bool:
+        """Whether this graph's messages on the topic can be told from foreign ones."""
+        return bool(self.own) or not self.foreign or not self._had_own
+
+    def refuse(self) -> MessageError | None:
+        """Why a message of this graph on the topic cannot be taken now (None: it can): the
+        own publisher gone while a foreign one publishes."""
+        if self.distinct():
+            return None
+        if self.refresh is not None:
+            self.refresh()
+            if self.distinct():
+                return None
+        return MessageError('source', f'{self.topic}: no {self.owner} of this graph publishes '
+                            f'it and {", ".join(self.foreign)} does: this graph\'s messages '
+                            'cannot be told from foreign ones, none is applied')
+
+    def refuse_restart(self, seq: int, previous: int) -> MessageError:
+        """The refusal of a message that restarts the numbering without a new endpoint."""
+        return MessageError('session', f'{self.topic}: seq {seq} after {previous} but no new '
+                            f'{self.owner} endpoint: not a restart, refused')
+
+
 class RejectCounter:
     """Rejected messages per reason (for ``/diagnostics`` and bag summaries)."""
 
@@ -143,7 +222,8 @@ def finite_scalar(msg: Any, field: str) -> float:
 
 
 def check_range(ok: bool, msg: Any, text: str) -> None:
-    """Raise a ``range`` :class:`MessageError` ``<Type>.<text>`` unless ``ok``."""
+    """Raise a ``range`` :class:`~haptic_topology.errors.MessageError`
+    ``<Type>.<text>`` unless ``ok``."""
     if not ok:
         raise MessageError('range', f'{_name(msg)}.{text}')
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Mapping
@@ -9,6 +10,8 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
+
+from haptic_topology.messages.check import RejectCounter, SourceGate
 
 
 def diagnostics(node: Node, name: str, values: dict[str, str], level: int = 0,
@@ -63,6 +66,10 @@ def monotonic() -> float:
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
 
 
+#: Shortest interval (s) between two looks at the graph that a gate asks for.
+REFRESH_PERIOD = 0.01
+
+
 class PublisherWatch:
     """Publishers of a node's input topics that its graph does not expect.
 
@@ -74,7 +81,10 @@ class PublisherWatch:
     is called whenever one appears, so the node reports it at once rather than at its next
     diagnostics period.
     Messages are kept out by the graph identity (``graph_id``), not by this: DDS gives a
-    message no publisher identity here, so this names who is there.
+    message no publisher identity here, so this names who is there. What it sees feeds one
+    :class:`~haptic_topology.messages.check.SourceGate` per topic (:attr:`gates`): whether a
+    message that restarts its sender's numbering comes with a new own endpoint, and whether
+    the graph can still tell its own messages from foreign ones.
     """
 
     def __init__(self, node: Node, expected: Mapping[str, tuple[str, ...]],
@@ -85,19 +95,35 @@ class PublisherWatch:
         self.expected = {node.resolve_topic_name(t): (t, names) for t, names in expected.items()}
         self.foreign: dict[str, tuple[str, ...]] = {}     # topic -> 'namespace/name', sorted
         self.seen: set[str] = set()                       # every foreign publisher so far
+        self.gates = {topic: SourceGate(topic, names[0], self._refresh)
+                      for topic, names in expected.items()}
         self._on_new = on_new
+        self._refreshed = -math.inf
         node.create_timer(period, self.check, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def check(self) -> None:
         ns = self.node.get_namespace()
         found: dict[str, tuple[str, ...]] = {}
         for resolved, (topic, names) in self.expected.items():
-            others = {f'{i.node_namespace.rstrip("/")}/{i.node_name}'
-                      for i in self.node.get_publishers_info_by_topic(resolved)
-                      if (i.node_name not in names or i.node_namespace != ns)
-                      and i.node_name != UNKNOWN_NODE}     # its name not discovered yet
+            others: set[str] = set()
+            own: set[bytes] = set()
+            for i in self.node.get_publishers_info_by_topic(resolved):
+                if i.node_name == UNKNOWN_NODE:               # its name not discovered yet
+                    continue
+                if i.node_name in names and i.node_namespace == ns:
+                    own.add(bytes(i.endpoint_gid))
+                else:
+                    others.add(f'{i.node_namespace.rstrip("/")}/{i.node_name}')
             if others:
                 found[topic] = tuple(sorted(others))
+            gate = self.gates[topic]
+            told_apart = gate.distinct()
+            gate.observe(frozenset(own), found.get(topic, ()))
+            if told_apart and not gate.distinct():     # said once, when it happens
+                self.node.get_logger().error(
+                    f'{topic}: no {gate.owner} of this graph publishes it and '
+                    f'{", ".join(gate.foreign)} does: this graph\'s messages on it cannot be '
+                    f'told from foreign ones; none is applied until {gate.owner} is back')
         before = {p for names in self.foreign.values() for p in names}
         now = {p for names in found.values() for p in names}
         self.foreign = found
@@ -109,12 +135,36 @@ class PublisherWatch:
         if now - before and self._on_new is not None:
             self._on_new()          # reported at once, also when one comes back
 
+    def admits(self, topic: str, rejected: RejectCounter) -> bool:
+        """Whether a message of this graph on ``topic`` may be taken now (else it is counted
+        in ``rejected``): not while no expected publisher of the graph is there and a
+        foreign one is (:meth:`~haptic_topology.messages.check.SourceGate.refuse`)."""
+        refusal = self.gates[topic].refuse()
+        if refusal is not None:
+            rejected.add(refusal)
+        return refusal is None
+
+    def _refresh(self) -> None:
+        """A gate's look at the graph before it refuses; at most every
+        :data:`REFRESH_PERIOD` s (a sender cannot make the node query the graph per
+        message)."""
+        now = time.monotonic()
+        if now - self._refreshed >= REFRESH_PERIOD:
+            self._refreshed = now
+            self.check()
+
     def describe(self) -> str:
         return '; '.join(f'{t}: {", ".join(p)}' for t, p in sorted(self.foreign.items()))
 
     def problem(self) -> str | None:
         """The ERROR message while a foreign publisher is there (None: none)."""
-        return f'foreign publisher(s): {self.describe()}' if self.foreign else None
+        if not self.foreign:
+            return None
+        lost = [f'no {g.owner} of this graph on {t}' for t, g in self.gates.items()
+                if not g.distinct()]
+        lost_text = (f'{"; ".join(lost)}: its messages cannot be told from foreign ones, '
+                     'none is applied; ') if lost else ''
+        return f'{lost_text}foreign publisher(s): {self.describe()}'
 
     def values(self) -> dict[str, str]:
         """``foreign_publishers``: the foreign publishers now, ``topic: name, ...; ...``."""

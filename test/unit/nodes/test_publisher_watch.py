@@ -30,8 +30,9 @@ class _Graph:
         return SimpleNamespace(error=self.errors.append)
 
     def get_publishers_info_by_topic(self, topic: str) -> list[Any]:
-        return [SimpleNamespace(node_namespace=ns, node_name=name)
-                for ns, name in self.publishers.get(topic, [])]
+        return [SimpleNamespace(node_namespace=ns, node_name=name,
+                                endpoint_gid=list(f'{ns}{name}#{k}'.encode()))
+                for k, (ns, name) in enumerate(self.publishers.get(topic, []))]
 
 
 def test_foreign_publishers_are_named_reported_at_once_and_logged_once() -> None:
@@ -59,3 +60,28 @@ def test_foreign_publishers_are_named_reported_at_once_and_logged_once() -> None
     graph.publishers['/haptic/lmi/update'].append(('/', 'intruder'))
     watch.check()                                   # back: reported at once, logged once
     assert reports == [1, 1] and len(graph.errors) == 1
+
+
+def test_gates_see_own_endpoints_and_name_a_topic_whose_own_publisher_is_gone() -> None:
+    graph = _Graph()
+    watch = PublisherWatch(graph, {'haptic/lmi/update': ('ve_sim',)})   # type: ignore[arg-type]
+    gate = watch.gates['haptic/lmi/update']
+    graph.publishers['/haptic/lmi/update'] = [('/', 've_sim')]
+    watch.check()
+    assert gate.own == frozenset({b'/ve_sim#0'}) and gate.foreign == () and gate.distinct()
+    graph.publishers['/haptic/lmi/update'] = [('/', 'intruder')]        # own one gone
+    watch.check()
+    assert gate.own == frozenset() and gate.foreign == ('/intruder',) and not gate.distinct()
+    said = [e for e in graph.errors if 'cannot be told' in e]
+    assert said == ["haptic/lmi/update: no ve_sim of this graph publishes it and /intruder "
+                    "does: this graph's messages on it cannot be told from foreign ones; none "
+                    'is applied until ve_sim is back']
+    watch.check()                                 # still so: said once
+    assert len([e for e in graph.errors if 'cannot be told' in e]) == 1
+    assert watch.problem() == (
+        'no ve_sim of this graph on haptic/lmi/update: its messages cannot be told from '
+        'foreign ones, none is applied; foreign publisher(s): haptic/lmi/update: /intruder')
+    graph.publishers['/haptic/lmi/update'] = [('/', 'intruder'), ('/', 've_sim')]
+    watch.check()                                 # back: both, told apart by graph_id
+    assert gate.distinct() and watch.problem() == (
+        'foreign publisher(s): haptic/lmi/update: /intruder')

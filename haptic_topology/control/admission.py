@@ -1,0 +1,185 @@
+"""What a node takes of its own graph's messages: from its own publisher, in sequence, and
+consistent with what it knows (the graph-identity issue's points 2-4; see ``docs/safety.md``).
+
+``graph_id`` keeps another graph's messages out (``haptic_topology.messages.check.
+GraphFilter``). A message that carries this graph's id may still be false: a replay of an old
+bag, a second process that copies the id (it is no secret), a program gone wrong. The checks
+here refuse what the receiver can prove wrong, each with a
+:class:`~haptic_topology.errors.MessageError` whose ``reason`` the node counts in
+``/diagnostics`` (``rejected_<reason>``):
+
+* ``source``: the own publisher of the topic is gone and a foreign one publishes there
+  (``SourceGate.refuse``): nothing is applied; the controller's staleness guard then
+  fades the force to zero;
+* ``session``: the sequence restarts (a message numbered below its predecessor) without a new
+  endpoint of the own publisher (``SourceGate.new_session``): a message that only *says*
+  its sender restarted is refused;
+* ``model`` (:class:`UpdateAdmission`): an ``LmiUpdate`` whose hand pose, mass matrix
+  ``D(q)``, gravity ``G(q)``, hand Jacobian ``J_h(q)`` or hand twist ``J_h dq`` disagree with
+  the controller's own model of the linkage at the update's ``q`` (eqs. 1, 3, 18);
+* ``continuity``: an ``LmiUpdate`` that consumed an older hand input than its predecessor
+  (a VE never goes back); a ``HandInputs`` batch stamped before its predecessor, or one that
+  directly continues it (the next seq: one device cycle later) with the device pose further
+  from the previous sample than the device's twist reaches (:class:`HandAdmission`).
+
+Not protected: a sender that copies the graph id *and* publishes updates consistent with the
+model and continuous with the own ones. Only authenticated transport (SROS2 over a
+security-enabled DDS) keeps such a sender out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from haptic_topology.control.lmi import LmiSnapshot
+from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+from haptic_topology.dynamics.taskspace import pose_difference
+from haptic_topology.errors import MessageError
+from haptic_topology.messages.check import SourceGate
+from haptic_topology.vocabulary import TaskSpace
+
+#: Relative tolerance of the model check: the VE computes the same quantities with the same
+#: code (Pinocchio), so an own update agrees to rounding (measured: exactly).
+MODEL_RTOL = 1e-9
+#: Slack of the hand-input continuity check on translation rows (m) ...
+POSE_SLACK_M = 0.005
+#: ... and on rotation rows (rad).
+POSE_SLACK_RAD = 0.05
+
+
+class UpdateAdmission:
+    """The controller's checks of its graph's LMI updates, in the order applied:
+
+    1. source and session (``gate``, None: not checked; the node's publisher watch feeds it);
+    2. ``model``: the update's hand pose, ``D``, ``G``, ``J_h``, ``J_h dq`` against
+       ``dynamics`` (the controller's linkage) at its ``q``, to :data:`MODEL_RTOL` of each
+       quantity's largest entry (at least 1);
+    3. ``continuity``: the hand input the update consumed is not older than the previous
+       update's (a VE that dropped its held input for a restarted controller says -1).
+
+    The update's joint motion is not bounded: a VT whirling under the hand (the circle
+    scenario under fault injection reached ~80 rad/s, 37.8 rad in 0.54 s between two
+    updates) outruns any bound from the joint velocities at the two updates, and a refused
+    own update leaves the controller on a stale model. The re-sync's force-jump check
+    (``resync_max_jump``) is what limits a jump that does get through.
+
+    A new session (the VE restarted) starts without a previous update.
+    """
+
+    def __init__(self, dynamics: LinkageDynamics | None,
+                 gate: SourceGate | None = None) -> None:
+        self.dyn = dynamics
+        self.gate = gate
+        self._prev: LmiSnapshot | None = None
+
+    def admit(self, snap: LmiSnapshot) -> None:
+        """Raise :class:`~haptic_topology.errors.MessageError` if ``snap`` may not be
+        applied; otherwise it becomes the previous update of the continuity check."""
+        prev = self._prev
+        gate = self.gate
+        if gate is not None:
+            refusal = gate.refuse()
+            if refusal is not None:
+                raise refusal
+            if prev is not None and snap.seq < prev.seq:
+                if not gate.new_session():
+                    raise gate.refuse_restart(snap.seq, prev.seq)
+                prev = None
+        if self.dyn is not None:
+            self._check_model(snap)
+        if prev is not None:
+            self._check_continuity(prev, snap)
+        if gate is not None:
+            gate.accepted()
+        self._prev = snap
+
+    def _check_model(self, snap: LmiSnapshot) -> None:
+        dyn = self.dyn
+        assert dyn is not None
+        q = snap.q
+        j6 = dyn.hand_frame_jacobian(q)          # also places the grasp frame
+        jac = j6[list(dyn.task_rows), :]
+        pose_error = pose_difference(snap.hand_pose, dyn.hand_pose_in_data(), snap.task)
+        for name, got, want in (
+                ('hand_pose', pose_error, np.zeros_like(pose_error)),
+                ('mass_matrix', snap.mass_matrix, dyn.mass_matrix(q)),
+                ('gravity', snap.gravity, dyn.gravity(q)),
+                ('hand_jacobian', snap.hand_jacobian, jac),
+                ('hand_twist', snap.hand_twist, jac @ snap.dq)):
+            scale = max(1.0, float(np.max(np.abs(want))) if want.size else 1.0)
+            err = float(np.max(np.abs(got - want))) if want.size else 0.0
+            if not err <= MODEL_RTOL * scale:
+                raise MessageError('model', f'LmiUpdate {snap.seq}: {name} differs from this '
+                                   f'controller\'s linkage at its q by {err:.3g} (expected at '
+                                   f'most {MODEL_RTOL * scale:.3g}): another linkage or a '
+                                   'false update')
+
+    @staticmethod
+    def _check_continuity(prev: LmiSnapshot, snap: LmiSnapshot) -> None:
+        if 0 <= snap.hand_input_seq < prev.hand_input_seq:    # (-1: it dropped its input)
+            raise MessageError('continuity', f'LmiUpdate {snap.seq}: consumed hand input '
+                               f'{snap.hand_input_seq} after update {prev.seq} had consumed '
+                               f'{prev.hand_input_seq}: a VE never goes back')
+
+
+class HandAdmission:
+    """The VE's checks of its graph's hand-input batches, in the order applied:
+
+    1. source (``gate``, as :class:`UpdateAdmission`) and session: a batch whose first seq
+       is not above the previous batch's last starts a new session (a restarted controller,
+       or a reactivated driver whose loop numbers its inputs from 1 again on the same
+       endpoint) only when it is stamped later than the previous sample or comes with a new
+       endpoint of the controller, never as a copy of inputs already taken;
+    2. ``continuity``, for a batch that directly continues the previous one (its first seq
+       the next: one device cycle later): stamped no earlier, and its first device pose
+       reachable from the previous sample, ``|x (-) x_prev| <= max(|xd_prev|, |xd|) dt +
+       slack`` per row (slack :data:`POSE_SLACK_M` on translation rows,
+       :data:`POSE_SLACK_RAD` on rotation rows; ``dt`` the stamp difference, s). After lost
+       inputs (a gap in the seqs) the device may have gone anywhere its hand took it: not
+       checked. Within a batch the samples are consecutive cycles of one controller.
+    """
+
+    def __init__(self, task: TaskSpace, gate: SourceGate | None = None) -> None:
+        self.task = task
+        self.gate = gate
+        slack = np.full(task.dim, POSE_SLACK_RAD)
+        slack[task.translation_rows] = POSE_SLACK_M
+        self.slack = slack
+        self._last: tuple[int, float, np.ndarray, np.ndarray] | None = None
+
+    def admit(self, seqs: list[int], stamps: list[float] | np.ndarray, pose: np.ndarray,
+              twist: np.ndarray) -> None:
+        """Raise :class:`~haptic_topology.errors.MessageError` if the batch (``seqs``,
+        ``stamps`` s, n x m ``pose``, ``twist``) may not be taken; otherwise its last sample
+        is remembered."""
+        last = self._last
+        gate = self.gate
+        if gate is not None:
+            refusal = gate.refuse()
+            if refusal is not None:
+                raise refusal
+        if last is not None and seqs[0] <= last[0]:
+            # A new controller, or one whose loop was started again (a reactivated driver:
+            # same endpoint, new numbering, later stamps); not a copy of inputs already taken.
+            if not (float(stamps[0]) > last[1] or (gate is not None and gate.new_session())):
+                raise MessageError('session', f'HandInputs seq {seqs[0]} after {last[0]}, '
+                                   'stamped no later and from no new controller endpoint: '
+                                   'not a restart, refused')
+            last = None
+        if last is not None and seqs[0] == last[0] + 1:      # the next device cycle's input
+            _, t_prev, x_prev, v_prev = last
+            dt = float(stamps[0]) - t_prev
+            if dt < 0.0:
+                raise MessageError('continuity', f'HandInputs seq {seqs[0]}: stamped '
+                                   f'{-dt * 1e3:.3f} ms before the previous sample')
+            moved = np.abs(pose_difference(pose[0], x_prev, self.task))
+            reach = np.maximum(np.abs(v_prev), np.abs(twist[0])) * dt + self.slack
+            over = moved - reach
+            i = int(np.argmax(over))
+            if over[i] > 0.0:
+                raise MessageError('continuity', f'HandInputs seq {seqs[0]}: device pose row '
+                                   f'{i} moved {moved[i]:.4g} in {dt * 1e3:.1f} ms, expected '
+                                   f'at most {reach[i]:.4g} at its twist')
+        if gate is not None:
+            gate.accepted()
+        self._last = (int(seqs[-1]), float(stamps[-1]), np.array(pose[-1]), np.array(twist[-1]))

@@ -1,0 +1,167 @@
+"""What the controller and the VE take of their own graph's messages
+(:mod:`haptic_topology.control.admission`, :class:`~haptic_topology.messages.check.
+SourceGate`): exact refusals by reason, and no refusal of what the offline simulation
+sends."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from haptic_topology.control.admission import HandAdmission, UpdateAdmission
+from haptic_topology.device.hosted import HostedCycle
+from haptic_topology.dynamics import LinkageDynamics
+from haptic_topology.errors import MessageError
+from haptic_topology.messages.check import SourceGate
+from haptic_topology.sim import load_scenario
+from haptic_topology.sim.lockstep import (
+    build_controller_loop,
+    build_device_loop,
+    virtual_environment,
+)
+from haptic_topology.sim.scenario import Scenario
+
+
+def _reason(call: object, *args: object) -> tuple[str, str]:
+    with pytest.raises(MessageError) as info:
+        call(*args)                                        # type: ignore[operator]
+    return info.value.reason, str(info.value)
+
+
+def _run(sc: Scenario) -> tuple[list[tuple[object, float]], list[tuple]]:
+    """The LMI updates (with their time, s) and the hand-input batches of ``sc`` run as
+    ``simulate`` runs it (the VE takes every input; an update every update period)."""
+    ve = virtual_environment(sc)
+    cycle = HostedCycle(build_device_loop(sc),
+                        build_controller_loop(sc, sc.mode, update_period=sc.update_period))
+    updates = [(ve.snapshot(seq=0), 0.0)]
+    cycle.offer_update(updates[0][0])
+    batches: list[tuple] = []
+    batch: list[tuple] = []
+    inputs = 0
+    for k in range(int(round(sc.duration / sc.dt))):
+        t = k * sc.dt
+        done = cycle.step(t, sc.dt, t)
+        hand = done.answer.hand if done.answer is not None else None
+        if hand is None:
+            continue
+        ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
+        inputs += 1
+        batch.append((hand.seq, t, done.tick.reading.pose.copy(),
+                      done.tick.reading.twist.copy()))
+        if inputs % sc.update_period == 0:
+            batches.append(tuple(zip(*batch, strict=True)))
+            batch = []
+            updates.append((ve.snapshot(seq=len(updates)), t))
+            cycle.offer_update(updates[-1][0])
+    return updates, batches
+
+
+@pytest.mark.parametrize('name', ['fig8', 'wall', 'spatial_arm4'])
+def test_every_update_and_batch_of_a_run_is_admitted(name: str) -> None:
+    sc = load_scenario(name)
+    updates, batches = _run(sc)
+    gate = SourceGate('lmi/update', 've_sim')
+    gate.observe(frozenset({b've'}), ())
+    admit = UpdateAdmission(LinkageDynamics(sc.linkage), gate)
+    for snap, _ in updates:
+        admit.admit(snap)                                  # raises on a refusal
+    hands = HandAdmission(sc.linkage.task)
+    for seqs, stamps, pose, twist in batches:
+        hands.admit(list(seqs), list(stamps), np.array(pose), np.array(twist))
+    assert len(updates) > 100 and len(batches) == len(updates) - 1
+
+
+def test_an_update_of_another_model_or_an_older_input_is_refused_and_the_own_ones_go_on(
+        ) -> None:
+    sc = load_scenario('fig8')
+    updates = [u for u, _ in _run(dataclasses.replace(sc, duration=0.2))[0]]
+    admit = UpdateAdmission(LinkageDynamics(sc.linkage))
+    admit.admit(updates[0])
+    # each LMI quantity altered in turn: named in the refusal
+    for field, change in (('mass_matrix', lambda a: a * 1.001),
+                          ('gravity', lambda a: a + 0.01),
+                          ('hand_jacobian', lambda a: a + 1e-6),
+                          ('hand_pose', lambda a: a + np.array([0.02, 0.0, 0.0])),
+                          ('hand_twist', lambda a: a + 1e-6)):
+        bad = dataclasses.replace(updates[1], **{field: change(getattr(updates[1], field))})
+        reason, text = _reason(admit.admit, bad)
+        assert reason == 'model' and text.startswith(f'LmiUpdate 1: {field} differs'), text
+    # the VE's own code at another q is consistent with the model: it passes this check
+    far = virtual_environment(dataclasses.replace(sc, q0=sc.q0 + 0.3)).snapshot(seq=1)
+    UpdateAdmission(LinkageDynamics(sc.linkage)).admit(far)
+    for snap in updates[1:]:                               # the own ones go on
+        admit.admit(snap)
+    # an update of the run numbered as the next: consistent, but the VE went back in time
+    stale = dataclasses.replace(updates[5], seq=len(updates))
+    reason, text = _reason(admit.admit, stale)
+    assert reason == 'continuity' and text == (
+        f'LmiUpdate {len(updates)}: consumed hand input {updates[5].hand_input_seq} after '
+        f'update {len(updates) - 1} had consumed {updates[-1].hand_input_seq}: a VE never '
+        'goes back')
+    # -1: a VE that dropped its held input (a restarted controller) goes on from there
+    admit.admit(dataclasses.replace(updates[-1], seq=len(updates), hand_input_seq=-1))
+
+
+def test_a_restart_is_believed_only_with_a_new_endpoint_of_the_own_publisher() -> None:
+    sc = load_scenario('fig8')
+    updates, _ = _run(dataclasses.replace(sc, duration=0.1))
+    gate = SourceGate('lmi/update', 've_sim')
+    gate.observe(frozenset({b'old'}), ())
+    admit = UpdateAdmission(LinkageDynamics(sc.linkage), gate)
+    for snap, _ in updates[:5]:
+        admit.admit(snap)
+    moved = virtual_environment(dataclasses.replace(sc, q0=sc.q0 + 0.3))
+    restart = moved.snapshot(seq=0)
+    reason, text = _reason(admit.admit, restart)
+    assert (reason, text) == ('session', 'lmi/update: seq 0 after 4 but no new ve_sim '
+                              'endpoint: not a restart, refused')
+    gate.observe(frozenset({b'old', b'new'}), ())          # a ve_sim endpoint it never saw
+    admit.admit(restart)                                   # a new session
+    admit.admit(moved.snapshot(seq=1))
+    reason, _ = _reason(admit.admit, moved.snapshot(seq=0))          # same endpoints again
+    assert reason == 'session'
+
+
+def test_no_update_is_taken_while_the_own_publisher_is_gone_and_a_foreign_one_is_there() -> None:
+    sc = load_scenario('fig8')
+    updates, _ = _run(dataclasses.replace(sc, duration=0.05))
+    gate = SourceGate('lmi/update', 've_sim')
+    admit = UpdateAdmission(LinkageDynamics(sc.linkage), gate)
+    gate.observe(frozenset(), ('/intruder',))              # no ve_sim seen yet: none gone
+    admit.admit(updates[0][0])
+    gate.observe(frozenset({b've'}), ())
+    gate.observe(frozenset(), ('/intruder',))              # the VE gone, a foreign one there
+    reason, text = _reason(admit.admit, updates[1][0])
+    assert reason == 'source' and text == (
+        "lmi/update: no ve_sim of this graph publishes it and /intruder does: this graph's "
+        'messages cannot be told from foreign ones, none is applied')
+    gate.observe(frozenset({b've'}), ('/intruder',))       # back: told apart by graph_id
+    admit.admit(updates[1][0])
+
+
+def test_hand_inputs_copied_shifted_or_back_in_time_are_refused() -> None:
+    sc = load_scenario('fig8')
+    _, batches = _run(dataclasses.replace(sc, duration=0.1))
+    hands = HandAdmission(sc.linkage.task, SourceGate('hand_inputs', 'lmi_controller'))
+    (seqs, stamps, pose, twist), second = batches[0], batches[1]
+    pose, twist = np.array(pose), np.array(twist)
+    hands.admit(list(seqs), list(stamps), pose, twist)
+    shift = np.array([0.02, 0.0, 0.0])
+    # a copy 2 cm off, numbered and stamped as the batch taken: not a new controller
+    reason, _ = _reason(hands.admit, list(seqs), list(stamps), pose + shift, twist)
+    assert reason == 'session'
+    # the next batch 2 cm off: the device cannot get there in one cycle at its twist
+    nxt = (list(second[0]), list(second[1]), np.array(second[2]), np.array(second[3]))
+    reason, text = _reason(hands.admit, nxt[0], nxt[1], nxt[2] + shift, nxt[3])
+    assert reason == 'continuity' and 'device pose row 0 moved 0.02' in text, text
+    reason, text = _reason(hands.admit, nxt[0], [s - 0.5 for s in nxt[1]], *nxt[2:])
+    assert reason == 'continuity' and 'before the previous sample' in text
+    hands.admit(*nxt)
+    # after lost inputs (a gap in the seqs) the device may be anywhere: not checked
+    third = batches[3]
+    hands.admit(list(third[0]), list(third[1]), np.array(third[2]) + shift, np.array(third[3]))
+    # a controller that numbers from 1 again, later (a reactivated driver): a new session
+    hands.admit([1, 2], [1.0, 1.001], nxt[2][:2] + shift, nxt[3][:2])
