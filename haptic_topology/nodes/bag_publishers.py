@@ -7,7 +7,7 @@ from __future__ import annotations
 import importlib
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from rosbags.rosbag2.errors import ReaderError
@@ -67,16 +67,19 @@ def _update_seq(data: Any) -> int:
 
 
 class Publishers:
-    """One publisher per topic of the items (QoS from the bag), under ``namespace``."""
+    """One publisher per topic of the items (QoS from the bag), under ``namespace``, by
+    ``node`` or, for a topic in ``nodes`` (name without the leading slash), by that node."""
 
-    def __init__(self, node: Any, bag: Bag, items: Sequence[Item], namespace: str = '') -> None:
+    def __init__(self, node: Any, bag: Bag, items: Sequence[Item], namespace: str = '',
+                 nodes: Mapping[str, Any] | None = None) -> None:
         channels = read_channels(bag)
         self.pubs: dict[str, Any] = {}
         for topic, msgtype in {it.topic: it.msgtype for it in items}.items():
             name = topic if not namespace or topic == '/diagnostics' else (
                 namespace.rstrip('/') + '/' + topic.lstrip('/'))
             qos = _qos_profile(channels.get(topic, {}).get('metadata', {}), topic)
-            self.pubs[topic] = node.create_publisher(message_class(msgtype), name, qos)
+            owner = (nodes or {}).get(topic.lstrip('/'), node)
+            self.pubs[topic] = owner.create_publisher(message_class(msgtype), name, qos)
 
     def wait_for_subscribers(self, topics: Iterable[str], timeout: float) -> None:
         deadline = time.monotonic() + timeout

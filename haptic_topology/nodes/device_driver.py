@@ -132,10 +132,9 @@ class DeviceDriver(LifecycleNode):
         try:
             self.backend = create_backend(c.backend)
             if self.lockstep and not self.backend.lockstep:
-                raise DeviceError(
-                    f'backend {c.backend}: the device runs on its own clock, so clock: '
-                    f'lockstep cannot pace it (expected clock: wall, or a backend that '
-                    f'advances only when read, such as sim_maglev)')
+                raise DeviceError(f'backend {c.backend}: the device runs on its own clock, '
+                                  'so clock: lockstep cannot pace it (expected clock: wall, '
+                                  'or a backend that advances only when read: sim_maglev)')
             self.in_child = self.hosted is not None and in_child(self)
             if self.hosted is not None and c.settings.loop_process and not self.in_child:
                 self.get_logger().warn(f'loop_process: backend {c.backend} uses rclpy itself, '
@@ -212,7 +211,8 @@ class DeviceDriver(LifecycleNode):
         return self.state_pub.get_subscription_count() + hosted >= self.cfg.min_subscribers
 
     def _on_command(self, msg: DeviceCommand) -> None:
-        if isinstance(self.layout, SeparateLoop) and self.graph.own(msg, TOPIC_COMMAND):
+        if (isinstance(self.layout, SeparateLoop) and self.graph.own(msg, TOPIC_COMMAND)
+                and self.input_publishers.admits(TOPIC_COMMAND, self.rejected)):
             self.layout.on_command(msg)
 
     def publish_state(self, tick: DeviceTick, ns: int, clock: bool = False) -> None:

@@ -46,11 +46,13 @@ from std_msgs.msg import UInt64
 from haptic_topology.config import node_params
 from haptic_topology.config.resolve import resolve_lmi_controller
 from haptic_topology.config.settings import LmiControllerSettings, scenario_defaults
+from haptic_topology.control.admission import UpdateAdmission
 from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.loop import StateSample
 from haptic_topology.control.port import ControllerPort, Outgoing, live_change
 from haptic_topology.device.loop_process import LoopProcess
 from haptic_topology.device.runner import LoopRunner
+from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.model.frames import DEVICE_BASE
 from haptic_topology.nodes.convert import (
     CONTROLLER_ID,
@@ -132,6 +134,8 @@ class LmiController(Node):
         # who publishes its inputs in the graph (the driver's states: separate layout only)
         inputs = {TOPIC_LMI: ('ve_sim',), **({} if hosted else {TOPIC_STATE: ('device_driver',)})}
         self.input_publishers = PublisherWatch(self, inputs, self._publish_diagnostics)
+        self.admission = UpdateAdmission(LinkageDynamics(sc.linkage),
+                                         self.input_publishers.gates[TOPIC_LMI])
         if hosted:
             self.process_sched_priority = 0       # the driver's loop thread has its own
             return
@@ -161,7 +165,8 @@ class LmiController(Node):
 
     # -- separate ------------------------------------------------------------------------------
     def _on_state(self, msg: DeviceState) -> None:
-        if not self.graph.own(msg, TOPIC_STATE):
+        if not (self.graph.own(msg, TOPIC_STATE)
+                and self.input_publishers.admits(TOPIC_STATE, self.rejected)):
             return None
         try:
             seq, stamp, pose, twist, f_h, status = state_from_msg(msg, self.task)
@@ -201,6 +206,7 @@ class LmiController(Node):
             return
         try:
             snap = lmi_from_msg(msg, self.task, self.dof, self.penalty_direction)
+            self.admission.admit(snap)
         except MessageError as exc:
             self._reject('LMI update', exc)
             snap = None

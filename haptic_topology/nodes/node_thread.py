@@ -20,12 +20,13 @@ class NodeThread:
     :meth:`close`), without the
     process's ROS arguments (the driver's remappings and parameters do not apply to it);
     ``setup(node)`` creates its subscriptions and publishers before the thread
-    ``thread_name`` starts spinning it on an :class:`~rclpy.experimental.EventsExecutor`.
+    ``thread_name`` starts spinning it on an :class:`~rclpy.experimental.EventsExecutor`;
+    ``namespace``: the node's (default: the root).
     On any error in the set-up everything made so far is destroyed again."""
 
     def __init__(self, name: str, thread_name: str,
                  setup: Callable[[Node], None] = lambda node: None,
-                 own_context: bool = False) -> None:
+                 own_context: bool = False, namespace: str = '') -> None:
         from rclpy.experimental import EventsExecutor
 
         if rclpy.ok() and not own_context:
@@ -38,7 +39,7 @@ class NodeThread:
         self._executor: Any = None
         self.thread: threading.Thread | None = None
         try:
-            self._node = rclpy.create_node(name, context=self.context,
+            self._node = rclpy.create_node(name, context=self.context, namespace=namespace,
                                           use_global_arguments=False,
                                           start_parameter_services=False)
             setup(self._node)

@@ -4,8 +4,10 @@ Plain replay publishes every message (or those of ``--topics``) as the recorded 
 (``Publisher.publish(bytes)``, nothing is deserialised) on its recorded topic, at the
 recorded receive times scaled by ``1 / --rate``, from ``--start-offset`` seconds into the
 bag, once or ``--loop``. Each topic gets the QoS its publishers offered (the bag's
-``offered_qos_profiles``), so e.g. recorded device states and LMI updates drive a live
-``lmi_controller`` exactly as the device and the VE did. A topic whose type the bag holds in
+``offered_qos_profiles``), so e.g. a recorder or a viewer sees them as it saw the run. A
+live ``lmi_controller`` takes LMI updates only from a ``ve_sim`` of its graph and refuses
+those of a replay while its own VE is gone (``docs/safety.md``); ``--check-controller``
+below is the way to feed it a bag. A topic whose type the bag holds in
 an older definition than the installed one is re-serialised as the installed type when
 fields were only appended since (``LmiUpdate`` and ``DeviceState`` before their contact
 fields: the new fields empty or zero, :func:`~haptic_topology.bag.reader.upgraders`), and
@@ -76,14 +78,14 @@ from haptic_topology.errors import BagError, ReplayError
 from haptic_topology.nodes.bag_publishers import Publishers
 from haptic_topology.nodes.dds_env import localhost_discovery_default
 from haptic_topology.nodes.node_thread import NodeThread
-from haptic_topology.vocabulary import TOPIC_LMI_ACK
+from haptic_topology.vocabulary import TOPIC_LMI_ACK, TOPIC_STATE
 
 
-def _spinner(name: str) -> NodeThread:
+def _spinner(name: str, namespace: str = '') -> NodeThread:
     """The replay's node, in an rclpy context of its own, spun in a thread; DDS set up as the
     nodes set it up (``run_main``)."""
     localhost_discovery_default(os.environ)
-    return NodeThread(name, 'replay_spin', own_context=True)
+    return NodeThread(name, 'replay_spin', own_context=True, namespace=namespace)
 
 
 def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None = None,
@@ -126,7 +128,14 @@ def check_controller(bag_path: str | Path, params: Path,
     if cp.graph_id:             # the recorded graph's (none: the default graph)
         argv[-2:-2] = ['-p', f'graph_id:={cp.graph_id}']
     live: dict[int, Any] = {}
-    spinner = _spinner('haptic_replay_check')
+    # The controller takes updates from the VE of its graph only and states from its driver
+    # (nodes named ve_sim and device_driver in its namespace): the check plays both parts.
+    spinner = _spinner('ve_sim', ns)
+    try:
+        driver = _spinner('device_driver', ns)
+    except BaseException:
+        spinner.close()
+        raise
     with log.open('wb') as handle:
         proc = subprocess.Popen(argv, stdout=handle, stderr=subprocess.STDOUT,
                                 env=dict(os.environ, PYTHONUNBUFFERED='1'),
@@ -157,7 +166,7 @@ def check_controller(bag_path: str | Path, params: Path,
             from std_msgs.msg import UInt64
 
             spinner.node.create_subscription(UInt64, f'{ns}/{TOPIC_LMI_ACK}', ack, QOS_LMI)
-            pubs = Publishers(spinner.node, bag, cp.items, ns)
+            pubs = Publishers(spinner.node, bag, cp.items, ns, {TOPIC_STATE: driver.node})
             deadline = time.monotonic() + startup_timeout
             while sub.get_publisher_count() == 0 and time.monotonic() < deadline:
                 if proc.poll() is not None:
@@ -175,6 +184,7 @@ def check_controller(bag_path: str | Path, params: Path,
                     proc.kill()
                     proc.wait()
             spinner.close()
+            driver.close()
     diffs: dict[int, float] = {}
     missing: list[int] = []
     for seq, cmd in sorted(cp.commands.items()):

@@ -56,6 +56,7 @@ from rclpy.node import Node
 from haptic_topology.config import node_params
 from haptic_topology.config.resolve import resolve_ve_sim
 from haptic_topology.config.settings import VeSimSettings
+from haptic_topology.control.admission import HandAdmission
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.stats import LoopStats
 from haptic_topology.nodes.convert import (
@@ -142,6 +143,7 @@ class VeSim(Node):
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
         self.input_publishers = PublisherWatch(self, {TOPIC_HAND_INPUTS: ('lmi_controller',)},
                                          self._publish_diagnostics)
+        self.admission = HandAdmission(self.task, self.input_publishers.gates[TOPIC_HAND_INPUTS])
 
     def _publish_update(self) -> None:
         self._last_snap = self.ve.snapshot(seq=self._update_seq)
@@ -171,6 +173,7 @@ class VeSim(Node):
         try:
             seqs, state_seqs, stamps, pose, twist, f_vt = vt_wrenches_from_hand_inputs(
                 msg, self.task, self.scenario.vt_coupling, self.max_hand_wrench)
+            self.admission.admit(seqs, stamps, pose, twist)
         except MessageError as exc:
             self.rejected.add(exc)
             self.get_logger().warn(f'hand input batch rejected: {exc}',

@@ -139,3 +139,15 @@ def test_restarts_were_seen_by_the_others(run: fh.FaultRun) -> None:
         t for n, t in run.logs.items() if n.startswith('ve_sim'))
     assert 've_sim restarted' in ''.join(
         t for n, t in run.logs.items() if n.startswith('lmi_controller'))
+
+
+def test_without_its_ve_beside_a_foreign_publisher_the_controller_said_why_once(
+        run: fh.FaultRun) -> None:
+    # The harness waited for the controller's ERROR status ("cannot be told") at zero force,
+    # then for the re-sync to the returned VE (ve_gone, within its generous deadline).
+    assert 've_gone' in run.recovered
+    # Said once at ERROR in the controller's log (its second process: the first was killed).
+    said = [line for line in run.logs['lmi_controller.2.log'].splitlines()
+            if 'cannot be told from foreign ones' in line]
+    assert len(said) == 1 and '[ERROR]' in said[0], said
+    assert 'lmi/update: no ve_sim of this graph publishes it and /fault_injector does' in said[0]

@@ -14,8 +14,11 @@ at a logged wall-clock time (the header stamps are wall-clock ROS time too):
    not authentication: these reach the device and must be clamped), and with another id
    (rejected as foreign);
 3. ``ve_stop``: SIGSTOP ve_sim for 1 s, SIGCONT (stale LMI, degrade, re-sync);
-4. ``kill_ve``, ``kill_controller``, ``kill_device``, ``kill_recorder``: SIGKILL the node and
-   start it again (the recorder into a second bag).
+4. ``kill_ve``, ``kill_controller``, ``kill_device``: SIGKILL the node and start it again;
+5. ``ve_gone``: stop ve_sim (Ctrl-C) while this process keeps a publisher on ``lmi/update``:
+   the controller cannot tell its graph's updates from foreign ones and fades to zero; then
+   start ve_sim again;
+6. ``kill_recorder``: SIGKILL the recorder and start it again (into a second bag).
 
 Then stops everything and reads both bags. Used by ``test_fault_injection.py``;
 ``python test/support/fault_harness.py`` runs it and prints the README table.
@@ -141,6 +144,14 @@ class Graph:
         self.signal(name, signal.SIGCONT)
         return t0, time.time()
 
+    def stop(self, name: str) -> int:
+        """Stop ``name`` as Ctrl-C does (its endpoints leave the graph at once) and forget
+        it until :meth:`start`."""
+        p = self.procs.pop(name)
+        code = terminate(p.popen, 10.0, 3.0)
+        p.handle.close()
+        return code
+
     def kill(self, name: str) -> int:
         p = self.procs[name]
         p.popen.send_signal(signal.SIGKILL)
@@ -207,7 +218,8 @@ class Injector:
 
     def _on_diagnostics(self, msg: Any) -> None:
         for st in msg.status:
-            self.status[st.name] = {kv.key: kv.value for kv in st.values}
+            self.status[st.name] = {'_message': st.message,
+                                    **{kv.key: kv.value for kv in st.values}}
 
     def value(self, status: str, key: str, default: str = '') -> str:
         return self.status.get(status, {}).get(key, default)
@@ -416,6 +428,23 @@ def _run_faults(out: Path) -> FaultRun:
             run.recovered[f'kill_{name}'] = wait(back, f'loop back after restarting {name}') - t0
             run.events[f'kill_{name}'] = (t0, time.time())
             injector.spin(1.0)
+
+        # The own VE gone (stopped, not restarted) while this process's injector keeps a
+        # publisher on lmi/update: the controller cannot tell its graph's updates from
+        # foreign ones, takes none, fades the force to zero and says why (ERROR).
+        t0 = time.time()
+        restarts = int(inj.value(ctl, 've_restarts', '0'))
+        code = g.stop('ve_sim')
+        assert code == 0, f've_sim stopped with {code}'
+        wait(lambda: (current(ctl, 'lmi_controller')
+                      and 'cannot be told' in inj.value(ctl, '_message')
+                      and inj.value(ctl, 'force_scale') == '0.000'),
+             'controller faded to zero, own VE gone beside a foreign publisher')
+        run.events['ve_gone'] = (t0, time.time())
+        g.start('ve_sim')
+        run.recovered['ve_gone'] = wait(lambda: controller_back('ve_restarts', restarts + 1),
+                                        'loop back after ve_sim returned') - t0
+        injector.spin(1.0)
 
         t0 = time.time()
         g.kill('recorder')

@@ -10,10 +10,18 @@ controller's input in the separate layout) and a ``DeviceCommand`` of 5 N answer
 what a hand-started graph or an old bag sends). Runs until SIGINT/SIGTERM, then writes the
 counts it published per topic (and ``take_errors``: samples rclpy failed to take) to
 OUT_JSON.
+
+``python intruder.py CLOCK OUT_JSON own-id``: a sender that copies the run's own graph id
+(it is no secret) and echoes only what the graph takes by graph id alone: updates, in turn
+numbered as the VE's next with the hand 2 cm away (not what the linkage has at that ``q``),
+numbered 0 (a "restarted VE" with no new endpoint), or the update of 20 before numbered as
+the next (a VE going back in time); and every hand-input batch 2 cm away, numbered and
+stamped as the original.
 """
 
 from __future__ import annotations
 
+import copy
 import json
 import signal
 import sys
@@ -36,10 +44,12 @@ from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, Lmi
 
 SHIFT = 0.02            # m, on the first pose coordinate
 OTHER_GRAPH = graph_wire('another-lab')
+MARK = 'intruder'       # own-id: the frame_id of what it sent, so it does not echo its echoes
 
 
 def main() -> int:
     clock, out = Clock.parse(sys.argv[1]), Path(sys.argv[2])
+    own_id = sys.argv[3:] == ['own-id']
     rclpy.init()
     node = rclpy.create_node('intruder')
     loop = loop_qos(clock)
@@ -51,24 +61,45 @@ def main() -> int:
     counts = dict.fromkeys(pubs, 0)
     mine: set[int] = {0, OTHER_GRAPH}       # echoes of our own messages come back too
     n = [0]
+    history: list[LmiUpdate] = []           # own-id: the run's updates so far
 
     def send(topic: str, msg: Any) -> None:
         n[0] += 1
-        msg.graph_id = OTHER_GRAPH if n[0] % 2 else 0
+        if own_id:
+            msg.header.frame_id = MARK      # its own echoes come back with the run's id
+        else:
+            msg.graph_id = OTHER_GRAPH if n[0] % 2 else 0
         pubs[topic].publish(msg)
         counts[topic] += 1
 
+    def the_runs(msg: Any) -> bool:
+        """Whether ``msg`` is the run's (not one this intruder sent)."""
+        return msg.header.frame_id != MARK if own_id else msg.graph_id not in mine
+
     def on_update(msg: LmiUpdate) -> None:
-        if msg.graph_id in mine:
+        if not the_runs(msg):
             return
-        msg.seq = 0 if counts[TOPIC_LMI] % 25 == 24 else msg.seq + 1
+        kind = counts[TOPIC_LMI] % 3 if own_id else 0
+        if own_id:
+            history.append(copy.deepcopy(msg))
+        if kind == 2:                       # the update of 20 before, numbered as the next
+            if len(history) <= 20:
+                return
+            stale = history[-21]
+            stale.seq = msg.seq + 1
+            send(TOPIC_LMI, stale)
+            return
+        if kind == 1 or (not own_id and counts[TOPIC_LMI] % 25 == 24):
+            msg.seq = 0                     # "a restarted VE"
+        else:
+            msg.seq += 1
         pose = list(msg.hand_pose)
         pose[0] += SHIFT
         msg.hand_pose = pose
         send(TOPIC_LMI, msg)
 
     def on_hand(msg: HandInputs) -> None:
-        if msg.graph_id in mine:
+        if not the_runs(msg):
             return
         m = int(msg.task_dim)
         pose = list(msg.pose)
@@ -78,7 +109,7 @@ def main() -> int:
         send(TOPIC_HAND_INPUTS, msg)
 
     def on_state(msg: DeviceState) -> None:
-        if msg.graph_id in mine:
+        if own_id or msg.graph_id in mine:
             return
         cmd = DeviceCommand(header=msg.header, state_seq=msg.seq, controller_id=1,
                             mode=DeviceCommand.MODE_PENALTY, task_dim=msg.task_dim,
