@@ -121,7 +121,9 @@ def test_a_second_graph_changes_nothing_and_is_counted(
 def test_a_sender_with_the_graphs_own_id_is_refused_by_the_checks(
         runs: dict[str, tuple[GraphRun, dict[str, int]]]) -> None:
     run, sent = runs[OWN_ID]
-    assert sent[TOPIC_LMI] > 100 and sent[TOPIC_HAND_INPUTS] > 100, sent
+    # How many of the run's messages it echoed depends on when it discovered the run and on
+    # the load (one CI run: 158 updates, 95 batches of 150); that it echoed both does not.
+    assert sent[TOPIC_LMI] > 0 and sent[TOPIC_HAND_INPUTS] > 0, sent
     # Nothing of it was applied.
     assert_equals_offline(run.trace, SCENARIO, MODE, DURATION)
     ctl = run.diagnostics['lmi_controller: loop']
