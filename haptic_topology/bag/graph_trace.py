@@ -41,6 +41,7 @@ stamped.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,6 +57,8 @@ from haptic_topology.bag.reader import (
     open_bag,
     require_types,
 )
+from haptic_topology.control.admission import UpdateAdmission, UpdateFields
+from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.errors import BagError, MessageError
 from haptic_topology.messages.check import (
     GraphFilter,
@@ -68,8 +71,9 @@ from haptic_topology.messages.check import (
     env_wrench,
 )
 from haptic_topology.messages.definitions import type_name
+from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.trace import Trace, contact_depth
-from haptic_topology.vocabulary import ControlMode
+from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 _WATCHDOG = 4
 _DEVICE_STATUS = 'device_driver: loop'
@@ -214,7 +218,8 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
                 commands[seq] = msg
         else:
             commands[seq] = msg
-    updates = valid('update', updates_in, lambda u: _check_update(u, m, dof))
+    updates = _admitted(valid('update', updates_in, lambda u: _check_update(u, m, dof)),
+                        scenario, m, dof, skip)
     vt_path: dict[int, Any] = {}
     for msg in valid('path', paths_in, lambda v: check_vt_path(v, m)):
         _, path_seqs, poses = check_vt_path(msg, m)
@@ -308,6 +313,32 @@ def _check_update(msg: Any, m: int, dof: int) -> None:
     array(msg, 'hand_pose', m)
     array(msg, 'q', dof)
     check_update_contacts(msg, dof)
+
+
+def _admitted(updates: list[Any], scenario: str, m: int, dof: int,
+              skip: Callable[[str, str], None]) -> list[Any]:
+    """The updates the controller's checks admit, in the bag's order
+    (:class:`~haptic_topology.control.admission.UpdateAdmission`: the model check against
+    the scenario's linkage when ``scenario`` is given and matches ``dof`` and ``m``; the
+    consumed input never going back): a sender that copied the graph id is skipped as
+    ``update_model`` / ``update_continuity``. A bag records no publisher, so a seq going
+    back is not refused here."""
+    dyn = None
+    if scenario:
+        linkage = load_scenario(scenario).linkage
+        if linkage.dof == dof and linkage.task.dim == m:
+            dyn = LinkageDynamics(linkage)
+    task = TaskSpace.PLANAR if m == TaskSpace.PLANAR.dim else TaskSpace.SPATIAL
+    admission = UpdateAdmission(dyn)
+    out = []
+    for u in updates:
+        try:
+            admission.admit(UpdateFields.from_msg(u, task, dof))
+        except MessageError as exc:
+            skip('update', exc.reason)
+            continue
+        out.append(u)
+    return out
 
 
 def _foreign_seqs(states: dict[int, Any]) -> list[int]:

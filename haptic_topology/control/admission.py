@@ -29,13 +29,15 @@ security-enabled DDS) keeps such a sender out.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any, Protocol
+
 import numpy as np
 
-from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.errors import MessageError
-from haptic_topology.messages.check import SourceGate
+from haptic_topology.messages.check import SourceGate, array
 from haptic_topology.vocabulary import TaskSpace
 
 #: Relative tolerance of the model check: the VE computes the same quantities with the same
@@ -47,6 +49,64 @@ POSE_SLACK_M = 0.005
 POSE_SLACK_RAD = 0.05
 
 
+class Update(Protocol):
+    """What the checks read of an LMI update (an
+    :class:`~haptic_topology.control.lmi.LmiSnapshot`, or :class:`UpdateFields` of a
+    recorded message)."""
+
+    @property
+    def seq(self) -> int: ...
+    @property
+    def hand_input_seq(self) -> int: ...
+    @property
+    def task(self) -> TaskSpace: ...
+    @property
+    def q(self) -> np.ndarray: ...
+    @property
+    def dq(self) -> np.ndarray: ...
+    @property
+    def mass_matrix(self) -> np.ndarray: ...
+    @property
+    def gravity(self) -> np.ndarray: ...
+    @property
+    def hand_jacobian(self) -> np.ndarray: ...
+    @property
+    def hand_pose(self) -> np.ndarray: ...
+    @property
+    def hand_twist(self) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class UpdateFields:
+    """The fields of an ``LmiUpdate`` message the checks read, as arrays (a bag's
+    messages: :func:`~haptic_topology.bag.graph_trace.read_graph_bag` applies the checks
+    too)."""
+
+    seq: int
+    hand_input_seq: int
+    task: TaskSpace
+    q: np.ndarray
+    dq: np.ndarray
+    mass_matrix: np.ndarray
+    gravity: np.ndarray
+    hand_jacobian: np.ndarray
+    hand_pose: np.ndarray
+    hand_twist: np.ndarray
+
+    @classmethod
+    def from_msg(cls, msg: Any, task: TaskSpace, dof: int) -> UpdateFields:
+        """From a message whose sizes were checked (raises
+        :class:`~haptic_topology.errors.MessageError` otherwise)."""
+        m = task.dim
+        consumed = int(msg.hand_input_seq)        # 0 on the wire: none (-1, as the snapshot)
+        return cls(int(msg.seq), consumed if consumed > 0 else -1, task,
+                   array(msg, 'q', dof), array(msg, 'dq', dof),
+                   array(msg, 'mass_matrix', dof * dof).reshape(dof, dof),
+                   array(msg, 'gravity', dof),
+                   array(msg, 'hand_jacobian', m * dof).reshape(m, dof),
+                   array(msg, 'hand_pose', m), array(msg, 'hand_twist', m))
+
+
 class UpdateAdmission:
     """The controller's checks of its graph's LMI updates, in the order applied:
 
@@ -55,7 +115,9 @@ class UpdateAdmission:
        ``dynamics`` (the controller's linkage) at its ``q``, to :data:`MODEL_RTOL` of each
        quantity's largest entry (at least 1);
     3. ``continuity``: the hand input the update consumed is not older than the previous
-       update's (a VE that dropped its held input for a restarted controller says -1).
+       update's. A VE says -1 (none) after it dropped its held input for a new controller:
+       then this controller is new too (no previous update), or its loop started over
+       (:meth:`forget`).
 
     The update's joint motion is not bounded: a VT whirling under the hand (the circle
     scenario under fault injection reached ~80 rad/s, 37.8 rad in 0.54 s between two
@@ -70,9 +132,9 @@ class UpdateAdmission:
                  gate: SourceGate | None = None) -> None:
         self.dyn = dynamics
         self.gate = gate
-        self._prev: LmiSnapshot | None = None
+        self._prev: Update | None = None
 
-    def admit(self, snap: LmiSnapshot) -> None:
+    def admit(self, snap: Update) -> None:
         """Raise :class:`~haptic_topology.errors.MessageError` if ``snap`` may not be
         applied; otherwise it becomes the previous update of the continuity check."""
         prev = self._prev
@@ -93,7 +155,7 @@ class UpdateAdmission:
             gate.accepted()
         self._prev = snap
 
-    def _check_model(self, snap: LmiSnapshot) -> None:
+    def _check_model(self, snap: Update) -> None:
         dyn = self.dyn
         assert dyn is not None
         q = snap.q
@@ -114,12 +176,21 @@ class UpdateAdmission:
                                    f'most {MODEL_RTOL * scale:.3g}): another linkage or a '
                                    'false update')
 
+    def forget(self) -> None:
+        """Start without a previous update: this controller's loop starts over (a new loop
+        process numbers its hand inputs from 1 again, so the VE drops its held input and
+        says -1)."""
+        self._prev = None
+
     @staticmethod
-    def _check_continuity(prev: LmiSnapshot, snap: LmiSnapshot) -> None:
-        if 0 <= snap.hand_input_seq < prev.hand_input_seq:    # (-1: it dropped its input)
-            raise MessageError('continuity', f'LmiUpdate {snap.seq}: consumed hand input '
-                               f'{snap.hand_input_seq} after update {prev.seq} had consumed '
-                               f'{prev.hand_input_seq}: a VE never goes back')
+    def _check_continuity(prev: Update, snap: Update) -> None:
+        if snap.hand_input_seq < prev.hand_input_seq:
+            what = ('no hand input' if snap.hand_input_seq < 0
+                    else f'hand input {snap.hand_input_seq}')
+            raise MessageError('continuity', f'LmiUpdate {snap.seq}: consumed {what} after '
+                               f'update {prev.seq} had consumed {prev.hand_input_seq}: a VE '
+                               'never goes back (it drops its inputs only for a new '
+                               'controller)')
 
 
 class HandAdmission:

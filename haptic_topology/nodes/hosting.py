@@ -170,6 +170,8 @@ class HostedLoop:
         # wakes; CPython lets a thread keep it for up to the switch interval (5 ms).
         sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
         self.runner.may_engage = self.driver.may_engage()
+        if self.process is not None:        # a new child: the controller loop starts over
+            self.controller.admission.forget()
         self.outbox.start()
 
         def on_start() -> None:     # in the loop thread

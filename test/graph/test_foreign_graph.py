@@ -131,10 +131,10 @@ def test_a_sender_with_the_graphs_own_id_is_refused_by_the_checks(
     ve = run.diagnostics['ve_sim: loop']
     # Its messages carry the run's id: no foreign message by id, every one refused by a check.
     assert ctl['foreign_messages'] == ve['foreign_messages'] == '0'
-    # Sent in turn: the hand 2 cm off, numbered 0, 20 updates back. Which check refuses one
-    # depends on when it arrives (after the VE's next update, numbered as the next is
-    # already old: session), so the reasons are counted together here; each check is
-    # tested exactly in test/unit/control/test_admission.py.
+    # Sent in turn: the hand 2 cm off, numbered 0, an old update (the VE's first, or the one
+    # of 20 before). Which check refuses one depends on when it arrives (after the VE's next
+    # update, one numbered as the next is already old: session), so the reasons are counted
+    # together here; each check is tested exactly in test/unit/control/test_admission.py.
     checks = ('model', 'session', 'continuity')
     refused = sum(int(ctl[f'rejected_{r}']) for r in checks)
     assert 0 < refused <= sent[TOPIC_LMI], (ctl, sent)

@@ -14,9 +14,9 @@ OUT_JSON.
 ``python intruder.py CLOCK OUT_JSON own-id``: a sender that copies the run's own graph id
 (it is no secret) and echoes only what the graph takes by graph id alone: updates, in turn
 numbered as the VE's next with the hand 2 cm away (not what the linkage has at that ``q``),
-numbered 0 (a "restarted VE" with no new endpoint), or the update of 20 before numbered as
-the next (a VE going back in time); and every hand-input batch 2 cm away, numbered and
-stamped as the original.
+numbered 0 (a "restarted VE" with no new endpoint), or an old update numbered as the next
+(a VE going back in time: the VE's first, which consumed no input, or the one of 20
+before); and every hand-input batch 2 cm away, numbered and stamped as the original.
 """
 
 from __future__ import annotations
@@ -82,10 +82,10 @@ def main() -> int:
         kind = counts[TOPIC_LMI] % 3 if own_id else 0
         if own_id:
             history.append(copy.deepcopy(msg))
-        if kind == 2:                       # the update of 20 before, numbered as the next
-            if len(history) <= 20:
-                return
-            stale = history[-21]
+        if kind == 2:                       # an old update, numbered as the next: the
+            if len(history) <= 20:          # VE's first (it consumed no input yet) or
+                return                      # the one of 20 before, in turn
+            stale = history[0] if counts[TOPIC_LMI] % 6 == 2 else history[-21]
             stale.seq = msg.seq + 1
             send(TOPIC_LMI, stale)
             return

@@ -100,9 +100,15 @@ def test_an_update_of_another_model_or_an_older_input_is_refused_and_the_own_one
     assert reason == 'continuity' and text == (
         f'LmiUpdate {len(updates)}: consumed hand input {updates[5].hand_input_seq} after '
         f'update {len(updates) - 1} had consumed {updates[-1].hand_input_seq}: a VE never '
-        'goes back')
-    # -1: a VE that dropped its held input (a restarted controller) goes on from there
-    admit.admit(dataclasses.replace(updates[-1], seq=len(updates), hand_input_seq=-1))
+        'goes back (it drops its inputs only for a new controller)')
+    # an update of before the first input (-1), numbered as the next: refused too ...
+    idle = dataclasses.replace(updates[0], seq=len(updates))
+    assert idle.hand_input_seq == -1
+    reason, text = _reason(admit.admit, idle)
+    assert reason == 'continuity' and 'consumed no hand input after' in text
+    # ... unless this controller's loop started over (the VE then says -1 for it)
+    admit.forget()
+    admit.admit(idle)
 
 
 def test_a_restart_is_believed_only_with_a_new_endpoint_of_the_own_publisher() -> None:
@@ -165,3 +171,36 @@ def test_hand_inputs_copied_shifted_or_back_in_time_are_refused() -> None:
     hands.admit(list(third[0]), list(third[1]), np.array(third[2]) + shift, np.array(third[3]))
     # a controller that numbers from 1 again, later (a reactivated driver): a new session
     hands.admit([1, 2], [1.0, 1.001], nxt[2][:2] + shift, nxt[3][:2])
+
+
+def test_a_recorded_message_is_checked_as_its_snapshot() -> None:
+    """``UpdateFields.from_msg`` (what ``read_graph_bag`` checks): the wire's fields, with
+    ``hand_input_seq`` 0 read as -1 (none consumed), as the node reads them."""
+    from types import SimpleNamespace
+
+    from haptic_topology.control.admission import UpdateFields
+
+    sc = load_scenario('fig8')
+    updates = [u for u, _ in _run(dataclasses.replace(sc, duration=0.05))[0]]
+
+    def wire(u: object, **change: object) -> SimpleNamespace:
+        fields = {k: getattr(u, k) for k in ('seq', 'q', 'dq', 'gravity', 'hand_pose',
+                                              'hand_twist')}
+        fields.update(hand_input_seq=max(u.hand_input_seq, 0),        # type: ignore[attr-defined]
+                      mass_matrix=u.mass_matrix.ravel().tolist(),     # type: ignore[attr-defined]
+                      hand_jacobian=u.hand_jacobian.ravel().tolist())  # type: ignore[attr-defined]
+        fields.update(change)
+        return SimpleNamespace(**fields)
+
+    dof, task = sc.linkage.dof, sc.linkage.task
+    first = UpdateFields.from_msg(wire(updates[0]), task, dof)
+    assert first.hand_input_seq == -1 == updates[0].hand_input_seq
+    admit = UpdateAdmission(LinkageDynamics(sc.linkage))
+    for u in updates:
+        admit.admit(UpdateFields.from_msg(wire(u), task, dof))
+    shifted = wire(updates[-1], seq=len(updates),
+                   hand_pose=updates[-1].hand_pose + np.array([0.02, 0.0, 0.0]))
+    reason, _ = _reason(admit.admit, UpdateFields.from_msg(shifted, task, dof))
+    assert reason == 'model'
+    reason, _ = _reason(UpdateFields.from_msg, wire(updates[0], q=[0.0]), task, dof)
+    assert reason == 'size'
