@@ -17,10 +17,11 @@ here refuse what the receiver can prove wrong, each with a
 * ``model`` (:class:`UpdateAdmission`): an ``LmiUpdate`` whose hand pose, mass matrix
   ``D(q)``, gravity ``G(q)``, hand Jacobian ``J_h(q)`` or hand twist ``J_h dq`` disagree with
   the controller's own model of the linkage at the update's ``q`` (eqs. 1, 3, 18);
-* ``continuity``: an ``LmiUpdate`` that consumed an older hand input than its predecessor
-  (a VE never goes back); a ``HandInputs`` batch stamped before its predecessor, or one that
-  directly continues it (the next seq: one device cycle later) with the device pose further
-  from the previous sample than the device's twist reaches (:class:`HandAdmission`).
+* ``continuity``: an ``LmiUpdate`` that consumed an older hand input than its predecessor,
+  or none after one that did (a VE never goes back); a ``HandInputs`` batch that directly
+  continues its predecessor (the next seq: one device cycle later) but is stamped earlier or
+  puts the device further from the previous sample than the device's twist reaches
+  (:class:`HandAdmission`).
 
 Not protected: a sender that copies the graph id *and* publishes updates consistent with the
 model and continuous with the own ones. Only authenticated transport (SROS2 over a
