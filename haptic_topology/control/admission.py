@@ -80,7 +80,7 @@ class Update(Protocol):
 @dataclass(frozen=True)
 class UpdateFields:
     """The fields of an ``LmiUpdate`` message the checks read, as arrays (a bag's
-    messages: :func:`~haptic_topology.bag.graph_trace.read_graph_bag` applies the checks
+    messages: ``haptic_topology.bag.graph_trace.read_graph_bag`` applies the checks
     too)."""
 
     seq: int
