@@ -173,7 +173,7 @@ class VeSim(Node):
         try:
             seqs, state_seqs, stamps, pose, twist, f_vt = vt_wrenches_from_hand_inputs(
                 msg, self.task, self.scenario.vt_coupling, self.max_hand_wrench)
-            self.admission.admit(seqs, stamps, pose, twist)
+            self.admission.admit(seqs, state_seqs, stamps, pose, twist)
         except MessageError as exc:
             self.rejected.add(exc)
             self.get_logger().warn(f'hand input batch rejected: {exc}',

@@ -49,7 +49,7 @@ def _run(sc: Scenario) -> tuple[list[tuple[object, float]], list[tuple]]:
             continue
         ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
         inputs += 1
-        batch.append((hand.seq, t, done.tick.reading.pose.copy(),
+        batch.append((hand.seq, hand.state_seq, t, done.tick.reading.pose.copy(),
                       done.tick.reading.twist.copy()))
         if inputs % sc.update_period == 0:
             batches.append(tuple(zip(*batch, strict=True)))
@@ -69,8 +69,9 @@ def test_every_update_and_batch_of_a_run_is_admitted(name: str) -> None:
     for snap, _ in updates:
         admit.admit(snap)                                  # raises on a refusal
     hands = HandAdmission(sc.linkage.task)
-    for seqs, stamps, pose, twist in batches:
-        hands.admit(list(seqs), list(stamps), np.array(pose), np.array(twist))
+    for seqs, state_seqs, stamps, pose, twist in batches:
+        hands.admit(list(seqs), list(state_seqs), list(stamps), np.array(pose),
+                    np.array(twist))
     assert len(updates) > 100 and len(batches) == len(updates) - 1
 
 
@@ -152,25 +153,33 @@ def test_hand_inputs_copied_shifted_or_back_in_time_are_refused() -> None:
     sc = load_scenario('fig8')
     _, batches = _run(dataclasses.replace(sc, duration=0.1))
     hands = HandAdmission(sc.linkage.task, SourceGate('hand_inputs', 'lmi_controller'))
-    (seqs, stamps, pose, twist), second = batches[0], batches[1]
+    (seqs, states, stamps, pose, twist), second = batches[0], batches[1]
+    seqs, states, stamps = list(seqs), list(states), list(stamps)
     pose, twist = np.array(pose), np.array(twist)
-    hands.admit(list(seqs), list(stamps), pose, twist)
+    hands.admit(seqs, states, stamps, pose, twist)
     shift = np.array([0.02, 0.0, 0.0])
     # a copy 2 cm off, numbered and stamped as the batch taken: not a new controller
-    reason, _ = _reason(hands.admit, list(seqs), list(stamps), pose + shift, twist)
+    reason, _ = _reason(hands.admit, seqs, states, stamps, pose + shift, twist)
     assert reason == 'session'
     # the next batch 2 cm off: the device cannot get there in one cycle at its twist
-    nxt = (list(second[0]), list(second[1]), np.array(second[2]), np.array(second[3]))
-    reason, text = _reason(hands.admit, nxt[0], nxt[1], nxt[2] + shift, nxt[3])
+    nxt = (list(second[0]), list(second[1]), list(second[2]), np.array(second[3]),
+           np.array(second[4]))
+    reason, text = _reason(hands.admit, *nxt[:3], nxt[3] + shift, nxt[4])
     assert reason == 'continuity' and 'device pose row 0 moved 0.02' in text, text
-    reason, text = _reason(hands.admit, nxt[0], [s - 0.5 for s in nxt[1]], *nxt[2:])
+    reason, text = _reason(hands.admit, nxt[0], nxt[1], [s - 0.5 for s in nxt[2]], *nxt[3:])
     assert reason == 'continuity' and 'before the previous sample' in text
     hands.admit(*nxt)
     # after lost inputs (a gap in the seqs) the device may be anywhere: not checked
     third = batches[3]
-    hands.admit(list(third[0]), list(third[1]), np.array(third[2]) + shift, np.array(third[3]))
+    hands.admit(list(third[0]), list(third[1]), list(third[2]), np.array(third[3]) + shift,
+                np.array(third[4]))
+    # ... and after a device state it did not answer (the state seqs jump): not checked
+    fourth = batches[4]
+    skipped = [s + 1 for s in fourth[1]]
+    hands.admit(list(fourth[0]), skipped, list(fourth[2]), np.array(fourth[3]) - shift,
+                np.array(fourth[4]))
     # a controller that numbers from 1 again, later (a reactivated driver): a new session
-    hands.admit([1, 2], [1.0, 1.001], nxt[2][:2] + shift, nxt[3][:2])
+    hands.admit([1, 2], [9000, 9001], [1.0, 1.001], nxt[3][:2] + shift, nxt[4][:2])
 
 
 def test_a_recorded_message_is_checked_as_its_snapshot() -> None:
