@@ -159,18 +159,25 @@ class SourceGate:
         """Whether this graph's messages on the topic can be told from foreign ones."""
         return bool(self.own) or not self.foreign or not self._had_own
 
+    def lost(self) -> str | None:
+        """What the graph can no longer tell apart on the topic (None while it can): the one
+        sentence a node logs, reports and refuses with."""
+        if self.distinct():
+            return None
+        return (f'{self.topic}: no {self.owner} of this graph publishes it and '
+                f'{", ".join(self.foreign)} does: this graph\'s messages on it cannot be told '
+                'from foreign ones')
+
     def refuse(self) -> MessageError | None:
         """Why a message of this graph on the topic cannot be taken now (None: it can): the
-        own publisher gone while a foreign one publishes."""
+        own publisher gone while a foreign one publishes (:meth:`lost`)."""
         if self.distinct():
             return None
         if self.refresh is not None:
             self.refresh()
             if self.distinct():
                 return None
-        return MessageError('source', f'{self.topic}: no {self.owner} of this graph publishes '
-                            f'it and {", ".join(self.foreign)} does: this graph\'s messages '
-                            'cannot be told from foreign ones, none is applied')
+        return MessageError('source', f'{self.lost()}: refused')
 
     def refuse_restart(self, seq: int, previous: int) -> MessageError:
         """The refusal of a message that restarts the numbering without a new endpoint."""

@@ -121,9 +121,7 @@ class PublisherWatch:
             gate.observe(frozenset(own), found.get(topic, ()))
             if told_apart and not gate.distinct():     # said once, when it happens
                 self.node.get_logger().error(
-                    f'{topic}: no {gate.owner} of this graph publishes it and '
-                    f'{", ".join(gate.foreign)} does: this graph\'s messages on it cannot be '
-                    f'told from foreign ones; none is applied until {gate.owner} is back')
+                    f'{gate.lost()}; none is applied until {gate.owner} is back')
         before = {p for names in self.foreign.values() for p in names}
         now = {p for names in found.values() for p in names}
         self.foreign = found
@@ -160,11 +158,8 @@ class PublisherWatch:
         """The ERROR message while a foreign publisher is there (None: none)."""
         if not self.foreign:
             return None
-        lost = [f'no {g.owner} of this graph on {t}' for t, g in self.gates.items()
-                if not g.distinct()]
-        lost_text = (f'{"; ".join(lost)}: its messages cannot be told from foreign ones, '
-                     'none is applied; ') if lost else ''
-        return f'{lost_text}foreign publisher(s): {self.describe()}'
+        lost = [text for g in self.gates.values() if (text := g.lost()) is not None]
+        return '; '.join([*lost, f'foreign publisher(s): {self.describe()}'])
 
     def values(self) -> dict[str, str]:
         """``foreign_publishers``: the foreign publishers now, ``topic: name, ...; ...``."""

@@ -144,7 +144,7 @@ def test_no_update_is_taken_while_the_own_publisher_is_gone_and_a_foreign_one_is
     reason, text = _reason(admit.admit, updates[1][0])
     assert reason == 'source' and text == (
         "lmi/update: no ve_sim of this graph publishes it and /intruder does: this graph's "
-        'messages cannot be told from foreign ones, none is applied')
+        'messages on it cannot be told from foreign ones: refused')
     gate.observe(frozenset({b've'}), ('/intruder',))       # back: told apart by graph_id
     admit.admit(updates[1][0])
 

@@ -79,8 +79,9 @@ def test_gates_see_own_endpoints_and_name_a_topic_whose_own_publisher_is_gone() 
     watch.check()                                 # still so: said once
     assert len([e for e in graph.errors if 'cannot be told' in e]) == 1
     assert watch.problem() == (
-        'no ve_sim of this graph on haptic/lmi/update: its messages cannot be told from '
-        'foreign ones, none is applied; foreign publisher(s): haptic/lmi/update: /intruder')
+        "haptic/lmi/update: no ve_sim of this graph publishes it and /intruder does: this "
+        "graph's messages on it cannot be told from foreign ones; foreign publisher(s): "
+        'haptic/lmi/update: /intruder')
     graph.publishers['/haptic/lmi/update'] = [('/', 'intruder'), ('/', 've_sim')]
     watch.check()                                 # back: both, told apart by graph_id
     assert gate.distinct() and watch.problem() == (
