@@ -13,7 +13,8 @@
 #   4. pip install -e . (editable: Python edits need no reinstall)  (stamp: packaging files)
 #      + share/haptic_topology/{package.xml,config} as symlinks, ament index marker
 #   5. <site-packages>/haptic_topology_env.pth: AMENT_PREFIX_PATH for every venv process
-#   6. test/foxglove_client/: npm ci (the @foxglove/ws-protocol client of the live-view test),
+#   6. the loop's compiled functions into numba's cache (haptic_topology/*/__pycache__)
+#   7. test/foxglove_client/: npm ci (the @foxglove/ws-protocol client of the live-view test),
 #      only where node and npm exist           (stamp: package.json + package-lock.json)
 #
 # Environment: HAPTIC_VENV (default <repo>/.venv), PYTHON (default python3.11).
@@ -184,7 +185,13 @@ if [[ ! -f "$pth" || "$(cat "$pth")" != "$line" ]]; then
   printf '%s\n' "$line" > "$pth"
 fi
 
-# --- 6. the Node client of test/graph/test_foxglove_clients.py ------------------------------
+# --- 6. the loop's compiled arithmetic into numba's cache -------------------------------------
+# Importing the modules compiles each function once per machine (a few seconds; then cached in
+# their __pycache__ and loaded in about 1 s), so no node's first activation waits for it.
+"$vpy" -c 'import haptic_topology.control.compiled, haptic_topology.device.compiled' \
+  || die "compiling haptic_topology's loop arithmetic (numba) failed"
+
+# --- 7. the Node client of test/graph/test_foxglove_clients.py ------------------------------
 # Exact versions from package-lock.json; the tests themselves never use the network. Without
 # node/npm the step is skipped with one line and that test skips saying so.
 client="$root/test/foxglove_client"

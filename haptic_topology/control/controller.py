@@ -12,14 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from haptic_topology.control.laws import (
-    ControlGains,
-    control_wrench,
-    coordination_wrench,
-    stable_hold,
-)
+from haptic_topology.control.laws import ControlGains, stable_hold
 from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LmiSync, LocalModel
-from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
@@ -71,6 +65,11 @@ class HapticController:
                                  ('k_pc', gains.k_pc, (m,)), ('b_pc', gains.b_pc, (m,))):
             if np.shape(arr) != shape:
                 raise ValueError(f'{name} must have shape {shape}, got {np.shape(arr)}')
+        if np.any(gains.b_d) or np.any(gains.k_d):
+            raise ValueError('gains.b_d and gains.k_d (eq. 4) must be zero: the controller '
+                             'renders the VT with b_d = k_d = 0, as the paper does')
+        from haptic_topology.control.compiled import law  # see LocalModel.__init__
+        self._law = law
         self.task = task
         self.mode = mode
         self.gains = gains
@@ -81,6 +80,18 @@ class HapticController:
         #: Longest LMI step (s) this model integrates stably (see ``_stable_dt``).
         self.stable_dt = math.inf
         self._ml = np.zeros((m, m))           # M_d Lambda_h^-1 at the newest re-sync
+
+    def __getstate__(self) -> dict[str, object]:
+        # A compiled function pickles by value and compiles again where it is unpickled
+        # (seconds): the loop process takes its own from its import instead.
+        state = self.__dict__.copy()
+        del state['_law']
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        from haptic_topology.control.compiled import law
+        self.__dict__.update(state)
+        self._law = law
 
     def prepare(self, snap: LmiSnapshot) -> PreparedUpdate:
         """What :meth:`update` computes from ``snap`` alone (the LMI's matrices, eqs. 17-19,
@@ -115,7 +126,9 @@ class HapticController:
         """Answer device state ``seq`` (pose ``x_h``, twist ``xd_h``, hand wrench ``f_h``).
 
         ``dt`` is the measured time (s) since the previous answered state. Before the first
-        LMI update there is no model of the VT: the answer is zero force (mode ZERO).
+        LMI update there is no model of the VT: the answer is zero force (mode ZERO). The
+        arithmetic (LMI step, eqs. 10 and 13-16) is compiled
+        (:mod:`haptic_topology.control.compiled`).
         """
         m = self.task.dim
         lmi = self.lmi
@@ -124,14 +137,11 @@ class HapticController:
             return CycleOutput(zero, zero, zero, x_h.copy(), xd_h.copy(), 0, ControlMode.ZERO)
         lmi.advance(seq, dt)
         g = self.gains
-        error = pose_difference(lmi.x_vt, x_h, self.task)   # for F_pc and eq. 13 alike
-        f_pc = coordination_wrench(lmi.x_vt, lmi.xd_vt, x_h, xd_h, g.k_pc, g.b_pc, self.task,
-                                   error=error)
         f_env = lmi.env_wrench
-        u = control_wrench(self.mode, lmi.lambda_inv, self.m_d, self.c_d, f_h, f_pc, x_h,
-                           xd_h, lmi.x_vt, lmi.xd_vt, lmi.projector, g, self.task,
-                           f_env, ml=self._ml, error=error)
-        f_vt = f_h - f_pc if self.vt_coupling else f_h.copy()
+        u, f_pc, f_vt = np.empty(m), np.empty(m), np.empty(m)
+        self._law(int(self.mode), self.vt_coupling, self._ml, self.m_d, self.c_d, lmi.projector,
+                  g.k_pc, g.b_pc, g.k_tc, g.b_tc, lmi.x_vt, lmi.xd_vt, x_h, xd_h, f_h, f_env,
+                  u, f_pc, f_vt)
         lmi.record_input(seq, f_vt)
         return CycleOutput(u, f_pc, f_vt, lmi.x_vt.copy(), lmi.xd_vt.copy(),
                            lmi.constraint_count, self.mode, f_env.copy())

@@ -29,9 +29,11 @@ from haptic_topology.dynamics.constraints import ConstraintDirections, task_scal
 from haptic_topology.dynamics.contacts import LocalContacts
 from haptic_topology.dynamics.linkage_dynamics import DynamicsSnapshot
 from haptic_topology.dynamics.spd import spd_factor, spd_solve
-from haptic_topology.dynamics.taskspace import integrate_pose
 from haptic_topology.model.linkage import PenaltyDirection
 from haptic_topology.vocabulary import TaskSpace
+
+#: The contact accelerations of the compiled step when there are none.
+_NO_CONTACTS = np.zeros(0)
 
 
 class LmiModel(enum.Enum):
@@ -126,6 +128,10 @@ class LocalModel:
 
     def __init__(self, task: TaskSpace, model: LmiModel = LmiModel.EQ17,
                  history: int = 1024) -> None:
+        # Imported here: loading the compiled code costs about 1 s, which a process that
+        # only reads updates (a recorder, a bag reader) does not pay.
+        from haptic_topology.control.compiled import lmi_step
+        self._lmi_step = lmi_step
         self.task = task
         self.model = model
         self.snapshot: LmiSnapshot | None = None
@@ -150,6 +156,16 @@ class LocalModel:
         self._forces: np.ndarray | None = None     # F_i at the current state, flattened
         #: ``F_env`` (m) at the current state (zero without contacts).
         self.env_wrench = np.zeros(m)
+
+    def __getstate__(self) -> dict[str, object]:
+        state = self.__dict__.copy()        # see HapticController.__getstate__
+        del state['_lmi_step']
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        from haptic_topology.control.compiled import lmi_step
+        self.__dict__.update(state)
+        self._lmi_step = lmi_step
 
     @property
     def synced(self) -> bool:
@@ -266,14 +282,11 @@ class LocalModel:
 
     def _step(self, wrench: np.ndarray, dt: float) -> None:
         """Semi-implicit Euler step of eq. 17 / eq. 20 with the frozen matrices (and the
-        contact torques at the state before the step)."""
-        qdd = self._accel_map @ wrench - self._accel_bias
-        if self._contact_accel is not None:
-            qdd = qdd + self._contact_accel
-        self.dq = self.dq + qdd * dt
-        self.q = self.q + self.dq * dt
-        self.xd_vt = self._jacobian @ self.dq
-        self.x_vt = integrate_pose(self.x_vt, self.xd_vt, dt, self.task)
+        contact torques at the state before the step), in place
+        (:func:`~haptic_topology.control.compiled.lmi_step`)."""
+        self._lmi_step(self._accel_map, self._accel_bias,
+                       _NO_CONTACTS if self._contact_accel is None else self._contact_accel,
+                       self._jacobian, self.q, self.dq, self.x_vt, self.xd_vt, wrench, dt)
         if self._contacts is not None:
             self._update_contacts()
 

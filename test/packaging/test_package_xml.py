@@ -48,10 +48,11 @@ IMPORT_KEYS = {
     'catkin_pkg': 'python3-catkin-pkg-modules',
     'websockets': 'python3-websockets',    # test/graph/test_foxglove.py's client
 }
-#: Imported modules that rosdistro has no key for (python.yaml checked): not declared, but
-#: package.xml must name their PyPI distribution in a comment.
+#: Imported modules that rosdistro has no key for on Jazzy's Ubuntu (python.yaml checked): not
+#: declared, but package.xml must name their PyPI distribution in a comment.
 NO_ROSDEP_KEY = {
     'foxglove': 'foxglove-sdk',     # the optional foxglove_bridge node
+    'numba': 'numba (PyPI',         # python3-numba: Debian, Ubuntu bionic/focal only
 }
 #: Declared dependencies that no import shows, and where they are used.
 NOT_IMPORTED = {

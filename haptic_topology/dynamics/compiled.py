@@ -1,0 +1,164 @@
+"""Compiled pose arithmetic for the 1 kHz loop (numba, no Python objects per call).
+
+The loop's per-cycle arithmetic runs in compiled code (:mod:`haptic_topology.control.compiled`)
+so that a cycle costs microseconds, not the ~100 numpy calls on 3- and 6-vectors that a
+cycle makes in Python (about 1 us each on a 2-core machine). These are the pose operations
+of :mod:`haptic_topology.dynamics.taskspace` written for it: the same conventions (planar
+``[x, y, theta]``, spatial ``[p, rotation vector]``, world frame), for use *inside* other
+compiled functions (each one called from Python costs a dispatch of about 1 us).
+
+``exp3``/``log3`` are Rodrigues' formula and its inverse (as Pinocchio's ``exp3``/``log3``,
+which the Python functions call): a second-order Taylor expansion below 1e-4 rad and, above
+pi/2, the rotation vector from the unit quaternion. ``exp3`` agrees with Pinocchio's to
+2e-15 and ``log3`` returns the rotation vector to 4e-15 up to pi, where Pinocchio's loses up
+to 5e-11 within 0.01 rad of pi (``test/unit/dynamics/test_compiled_poses.py``). Not bit for
+bit, then, but the simulation and the graph call the same compiled functions, so they stay
+equal to each other exactly.
+
+Each function has one signature (float64 arrays of any layout), compiled when the module is
+imported: from numba's cache next to this file (``cache=True``; about 0.5 s per process),
+or, the first time on a machine, from source (a few seconds). Never inside the loop.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import boolean, float64, njit, void
+
+#: Array types of the signatures: float64, any memory layout (one compiled specialization per
+#: function, compiled or loaded from the cache at import, never in the loop).
+VEC = float64[:]
+MAT = float64[:, :]
+
+#: Below this angle (rad) exp3/log3 use the Taylor expansions of sin(t)/t etc.
+_SMALL = 1e-4
+#: Above this angle (rad) log3 takes the rotation vector from the unit quaternion: towards pi
+#: the antisymmetric part vanishes and ``theta / sin(theta)`` amplifies its rounding.
+_LARGE = 0.5 * math.pi
+
+
+@njit(float64(float64), cache=True)
+def wrap_angle(a: float) -> float:
+    """An angle (rad) wrapped to [-pi, pi), as ``taskspace.wrap_angle``."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(void(VEC, MAT), cache=True)
+def exp3(w: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (3 x 3) = the rotation of rotation vector ``w`` (rad): Rodrigues' formula."""
+    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    t = math.sqrt(t2)
+    if t < _SMALL:
+        a = 1.0 - t2 / 6.0                 # sin(t)/t
+        b = 0.5 - t2 / 24.0                # (1 - cos(t))/t^2
+    else:
+        a = math.sin(t) / t
+        b = (1.0 - math.cos(t)) / t2
+    x, y, z = w[0], w[1], w[2]
+    out[0, 0] = 1.0 - b * (y * y + z * z)
+    out[1, 1] = 1.0 - b * (x * x + z * z)
+    out[2, 2] = 1.0 - b * (x * x + y * y)
+    out[0, 1] = b * x * y - a * z
+    out[1, 0] = b * x * y + a * z
+    out[0, 2] = b * x * z + a * y
+    out[2, 0] = b * x * z - a * y
+    out[1, 2] = b * y * z - a * x
+    out[2, 1] = b * y * z + a * x
+
+
+@njit(void(MAT, VEC), cache=True)
+def log3(r: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (3) = the rotation vector (rad, angle in [0, pi]) of rotation ``r``."""
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    c = 0.5 * (tr - 1.0)
+    if c >= 1.0:
+        theta = 0.0
+    elif c <= -1.0:
+        theta = math.pi
+    else:
+        theta = math.acos(c)
+    if theta > _LARGE:
+        # Towards pi the antisymmetric part vanishes: the axis from the unit quaternion, taken
+        # from the largest diagonal entry (Shepperd's method), with w >= 0.
+        i0 = 0
+        if r[1, 1] > r[i0, i0]:
+            i0 = 1
+        if r[2, 2] > r[i0, i0]:
+            i0 = 2
+        i1 = (i0 + 1) % 3
+        i2 = (i0 + 2) % 3
+        s = math.sqrt(max(1.0 + r[i0, i0] - r[i1, i1] - r[i2, i2], 0.0))
+        if r[i2, i1] < r[i1, i2]:
+            s = -s
+        v = np.empty(3)
+        v[i0] = 0.5 * s
+        v[i1] = (r[i1, i0] + r[i0, i1]) / (2.0 * s)
+        v[i2] = (r[i2, i0] + r[i0, i2]) / (2.0 * s)
+        w = (r[i2, i1] - r[i1, i2]) / (2.0 * s)
+        norm = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        angle = 2.0 * math.atan2(norm, w)
+        for i in range(3):
+            out[i] = angle * v[i] / norm
+        return
+    if theta < _SMALL:
+        k = 0.5 * (1.0 + theta * theta / 6.0)       # t / (2 sin t)
+    else:
+        k = 0.5 * theta / math.sin(theta)
+    out[0] = k * (r[2, 1] - r[1, 2])
+    out[1] = k * (r[0, 2] - r[2, 0])
+    out[2] = k * (r[1, 0] - r[0, 1])
+
+
+@njit(MAT(MAT, MAT, boolean), cache=True)
+def _mul3(a: np.ndarray, b: np.ndarray, b_transposed: bool) -> np.ndarray:
+    """``a b`` (or ``a b^T``) of two 3 x 3 matrices, in plain loops (no BLAS call)."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for k in range(3):
+                s += a[i, k] * (b[j, k] if b_transposed else b[k, j])
+            out[i, j] = s
+    return out
+
+
+@njit(void(VEC, VEC, VEC), cache=True)
+def pose_difference(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out`` = ``a (-) b`` (``taskspace.pose_difference``): the translation difference and
+    the rotation taking ``b`` to ``a`` (world frame); planar angles wrapped to [-pi, pi)."""
+    if a.size == 3:
+        out[0] = a[0] - b[0]
+        out[1] = a[1] - b[1]
+        out[2] = wrap_angle(a[2] - b[2])
+        return
+    ra = np.empty((3, 3))
+    rb = np.empty((3, 3))
+    exp3(a[3:6], ra)
+    exp3(b[3:6], rb)
+    rel = _mul3(ra, rb, True)
+    for i in range(3):
+        out[i] = a[i] - b[i]
+    log3(rel, out[3:6])
+
+
+@njit(void(VEC, VEC, float64), cache=True)
+def integrate_pose(pose: np.ndarray, twist: np.ndarray, dt: float) -> None:
+    """Move ``pose`` in place with the constant world-frame ``twist`` for ``dt`` s
+    (``taskspace.integrate_pose``; planar angles are not wrapped)."""
+    if pose.size == 3:
+        for i in range(3):
+            pose[i] = pose[i] + twist[i] * dt
+        return
+    step = np.empty((3, 3))
+    rot = np.empty((3, 3))
+    w = np.empty(3)
+    for i in range(3):
+        w[i] = twist[3 + i] * dt
+    exp3(w, step)
+    exp3(pose[3:6], rot)
+    r = _mul3(step, rot, False)
+    for i in range(3):
+        pose[i] = pose[i] + twist[i] * dt
+    log3(r, pose[3:6])
