@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from haptic_topology.dynamics.taskspace import integrate_pose, pose_difference
+from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.errors import ConfigError
 from haptic_topology.validate import (
     as_angles,
@@ -268,6 +268,11 @@ def saturate(wrench: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, bool]:
     return np.array(out), saturated
 
 
+#: ``maglev_step``'s bits (1 saturated, 2 stopped) as device status.
+_STEP_STATUS = (DeviceStatus.OK, DeviceStatus.SATURATED, DeviceStatus.WORKSPACE_LIMIT,
+                DeviceStatus.SATURATED | DeviceStatus.WORKSPACE_LIMIT)
+
+
 class MaglevModel:
     """State and one-step integration of the simulated device (semi-implicit Euler).
 
@@ -284,6 +289,10 @@ class MaglevModel:
         self.params = params
         self.pose = np.array(pose, dtype=float)
         self.twist = np.zeros(m) if twist is None else np.array(twist, dtype=float)
+        # Imported here: loading the compiled code costs about 1 s, which a process that
+        # never steps a device does not pay.
+        from haptic_topology.device.compiled import maglev_step
+        self._step = maglev_step
         self._mass_inv = np.linalg.inv(params.mass)  # constant, inverted once
         self._mass_diag = np.diag(params.mass).copy()
         self.applied = np.zeros(m)
@@ -304,38 +313,32 @@ class MaglevModel:
             c = self.pose[3:6] if params.orientation_center is None else params.orientation_center
             self._rot_center = pin.exp3(np.asarray(c, dtype=float))
 
+    def __getstate__(self) -> dict[str, object]:
+        # A compiled function pickles by value and compiles again where it is unpickled
+        # (seconds): take it from the import instead.
+        state = self.__dict__.copy()
+        del state['_step']
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        from haptic_topology.device.compiled import maglev_step
+        self.__dict__.update(state)
+        self._step = maglev_step
+
     def step(self, u: np.ndarray, f_h: np.ndarray, dt: float) -> DeviceStatus:
-        """Advance by ``dt`` (s) under control wrench ``u`` and hand wrench ``f_h`` (eq. 9)."""
+        """Advance by ``dt`` (s) under control wrench ``u`` and hand wrench ``f_h`` (eq. 9;
+        the arithmetic is :func:`~haptic_topology.device.compiled.maglev_step`)."""
         p = self.params
-        u_sat, saturated = saturate(u, p.wrench_limit)
-        if self._delay:
-            u_sat, self._pending = self._pending, u_sat
-        self.applied = u_sat
-        force = f_h + u_sat
-        if self._has_christoffel:
-            force = force - p.christoffel @ self.twist
-        if self._has_viscous:
-            force = force - self._viscous * self.twist
-        twist = self.twist + self._mass_inv @ force * dt
-        if self._has_coulomb:
-            # Implicit Coulomb friction per axis: stick when the friction force that stops
-            # the axis within this step is within its bound, else slide against the motion.
-            stop = -self._mass_diag * twist / dt
-            friction = np.where(np.abs(stop) <= self._coulomb, stop,
-                                -np.sign(twist) * self._coulomb)
-            twist = twist + self._mass_inv @ friction * dt
-        self.twist = twist
-        self.pose = integrate_pose(self.pose, self.twist, dt, p.task)
-        status = DeviceStatus.SATURATED if saturated else DeviceStatus.OK
-        if self._has_stops:
-            below = self.pose < p.workspace_lo
-            above = self.pose > p.workspace_hi
-            if below.any() or above.any():
-                # Inelastic hard stop: hold at the limit, cancel the velocity into it.
-                self.pose = np.clip(self.pose, p.workspace_lo, p.workspace_hi)
-                self.twist = np.where((below & (self.twist < 0)) | (above & (self.twist > 0)),
-                                      0.0, self.twist)
-                status |= DeviceStatus.WORKSPACE_LIMIT
+        m = self.pose.size
+        pose, twist, applied = self.pose.copy(), self.twist.copy(), np.empty(m)
+        bits = self._step(np.asarray(u, dtype=float), np.asarray(f_h, dtype=float), dt,
+                          p.wrench_limit, self._mass_inv, self._mass_diag, p.christoffel,
+                          self._viscous, self._coulomb, p.workspace_lo, p.workspace_hi,
+                          self._delay, self._has_christoffel, self._has_viscous,
+                          self._has_coulomb, self._has_stops, self._pending, pose, twist,
+                          applied)
+        self.pose, self.twist, self.applied = pose, twist, applied
+        status = _STEP_STATUS[bits]
         if self._rot_center is not None and self._orientation_stop():
             status |= DeviceStatus.WORKSPACE_LIMIT
         return status

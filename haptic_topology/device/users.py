@@ -9,12 +9,11 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
-from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.errors import ConfigError
 from haptic_topology.validate import as_float, as_str, as_vector, check_keys
 from haptic_topology.vocabulary import TaskSpace
@@ -53,6 +52,7 @@ class TargetPath:
     period: float = 1.0
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The target pose and twist at time ``t`` (s)."""
         if self.kind == 'line':
             return self.start + self.velocity * t, self.velocity.copy()
         w = 2.0 * math.pi / self.period
@@ -74,9 +74,30 @@ class SpringDamperUser:
     b: np.ndarray
     task: TaskSpace
 
+    #: The compiled wrench (:func:`~haptic_topology.device.compiled.spring_damper_wrench`)
+    #: and its path code, set at construction.
+    _wrench: Any = field(init=False, repr=False, compare=False, default=None)
+    _path_code: int = field(init=False, repr=False, compare=False, default=0)
+
+    def __post_init__(self) -> None:
+        # Imported here: loading the compiled code costs about 1 s, which a process that
+        # never steps a device does not pay.
+        from haptic_topology.device.compiled import CIRCLE, LINE, spring_damper_wrench
+        object.__setattr__(self, '_wrench', spring_damper_wrench)
+        object.__setattr__(self, '_path_code', LINE if self.path.kind == 'line' else CIRCLE)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Rebuilt from its fields (the compiled function would pickle by value and compile
+        # again where it is unpickled).
+        return (SpringDamperUser, (self.path, self.k, self.b, self.task))
+
     def wrench(self, t: float, pose: np.ndarray, twist: np.ndarray) -> np.ndarray:
-        target, target_rate = self.path.at(t)
-        return self.k * pose_difference(target, pose, self.task) + self.b * (target_rate - twist)
+        """``K_u (x_target(t) (-) x_h) + B_u (xd_target(t) - xd_h)`` for the path's
+        :meth:`~haptic_topology.device.users.TargetPath.at`, compiled (one call per cycle)."""
+        p = self.path
+        return self._wrench(self._path_code, p.start, p.velocity, p.radius, p.period,
+                            self.k, self.b, t, np.asarray(pose, dtype=float),
+                            np.asarray(twist, dtype=float))
 
 
 def user_from_config(raw: Any, task: TaskSpace, where: str,
