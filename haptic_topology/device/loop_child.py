@@ -157,6 +157,7 @@ class _Child:
                   'controller': c.values(loop_now),
                   'health': list(HEALTH_MESSAGES[c.guard.health(loop_now)]),
                   'finished': r.finished, 'lockstep_timeouts': r.lockstep_timeouts,
+                  'generation': self.spec.generation,
                   'notices': self.notices[-50:]}
         data = json.dumps(status).encode()
         if len(data) <= STATUS_BYTES:       # else the notices wait for the next record

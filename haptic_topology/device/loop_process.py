@@ -18,8 +18,7 @@ torn reads detected), never a lock:
 * node -> child, LMI updates (pickled
   :class:`~haptic_topology.control.controller.PreparedUpdate`: the snapshot with the matrices
   its re-sync takes, computed by the node; applied at the start of the next cycle as
-  in-process) and control requests (engagement
-  permission, a live change of law or gains, stop);
+  in-process) and control requests (engagement permission, live law and gains, stop);
 * child -> node, a status record every :data:`STATUS_PERIOD` s: the loop's, the device's and
   the controller's diagnostics values, and notices for the node's log.
 
@@ -32,9 +31,8 @@ when its parent dies (``PR_SET_PDEATHSIG`` delivers SIGTERM, and the parent pid 
 every cycle), in both cases after writing zero wrench and releasing the device
 (:func:`~haptic_topology.device.backend.zero_and_release`). The node sees the child exit at
 its next check (every 20 ms) and reports it as the device's fault. The child unregisters the
-rings from its resource tracker (:meth:`~haptic_topology.device.shm_ring.ShmRing.attach`), so only
-the owner unlinks them:
-its :meth:`LoopProcess.close`, or its resource tracker when the node dies.
+rings from its resource tracker (:meth:`~haptic_topology.device.shm_ring.ShmRing.attach`),
+so only the owner unlinks them: its :meth:`LoopProcess.close`, or its tracker when it dies.
 
 In the child, after start-up, :func:`gc.freeze` moves every object built so far out of the
 collector's view and automatic collection is off; a young-generation collection runs every
@@ -61,10 +59,7 @@ from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.loop import Answer, ControllerLoop, HandSample
-from haptic_topology.device.backend import (
-    BackendConfig,
-    DeviceReading,
-)
+from haptic_topology.device.backend import BackendConfig, DeviceReading
 from haptic_topology.device.hosted import MAX_PENDING, HostedStep
 from haptic_topology.device.loop import RTT_KEEP, DeviceTick
 from haptic_topology.device.pacing import PERIOD_WINDOW
@@ -85,8 +80,10 @@ CONTROL_BYTES = 1 << 12
 UPDATE_RECORDS = 32
 #: Cycles between two young-generation collections in the child.
 GC_EVERY = 1000
-#: How long the node waits for the child to stop after a stop request (s).
+#: How long the node waits for the child to stop after a stop request (s); longer by
+#: START_TIMEOUT while it has not reported from its loop (importing, opening the device).
 STOP_TIMEOUT = 3.0
+START_TIMEOUT = 30.0
 
 # Integer fields of a cycle record, then flags of its optional parts.
 _INTS = ('stamp_ns', 'seq', 'run_index', 'status', 'reading_status', 'flags',
@@ -289,12 +286,15 @@ class LoopProcess:
         self._request(('engage', self._may_engage))
 
     def stop(self, timeout: float = STOP_TIMEOUT) -> None:
-        """Ask the child to stop (it zeroes and releases the device) and wait for it."""
+        """Ask the child to stop (zero wrench, device released); wait (:data:`STOP_TIMEOUT`)."""
         proc = self._proc
         if proc is None or proc.poll() is not None:
             return
         self._stopping = True
         self._request(('stop',))
+        self._poll_status()
+        if self.status.get('generation') != self.generation:      # not in its loop yet
+            timeout += START_TIMEOUT
         try:
             proc.wait(timeout)
         except subprocess.TimeoutExpired:

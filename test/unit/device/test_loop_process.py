@@ -147,6 +147,23 @@ def test_a_killed_child_is_a_fault_and_close_leaves_no_segment() -> None:
     assert _segments(names) == []
 
 
+def test_a_child_stopped_while_it_starts_stops_at_its_first_cycle() -> None:
+    # Stopped at once, it is still importing (seconds on a loaded machine, more than
+    # STOP_TIMEOUT): the node waits for it to reach its loop, where it stops, zeroes the
+    # device and exits 0, rather than killing it.
+    spec, dim, dof = spec_for('fig8', lockstep=False, duration=0.0)
+    proc = LoopProcess(spec, dim, dof)
+    proc.start()
+    try:
+        assert not proc.status                  # nothing reported from its loop yet
+        proc.stop()
+        assert proc.status.get('generation') == proc.generation   # its final report
+        assert proc._proc is not None and proc._proc.returncode == 0
+        assert proc.error is None
+    finally:
+        proc.close()
+
+
 def test_a_killed_parent_stops_the_child_with_zero_output_and_no_segment_left() -> None:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(SUPPORT), *filter(None, [os.environ.get('PYTHONPATH')])]))
