@@ -9,6 +9,7 @@ shared 2-core machine), after a warm-up; figures are percentiles over many calls
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import time
 from typing import Any
@@ -18,7 +19,7 @@ import numpy as np
 from haptic_topology.control import HapticController
 from haptic_topology.device import MaglevModel, user_from_config
 from haptic_topology.device.hosted import HostedCycle
-from haptic_topology.device.loop_process import CycleCodec
+from haptic_topology.device.loop_process import GC_EVERY, CycleCodec
 from haptic_topology.device.runner import Published
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.model import serial_chain
@@ -97,7 +98,8 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
     device tick with the simulated maglev and user, the controller's answer: LMI step, eq. 14
     or the scenario's law, and at every ``update_period``-th cycle the LMI re-sync) plus the
     record it writes to the outbound ring (:meth:`CycleCodec.encode`), on ``scenario`` as
-    ``simulate`` runs it. The VE's own steps are not timed."""
+    ``simulate`` runs it, with the garbage collector as the loop process runs it. The VE's
+    own steps are not timed."""
     sc = load_scenario(scenario)
     ve = virtual_environment(sc)
     cycle = HostedCycle(build_device_loop(sc),
@@ -109,11 +111,18 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
     inputs = updates = 0
     warm = 500
     restart = int(round(sc.duration / dt))      # keep the run within the scenario's time
+    # The garbage collector as the loop process runs it: frozen after start-up, automatic
+    # collection off, a young-generation collection every GC_EVERY cycles (timed with them).
+    gc.collect()
+    gc.freeze()
+    gc.disable()
     for k in range(cycles + warm):
         t = (k % restart) * dt
         t0 = CLOCK()
         done = cycle.step(t, dt, t)
         codec.encode(Published(done, k))
+        if k % GC_EVERY == GC_EVERY - 1:
+            gc.collect(1)
         t1 = CLOCK()
         if k >= warm:
             step_ns.append(t1 - t0)
@@ -131,6 +140,8 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
             inputs = 0
             updates += 1
             cycle.offer_update(ve.snapshot(seq=0))
+    gc.enable()
+    gc.unfreeze()
     out = _pct(step_ns)
     out['task'] = sc.linkage.task.value      # type: ignore[assignment]
     return out
