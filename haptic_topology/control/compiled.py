@@ -19,6 +19,8 @@ Vectors are task vectors at the hand (m = 3 planar, 6 spatial; layouts in
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import boolean, float64, int64, njit, void
 
@@ -68,6 +70,36 @@ def lmi_step(accel_map: np.ndarray, accel_bias: np.ndarray, contact_accel: np.nd
         q[i] = q[i] + dq[i] * dt
     _matvec(jacobian, dq, xd_vt)
     integrate_pose(x_vt, xd_vt, dt)
+
+
+@njit(int64(MAT, VEC, MAT, VEC, VEC, VEC, VEC, int64[:], MAT, VEC, int64, int64, int64),
+      cache=True)
+def lmi_replay(accel_map: np.ndarray, accel_bias: np.ndarray, jacobian: np.ndarray,
+               q: np.ndarray, dq: np.ndarray, x_vt: np.ndarray, xd_vt: np.ndarray,
+               seqs: np.ndarray, wrenches: np.ndarray, dts: np.ndarray, count: int,
+               consumed: int, bound: int) -> int:
+    """:func:`lmi_step` for each recorded input not consumed yet, oldest first (no
+    contacts); returns the seq of the last one consumed (``consumed`` if none).
+
+    The inputs are a ring of the newest ``seqs.size`` in seq order (row ``k % size`` of
+    ``seqs``, ``wrenches`` (size x m, F_vt) and ``dts`` (s; NaN: no duration yet, skipped)),
+    ``count`` recorded in all. The replay stops before the first input whose seq is
+    ``bound`` or more (``bound`` < 0: no bound)."""
+    size = seqs.size
+    first = count
+    while first > max(count - size, 0) and seqs[(first - 1) % size] > consumed:
+        first -= 1
+    none = np.empty(0)
+    for k in range(first, count):
+        i = k % size
+        if math.isnan(dts[i]):
+            continue
+        if bound >= 0 and seqs[i] >= bound:
+            break
+        lmi_step(accel_map, accel_bias, none, jacobian, q, dq, x_vt, xd_vt, wrenches[i],
+                 dts[i])
+        consumed = seqs[i]
+    return consumed
 
 
 @njit(void(int64, boolean, MAT, MAT, MAT, MAT, VEC, VEC, float64, float64,

@@ -20,7 +20,7 @@ since (so the lag of the update costs no time), with the new matrices.
 from __future__ import annotations
 
 import enum
-from collections import deque
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,13 +107,6 @@ class LmiSync:
     held_forces: np.ndarray | None
 
 
-@dataclass
-class _Input:
-    seq: int
-    wrench: np.ndarray
-    dt: float | None = None
-
-
 class LocalModel:
     """The LMI: frozen-matrix VT dynamics stepped once per device cycle (eqs. 17-20).
 
@@ -130,12 +123,17 @@ class LocalModel:
                  history: int = 1024) -> None:
         # Imported here: loading the compiled code costs about 1 s, which a process that
         # only reads updates (a recorder, a bag reader) does not pay.
-        from haptic_topology.control.compiled import lmi_step
-        self._lmi_step = lmi_step
+        from haptic_topology.control.compiled import lmi_replay, lmi_step
+        self._lmi_step, self._lmi_replay = lmi_step, lmi_replay
         self.task = task
         self.model = model
         self.snapshot: LmiSnapshot | None = None
-        self._history: deque[_Input] = deque(maxlen=history)
+        # The inputs recorded (a ring of the newest ``history``, in seq order): seq, F_vt
+        # and the duration it was held (NaN until the next state gave it one).
+        self._in_seq = np.zeros(history, dtype=np.int64)
+        self._in_wrench = np.zeros((history, task.dim))
+        self._in_dt = np.full(history, np.nan)
+        self._in_count = 0
         self.consumed = -1
         m = task.dim
         self.lambda_inv = np.zeros((m, m))
@@ -159,13 +157,13 @@ class LocalModel:
 
     def __getstate__(self) -> dict[str, object]:
         state = self.__dict__.copy()        # see HapticController.__getstate__
-        del state['_lmi_step']
+        del state['_lmi_step'], state['_lmi_replay']
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:
-        from haptic_topology.control.compiled import lmi_step
+        from haptic_topology.control.compiled import lmi_replay, lmi_step
         self.__dict__.update(state)
-        self._lmi_step = lmi_step
+        self._lmi_step, self._lmi_replay = lmi_step, lmi_replay
 
     @property
     def synced(self) -> bool:
@@ -250,7 +248,11 @@ class LocalModel:
 
     def record_input(self, seq: int, wrench: np.ndarray) -> None:
         """Remember the VT wrench computed at device state ``seq`` (used from then on)."""
-        self._history.append(_Input(seq, np.array(wrench, dtype=float)))
+        i = self._in_count % self._in_seq.size
+        self._in_seq[i] = seq
+        self._in_wrench[i] = wrench
+        self._in_dt[i] = math.nan
+        self._in_count += 1
 
     def advance(self, seq: int, dt: float) -> None:
         """Bring the VT to the time of device state ``seq``; ``dt`` (s) since the last state.
@@ -258,27 +260,37 @@ class LocalModel:
         The newest recorded input gets duration ``dt``; every recorded input not yet
         consumed is integrated in order.
         """
-        if self._history and self._history[-1].dt is None and self._history[-1].seq < seq:
-            self._history[-1].dt = dt
+        if self._in_count:
+            i = (self._in_count - 1) % self._in_seq.size
+            if math.isnan(self._in_dt[i]) and self._in_seq[i] < seq:
+                self._in_dt[i] = dt
         self._replay(seq)
 
     def _replay(self, seq: int | None) -> None:
+        """Integrate the recorded inputs not consumed yet, in order, those with a duration
+        only, up to (not including) the input of state ``seq`` (None: all)."""
         if self.snapshot is None:
             return
-        # Inputs are recorded in seq order: walk back from the newest to the first one not
-        # consumed yet (usually one step), not through the whole history each cycle.
-        pending: list[_Input] = []
-        for rec in reversed(self._history):
-            if rec.seq <= self.consumed:
-                break
-            pending.append(rec)
-        for rec in reversed(pending):
-            if rec.dt is None:
+        bound = -1 if seq is None else seq
+        if self._contacts is None:
+            self.consumed = self._lmi_replay(
+                self._accel_map, self._accel_bias, self._jacobian, self.q, self.dq, self.x_vt,
+                self.xd_vt, self._in_seq, self._in_wrench, self._in_dt, self._in_count,
+                self.consumed, bound)
+            return
+        # With contacts the forces are evaluated at each state between two steps (Python).
+        size, count = self._in_seq.size, self._in_count
+        first = count
+        while first > max(count - size, 0) and self._in_seq[(first - 1) % size] > self.consumed:
+            first -= 1
+        for k in range(first, count):
+            i = k % size
+            if math.isnan(self._in_dt[i]):
                 continue
-            if seq is not None and rec.seq >= seq:
+            if bound >= 0 and self._in_seq[i] >= bound:
                 break
-            self._step(rec.wrench, rec.dt)
-            self.consumed = rec.seq
+            self._step(self._in_wrench[i], float(self._in_dt[i]))
+            self.consumed = int(self._in_seq[i])
 
     def _step(self, wrench: np.ndarray, dt: float) -> None:
         """Semi-implicit Euler step of eq. 17 / eq. 20 with the frozen matrices (and the

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -161,6 +162,29 @@ def test_lmi_resync_replays_inputs_newer_than_the_update() -> None:
     assert b.consumed == a.consumed == 9
     np.testing.assert_allclose(b.q, a.q, atol=1e-14)
     np.testing.assert_allclose(b.x_vt, a.x_vt, atol=1e-14)
+
+
+def test_the_input_history_is_a_ring_of_the_newest_inputs() -> None:
+    """A re-sync replays the inputs after the update's from a ring of the newest ones: the
+    same with a ring of 8 (wrapped around 4 times) as with the default 1024; an update older
+    than the ring holds replays what the ring still has."""
+    dyn = LinkageDynamics(TABLE1)
+    snap0 = _snapshot(dyn, np.array([0.2, 0.6, -0.4]), np.zeros(3), seq=0)
+    models = [LocalModel(P), LocalModel(P, history=8)]
+    for lmi in models:
+        lmi.sync(snap0)
+        for k in range(1, 36):
+            lmi.advance(k, 1e-3)
+            lmi.record_input(k, np.array([0.4, 0.01 * k, -0.2]))
+        late = dataclasses.replace(snap0, seq=1, hand_input_seq=30)
+        lmi.sync(late)                  # replays inputs 31..34 (35 has no duration yet)
+        assert lmi.consumed == 34
+    np.testing.assert_array_equal(models[0].q, models[1].q)
+    np.testing.assert_array_equal(models[0].x_vt, models[1].x_vt)
+    for lmi in models:
+        lmi.sync(dataclasses.replace(snap0, seq=2, hand_input_seq=20))
+    assert models[0].consumed == models[1].consumed == 34
+    assert not np.array_equal(models[0].q, models[1].q)    # 21..34 against 28..34
 
 
 def test_controller_answers_zero_before_the_first_update() -> None:
