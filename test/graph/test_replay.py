@@ -11,7 +11,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -19,6 +18,7 @@ import pytest
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag, upgraders
 from haptic_topology.bag.replay import DEFAULT_TOLERANCE, controller_plan
 from haptic_topology.bringup.run import run_graph
+from haptic_topology.bringup.watch import RECORDER_STATUS, GraphWatcher
 from haptic_topology.nodes.replay import check_controller, replay
 from haptic_topology.paths import config_dir
 
@@ -81,9 +81,15 @@ def test_plain_replay_is_recorded_again_in_full(tmp_path: Path, topic_prefix: st
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
     try:
-        stats = replay(REFERENCE, rate=2.0, topics=['/haptic/lmi/update'],
-                       wait_subscribers=40.0, namespace=topic_prefix)
-        time.sleep(1.0)
+        with GraphWatcher('replay_watch', lifecycle_nodes=()) as watch:
+            stats = replay(REFERENCE, rate=2.0, topics=['/haptic/lmi/update'],
+                           wait_subscribers=40.0, namespace=topic_prefix)
+            # Stopped once it has taken every update (it reports its counts every 0.25 s):
+            # a recorder stopped earlier loses what DDS has not handed it yet.
+            sent = stats.published['/haptic/lmi/update']
+            watch.wait(lambda: int(watch.status.get(RECORDER_STATUS, {}).get(
+                'received haptic/lmi/update', '0')) >= sent, 60.0,
+                'the recorder took every replayed update')
     finally:
         rec.send_signal(signal.SIGINT)
         log, _ = rec.communicate(timeout=30)
