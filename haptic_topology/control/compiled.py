@@ -153,3 +153,33 @@ def law(mode: int, vt_coupling: bool, ml: np.ndarray, m_d: np.ndarray, c_d: np.n
         _matvec(m_d, acc, a)
         for i in range(m):
             u[i] = u[i] + a[i]
+
+
+@njit(float64(MAT, MAT, VEC, VEC, float64, float64, VEC, VEC, VEC, VEC), cache=True)
+def force_step(m_d: np.ndarray, projector: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray,
+               k_tc: float, b_tc: float, pose: np.ndarray, twist: np.ndarray,
+               vt_pose: np.ndarray, vt_twist: np.ndarray) -> float:
+    """The largest component (N or N m) of the step in force that moving the VT hand from
+    ``vt_pose``, ``vt_twist`` to ``pose``, ``twist`` gives eq. 14, bounded term by term::
+
+        |K_pc| dx + |B_pc| dv + |M_d P (k_tc dx + b_tc dv)|,  dx = |pose (-) vt_pose|,
+        dv = |twist - vt_twist|
+
+    (the coordination wrench of eqs. 15-16 and the penalty of eq. 13; ``projector`` P)."""
+    m = pose.size
+    dx = np.empty(m)
+    pose_difference(pose, vt_pose, dx)
+    dv = np.empty(m)
+    s = np.empty(m)
+    for i in range(m):
+        dx[i] = abs(dx[i])
+        dv[i] = abs(twist[i] - vt_twist[i])
+        s[i] = k_tc * dx[i] + b_tc * dv[i]
+    p = np.empty(m)
+    pen = np.empty(m)
+    _matvec(projector, s, p)
+    _matvec(m_d, p, pen)
+    top = -np.inf
+    for i in range(m):
+        top = max(top, k_pc[i] * dx[i] + b_pc[i] * dv[i] + abs(pen[i]))
+    return top

@@ -68,8 +68,9 @@ class HapticController:
         if np.any(gains.b_d) or np.any(gains.k_d):
             raise ValueError('gains.b_d and gains.k_d (eq. 4) must be zero: the controller '
                              'renders the VT with b_d = k_d = 0, as the paper does')
-        from haptic_topology.control.compiled import law  # see LocalModel.__init__
-        self._law = law
+        # Imported here, as in LocalModel.__init__: loading the compiled code costs ~1 s.
+        from haptic_topology.control.compiled import force_step, law
+        self._law, self._force_step = law, force_step
         self.task = task
         self.mode = mode
         self.gains = gains
@@ -85,13 +86,13 @@ class HapticController:
         # A compiled function pickles by value and compiles again where it is unpickled
         # (seconds): the loop process takes its own from its import instead.
         state = self.__dict__.copy()
-        del state['_law']
+        del state['_law'], state['_force_step']
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:
-        from haptic_topology.control.compiled import law
+        from haptic_topology.control.compiled import force_step, law
         self.__dict__.update(state)
-        self._law = law
+        self._law, self._force_step = law, force_step
 
     def prepare(self, snap: LmiSnapshot) -> PreparedUpdate:
         """What :meth:`update` computes from ``snap`` alone (the LMI's matrices, eqs. 17-19,
@@ -109,6 +110,15 @@ class HapticController:
         self.lmi.sync(p.sync)
         self.stable_dt = p.stable_dt
         self._ml = p.ml
+
+    def force_step(self, pose: np.ndarray, twist: np.ndarray, vt_pose: np.ndarray,
+                   vt_twist: np.ndarray) -> float:
+        """Estimated force step (N or N m, largest axis) of moving the VT hand from
+        ``vt_pose``, ``vt_twist`` to ``pose``, ``twist`` under the current LMI's projector
+        (:func:`~haptic_topology.control.compiled.force_step`)."""
+        g = self.gains
+        return float(self._force_step(self.m_d, self.lmi.projector, g.k_pc, g.b_pc, g.k_tc,
+                                      g.b_tc, pose, twist, vt_pose, vt_twist))
 
     def _stable_dt(self, lambda_inv: np.ndarray) -> float:
         """Longest LMI step (s) that keeps the VT side of the coordination spring stable at

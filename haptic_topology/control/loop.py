@@ -41,7 +41,6 @@ import numpy as np
 from haptic_topology.control.controller import CycleOutput, HapticController, PreparedUpdate
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.safety import SyncGuard, scaled_wrench
-from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
 #: Status bits as plain ints (an ``IntFlag`` operation costs microseconds, once per state).
@@ -293,13 +292,8 @@ class ControllerLoop:
                 break
         else:
             return math.inf
-        g = self.ctrl.gains
-        task = self.ctrl.task
-        dx = np.abs(pose_difference(snap.hand_pose, self._vt[slot, 0], task))
-        dv = np.abs(snap.hand_twist - self._vt[slot, 1])
-        penalty = np.abs(self.ctrl.m_d @ self.ctrl.lmi.projector @ (g.k_tc * dx + g.b_tc * dv))
-        step = g.k_pc * dx + g.b_pc * dv + penalty
-        return float(step.max())
+        return self.ctrl.force_step(snap.hand_pose, snap.hand_twist, self._vt[slot, 0],
+                                    self._vt[slot, 1])
 
     # -- diagnostics -------------------------------------------------------------------------
     def values(self, now: float) -> dict[str, str]:

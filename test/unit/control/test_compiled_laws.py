@@ -9,7 +9,7 @@ import pytest
 
 from haptic_topology.control import compiled
 from haptic_topology.control.laws import ControlGains, control_wrench, coordination_wrench
-from haptic_topology.dynamics.taskspace import integrate_pose
+from haptic_topology.dynamics.taskspace import integrate_pose, pose_difference
 from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
@@ -82,3 +82,23 @@ def test_a_controller_with_eq4_damping_or_stiffness_is_refused() -> None:
     g = ControlGains(np.ones(3), np.ones(3), 0.0, 0.0, b_d=np.eye(3))
     with pytest.raises(ValueError, match=r'gains.b_d and gains.k_d \(eq. 4\) must be zero'):
         HapticController(TaskSpace.PLANAR, ControlMode.PENALTY, g, np.eye(3), np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize('task', [TaskSpace.PLANAR, TaskSpace.SPATIAL])
+def test_force_step_bounds_eq14_term_by_term(task: TaskSpace) -> None:
+    rng = np.random.default_rng(40 + task.dim)
+    m = task.dim
+    for _ in range(200):
+        m_d = np.diag(rng.uniform(0.1, 2.0, m))
+        n = np.linalg.qr(rng.normal(size=(m, m)))[0][:, :2]
+        projector = n @ n.T
+        k_pc, b_pc = rng.uniform(0, 500, m), rng.uniform(0, 5, m)
+        k_tc, b_tc = float(rng.uniform(0, 1e4)), float(rng.uniform(0, 100))
+        pose, vt_pose = _pose(rng, task), _pose(rng, task)
+        twist, vt_twist = rng.normal(size=m), rng.normal(size=m)
+        dx = np.abs(pose_difference(pose, vt_pose, task))
+        dv = np.abs(twist - vt_twist)
+        ref = (k_pc * dx + b_pc * dv + np.abs(m_d @ projector @ (k_tc * dx + b_tc * dv))).max()
+        got = compiled.force_step(m_d, projector, k_pc, b_pc, k_tc, b_tc, pose, twist,
+                                  vt_pose, vt_twist)
+        assert got == pytest.approx(ref, rel=1e-12, abs=1e-12)
