@@ -41,6 +41,27 @@ def _sign(x: float) -> float:
     return x
 
 
+@njit(boolean(VEC, VEC, VEC), cache=True)
+def clamp(wrench: np.ndarray, limit: np.ndarray, out: np.ndarray) -> bool:
+    """``out`` = ``wrench`` clamped per coordinate to ``[-limit, limit]``, non-finite entries
+    replaced by 0; returns whether any entry was changed (saturated). Sizes are the caller's
+    to check (``maglev.saturate``)."""
+    saturated = False
+    for i in range(out.size):
+        w = wrench[i]
+        if not math.isfinite(w):
+            w = 0.0
+            saturated = True
+        elif w > limit[i]:
+            w = limit[i]
+            saturated = True
+        elif w < -limit[i]:
+            w = -limit[i]
+            saturated = True
+        out[i] = w
+    return saturated
+
+
 @njit(int64(VEC, VEC, float64, VEC, MAT, VEC, MAT, VEC, VEC, VEC, VEC, boolean, boolean,
             boolean, boolean, boolean, VEC, VEC, VEC, VEC), cache=True)
 def maglev_step(u: np.ndarray, f_h: np.ndarray, dt: float, limit: np.ndarray,
@@ -61,23 +82,14 @@ def maglev_step(u: np.ndarray, f_h: np.ndarray, dt: float, limit: np.ndarray,
     into it cancelled). ``mass_diag``: the diagonal of ``M_d``; ``has_*``: whether the term
     is non-zero (a zero term is skipped: ``x - 0.0`` is ``x``)."""
     m = pose.size
-    bits = 0
+    clamped = np.empty(m)
+    bits = SATURATED if clamp(u, limit, clamped) else 0
     for i in range(m):
-        w = u[i]
-        if not math.isfinite(w):
-            w = 0.0
-            bits |= SATURATED
-        elif w > limit[i]:
-            w = limit[i]
-            bits |= SATURATED
-        elif w < -limit[i]:
-            w = -limit[i]
-            bits |= SATURATED
         if delay:
             applied[i] = pending[i]
-            pending[i] = w
+            pending[i] = clamped[i]
         else:
-            applied[i] = w
+            applied[i] = clamped[i]
     force = np.empty(m)
     for i in range(m):
         force[i] = f_h[i] + applied[i]

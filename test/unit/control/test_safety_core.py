@@ -94,6 +94,15 @@ def test_driver_pipeline_never_outputs_beyond_limits_or_non_finite() -> None:
         assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= LIMIT)
 
 
+def test_saturate_clamps_replaces_non_finite_and_refuses_another_size() -> None:
+    u, sat = saturate(np.array([0.5, -9.0, np.nan]), LIMIT)
+    assert sat and np.array_equal(u, np.clip([0.5, -9.0, 0.0], -LIMIT, LIMIT))
+    u, sat = saturate([0.1, 0.2, -0.3], LIMIT)
+    assert not sat and np.array_equal(u, [0.1, 0.2, -0.3])
+    with pytest.raises(ValueError, match='wrench must have 3 entries'):
+        saturate(np.zeros(6), LIMIT)
+
+
 # -- sync guard ------------------------------------------------------------------------------
 CFG = SyncGuardConfig(stale_after=0.05, degrade_after=0.25, ramp_time=0.2)
 
