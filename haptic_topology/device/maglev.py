@@ -246,6 +246,10 @@ def _angle(value: Any, where: str) -> float:
     return float(as_angles([value], where, 1)[0])
 
 
+#: ``device.compiled.clamp``, bound by the first :func:`saturate` call.
+_clamp: Any = None
+
+
 def saturate(wrench: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, bool]:
     """Clamp each coordinate of ``wrench`` to ``[-limit, limit]``; report whether any was.
 
@@ -253,15 +257,18 @@ def saturate(wrench: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, bool]:
     finite wrench within the limits ever leaves this function.
     """
     # Compiled (device.compiled.clamp, which the simulated maglev's step also uses): it runs
-    # twice per device cycle. Imported here, see MaglevModel.__init__.
-    from haptic_topology.device.compiled import clamp
+    # twice per device cycle. Imported at the first call (see MaglevModel.__init__) and kept:
+    # an import statement per call costs about as much as the clamp.
+    global _clamp
+    if _clamp is None:
+        from haptic_topology.device.compiled import clamp as _clamp
     w = np.asarray(wrench, dtype=float)
     lim = np.asarray(limit, dtype=float)
     if w.shape != lim.shape or w.ndim != 1:
         raise ValueError(f'wrench must have {lim.size} entries (the limit\'s), got '
                          f'{w.size}')
     out = np.empty(lim.size)
-    return out, bool(clamp(w, lim, out))
+    return out, bool(_clamp(w, lim, out))
 
 
 #: ``maglev_step``'s bits (1 saturated, 2 stopped) as device status.
