@@ -16,10 +16,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from procs import stop_process
+from procs import describe, pidfd, stop_process, wait_exit
 
 from haptic_topology.paths import config_dir
-from haptic_topology.processes import running
 
 pytestmark = pytest.mark.graph
 
@@ -131,11 +130,9 @@ def test_a_killed_driver_ends_its_loop_process(graph: Any) -> None:
     driver = procs[1]
     child = _children(driver.pid)
     assert len(child) == 1, child
+    fd = pidfd(child[0])            # that process, whatever later takes its number
     driver.kill()
     driver.wait()
-    deadline = time.monotonic() + WAIT
-    while running(child[0]) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert not running(child[0]), 'the loop process outlived its driver'
+    assert wait_exit(fd, WAIT), f'the loop process outlived its driver: {describe(child[0])}'
     out = driver.stdout.read().decode(errors='replace') if driver.stdout else ''
     assert 'parent gone: output zeroed, device released' in out, out[-3000:]

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from loop_specs import spec_for
+from procs import describe, pidfd, wait_exit
 
 from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.loop import Answer, HandSample
@@ -25,7 +26,6 @@ from haptic_topology.device.loop import DeviceTick
 from haptic_topology.device.loop_process import CycleCodec, LoopProcess
 from haptic_topology.device.runner import Published
 from haptic_topology.errors import DeviceError
-from haptic_topology.processes import running
 from haptic_topology.sim.lockstep import simulate, virtual_environment
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
@@ -174,15 +174,14 @@ def test_a_killed_parent_stops_the_child_with_zero_output_and_no_segment_left() 
     try:
         first = parent.stdout.readline().split()
         child, names = int(first[0]), first[1:]
+        fd = pidfd(child)               # that process, whatever later takes its number
         assert len(_segments(names)) == 6     # 4 rings, 2 statistics arrays
     finally:
         parent.kill()                   # also when a check above failed: never leak it
         parent.wait()
     rest = parent.stdout.read()         # the child's last words (it shares the pipe)
     deadline = time.monotonic() + 30.0
-    while running(child) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert not running(child)
+    assert wait_exit(fd, 30.0), describe(child)
     assert 'parent gone: output zeroed, device released' in rest, rest
     while _segments(names) and time.monotonic() < deadline:   # the parent's tracker
         time.sleep(0.01)
