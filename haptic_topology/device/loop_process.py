@@ -145,21 +145,23 @@ class CycleCodec:
         return ints, np.concatenate(([e.step.stamp, hand_stamp], *vecs))
 
     def decode(self, rec: np.void) -> Published:
-        i = [int(x) for x in rec['i']]
+        i = rec['i'].tolist()
         f = rec['f']
-        m = self.m
-        v = {name: f[2 + k * m:2 + (k + 1) * m].copy() for k, name in enumerate(_VECS)}
+        # One copy of the record's vectors; each vector is a row view of it (the ring slot
+        # is written again later, the copy is not).
+        (pose, twist, hand_wrench, applied, env, wrench, coupling, vt_wrench, vt_pose,
+         vt_twist, out_env, h_pose, h_twist, h_wrench, h_coupling, h_vt_wrench) = \
+            f[2:].reshape(len(_VECS), self.m).copy()
         flags = i[5]
-        reading = DeviceReading(v['pose'], v['twist'], v['hand_wrench'], DeviceStatus(i[4]))
-        tick = DeviceTick(i[1], i[2], reading, v['applied'], DeviceStatus(i[3]),
-                          v['env'] if flags & _HAS_ENV else None)
+        reading = DeviceReading(pose, twist, hand_wrench, DeviceStatus(i[4]))
+        tick = DeviceTick(i[1], i[2], reading, applied, DeviceStatus(i[3]),
+                          env if flags & _HAS_ENV else None)
         ans = None
         if flags & _HAS_ANSWER:
-            out = CycleOutput(v['wrench'], v['coupling'], v['vt_wrench'], v['vt_pose'],
-                              v['vt_twist'], i[9], ControlMode(i[8]),
-                              v['out_env'] if flags & _HAS_OUT_ENV else None)
-            hand = (HandSample(i[10], i[11], float(f[1]), v['h_pose'], v['h_twist'],
-                               v['h_wrench'], v['h_coupling'], v['h_vt_wrench'])
+            out = CycleOutput(wrench, coupling, vt_wrench, vt_pose, vt_twist, i[9],
+                              ControlMode(i[8]), out_env if flags & _HAS_OUT_ENV else None)
+            hand = (HandSample(i[10], i[11], float(f[1]), h_pose, h_twist, h_wrench,
+                               h_coupling, h_vt_wrench)
                     if flags & _HAS_HAND else None)
             ans = Answer(i[6], out, hand, i[7])
         return Published(HostedStep(tick, float(f[0]), ans, None, ()), i[0])
