@@ -6,6 +6,9 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +43,106 @@ def reaped_children_cpu_seconds(pid: int) -> float | None:
     if fields is None:
         return None
     return (int(fields[13]) + int(fields[14])) / os.sysconf('SC_CLK_TCK')
+
+
+def children(pid: int) -> list[int]:
+    """The running children of process ``pid`` (of any of its threads), from ``/proc``;
+    empty once it is gone."""
+    out: list[int] = []
+    try:
+        tids = os.listdir(f'/proc/{pid}/task')
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            out += [int(c) for c in Path(f'/proc/{pid}/task/{tid}/children').read_text().split()]
+        except OSError:
+            continue
+    return out
+
+
+def cmdline(pid: int) -> list[str]:
+    """The command line of process ``pid`` (empty once it is gone)."""
+    try:
+        raw = Path(f'/proc/{pid}/cmdline').read_bytes()
+    except OSError:
+        return []
+    return [a.decode(errors='replace') for a in raw.split(b'\0') if a]
+
+
+def rss_bytes(pid: int) -> int | None:
+    """Resident set size (bytes) of process ``pid`` (``/proc/<pid>/statm``); None once it is
+    gone."""
+    try:
+        resident = int(Path(f'/proc/{pid}/statm').read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+    return resident * os.sysconf('SC_PAGE_SIZE')
+
+
+#: Seconds from the start of a run after which :meth:`RssSampler.growth` fits the resident
+#: set (start-up allocations, caches filling), or half the run when it is shorter.
+RSS_SETTLE = 60.0
+
+
+class RssSampler:
+    """Samples the resident set of named processes every ``period`` s in a thread of its own
+    (``pids()`` returns ``{name: pid}`` at each sample: a process may come and go).
+
+    :meth:`growth` is the least-squares slope of each process's resident set (bytes/s) over
+    its samples after :data:`RSS_SETTLE` s (or after half the run)."""
+
+    def __init__(self, pids: Callable[[], dict[str, int]], period: float = 1.0) -> None:
+        self._pids = pids
+        self.period = period
+        self.samples: dict[str, list[tuple[float, int]]] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._t0 = 0.0
+
+    def start(self) -> None:
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._body, name='rss_sampler', daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def sample(self) -> None:
+        """Take one sample of every process now."""
+        t = time.monotonic() - self._t0
+        for name, pid in self._pids().items():
+            rss = rss_bytes(pid)
+            if rss is not None:
+                self.samples.setdefault(name, []).append((t, rss))
+
+    def _body(self) -> None:
+        self.sample()
+        while not self._stop.wait(self.period):
+            self.sample()
+
+    def growth(self) -> dict[str, dict[str, float]]:
+        """Per process: ``rss_mb`` (the last sample, MiB), ``growth_kb_s`` (kB/s, 1 kB = 1000
+        bytes) and ``from_s`` (the fit's first second); a process with fewer than 3 samples
+        in the fit's window has no ``growth_kb_s``."""
+        out: dict[str, dict[str, float]] = {}
+        for name, pts in self.samples.items():
+            end = pts[-1][0]
+            since = min(RSS_SETTLE, 0.5 * end)
+            fit = [(t, r) for t, r in pts if t >= since]
+            entry = {'rss_mb': round(pts[-1][1] / 2 ** 20, 2), 'from_s': round(since, 1)}
+            if len(fit) >= 3:
+                tm = sum(t for t, _ in fit) / len(fit)
+                rm = sum(r for _, r in fit) / len(fit)
+                den = sum((t - tm) ** 2 for t, _ in fit)
+                if den > 0.0:
+                    slope = sum((t - tm) * (r - rm) for t, r in fit) / den
+                    entry['growth_kb_s'] = round(slope / 1000.0, 3)
+            out[name] = entry
+        return out
 
 
 def process_times(pid: int) -> dict[str, float] | None:

@@ -48,8 +48,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
+from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import BringupError, ConfigError
-from haptic_topology.processes import cpu_seconds, reaped_children_cpu_seconds, terminate
+from haptic_topology.processes import (
+    RssSampler,
+    children,
+    cmdline,
+    cpu_seconds,
+    reaped_children_cpu_seconds,
+    terminate,
+)
 from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE
 
 if TYPE_CHECKING:
@@ -234,6 +242,23 @@ def _start(name: str, argv: list[str], log_dir: Path,
     return _Proc(name, popen, log, handle)
 
 
+def _rss_pids(procs: list[_Proc], drivers: list[int]) -> dict[str, int]:
+    """The run's processes by name, with the driver's loop process (``loop_process``)."""
+    out = {p.name: p.popen.pid for p in procs if p.popen.poll() is None}
+    loop_pid = _loop_process(drivers)
+    if loop_pid is not None:
+        out['loop_process'] = loop_pid
+    return out
+
+
+def _loop_process(drivers: list[int]) -> int | None:
+    """The pid of the driver's running loop process (None: none runs)."""
+    for pid in children(drivers[0]) if drivers else []:
+        if CHILD_MODULE in cmdline(pid):
+            return pid
+    return None
+
+
 def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
     """SIGINT each process in order, escalating to SIGTERM and SIGKILL; return exit codes."""
     codes: dict[str, int] = {}
@@ -297,6 +322,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     procs: list[_Proc] = []
     codes: dict[str, int] = {}
     cpu: dict[str, float] = {}
+    memory: dict[str, dict[str, float]] = {}
 
     def alive() -> None:
         for p in procs:
@@ -343,12 +369,22 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
                                            startup_timeout, poll=0.2)
             cpu0 = {p.name: cpu_seconds(p.popen.pid) for p in procs}
-            # The loop process ends with the run: the driver has waited for it by then.
+            # The loop process ends with the run: the driver has waited for it by then. Its
+            # start-up (imports, compiled kernels, the device) is left out, as the nodes'.
             drivers = [p.popen.pid for p in procs if p.name == 'device_driver']
             loop0 = reaped_children_cpu_seconds(drivers[0]) if drivers else None
+            loop_pid = _loop_process(drivers)
+            if loop0 is not None and loop_pid is not None:
+                loop0 += cpu_seconds(loop_pid) or 0.0
+            rss = RssSampler(lambda: _rss_pids(procs, drivers))
+            rss.start()
             limit = startup_timeout + (duration + 10.0 if clock == 'wall'
                                        else max(60.0, 30.0 * duration))
-            ended = watch.wait_lifecycle('device_driver', ('inactive',), limit)
+            try:
+                ended = watch.wait_lifecycle('device_driver', ('inactive',), limit)
+            finally:
+                rss.stop()
+            memory = rss.growth()
             wall = ended - started
             for p in procs:
                 c0, c1 = cpu0[p.name], cpu_seconds(p.popen.pid)
@@ -371,6 +407,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
         if bag.is_dir():
             shutil.copytree(log_dir, bag / 'logs', dirs_exist_ok=True)
             (bag / 'logs' / 'cpu.json').write_text(json.dumps(cpu) + '\n', encoding='utf-8')
+            (bag / 'logs' / 'rss.json').write_text(json.dumps(memory) + '\n',
+                                                   encoding='utf-8')
         shutil.rmtree(log_dir, ignore_errors=True)
         if domain_lock is not None:
             os.close(domain_lock)
@@ -447,6 +485,12 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
         if cpu_file.is_file():
             summary.update({f'cpu_{name}': v for name, v in
                             json.loads(cpu_file.read_text(encoding='utf-8')).items()})
+        rss_file = bag / 'logs' / 'rss.json'
+        if rss_file.is_file():
+            for name, m in json.loads(rss_file.read_text(encoding='utf-8')).items():
+                summary[f'rss_mb_{name}'] = m['rss_mb']
+                if 'growth_kb_s' in m:
+                    summary[f'rss_growth_kb_s_{name}'] = m['growth_kb_s']
         (bag / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n',
                                           encoding='utf-8')
         if not args.no_plot:

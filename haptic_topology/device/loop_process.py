@@ -69,6 +69,8 @@ from haptic_topology.device.watchdog import WatchdogConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
 
+#: The module the loop process runs (``python -m``).
+CHILD_MODULE = 'haptic_topology.device.loop_child'
 #: Cycle records the ring keeps (4 s at 1 kHz), as the in-process outbox.
 CYCLE_RECORDS = 4096
 #: Seconds between two status records of the child.
@@ -280,7 +282,7 @@ class LoopProcess:
                         generation=self.generation, periods=self._arrays['periods'].name,
                         round_trips=self._arrays['round_trips'].name)
         self._proc = subprocess.Popen(
-            [sys.executable, '-m', 'haptic_topology.device.loop_child'],
+            [sys.executable, '-m', CHILD_MODULE],
             stdin=subprocess.PIPE, pass_fds=self._fds, close_fds=True)
         assert self._proc.stdin is not None
         self._proc.stdin.write(pickle.dumps(spec))

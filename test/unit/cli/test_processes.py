@@ -1,0 +1,61 @@
+"""haptic_topology.processes: children, command lines and the resident-set sampler that
+``run`` reports as ``rss_mb_<process>`` and ``rss_growth_kb_s_<process>``."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from haptic_topology.processes import RSS_SETTLE, RssSampler, children, cmdline, rss_bytes
+
+
+def test_children_and_cmdline_of_a_child() -> None:
+    p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(30)'])
+    try:
+        assert p.pid in children(os.getpid())
+        assert cmdline(p.pid) == [sys.executable, '-c', 'import time; time.sleep(30)']
+        assert rss_bytes(p.pid) is not None and rss_bytes(p.pid) > 0
+    finally:
+        p.kill()
+        p.wait()
+    assert p.pid not in children(os.getpid())
+    assert cmdline(p.pid) == []
+    assert rss_bytes(p.pid) is None
+
+
+def test_growth_is_the_slope_after_the_settling_time() -> None:
+    s = RssSampler(lambda: {})
+    # 10 kB/s before RSS_SETTLE (left out), then 2.5 kB/s; one process with too few samples
+    t_end = RSS_SETTLE + 100.0
+    pts = [(float(t), 10_000 * t if t < RSS_SETTLE else 10_000 * RSS_SETTLE
+            + 2_500 * (t - RSS_SETTLE)) for t in range(0, int(t_end) + 1)]
+    s.samples = {'a': [(t, int(r)) for t, r in pts], 'b': [(0.0, 1 << 20), (1.0, 1 << 20)]}
+    g = s.growth()
+    assert g['a']['growth_kb_s'] == pytest.approx(2.5, abs=1e-9)
+    assert g['a']['from_s'] == RSS_SETTLE
+    assert g['a']['rss_mb'] == round(pts[-1][1] / 2 ** 20, 2)
+    assert 'growth_kb_s' not in g['b'] and g['b']['rss_mb'] == 1.0
+
+
+def test_a_short_run_is_fitted_over_its_second_half() -> None:
+    s = RssSampler(lambda: {})
+    s.samples = {'a': [(float(t), 1000 * t * t) for t in range(21)]}
+    g = s.growth()['a']
+    assert g['from_s'] == 10.0
+    # d(t^2)/dt over t in [10, 20] by least squares: 2 * 15 = 30 (1000 bytes/s units)
+    assert g['growth_kb_s'] == pytest.approx(30.0, abs=1e-9)
+
+
+def test_the_sampler_samples_a_live_process() -> None:
+    s = RssSampler(lambda: {'me': os.getpid(), 'gone': 2 ** 22 + 1}, period=0.01)
+    s.start()
+    try:
+        while len(s.samples.get('me', [])) < 3:
+            s.sample()
+    finally:
+        s.stop()
+    assert 'gone' not in s.samples
+    assert all(r > 0 for _, r in s.samples['me'])
