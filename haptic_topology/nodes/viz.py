@@ -47,7 +47,7 @@ from geometry_msgs.msg import (
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
-from visualization_msgs.msg import MarkerArray
+from visualization_msgs.msg import Marker, MarkerArray
 
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
@@ -126,6 +126,7 @@ class RobotViz:
         self.applied_wrench = _stamped(WrenchStamped, frames.DEVICE)
         self.hand_wrench = _stamped(WrenchStamped, frames.DEVICE)
         self.coupling_wrench = _stamped(WrenchStamped, frames.VT_HAND)
+        self._markers: dict[tuple[str, int], Marker] = {}     # linkage_markers' own
 
     def plane_z(self, q: np.ndarray) -> float:
         """Height (m) of the grasp point: the plane a planar device pose is drawn in."""
@@ -182,6 +183,7 @@ class RobotViz:
                 coupling: CouplingSample | None, snap: LmiSnapshot, stamp: Time
                 ) -> MarkerArray:
         """The markers of the module doc at the VE's ``q``."""
-        return linkage_markers(self.dyn, q, device, coupling, snap, self.world, stamp)
+        return linkage_markers(self.dyn, q, device, coupling, snap, self.world, stamp,
+                               self._markers)
 
 
