@@ -17,9 +17,11 @@ from typing import Any
 import numpy as np
 
 from haptic_topology.control import HapticController
+from haptic_topology.control.update_record import decode_update, encode_update
 from haptic_topology.device import MaglevModel, user_from_config
 from haptic_topology.device.hosted import HostedCycle
-from haptic_topology.device.loop_process import GC_EVERY, CycleCodec
+from haptic_topology.device.loop_process import GC_EVERY
+from haptic_topology.device.records import CycleCodec
 from haptic_topology.device.runner import Published
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.model import serial_chain
@@ -98,14 +100,21 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
     device tick with the simulated maglev and user, the controller's answer: LMI step, eq. 14
     or the scenario's law, and at every ``update_period``-th cycle the LMI re-sync) plus the
     record it writes to the outbound ring (:meth:`CycleCodec.encode`), on ``scenario`` as
-    ``simulate`` runs it, with the garbage collector as the loop process runs it. The VE's
-    own steps are not timed."""
+    ``simulate`` runs it, with the garbage collector as the loop process runs it. An LMI
+    update reaches the cycle as in the loop process: prepared and encoded outside the timed
+    step (by the node), decoded inside it (:func:`decode_update`). The VE's own steps are not
+    timed."""
     sc = load_scenario(scenario)
     ve = virtual_environment(sc)
     cycle = HostedCycle(build_device_loop(sc),
                         build_controller_loop(sc, sc.mode, update_period=sc.update_period))
     codec = CycleCodec(sc.linkage.task.dim)
-    cycle.offer_update(ve.snapshot(seq=0))
+
+    def record(seq: int) -> bytes:      # the node's part: prepare and encode
+        return encode_update(cycle.controller.ctrl.prepare(ve.snapshot(seq=seq)))
+
+    cycle.offer_update(decode_update(record(0)))
+    waiting: bytes | None = None
     step_ns: list[int] = []
     dt = sc.dt
     inputs = updates = 0
@@ -119,6 +128,9 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
     for k in range(cycles + warm):
         t = (k % restart) * dt
         t0 = CLOCK()
+        if waiting is not None:
+            cycle.offer_update(decode_update(waiting))
+            waiting = None
         done = cycle.step(t, dt, t)
         codec.encode(Published(done, k))
         if k % GC_EVERY == GC_EVERY - 1:
@@ -132,14 +144,15 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
             inputs += 1
             if inputs % sc.update_period == 0:
                 updates += 1
-                cycle.offer_update(ve.snapshot(seq=updates))
+                waiting = record(updates)
         if k % restart == restart - 1:
             ve = virtual_environment(sc)
             cycle = HostedCycle(build_device_loop(sc), build_controller_loop(
                 sc, sc.mode, update_period=sc.update_period))
             inputs = 0
             updates += 1
-            cycle.offer_update(ve.snapshot(seq=0))
+            cycle.offer_update(decode_update(record(0)))
+            waiting = None
     gc.enable()
     gc.unfreeze()
     out = _pct(step_ns)

@@ -25,6 +25,7 @@ import numpy as np
 
 from haptic_topology.control.loop import ControllerLoop
 from haptic_topology.control.port import HEALTH_MESSAGES
+from haptic_topology.control.update_record import decode_update
 from haptic_topology.device.backend import create_backend, zero_and_release
 from haptic_topology.device.hosted import HostedCycle
 from haptic_topology.device.loop import RTT_KEEP, DeviceLoop, device_report
@@ -35,15 +36,12 @@ from haptic_topology.device.loop_process import (
     STATUS_BYTES,
     STATUS_PERIOD,
     UPDATE_RECORDS,
-    CycleCodec,
     LoopSpec,
-    bytes_dtype,
-    payloads,
-    put_bytes,
     wait_eventfd,
 )
 from haptic_topology.device.pacing import PERIOD_WINDOW
 from haptic_topology.device.realtime import name_os_thread, set_thread_realtime
+from haptic_topology.device.records import CycleCodec, bytes_dtype, payloads, put_bytes
 from haptic_topology.device.runner import LoopRunner
 from haptic_topology.device.shm_ring import SharedArray, ShmRing
 from haptic_topology.device.watchdog import CommandWatchdog
@@ -62,7 +60,7 @@ class _RingCycle(HostedCycle):
     def pull(self) -> bool:
         got = False
         for data in payloads(self._ring):
-            self.offer_update(pickle.loads(data))
+            self.offer_update(decode_update(data))
             got = True
         return got
 

@@ -23,7 +23,8 @@ from haptic_topology.control.loop import Answer, HandSample
 from haptic_topology.device.backend import DeviceReading
 from haptic_topology.device.hosted import HostedStep
 from haptic_topology.device.loop import DeviceTick
-from haptic_topology.device.loop_process import CycleCodec, LoopProcess
+from haptic_topology.device.loop_process import LoopProcess
+from haptic_topology.device.records import CycleCodec
 from haptic_topology.device.runner import Published
 from haptic_topology.errors import DeviceError
 from haptic_topology.sim.lockstep import simulate, virtual_environment

@@ -1,0 +1,119 @@
+"""The fixed-layout records the loop process and its node exchange through their rings
+(:mod:`~haptic_topology.device.loop_process`): one cycle as a record of ints and floats
+(:class:`CycleCodec`), and records of bytes (:func:`put_bytes`, :func:`payloads`) for the LMI
+updates (:mod:`~haptic_topology.control.update_record`), the control requests and the status.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from haptic_topology.control.controller import CycleOutput
+from haptic_topology.control.loop import Answer, HandSample
+from haptic_topology.device.backend import DeviceReading
+from haptic_topology.device.hosted import HostedStep
+from haptic_topology.device.loop import DeviceTick
+from haptic_topology.device.runner import Published
+from haptic_topology.device.shm_ring import ShmRing
+from haptic_topology.errors import DeviceError
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
+
+# Integer fields of a cycle record, then flags of its optional parts.
+_INTS = ('stamp_ns', 'seq', 'run_index', 'status', 'reading_status', 'flags',
+         'state_seq', 'update_seq', 'mode', 'constraint_count', 'hand_seq', 'hand_state_seq')
+_HAS_ENV, _HAS_ANSWER, _HAS_HAND, _HAS_OUT_ENV = 1, 2, 4, 8
+# m-vectors of a cycle record: the state, the answer, the hand input.
+_VECS = ('pose', 'twist', 'hand_wrench', 'applied', 'env', 'wrench', 'coupling', 'vt_wrench',
+         'vt_pose', 'vt_twist', 'out_env', 'h_pose', 'h_twist', 'h_wrench', 'h_coupling',
+         'h_vt_wrench')
+
+
+def bytes_dtype(size: int) -> np.dtype[Any]:
+    return np.dtype([('n', '<i8'), ('b', 'u1', (size,))])
+
+
+def update_bytes(dof: int) -> int:
+    """Bytes of one LMI update record for a linkage of ``dof`` joints (the prepared update,
+    :mod:`~haptic_topology.control.update_record`: mass matrix, Jacobians, contacts and the
+    re-sync's matrices; an update that does not fit is refused, never cut)."""
+    return (1 << 17) + 32 * dof * (dof + 64)
+
+
+class CycleCodec:
+    """One :class:`~haptic_topology.device.runner.Published` cycle as a fixed-layout record
+    of task dimension ``m`` and back (ints: ``_INTS``; floats: the state's stamp, the
+    hand input's stamp, then the m-vectors ``_VECS``)."""
+
+    def __init__(self, m: int) -> None:
+        self.m = m
+        self.dtype = np.dtype([('i', '<i8', (len(_INTS),)),
+                               ('f', '<f8', (2 + len(_VECS) * m,))])
+        self._zero = np.zeros(m)
+
+    def encode(self, e: Published) -> tuple[list[int], np.ndarray]:
+        tick, ans = e.step.tick, e.step.answer
+        r, z = tick.reading, self._zero
+        flags = _HAS_ENV if tick.env_wrench is not None else 0
+        ints = [e.stamp_ns, tick.seq, tick.run_index, int(tick.status), int(r.status), 0,
+                0, -1, 0, 0, 0, 0]
+        vecs = [r.pose, r.twist, r.hand_wrench, tick.applied,
+                z if tick.env_wrench is None else tick.env_wrench]
+        hand_stamp = 0.0
+        if ans is None:
+            vecs += [z] * 11
+        else:
+            o, h = ans.out, ans.hand
+            flags |= _HAS_ANSWER | (_HAS_OUT_ENV if o.env_wrench is not None else 0)
+            ints[6:10] = [ans.state_seq, ans.update_seq, int(o.mode), o.constraint_count]
+            vecs += [o.wrench, o.coupling, o.vt_wrench, o.vt_pose, o.vt_twist,
+                     z if o.env_wrench is None else o.env_wrench]
+            if h is None:
+                vecs += [z] * 5
+            else:
+                flags |= _HAS_HAND
+                ints[10:12] = [h.seq, h.state_seq]
+                hand_stamp = h.stamp
+                vecs += [h.pose, h.twist, h.hand_wrench, h.coupling, h.vt_wrench]
+        ints[5] = flags
+        return ints, np.concatenate(([e.step.stamp, hand_stamp], *vecs))
+
+    def decode(self, rec: np.void) -> Published:
+        i = rec['i'].tolist()
+        f = rec['f']
+        # One copy of the record's vectors; each vector is a row view of it (the ring slot
+        # is written again later, the copy is not).
+        (pose, twist, hand_wrench, applied, env, wrench, coupling, vt_wrench, vt_pose,
+         vt_twist, out_env, h_pose, h_twist, h_wrench, h_coupling, h_vt_wrench) = \
+            f[2:].reshape(len(_VECS), self.m).copy()
+        flags = i[5]
+        reading = DeviceReading(pose, twist, hand_wrench, DeviceStatus(i[4]))
+        tick = DeviceTick(i[1], i[2], reading, applied, DeviceStatus(i[3]),
+                          env if flags & _HAS_ENV else None)
+        ans = None
+        if flags & _HAS_ANSWER:
+            out = CycleOutput(wrench, coupling, vt_wrench, vt_pose, vt_twist, i[9],
+                              ControlMode(i[8]), out_env if flags & _HAS_OUT_ENV else None)
+            hand = (HandSample(i[10], i[11], float(f[1]), h_pose, h_twist, h_wrench,
+                               h_coupling, h_vt_wrench)
+                    if flags & _HAS_HAND else None)
+            ans = Answer(i[6], out, hand, i[7])
+        return Published(HostedStep(tick, float(f[0]), ans, None, ()), i[0])
+
+
+def put_bytes(ring: ShmRing, data: bytes, what: str, overwrite: bool = True) -> bool:
+    """Put ``data`` into a ring of ``_bytes_dtype`` records; too long is an error."""
+    size = ring.dtype['b'].shape[0]
+    if len(data) > size:
+        raise DeviceError(f'loop process: {what} of {len(data)} bytes exceeds its record '
+                          f'({size} bytes)')
+    rec = np.zeros((), ring.dtype)
+    rec['n'] = len(data)
+    rec['b'][:len(data)] = np.frombuffer(data, np.uint8)
+    return ring.put(rec, overwrite)
+
+
+def payloads(ring: ShmRing) -> list[bytes]:
+    """The byte records waiting in ``ring``, oldest first (taken)."""
+    return [bytes(r['b'][:int(r['n'])]) for r in ring.take()]
