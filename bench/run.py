@@ -21,9 +21,11 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    (``bench/recorder_load.py``), ``--recorder-duration`` s each (default 60).
 5. The live fig8 eq. 14 run against ``simulate`` (largest device-VT distance), and the
    offline ``simulate``'s speed (simulated s per wall s).
+6. Memory: one hosted run of ``--memory-duration`` s (default 150) and each process's
+   resident set growth after its first minute (``run``'s ``rss_growth_kb_s_<process>``).
 
 Then a table of every figure beside its goal (issues 11 and 26). Run: ``make bench`` (about
-13 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
+22 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
 its figures are not written to RESULTS.md).
 """
 
@@ -127,6 +129,7 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
     cpu = {k: v for k, v in s.items() if k.startswith('cpu_')}
     out.update(cpu)
     out['cpu_total'] = float(sum(cpu.values()))
+    out.update({k: v for k, v in s.items() if k.startswith('rss_')})
     return out
 
 
@@ -197,7 +200,8 @@ def _pingpong(duration: float, fifo: bool) -> dict[str, Any]:
     return dict(json.loads(out[out.index('{'):]))
 
 
-def run(loop_duration: float, recorder_duration: float) -> dict[str, Any]:
+def run(loop_duration: float, recorder_duration: float,
+        memory_duration: float = 150.0) -> dict[str, Any]:
     res: dict[str, Any] = {'date': time.strftime('%Y-%m-%d %H:%M:%S %Z'),
                            'machine': _machine(), 'versions': _versions()}
     fifo = fifo_permitted()
@@ -231,6 +235,9 @@ def run(loop_duration: float, recorder_duration: float) -> dict[str, Any]:
                    'ratio': live['max_distance_m'] / off['max_distance_m']}
     res['simulate_speed'] = {name: offline(name, 'penalty')
                              for name in ('fig8', 'fig6')}
+    print(f'== memory: graph, hosted, {memory_duration:g} s ...', flush=True)
+    res['memory'] = graph_loop(memory_duration, 'hosted', False)
+    res['memory_duration_s'] = memory_duration
     for factor in (1.0, RECORDER_HIGH):
         print(f'== recorder at {factor:g}x the graph rate, {recorder_duration:g} s ...',
               flush=True)
@@ -255,6 +262,12 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'baseline_rtt_p99_us': res['baseline']['rtt_p99_us'],
         'rtt_p99_ratio_separate_to_baseline':
             sep['rtt_p99_us'] / res['baseline']['rtt_p99_us'],
+        'rss_growth_kb_s': {k.removeprefix('rss_growth_kb_s_'): v
+                            for k, v in res['memory'].items()
+                            if k.startswith('rss_growth_kb_s_')},
+        'rss_mb': {k.removeprefix('rss_mb_'): v for k, v in res['memory'].items()
+                   if k.startswith('rss_mb_')},
+        'memory_run_s': res['memory_duration_s'],
         'controller_step_p50_us': core['controller_step_p50_us'],
         'controller_step_p99_us': core['controller_step_p99_us'],
         'controller_step_eq10_p99_us': core['controller_step_eq10_p99_us'],
@@ -301,6 +314,15 @@ def _answered_row(h: dict[str, Any], key: str, label: str, least: float) -> tupl
             f'>= {100 * least:g} %, never 20 in a row', frac >= least and miss < 20)
 
 
+def _memory_row(h: dict[str, Any]) -> tuple[str, str, str, bool]:
+    growth = h['rss_growth_kb_s']
+    worst = max(growth, key=lambda k: growth[k]) if growth else None
+    got = ('no fit' if worst is None else
+           ', '.join(f'{k} {v:.1f}' for k, v in growth.items()) + ' kB/s')
+    return (f'resident set growth after the first minute ({h["memory_run_s"]:g} s run)', got,
+            '< 1 kB/s, every process', worst is not None and growth[worst] < 1.0)
+
+
 def goals(head: dict[str, Any]) -> str:
     """Every figure beside its goal (the loop's goals of issue 26 and the others of issue 11;
     no SCHED_FIFO but where a row says so, 30 s runs)."""
@@ -332,6 +354,7 @@ def goals(head: dict[str, Any]) -> str:
          '<= 0.3 ms / 100 links within 30 % of 10 ms',
          max(h['ve_update_p99_us_3_links'], h['ve_update_p99_us_3_links_spatial']) <= 300.0
          and min(h['max_links_within_30pct_planar'], h['max_links_within_30pct_spatial']) >= 100),
+        _memory_row(h),
         ('controller compute p99', f'{h["controller_step_p99_us"]:.0f} us', '<= 30 us',
          h['controller_step_p99_us'] <= 30.0),
         ('loop process cycle p99 (no ROS), planar / spatial',
@@ -395,12 +418,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description='haptic_topology benchmarks (make bench)')
     ap.add_argument('--loop-duration', type=float, default=30.0)
     ap.add_argument('--recorder-duration', type=float, default=60.0)
+    ap.add_argument('--memory-duration', type=float, default=150.0,
+                    help='s of the hosted run whose resident sets are fitted after its first '
+                    'minute (shorter: after its first half)')
     ap.add_argument('--quick', action='store_true',
                     help='5 s runs to try the script; nothing is written to RESULTS.md')
     a = ap.parse_args()
     if a.quick:
-        a.loop_duration, a.recorder_duration = 5.0, 5.0
-    res = run(a.loop_duration, a.recorder_duration)
+        a.loop_duration, a.recorder_duration, a.memory_duration = 5.0, 5.0, 10.0
+    res = run(a.loop_duration, a.recorder_duration, a.memory_duration)
     head = headline(res)
     res['headline'] = head
     print()
