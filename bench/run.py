@@ -21,11 +21,14 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    (``bench/recorder_load.py``), ``--recorder-duration`` s each (default 60).
 5. The live fig8 eq. 14 run against ``simulate`` (largest device-VT distance), and the
    offline ``simulate``'s speed (simulated s per wall s).
-6. Memory: one hosted run of ``--memory-duration`` s (default 150) and each process's
+6. The VE live with a ``CHAIN_LIVE``-link chain, planar and spatial
+   (``bench/chain_scenario.py``), hosted, ``--loop-duration`` s each: its update rate
+   beside the loop and the recorder.
+7. Memory: one hosted run of ``--memory-duration`` s (default 150) and each process's
    resident set growth after its first minute (``run``'s ``rss_growth_kb_s_<process>``).
 
 Then a table of every figure beside its goal (issues 11 and 26). Run: ``make bench`` (about
-22 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
+24 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
 its figures are not written to RESULTS.md).
 """
 
@@ -51,6 +54,12 @@ sys.path.insert(0, str(BENCH))
 
 import core_costs  # noqa: E402
 import recorder_load  # noqa: E402
+from chain_scenario import write_chain_scenario  # noqa: E402
+
+from haptic_topology.vocabulary import TaskSpace  # noqa: E402
+
+#: Links of the chain whose VE runs live beside the loop and the recorder (issue 26, item 5).
+CHAIN_LIVE = 100
 
 #: SCHED_FIFO priorities of the benchmark's "fifo" runs: the device driver (in the hosted
 #: layout its loop thread) / the separate lmi_controller; the bare ping-pong gets the same.
@@ -75,9 +84,10 @@ BUSY = 'import os\nos.sched_setaffinity(0, {0})\nwhile True:\n    pass\n'
 
 
 def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle',
-               mode: str | None = None, busy: bool = False) -> dict[str, Any]:
-    """One recorded run of ``scenario`` on the graph in ``layout`` (``busy``: beside
-    :data:`BUSY`); loop figures and CPU."""
+               mode: str | None = None, busy: bool = False,
+               startup_timeout: float = 30.0) -> dict[str, Any]:
+    """One recorded run of ``scenario`` (a name or a file) on the graph in ``layout``
+    (``busy``: beside :data:`BUSY`); loop figures, the VE's update rate, CPU and memory."""
     import yaml
 
     from haptic_topology.paths import config_dir
@@ -93,13 +103,13 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
         params_file.write_text(yaml.safe_dump(params), encoding='utf-8')
         cmd = [str(Path(sys.executable).with_name('haptic-topology')), 'run', scenario,
                '--duration', str(duration), '--out', str(bag), '--no-plot', '--params',
-               str(params_file), '--layout', layout]
+               str(params_file), '--layout', layout, '--startup-timeout', str(startup_timeout)]
         if mode:
             cmd += ['--mode', mode]
         hog = subprocess.Popen([sys.executable, '-c', BUSY]) if busy else None
         try:
             res = subprocess.run(cmd, env=_env(), capture_output=True, text=True,
-                                 timeout=duration + 180, check=False)
+                                 timeout=duration + 180 + 3 * startup_timeout, check=False)
         finally:
             if hog is not None:
                 hog.kill()
@@ -123,6 +133,7 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
         'period_p99_us': float(np.percentile(periods, 99)),
         'period_max_us': float(periods.max()),
         'states': int(s['bag_states']),
+        've_update_rate_hz': s['ve_update_rate_hz'],
         'max_distance_m': s['max_distance_m'],
         'final_distance_mm': 1e3 * s['final_distance_m'],
     }
@@ -235,6 +246,13 @@ def run(loop_duration: float, recorder_duration: float,
                    'ratio': live['max_distance_m'] / off['max_distance_m']}
     res['simulate_speed'] = {name: offline(name, 'penalty')
                              for name in ('fig8', 'fig6')}
+    with tempfile.TemporaryDirectory(prefix='bench_chain_') as tmp:
+        for task in (TaskSpace.PLANAR, TaskSpace.SPATIAL):
+            print(f'== graph, hosted, {CHAIN_LIVE}-link {task.value} chain, '
+                  f'{loop_duration:g} s ...', flush=True)
+            path = write_chain_scenario(CHAIN_LIVE, task, Path(tmp), loop_duration)
+            res[f'chain_live_{task.value}'] = graph_loop(loop_duration, 'hosted', False,
+                                                        str(path), startup_timeout=120.0)
     print(f'== memory: graph, hosted, {memory_duration:g} s ...', flush=True)
     res['memory'] = graph_loop(memory_duration, 'hosted', False)
     res['memory_duration_s'] = memory_duration
@@ -268,6 +286,10 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'rss_mb': {k.removeprefix('rss_mb_'): v for k, v in res['memory'].items()
                    if k.startswith('rss_mb_')},
         'memory_run_s': res['memory_duration_s'],
+        've_rate_hz_chain_planar': res['chain_live_planar']['ve_update_rate_hz'],
+        've_rate_hz_chain_spatial': res['chain_live_spatial']['ve_update_rate_hz'],
+        'answered_fraction_chain_planar': res['chain_live_planar']['answered_fraction'],
+        'answered_fraction_chain_spatial': res['chain_live_spatial']['answered_fraction'],
         'controller_step_p50_us': core['controller_step_p50_us'],
         'controller_step_p99_us': core['controller_step_p99_us'],
         'controller_step_eq10_p99_us': core['controller_step_eq10_p99_us'],
@@ -354,6 +376,11 @@ def goals(head: dict[str, Any]) -> str:
          '<= 0.3 ms / 100 links within 30 % of 10 ms',
          max(h['ve_update_p99_us_3_links'], h['ve_update_p99_us_3_links_spatial']) <= 300.0
          and min(h['max_links_within_30pct_planar'], h['max_links_within_30pct_spatial']) >= 100),
+        (f'VE live, {CHAIN_LIVE}-link chain (loop and recorder running), planar / spatial',
+         f'{h["ve_rate_hz_chain_planar"]:.1f} / {h["ve_rate_hz_chain_spatial"]:.1f} Hz (cycles '
+         f'answered {100 * h["answered_fraction_chain_planar"]:.1f} / '
+         f'{100 * h["answered_fraction_chain_spatial"]:.1f} %)', '>= 95 Hz',
+         min(h['ve_rate_hz_chain_planar'], h['ve_rate_hz_chain_spatial']) >= 95.0),
         _memory_row(h),
         ('controller compute p99', f'{h["controller_step_p99_us"]:.0f} us', '<= 30 us',
          h['controller_step_p99_us'] <= 30.0),

@@ -429,12 +429,10 @@ __all__ = ['CollisionShape', 'ConstraintSettings', 'JointType', 'LinkSpec', 'Lin
            'reach', 'serial_chain', 'to_dict']
 
 
-def serial_chain(n: int, task: TaskSpace = TaskSpace.PLANAR, length: float = 0.05,
-                 mass: float = 0.5) -> Linkage:
-    """A uniform n-link chain of revolute joints grasped at the distal COM (benchmarks, tests).
-
-    Planar: all joints about z. Spatial: joint axes alternate z, y, x so the chain moves in 3-D.
-    """
+def serial_chain_dict(n: int, task: TaskSpace = TaskSpace.PLANAR, length: float = 0.05,
+                      mass: float = 0.5) -> dict[str, Any]:
+    """The linkage YAML document (as a dict) of :func:`serial_chain`: write it with
+    ``yaml.safe_dump`` to get a linkage file of the chain."""
     if n < 1:
         raise LinkageError(f'serial_chain: n must be >= 1, got {n}')
     inertia = mass * length * length / 12.0 + 1e-6
@@ -448,6 +446,13 @@ def serial_chain(n: int, task: TaskSpace = TaskSpace.PLANAR, length: float = 0.0
             entry['inertia'] = [1e-6 + mass * 1e-4, inertia, inertia]
             entry['axis'] = [[0, 0, 1], [0, 1, 0], [1, 0, 0]][i % 3]
         links.append(entry)
-    return linkage_from_dict({'linkage': {'name': f'chain{n}_{task.value}',
-                                          'task': task.value, 'links': links}},
-                             f'<serial_chain {n}>')
+    return {'linkage': {'name': f'chain{n}_{task.value}', 'task': task.value, 'links': links}}
+
+
+def serial_chain(n: int, task: TaskSpace = TaskSpace.PLANAR, length: float = 0.05,
+                 mass: float = 0.5) -> Linkage:
+    """A uniform n-link chain of revolute joints grasped at the distal COM (benchmarks, tests).
+
+    Planar: all joints about z. Spatial: joint axes alternate z, y, x so the chain moves in 3-D.
+    """
+    return linkage_from_dict(serial_chain_dict(n, task, length, mass), f'<serial_chain {n}>')
