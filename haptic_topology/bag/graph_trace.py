@@ -71,6 +71,7 @@ from haptic_topology.messages.check import (
     env_wrench,
 )
 from haptic_topology.messages.definitions import type_name
+from haptic_topology.model.linkage import Linkage
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.trace import Trace, contact_depth
 from haptic_topology.vocabulary import ControlMode, TaskSpace
@@ -118,9 +119,12 @@ def _stamp(header: Any) -> float:
 
 
 def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
-                   progress: Progress | None = None, task_dim: int | None = None) -> GraphRun:
+                   progress: Progress | None = None, task_dim: int | None = None,
+                   linkage: Linkage | None = None) -> GraphRun:
     """Read the bag ``path`` (see module doc); ``progress`` gets the fraction read;
-    ``dof``/``task_dim``: the scenario's linkage (None: from the bag's majority).
+    ``dof``/``task_dim``: the scenario's linkage (None: from the bag's majority);
+    ``linkage``: the scenario's linkage itself (None: loaded by the name ``scenario``; give
+    it for a scenario file, whose name is not a known scenario).
 
     A truncated bag (recorder killed) is read up to its last complete chunk; the trace's
     ``meta['truncated']`` is then True. Foreign and malformed messages are skipped and
@@ -219,7 +223,7 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         else:
             commands[seq] = msg
     updates = _admitted(valid('update', updates_in, lambda u: _check_update(u, m, dof)),
-                        scenario, m, dof, skip)
+                        scenario, m, dof, skip, linkage)
     vt_path: dict[int, Any] = {}
     for msg in valid('path', paths_in, lambda v: check_vt_path(v, m)):
         _, path_seqs, poses = check_vt_path(msg, m)
@@ -316,16 +320,18 @@ def _check_update(msg: Any, m: int, dof: int) -> None:
 
 
 def _admitted(updates: list[Any], scenario: str, m: int, dof: int,
-              skip: Callable[[str, str], None]) -> list[Any]:
+              skip: Callable[[str, str], None], linkage: Linkage | None = None) -> list[Any]:
     """The updates the controller's checks admit, in the bag's order
     (:class:`~haptic_topology.control.admission.UpdateAdmission`: the model check against
-    the scenario's linkage when ``scenario`` is given and matches ``dof`` and ``m``; the
+    the scenario's linkage (``linkage``, else loaded by the name ``scenario``) when it
+    matches ``dof`` and ``m``; the
     consumed input never going back): a sender that copied the graph id is skipped as
     ``update_model`` / ``update_continuity``. A bag records no publisher, so a seq going
     back is not refused here."""
     dyn = None
-    if scenario:
+    if linkage is None and scenario:
         linkage = load_scenario(scenario).linkage
+    if linkage is not None:
         if linkage.dof == dof and linkage.task.dim == m:
             dyn = LinkageDynamics(linkage)
     task = TaskSpace.PLANAR if m == TaskSpace.PLANAR.dim else TaskSpace.SPATIAL

@@ -466,7 +466,8 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
                                                                args.foxglove),
                   node_prefix=node_prefixes(args.node_prefix, layout),
                   overrides=overrides, claim=False)
-        result = read_graph_bag(bag, sc.name, sc.linkage.dof, task_dim=sc.linkage.task.dim)
+        result = read_graph_bag(bag, sc.name, sc.linkage.dof, task_dim=sc.linkage.task.dim,
+                                linkage=sc.linkage)
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')
         summary = dict(trace.summary(), **{k: v for k, v in result.loop.items()})

@@ -7,6 +7,7 @@ Every test runs in the session's random ROS_DOMAIN_ID with discovery limited to 
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from offline_check import EXACT_COLUMNS, assert_equals_offline
 from procs import stop_process
 
@@ -285,3 +287,23 @@ def test_run_command_composed(tmp_path: Path) -> None:
     assert (bag / 'metadata.yaml').is_file() and (bag / 'trace.csv').is_file()
     run = read_graph_bag(bag, 'fig8', 3)
     assert run.trace.t[-1] >= 0.9
+
+
+def test_run_command_with_a_scenario_file(tmp_path: Path) -> None:
+    """``haptic-topology run FILE``: a scenario file of a name no built-in scenario has runs
+    and is analysed against its own linkage; the summary has every process's CPU and
+    resident set."""
+    doc = yaml.safe_load((config_dir() / 'scenarios' / 'fig8.yaml').read_text())
+    doc['scenario']['name'] = 'my_fig8'
+    scenario = tmp_path / 'mine.yaml'
+    scenario.write_text(yaml.safe_dump(doc), encoding='utf-8')
+    bag = tmp_path / 'bag'
+    proc = subprocess.run(
+        [sys.executable, '-m', 'haptic_topology.cli', 'run', str(scenario), '--mode',
+         'penalty', '--duration', '1.0', '--composed', '--no-plot', '--out', str(bag)],
+        capture_output=True, timeout=90)
+    out = (proc.stdout + proc.stderr).decode(errors='replace')
+    assert proc.returncode == 0, out
+    summary = json.loads((bag / 'summary.json').read_text())
+    assert summary['scenario'] == 'my_fig8'
+    assert summary['rss_mb_composed'] > 0.0 and summary['cpu_composed'] > 0.0
