@@ -215,7 +215,7 @@ def array(msg: Any, field: str, size: int, finite: bool = True) -> np.ndarray:
     if a.shape != (size,):
         raise MessageError('size', f'{_name(msg)}.{field} must have {size} entries, '
                            f'got {a.size}')
-    if finite and not np.all(np.isfinite(a)):
+    if finite and not np.isfinite(a).all():
         raise MessageError('non_finite', f'{_name(msg)}.{field} has non-finite '
                            f'entries: {a.tolist()}')
     return a

@@ -113,6 +113,24 @@ def _spd_broken() -> list[float]:
     return m.ravel().tolist()
 
 
+def _mass_skewed(delta: float) -> list[float]:
+    """The mass matrix with entry (0, 1) changed by ``delta`` times its largest entry."""
+    m = np.array(_snapshot().mass_matrix)
+    m[0, 1] += delta * float(np.abs(m).max())
+    return m.ravel().tolist()
+
+
+def _vectors_scaled(factor: float) -> list[float]:
+    return (factor * np.array(_snapshot().left_vectors)).ravel().tolist()
+
+
+def test_the_lmi_checks_hold_their_tolerances() -> None:
+    """Symmetry of D to 1e-9 relative, orthonormality of U to 1e-6 (+ 1e-5 on the diagonal):
+    values within pass, values beyond are refused (the CASES below)."""
+    lmi_from_msg(_update(mass_matrix=_mass_skewed(5e-10)), TASK, DOF)
+    lmi_from_msg(_update(left_singular_vectors=_vectors_scaled(1.0 + 5e-6)), TASK, DOF)
+
+
 def _weights_out() -> list[float]:
     return [0.0, 2.0, 0.0]
 
@@ -157,6 +175,12 @@ CASES: list[tuple[str, Callable[[], Any], str, str]] = [
      'characteristic_length is not finite'),
     ('lmi', lambda: _update(mass_matrix=_spd_broken()), 'range', 'mass_matrix must be'),
     ('lmi', lambda: _update(constraint_weights=_weights_out()), 'range', 'in [0, 1]'),
+    ('lmi', lambda: _update(mass_matrix=_mass_skewed(1e-6)), 'range',
+     'LmiUpdate.mass_matrix must be symmetric'),
+    ('lmi', lambda: _update(left_singular_vectors=_vectors_scaled(1.001)), 'range',
+     'LmiUpdate.left_singular_vectors must be orthonormal'),
+    ('lmi', lambda: _update(singular_values=[0.1, -0.2, 0.0]), 'range',
+     'LmiUpdate.singular_values must be >= 0, got [0.1, -0.2, 0.0]'),
     ('lmi', lambda: _update(constraint_count=4), 'range',
      'constraint_count must be in [0, 3], got 4'),
     ('lmi', lambda: _contact_update(contact_gaps=[0.0] * 7), 'size',
