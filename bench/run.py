@@ -251,8 +251,14 @@ def run(loop_duration: float, recorder_duration: float,
             print(f'== graph, hosted, {CHAIN_LIVE}-link {task.value} chain, '
                   f'{loop_duration:g} s ...', flush=True)
             path = write_chain_scenario(CHAIN_LIVE, task, Path(tmp), loop_duration)
-            res[f'chain_live_{task.value}'] = graph_loop(loop_duration, 'hosted', False,
-                                                        str(path), startup_timeout=120.0)
+            try:
+                res[f'chain_live_{task.value}'] = graph_loop(
+                    loop_duration, 'hosted', False, str(path), startup_timeout=120.0)
+            except RuntimeError as exc:     # reported in the goals table as not met
+                res[f'chain_live_{task.value}_failed'] = \
+                    str(exc).strip().splitlines()[-1][:300]
+                print(f'== the run failed: {res[f"chain_live_{task.value}_failed"]}',
+                      flush=True)
     print(f'== memory: graph, hosted, {memory_duration:g} s ...', flush=True)
     res['memory'] = graph_loop(memory_duration, 'hosted', False)
     res['memory_duration_s'] = memory_duration
@@ -286,10 +292,10 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'rss_mb': {k.removeprefix('rss_mb_'): v for k, v in res['memory'].items()
                    if k.startswith('rss_mb_')},
         'memory_run_s': res['memory_duration_s'],
-        've_rate_hz_chain_planar': res['chain_live_planar']['ve_update_rate_hz'],
-        've_rate_hz_chain_spatial': res['chain_live_spatial']['ve_update_rate_hz'],
-        'answered_fraction_chain_planar': res['chain_live_planar']['answered_fraction'],
-        'answered_fraction_chain_spatial': res['chain_live_spatial']['answered_fraction'],
+        **{f'{key}_chain_{task}': res.get(f'chain_live_{task}', {}).get(field, float('nan'))
+           for task in ('planar', 'spatial')
+           for key, field in (('ve_rate_hz', 've_update_rate_hz'),
+                              ('answered_fraction', 'answered_fraction'))},
         'controller_step_p50_us': core['controller_step_p50_us'],
         'controller_step_p99_us': core['controller_step_p99_us'],
         'controller_step_eq10_p99_us': core['controller_step_eq10_p99_us'],
@@ -380,7 +386,7 @@ def goals(head: dict[str, Any]) -> str:
          f'{h["ve_rate_hz_chain_planar"]:.1f} / {h["ve_rate_hz_chain_spatial"]:.1f} Hz (cycles '
          f'answered {100 * h["answered_fraction_chain_planar"]:.1f} / '
          f'{100 * h["answered_fraction_chain_spatial"]:.1f} %)', '>= 95 Hz',
-         min(h['ve_rate_hz_chain_planar'], h['ve_rate_hz_chain_spatial']) >= 95.0),
+         all(h[f've_rate_hz_chain_{t}'] >= 95.0 for t in ('planar', 'spatial'))),
         _memory_row(h),
         ('controller compute p99', f'{h["controller_step_p99_us"]:.0f} us', '<= 30 us',
          h['controller_step_p99_us'] <= 30.0),
