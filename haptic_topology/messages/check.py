@@ -130,19 +130,28 @@ class SourceGate:
         self.own: frozenset[bytes] = frozenset()
         self.foreign: tuple[str, ...] = ()
         self._session: set[bytes] = set()   # own endpoints seen while the session ran
+        self._unseen = False                # messages taken before any own endpoint was seen
         self._had_own = False               # an own publisher was seen once
         #: Asks the graph again (it calls :meth:`observe`) before a refusal: a publisher that
         #: has just appeared may send before the node's periodic look at the graph.
         self.refresh = refresh
 
     def observe(self, own: frozenset[bytes], foreign: tuple[str, ...]) -> None:
-        """The topic's publishers now: the own endpoints' gids and the foreign ones' names."""
+        """The topic's publishers now: the own endpoints' gids and the foreign ones' names.
+
+        Messages can arrive before their publisher is in the node's view of the graph
+        (discovery is slower under load): the own endpoints first seen after the session took
+        such messages are the session's, not a restarted sender's."""
         self.own, self.foreign = own, foreign
         self._had_own = self._had_own or bool(own)
+        if self._unseen and own:
+            self._session |= own
+            self._unseen = False
 
     def accepted(self) -> None:
         """A message of the current session was applied: its endpoints belong to it."""
         self._session |= self.own
+        self._unseen = self._unseen or not self.own
 
     def new_session(self) -> bool:
         """Whether a message that restarts its sender's numbering may be believed: an own
@@ -153,6 +162,7 @@ class SourceGate:
         if not self.own - self._session:
             return False
         self._session = set(self.own)
+        self._unseen = False
         return True
 
     def distinct(self) -> bool:

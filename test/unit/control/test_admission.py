@@ -132,6 +132,25 @@ def test_a_restart_is_believed_only_with_a_new_endpoint_of_the_own_publisher() -
     assert reason == 'session'
 
 
+def test_updates_taken_before_their_publisher_was_discovered_are_the_sessions() -> None:
+    """Under load the VE's first updates can arrive before its endpoint is in the graph the
+    controller sees: the endpoint discovered then is the session's, so a copy numbered below
+    is no restart (one CI run under load believed such a restart)."""
+    sc = load_scenario('fig8')
+    updates, _ = _run(dataclasses.replace(sc, duration=0.1))
+    gate = SourceGate('lmi/update', 've_sim')
+    admit = UpdateAdmission(LinkageDynamics(sc.linkage), gate)
+    for snap, _ in updates[:3]:
+        admit.admit(snap)                                  # no ve_sim endpoint seen yet
+    gate.observe(frozenset({b've'}), ('/intruder',))       # discovered now
+    reason, text = _reason(admit.admit, updates[0][0])     # an echo of the first update
+    assert (reason, text) == ('session', 'lmi/update: seq 0 after 2 but no new ve_sim '
+                              'endpoint: not a restart, refused')
+    admit.admit(updates[3][0])
+    gate.observe(frozenset({b've', b'new'}), ())           # a restarted VE is still believed
+    admit.admit(dataclasses.replace(updates[0][0], hand_input_seq=-1))
+
+
 def test_no_update_is_taken_while_the_own_publisher_is_gone_and_a_foreign_one_is_there() -> None:
     sc = load_scenario('fig8')
     updates, _ = _run(dataclasses.replace(sc, duration=0.05))
