@@ -174,3 +174,67 @@ def terminate(popen: subprocess.Popen[Any], timeout: float = 5.0,
         except subprocess.TimeoutExpired:
             continue
     return popen.wait()
+
+
+class RunUsage:
+    """CPU and resident set of a run's processes from :meth:`start` to :meth:`stop`.
+
+    ``pids``: the processes by name; ``parent``: the one whose child runs ``child_module``
+    (``python -m``; counted as ``child_name``). The child may end before :meth:`stop` (its
+    parent has waited for it: its CPU is read from the parent's reaped children); its CPU
+    before :meth:`start` (its start-up) is left out, as the others'."""
+
+    def __init__(self, pids: dict[str, int], parent: int | None = None,
+                 child_module: str = '', child_name: str = 'child') -> None:
+        self.pids, self.parent = pids, parent
+        self.child_module, self.child_name = child_module, child_name
+        self._cpu0: dict[str, float | None] = {}
+        self._reaped0: float | None = None
+        self._t0 = self._t1 = 0.0
+        self.rss = RssSampler(self._sampled)
+
+    def child(self) -> int | None:
+        """The pid of the parent's running child that runs ``child_module`` (None: none)."""
+        for pid in children(self.parent) if self.parent is not None else []:
+            if self.child_module in cmdline(pid):
+                return pid
+        return None
+
+    def _sampled(self) -> dict[str, int]:
+        out = {name: pid for name, pid in self.pids.items() if running(pid)}
+        child = self.child()
+        if child is not None:
+            out[self.child_name] = child
+        return out
+
+    def start(self) -> None:
+        self._t0 = time.monotonic()
+        self._cpu0 = {name: cpu_seconds(pid) for name, pid in self.pids.items()}
+        if self.parent is not None:
+            self._reaped0 = reaped_children_cpu_seconds(self.parent)
+            child = self.child()
+            if self._reaped0 is not None and child is not None:
+                self._reaped0 += cpu_seconds(child) or 0.0
+        self.rss.start()
+
+    def stop(self) -> None:
+        self._t1 = time.monotonic()
+        self.rss.stop()
+
+    def cpu(self, wall: float | None = None) -> dict[str, float]:
+        """Fraction of a core per process over ``wall`` s (default: from :meth:`start` to
+        :meth:`stop`), read now; the child's once its parent has reaped it."""
+        wall = self._t1 - self._t0 if wall is None else wall
+        out: dict[str, float] = {}
+        if wall <= 0.0:
+            return out
+        for name, pid in self.pids.items():
+            c0, c1 = self._cpu0.get(name), cpu_seconds(pid)
+            if c0 is not None and c1 is not None:
+                out[name] = round((c1 - c0) / wall, 4)
+        reaped = (reaped_children_cpu_seconds(self.parent) if self.parent is not None
+                  else None)
+        if self._reaped0 is not None and reaped is not None and reaped > self._reaped0:
+            out[self.child_name] = round((reaped - self._reaped0) / wall, 4)
+        return out
+

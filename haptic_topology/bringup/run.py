@@ -50,14 +50,7 @@ from typing import IO, TYPE_CHECKING
 
 from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import BringupError, ConfigError
-from haptic_topology.processes import (
-    RssSampler,
-    children,
-    cmdline,
-    cpu_seconds,
-    reaped_children_cpu_seconds,
-    terminate,
-)
+from haptic_topology.processes import RunUsage, terminate
 from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE
 
 if TYPE_CHECKING:
@@ -242,23 +235,6 @@ def _start(name: str, argv: list[str], log_dir: Path,
     return _Proc(name, popen, log, handle)
 
 
-def _rss_pids(procs: list[_Proc], drivers: list[int]) -> dict[str, int]:
-    """The run's processes by name, with the driver's loop process (``loop_process``)."""
-    out = {p.name: p.popen.pid for p in procs if p.popen.poll() is None}
-    loop_pid = _loop_process(drivers)
-    if loop_pid is not None:
-        out['loop_process'] = loop_pid
-    return out
-
-
-def _loop_process(drivers: list[int]) -> int | None:
-    """The pid of the driver's running loop process (None: none runs)."""
-    for pid in children(drivers[0]) if drivers else []:
-        if CHILD_MODULE in cmdline(pid):
-            return pid
-    return None
-
-
 def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
     """SIGINT each process in order, escalating to SIGTERM and SIGKILL; return exit codes."""
     codes: dict[str, int] = {}
@@ -368,31 +344,18 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                     watch.change_state('device_driver', transition, startup_timeout)
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
                                            startup_timeout, poll=0.2)
-            cpu0 = {p.name: cpu_seconds(p.popen.pid) for p in procs}
-            # The loop process ends with the run: the driver has waited for it by then. Its
-            # start-up (imports, compiled kernels, the device) is left out, as the nodes'.
+            # The loop process ends with the run: the driver has waited for it by then.
             drivers = [p.popen.pid for p in procs if p.name == 'device_driver']
-            loop0 = reaped_children_cpu_seconds(drivers[0]) if drivers else None
-            loop_pid = _loop_process(drivers)
-            if loop0 is not None and loop_pid is not None:
-                loop0 += cpu_seconds(loop_pid) or 0.0
-            rss = RssSampler(lambda: _rss_pids(procs, drivers))
-            rss.start()
+            usage = RunUsage({p.name: p.popen.pid for p in procs},
+                             drivers[0] if drivers else None, CHILD_MODULE, 'loop_process')
+            usage.start()
             limit = startup_timeout + (duration + 10.0 if clock == 'wall'
                                        else max(60.0, 30.0 * duration))
             try:
                 ended = watch.wait_lifecycle('device_driver', ('inactive',), limit)
             finally:
-                rss.stop()
-            memory = rss.growth()
-            wall = ended - started
-            for p in procs:
-                c0, c1 = cpu0[p.name], cpu_seconds(p.popen.pid)
-                if c0 is not None and c1 is not None and wall > 0.0:
-                    cpu[p.name] = round((c1 - c0) / wall, 4)
-            loop1 = reaped_children_cpu_seconds(drivers[0]) if drivers else None
-            if loop0 is not None and loop1 is not None and loop1 > loop0 and wall > 0:
-                cpu['loop_process'] = round((loop1 - loop0) / wall, 4)
+                usage.stop()
+            cpu, memory = usage.cpu(ended - started), usage.rss.growth()
             # The loop has stopped; the recorder must take everything it sent while every
             # writer is still there to resend (checked on the nodes' own counts).
             try:

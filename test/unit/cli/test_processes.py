@@ -9,14 +9,24 @@ import sys
 
 import pytest
 
-from haptic_topology.processes import RSS_SETTLE, RssSampler, children, cmdline, rss_bytes
+from haptic_topology.processes import (
+    RSS_SETTLE,
+    RssSampler,
+    RunUsage,
+    children,
+    cmdline,
+    rss_bytes,
+)
 
 
 def test_children_and_cmdline_of_a_child() -> None:
-    p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(30)'])
+    code = 'import time; print("up", flush=True); time.sleep(30)'
+    p = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.PIPE, text=True)
     try:
+        assert p.stdout is not None
+        assert p.stdout.readline().strip() == 'up'      # it runs its own program by now
         assert p.pid in children(os.getpid())
-        assert cmdline(p.pid) == [sys.executable, '-c', 'import time; time.sleep(30)']
+        assert cmdline(p.pid) == [sys.executable, '-c', code]
         assert rss_bytes(p.pid) is not None and rss_bytes(p.pid) > 0
     finally:
         p.kill()
@@ -59,3 +69,41 @@ def test_the_sampler_samples_a_live_process() -> None:
         s.stop()
     assert 'gone' not in s.samples
     assert all(r > 0 for _, r in s.samples['me'])
+
+
+def test_run_usage_finds_the_child_and_leaves_its_start_up_out() -> None:
+    """A parent whose child burns CPU before and after start(): the child is found by its
+    module, its CPU before start() is left out, and it is counted once reaped."""
+    burn = ('import sys, time\n'
+            'def spin(s):\n'
+            '    t = time.process_time()\n'
+            '    while time.process_time() - t < s:\n'
+            '        pass\n'
+            'spin(0.4); sys.stdout.write("up\\n"); sys.stdout.flush(); sys.stdin.readline()\n'
+            'spin(0.3)\n')
+    parent_code = ('import subprocess, sys\n'
+                   f'p = subprocess.Popen([sys.executable, "-c", {burn!r}, "burner_marker"],\n'
+                   '                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)\n'
+                   'p.stdout.readline(); print("ready", flush=True)\n'
+                   'sys.stdin.readline(); p.stdin.write(b"go\\n"); p.stdin.flush(); p.wait()\n'
+                   'print("done", flush=True); sys.stdin.readline()\n')
+    parent = subprocess.Popen([sys.executable, '-c', parent_code], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None and parent.stdin is not None
+        assert parent.stdout.readline().strip() == 'ready'
+        usage = RunUsage({'parent': parent.pid}, parent.pid, 'burner_marker', 'burner')
+        assert usage.child() is not None
+        usage.start()
+        parent.stdin.write('\n')
+        parent.stdin.flush()
+        assert parent.stdout.readline().strip() == 'done'
+        usage.stop()
+        assert usage.child() is None
+        cpu = usage.cpu(1.0)
+        # 0.3 s after start(), not the 0.7 s of its whole life (clock ticks: 10 ms)
+        assert 0.25 <= cpu['burner'] <= 0.45, cpu
+        assert 'parent' in cpu
+    finally:
+        parent.kill()
+        parent.wait()
