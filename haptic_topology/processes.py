@@ -124,16 +124,22 @@ class RssSampler:
         while not self._stop.wait(self.period):
             self.sample()
 
-    def growth(self) -> dict[str, dict[str, float]]:
+    def growth(self, series_step: float = 10.0) -> dict[str, dict[str, Any]]:
         """Per process: ``rss_mb`` (the last sample, MiB), ``growth_kb_s`` (kB/s, 1 kB = 1000
-        bytes) and ``from_s`` (the fit's first second); a process with fewer than 3 samples
-        in the fit's window has no ``growth_kb_s``."""
-        out: dict[str, dict[str, float]] = {}
+        bytes), ``from_s`` (the fit's first second) and ``series`` (``[s, MiB]`` pairs at least
+        ``series_step`` s apart); a process with fewer than 3 samples in the fit's window has
+        no ``growth_kb_s``."""
+        out: dict[str, dict[str, Any]] = {}
         for name, pts in self.samples.items():
             end = pts[-1][0]
             since = min(RSS_SETTLE, 0.5 * end)
             fit = [(t, r) for t, r in pts if t >= since]
-            entry = {'rss_mb': round(pts[-1][1] / 2 ** 20, 2), 'from_s': round(since, 1)}
+            series: list[list[float]] = []
+            for t, r in pts:
+                if not series or t - series[-1][0] >= series_step:
+                    series.append([round(t, 1), round(r / 2 ** 20, 3)])
+            entry: dict[str, Any] = {'rss_mb': round(pts[-1][1] / 2 ** 20, 2),
+                                     'from_s': round(since, 1), 'series': series}
             if len(fit) >= 3:
                 tm = sum(t for t, _ in fit) / len(fit)
                 rm = sum(r for _, r in fit) / len(fit)

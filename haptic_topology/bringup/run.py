@@ -46,7 +46,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, TYPE_CHECKING
+from typing import IO, TYPE_CHECKING, Any
 
 from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import BringupError, ConfigError
@@ -298,7 +298,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     procs: list[_Proc] = []
     codes: dict[str, int] = {}
     cpu: dict[str, float] = {}
-    memory: dict[str, dict[str, float]] = {}
+    memory: dict[str, dict[str, Any]] = {}
 
     def alive() -> None:
         for p in procs:

@@ -107,3 +107,11 @@ def test_run_usage_finds_the_child_and_leaves_its_start_up_out() -> None:
     finally:
         parent.kill()
         parent.wait()
+
+
+def test_the_series_keeps_a_sample_every_step() -> None:
+    s = RssSampler(lambda: {})
+    s.samples = {'a': [(0.5 * k, (1 << 20) * (1 + k)) for k in range(61)]}     # 30 s
+    series = s.growth(series_step=10.0)['a']['series']
+    assert [t for t, _ in series] == [0.0, 10.0, 20.0, 30.0]
+    assert series[1][1] == 21.0      # MiB at 10 s
