@@ -426,7 +426,7 @@ def to_dict(linkage: Linkage) -> dict[str, Any]:
 __all__ = ['CollisionShape', 'ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage',
            'LinkageModel',
            'PenaltyDirection', 'TaskSpace', 'build_model', 'linkage_from_dict', 'load_linkage',
-           'reach', 'serial_chain', 'to_dict']
+           'reach', 'serial_chain', 'serial_chain_dict', 'to_dict']
 
 
 def serial_chain_dict(n: int, task: TaskSpace = TaskSpace.PLANAR, length: float = 0.05,
