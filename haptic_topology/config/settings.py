@@ -268,10 +268,11 @@ class DeviceDriverSettings(NodeSettings):
                               'a memlock limit (else one warning)')
     publisher_nice: int = param(5, 'with the loop process: nice increment of the thread '
                                 'that publishes its records (DeviceState, DeviceCommand, '
-                                'hand inputs), so it yields the CPU to the loop process '
-                                'when the cores are busy; 0 = unchanged. Not applied to a '
-                                'loop thread layout, where it would hold the GIL the loop '
-                                'waits for', lo=0, hi=19)
+                                "hand inputs), and the nice value of this node's autogroup "
+                                'when it leads its own session, so it yields the CPU to the '
+                                'loop process when the cores are busy; 0 = unchanged. Not '
+                                'applied to a loop thread layout, where it would hold the '
+                                'GIL the loop waits for', lo=0, hi=19)
 
     def check(self) -> None:
         if self.rate_hz != 0.0 and not RATE_MIN <= self.rate_hz <= RATE_MAX:

@@ -192,9 +192,11 @@ class LoopProcess:
                         wake_child=self._fds[1], parent=os.getpid(),
                         generation=self.generation, periods=self._arrays['periods'].name,
                         round_trips=self._arrays['round_trips'].name)
+        # A session of its own: under the kernel's autogroup the loop's share of the CPU is
+        # then its session's, not shared with this node's threads (realtime.raise_session_nice).
         self._proc = subprocess.Popen(
             [sys.executable, '-m', CHILD_MODULE],
-            stdin=subprocess.PIPE, pass_fds=self._fds, close_fds=True)
+            stdin=subprocess.PIPE, pass_fds=self._fds, close_fds=True, start_new_session=True)
         assert self._proc.stdin is not None
         self._proc.stdin.write(pickle.dumps(spec))
         self._proc.stdin.close()

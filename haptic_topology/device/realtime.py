@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Sequence
 
 
@@ -46,9 +47,10 @@ def set_realtime_priority(priority: int) -> str | None:
 
 def renice_process(increment: int) -> str | None:
     """Raise the nice value of every thread of this process by ``increment`` (threads started
-    later inherit their creator's). Linux keeps a nice value per thread, so
-    ``os.nice`` alone would change only the calling one. Raising nice needs no privilege.
-    Returns None, or why it failed."""
+    later inherit their creator's), and of its autogroup if it leads its own session
+    (:func:`raise_session_nice`). Linux keeps a nice value per thread, so ``os.nice`` alone
+    would change only the calling one. Raising nice needs no privilege. Returns None, or why
+    it failed."""
     for tid in _thread_ids():
         try:
             _renice(tid, increment)
@@ -56,7 +58,41 @@ def renice_process(increment: int) -> str | None:
             continue            # the thread ended meanwhile
         except OSError as exc:
             return f'nice {increment}: {exc}; priority unchanged'
-    return None
+    return raise_session_nice(increment)
+
+
+def raise_session_nice(at_least: int) -> str | None:
+    """Give this process's autogroup the nice value ``at_least`` (at most 19) unless it has
+    a larger one, when the process leads its own session; else do nothing. Returns None, or
+    why it failed.
+
+    Why: with ``CONFIG_SCHED_AUTOGROUP`` (on by default in most distribution kernels; see
+    sched(7)) the scheduler first shares the CPU among sessions, then among the threads of a
+    session, and a thread's nice value ranks it only within its session. A node that leads
+    its own session (as ``haptic-topology run`` starts each one, and the loop process is
+    started) yields the CPU to the other sessions only through its autogroup's nice value,
+    ``/proc/self/autogroup``. Raising it needs no privilege; the kernel accepts one such
+    write per 100 ms from an unprivileged process, so a refused write is retried for a second.
+    A process that does not lead its session (e.g. several nodes started from one shell)
+    leaves the session's value alone: it is shared with the other processes of the session.
+    """
+    path = '/proc/self/autogroup'
+    if os.getsid(0) != os.getpid() or not os.path.exists(path):
+        return None
+    target = min(at_least, 19)
+    for _ in range(11):
+        try:
+            with open(path) as f:       # "/autogroup-<id> nice <n>"
+                if int(f.read().split()[-1]) >= target:
+                    return None
+            with open(path, 'w') as f:
+                f.write(str(target))
+            return None
+        except BlockingIOError:         # EAGAIN: another process wrote in the last 100 ms
+            time.sleep(0.1)
+        except (OSError, ValueError) as exc:
+            return f'session nice {target}: {exc}; unchanged'
+    return f'session nice {target}: the kernel refused the write for 1 s; unchanged'
 
 
 def renice_thread(increment: int) -> str | None:

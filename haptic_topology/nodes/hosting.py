@@ -32,7 +32,12 @@ import numpy as np
 from haptic_topology.control.loop import ControllerLoop
 from haptic_topology.device.hosted import HostedCycle
 from haptic_topology.device.loop_process import LoopProcess
-from haptic_topology.device.realtime import name_os_thread, renice_thread, set_thread_realtime
+from haptic_topology.device.realtime import (
+    name_os_thread,
+    raise_session_nice,
+    renice_thread,
+    set_thread_realtime,
+)
 from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.nodes.convert import CONTROLLER_ID, ns_to_stamp
@@ -102,8 +107,8 @@ class OutboxThread:
 
     def _body(self) -> None:
         name_os_thread('device_publish')
-        if self._nice:
-            self.problem = renice_thread(self._nice)
+        if self._nice:      # the loop is in its own session: this node's session yields too
+            self.problem = renice_thread(self._nice) or raise_session_nice(self._nice)
         try:
             while True:
                 if self._wait is not None:     # a loop process: its eventfd, or a poll

@@ -138,6 +138,8 @@ def test_a_killed_child_is_a_fault_and_close_leaves_no_segment() -> None:
             proc.wait(0.05)
             proc.drain()
         assert proc.status and proc.error is None
+        # A session of its own: its autogroup is not shared with this process's threads.
+        assert os.getsid(proc.pid or 0) == proc.pid != os.getsid(0)
         os.kill(proc.pid or 0, signal.SIGKILL)
         while proc.error is None and time.monotonic() < deadline:
             time.sleep(0.002)

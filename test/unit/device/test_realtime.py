@@ -1,12 +1,16 @@
 """``device/realtime``'s nice increments: per thread on Linux, so the whole process means every
-thread. Run in a child interpreter: a raised nice cannot be lowered again without privilege,
-and the pytest worker must keep its own."""
+thread, and the autogroup of a process that leads its session. Run in a child interpreter: a
+raised nice cannot be lowered again without privilege, and the pytest worker must keep its
+own."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 CHILD = r'''
 import json, os, threading
@@ -61,3 +65,41 @@ def test_renice_process_raises_every_thread_and_renice_thread_only_its_own() -> 
     assert out['new_thread'] == min(base + 3, 19)      # inherited from its creator
     assert out['capped_problem'] is None
     assert out['capped'] == 19                          # the largest nice value
+
+
+SESSION = r"""
+import json, os
+from haptic_topology.device.realtime import raise_session_nice, renice_process
+
+def group():
+    return open('/proc/self/autogroup').read().split()
+out = {'leader': os.getsid(0) == os.getpid(), 'start': group()}
+out['raise'] = raise_session_nice(4)
+out['after_raise'] = group()
+out['lower'] = raise_session_nice(2)       # a smaller value leaves it as it is
+out['after_lower'] = group()
+out['process'] = renice_process(7)
+out['after_process'] = group()
+print(json.dumps(out))
+"""
+
+
+def _session_child(own_session: bool) -> dict:
+    proc = subprocess.run([sys.executable, '-c', SESSION], capture_output=True, text=True,
+                          timeout=60, check=True, start_new_session=own_session)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(not Path('/proc/self/autogroup').exists(),
+                    reason='kernel without CONFIG_SCHED_AUTOGROUP')
+def test_a_session_leader_raises_its_autogroup_and_another_process_leaves_it() -> None:
+    leader = _session_child(True)
+    assert leader['leader'] and leader['start'][-1] == '0'        # a new session's group
+    assert leader['raise'] is None and leader['after_raise'][-1] == '4'
+    assert leader['lower'] is None and leader['after_lower'][-1] == '4'
+    assert leader['process'] is None and leader['after_process'][-1] == '7'
+    assert leader['after_process'][0] != open('/proc/self/autogroup').read().split()[0]
+    member = _session_child(False)              # shares this session's group: untouched
+    mine = open('/proc/self/autogroup').read().split()
+    assert not member['leader'] and member['start'] == mine
+    assert member['raise'] is None and member['after_process'] == mine
