@@ -59,7 +59,13 @@ from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, h
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
 from haptic_topology.model.frames import DEVICE_BASE
-from haptic_topology.nodes.convert import GraphFilter, RejectCounter, ns_to_stamp, state_msg
+from haptic_topology.nodes.convert import (
+    GraphFilter,
+    RejectCounter,
+    ns_to_stamp,
+    state_cdr,
+    state_writer,
+)
 from haptic_topology.nodes.diagnostics import PublisherWatch, diagnostics, matched, monotonic
 from haptic_topology.nodes.hosting import HostedLoop, driver_layout, in_child
 from haptic_topology.nodes.parameters import declare_settings
@@ -96,10 +102,9 @@ class DeviceDriver(LifecycleNode):
         self.rejected = RejectCounter()
         self.states_sent = 0
         self._active = False          # between activate and deactivate
-        self._msg, self._clock_msg = DeviceState(), ClockMsg()
-        self._msg.header.frame_id = DEVICE_BASE   # set once: the message is reused
+        self._clock_msg = ClockMsg()
         self.graph = GraphFilter(s.graph_id)
-        self._msg.graph_id = self.graph.wire
+        self._state_cdr = state_writer(DEVICE_BASE, self.graph.wire)
         # Real-time settings go to the loop thread when hosting (run_main leaves the rest).
         self.process_sched_priority = 0 if s.host_controller else s.sched_priority
         qos = loop_qos(self.cfg.clock)
@@ -219,7 +224,7 @@ class DeviceDriver(LifecycleNode):
         """Publish ``/clock`` at ``ns`` (when ``clock``), then the state stamped ``ns``."""
         if clock:
             self.publish_clock(ns)
-        self.state_pub.publish(state_msg(self._msg, tick.seq, ns_to_stamp(ns), tick.reading,
+        self.state_pub.publish(state_cdr(self._state_cdr, tick.seq, ns, tick.reading,
                                          tick.applied, int(tick.status), tick.env_wrench))
         self.states_sent += 1
 

@@ -40,7 +40,7 @@ from haptic_topology.device.realtime import (
 )
 from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
 from haptic_topology.errors import DeviceError
-from haptic_topology.nodes.convert import CONTROLLER_ID, ns_to_stamp
+from haptic_topology.nodes.convert import CONTROLLER_ID
 from haptic_topology.nodes.diagnostics import log_notices, monotonic
 from haptic_topology.nodes.separate import SeparateLoop
 from haptic_topology.vocabulary import DeviceStatus
@@ -244,7 +244,7 @@ class HostedLoop:
                 idle = e.step.tick.status & DeviceStatus.IDLE
                 c.send(c.port.answered(ans, e.stamp_ns, now,
                                        None if idle else 1e-9 * e.stamp_ns),
-                       ns_to_stamp(e.stamp_ns))
+                       e.stamp_ns)
         log_notices(c, c.loop.notices)
         log_notices(d, self.runner.notices)
 

@@ -59,7 +59,8 @@ from haptic_topology.nodes.convert import (
     GraphFilter,
     MessageError,
     RejectCounter,
-    command_msg,
+    command_cdr,
+    command_writer,
     hand_inputs_msg,
     lmi_from_msg,
     stamp_ns,
@@ -123,11 +124,12 @@ class LmiController(Node):
         self.host: LoopRunner | LoopProcess | None = None   # the driver's loop, once attached
         self.ack_pub = (self.create_publisher(UInt64, TOPIC_LMI_ACK, QOS_LMI)
                         if s.ack_updates else None)
-        self._cmd, self._hand = DeviceCommand(), HandInputs()
-        # set once (the messages are reused): device-side quantities
-        self._cmd.header.frame_id = self._hand.header.frame_id = DEVICE_BASE
+        self._hand = HandInputs()
+        # set once (the message is reused): device-side quantities
+        self._hand.header.frame_id = DEVICE_BASE
         self.graph = GraphFilter(s.graph_id)
-        self._cmd.graph_id = self._hand.graph_id = self.graph.wire
+        self._hand.graph_id = self.graph.wire
+        self._cmd_cdr = command_writer(DEVICE_BASE, self.graph.wire)
         self.rejected = RejectCounter()
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
@@ -179,12 +181,12 @@ class LmiController(Node):
     def _check_wait(self) -> None:
         self.send(self.port.check_wait(monotonic()))
 
-    def send(self, out: Outgoing | None, cmd_stamp: Any = None) -> None:
-        """Publish the command (stamped ``cmd_stamp``, default now) and a completed hand
+    def send(self, out: Outgoing | None, stamp_ns: int | None = None) -> None:
+        """Publish the command (stamped ``stamp_ns``, default now) and a completed hand
         batch."""
         if out is not None:
-            stamp = cmd_stamp or self.get_clock().now().to_msg()
-            self.cmd_pub.publish(command_msg(self._cmd, out.answer.state_seq, stamp,
+            ns = self.get_clock().now().nanoseconds if stamp_ns is None else stamp_ns
+            self.cmd_pub.publish(command_cdr(self._cmd_cdr, out.answer.state_seq, ns,
                                              out.answer.out, out.update_age,
                                              update_seq=out.answer.update_seq))
             if out.batch is not None:

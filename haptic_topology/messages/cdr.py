@@ -1,0 +1,206 @@
+"""Serialize a message to CDR bytes in one ``struct`` call, for publishing at 1 kHz.
+
+rclpy publishes a message object by converting every field to C (with the Python setters'
+checks when the fields are filled) and then serializing it; a publisher also accepts the
+serialized bytes (``Publisher.publish(bytes)``, ``rcl_publish_serialized_message``), which go
+to the middleware as they are. :class:`CdrWriter` produces those bytes for a message type
+whose sequences keep their lengths from one message to the next, as the device's state and
+the controller's command do within a run: the layout of each combination of sequence
+lengths is worked out once, and each message is then a single ``struct.pack``.
+
+The bytes are what ``rclpy.serialization.serialize_message`` gives for the same message
+(classic CDR, little endian, the encapsulation header ``00 01 00 00``; each primitive
+aligned to its size from the end of that header), except that the alignment bytes are
+zeros where ``serialize_message`` leaves whatever its buffer held, and that they end with
+the last field: ``serialize_message`` may add slack after it (its size estimate counts
+alignment for each empty sequence: 8 bytes for a ``DeviceCommand`` with its ``env_wrench``
+empty), which no reader looks at. The tests check this
+byte for byte, and that rclpy deserializes the bytes to the message. Supported: the
+primitive types, strings, unbounded sequences of primitives and nested messages of these;
+anything else is refused when the writer is made. No rclpy here: the message classes carry
+their own field list.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+#: CDR (XCDR1) little-endian encapsulation: representation id 0x0001, options 0.
+ENCAPSULATION = b'\x00\x01\x00\x00'
+
+#: Primitive type -> (struct code, size = alignment in bytes).
+PRIMITIVES: dict[str, tuple[str, int]] = {
+    'boolean': ('?', 1), 'octet': ('B', 1), 'char': ('B', 1), 'uint8': ('B', 1),
+    'int8': ('b', 1), 'uint16': ('H', 2), 'int16': ('h', 2), 'uint32': ('I', 4),
+    'int32': ('i', 4), 'uint64': ('Q', 8), 'int64': ('q', 8), 'float': ('f', 4),
+    'double': ('d', 8),
+}
+
+
+def _leaves(msg_type: type, prefix: str = '') -> list[tuple[str, str]]:
+    """``(dotted path, kind)`` of every leaf field in wire order; kind is a primitive type
+    name, ``'string'`` or ``'sequence<primitive>'``."""
+    out: list[tuple[str, str]] = []
+    probe = msg_type()
+    fields: dict[str, str] = msg_type.get_fields_and_field_types()  # type: ignore[attr-defined]
+    for name, kind in fields.items():
+        path = prefix + name
+        inner = kind[len('sequence<'):-1] if kind.startswith('sequence<') else None
+        if kind in PRIMITIVES or kind == 'string' or inner in PRIMITIVES:
+            out.append((path, kind))
+        elif '/' in kind and '<' not in kind and '[' not in kind:
+            out.extend(_leaves(type(getattr(probe, name)), path + '.'))
+        else:
+            raise ValueError(f'{msg_type.__name__}.{path}: type {kind!r} is not supported '
+                             '(primitives, strings, unbounded sequences of primitives and '
+                             'nested messages of these)')
+    return out
+
+
+class _Layout:
+    """The struct and the value slots of one combination of sequence and string lengths."""
+
+    def __init__(self, leaves: list[tuple[str, str]], lengths: tuple[int, ...]) -> None:
+        fmt, offset, slot = ['<'], 0, 0
+        self.slots: dict[str, slice] = {}       # path -> its values in pack order
+        self.counts: list[tuple[int, int]] = []  # (slot, value) of each length prefix
+        self.lengths: dict[str, int] = {}       # path -> entries (bytes) of each sequence
+        sizes = iter(lengths)
+
+        self.padding: list[int] = []    # offsets (from the encapsulation) of pad bytes
+
+        def align(size: int) -> None:
+            nonlocal offset
+            pad = -offset % size
+            if pad:
+                fmt.append(f'{pad}x')
+                self.padding.extend(range(len(ENCAPSULATION) + offset,
+                                          len(ENCAPSULATION) + offset + pad))
+            offset += pad
+
+        for path, kind in leaves:
+            if kind in PRIMITIVES:
+                code, size = PRIMITIVES[kind]
+                align(size)
+                fmt.append(code)
+                offset += size
+                self.slots[path] = slice(slot, slot + 1)
+                slot += 1
+                continue
+            n = self.lengths[path] = next(sizes)
+            align(4)
+            fmt.append('I')
+            offset += 4
+            if kind == 'string':        # length with the NUL, the bytes, the NUL
+                self.counts.append((slot, n + 1))
+                fmt.append(f'{n + 1}s')
+                offset += n + 1
+                self.slots[path] = slice(slot + 1, slot + 2)
+                slot += 2
+                continue
+            self.counts.append((slot, n))
+            code, size = PRIMITIVES[kind[len('sequence<'):-1]]
+            if n:                       # an empty sequence is its length alone
+                align(size)
+                fmt.append(f'{n}{code}')
+                offset += n * size
+            self.slots[path] = slice(slot + 1, slot + 1 + n)
+            slot += 1 + n
+        self.struct = struct.Struct(''.join(fmt))
+        self.size = slot
+
+
+class CdrWriter:
+    """CDR bytes of ``msg_type`` messages (module doc).
+
+    ``fields``: the dotted paths (e.g. ``'header.stamp.sec'``, ``'pose'``) that
+    :meth:`pack` takes, in its argument order: primitives as numbers, sequences as any sized
+    iterable of numbers (numpy arrays included); strings only as constants. ``constants``:
+    values of other fields that stay the same (e.g. ``{'header.frame_id': 'world'}``). A
+    field in neither is the type's default. A message whose sequence lengths are new gets
+    its layout worked out then (once).
+    """
+
+    def __init__(self, msg_type: type, fields: Sequence[str],
+                 constants: Mapping[str, Any] | None = None) -> None:
+        self.msg_type = msg_type
+        self.fields = tuple(fields)
+        self._leaves = _leaves(msg_type)
+        kinds = dict(self._leaves)
+        constants = dict(constants or {})
+        unknown = sorted((set(self.fields) | set(constants)) - set(kinds))
+        both = sorted(set(self.fields) & set(constants))
+        strings = [f for f in self.fields if kinds.get(f) == 'string']
+        if unknown or both or strings or len(set(self.fields)) != len(self.fields):
+            raise ValueError(
+                f'{msg_type.__name__}: ' + (f'no field {unknown} (fields: {sorted(kinds)})'
+                                            if unknown else
+                                            f'{both} both given per message and constant'
+                                            if both else
+                                            f'strings {strings} must be constants'
+                                            if strings else 'a field named twice'))
+        defaults: dict[str, Any] = {
+            p: ([] if k.startswith('sequence<') else '' if k == 'string' else
+                False if k == 'boolean' else 0.0 if k in ('float', 'double') else 0)
+            for p, k in self._leaves if p not in self.fields}
+        self._constants = {**defaults, **constants}
+        self._varying = [p for p, k in self._leaves if k not in PRIMITIVES]
+        self._sequences = [i for i, p in enumerate(self.fields) if p in self._varying]
+        self._layouts: dict[tuple[int, ...], tuple[list[int | slice], list[Any], _Layout]] = {}
+
+    def _layout(self, values: Sequence[Any]) -> tuple[list[int | slice], list[Any], _Layout]:
+        lengths = tuple([len(values[n]) for n in self._sequences])
+        hit = self._layouts.get(lengths)
+        if hit is None:
+            given = {self.fields[n]: m for n, m in zip(self._sequences, lengths, strict=True)}
+            layout = _Layout(self._leaves, tuple(
+                given[p] if p in given else _width(self._constants[p]) for p in self._varying))
+            base: list[Any] = [0] * layout.size
+            for slot, count in layout.counts:
+                base[slot] = count
+            for path, value in self._constants.items():
+                where = layout.slots[path]
+                if isinstance(value, str):
+                    base[where] = [value.encode() + b'\x00']
+                else:
+                    base[where] = list(value) if hasattr(value, '__len__') else [value]
+            wheres: list[int | slice] = [
+                layout.slots[p].start if (layout.slots[p].stop - layout.slots[p].start == 1
+                                          and p not in layout.lengths) else layout.slots[p]
+                for p in self.fields]
+            hit = self._layouts[lengths] = (wheres, base, layout)
+        return hit
+
+    def padding(self, *values: Any) -> list[int]:
+        """Offsets of the alignment bytes in :meth:`pack`'s result for ``values``: zeros
+        here; CDR leaves them unspecified (``serialize_message`` leaves what its buffer
+        held)."""
+        return list(self._layout(values)[2].padding)
+
+    def pack(self, *values: Any) -> bytes:
+        """The CDR bytes, encapsulation header included, of the message with ``values`` (in
+        the order of :attr:`fields`) over the constants."""
+        if len(values) != len(self.fields):
+            raise ValueError(f'{self.msg_type.__name__}: {len(values)} values for the '
+                             f'{len(self.fields)} fields {self.fields}')
+        given = list(values)
+        for n in self._sequences:               # numpy arrays: their floats, at C speed
+            v = given[n]
+            if v.__class__ is not list:
+                given[n] = v.tolist() if hasattr(v, 'tolist') else list(v)
+        wheres, base, layout = self._layout(given)
+        flat = base.copy()
+        for where, value in zip(wheres, given, strict=True):
+            flat[where] = value
+        try:
+            return ENCAPSULATION + layout.struct.pack(*flat)
+        except struct.error as exc:
+            raise ValueError(f'{self.msg_type.__name__}: a value does not fit its field '
+                             f'({exc}); fields {self.fields}') from None
+
+
+def _width(value: Any) -> int:
+    """Entries of a sequence, bytes of a string (without the NUL)."""
+    return len(value.encode()) if isinstance(value, str) else len(value)

@@ -1,0 +1,112 @@
+"""``messages.cdr``: the bytes the driver and the controller publish at 1 kHz are rclpy's own
+serialization of the messages ``state_msg``/``command_msg`` fill (padding aside), and rclpy
+reads them back to those messages."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from rclpy.serialization import deserialize_message, serialize_message
+
+from haptic_topology.control.controller import CycleOutput
+from haptic_topology.device.backend import DeviceReading
+from haptic_topology.messages.cdr import CdrWriter
+from haptic_topology.nodes.convert import (
+    STATE_FIELDS,
+    command_cdr,
+    command_msg,
+    command_writer,
+    ns_to_stamp,
+    state_cdr,
+    state_msg,
+    state_writer,
+)
+from haptic_topology.vocabulary import ControlMode, DeviceStatus
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
+
+GRAPH = 0x9E3779B97F4A7C15          # a graph id's wire value (uint64, high bit set)
+FRAME = 'device_base'
+
+
+def _same_bytes_but_padding(ours: bytes, ref: bytes, padding: list[int]) -> None:
+    """Equal up to the alignment bytes, and up to the slack ``serialize_message`` may leave
+    after the last field (the module doc)."""
+    assert len(ours) <= len(ref)
+    differ = [i for i in range(len(ours)) if ours[i] != ref[i]]
+    assert set(differ) <= set(padding), differ
+    assert all(ours[i] == 0 for i in padding)
+
+
+@pytest.mark.parametrize('dim, env', [(3, None), (3, 3), (6, None), (6, 6)])
+def test_device_state_bytes_are_rclpys_serialization(dim: int, env: int | None) -> None:
+    rng = np.random.default_rng(dim * 10 + (env or 0))
+    writer = state_writer(FRAME, GRAPH)
+    msg = DeviceState()
+    msg.header.frame_id, msg.graph_id = FRAME, GRAPH
+    for k in range(3):          # the same writer, message after message
+        reading = DeviceReading(*(rng.normal(size=dim) for _ in range(3)))
+        applied = rng.normal(size=dim)
+        env_wrench = None if env is None else rng.normal(size=env)
+        seq, ns = 2**40 + k, 1_764_000_000_123_456_789 + k * 1_000_000
+        status = int(DeviceStatus.SATURATED | DeviceStatus.WORKSPACE_LIMIT)
+        state_msg(msg, seq, ns_to_stamp(ns), reading, applied, status, env_wrench)
+        ours = state_cdr(writer, seq, ns, reading, applied, status, env_wrench)
+        assert deserialize_message(ours, DeviceState) == msg
+        values = writer_values(seq, ns, reading, applied, status, env_wrench)
+        _same_bytes_but_padding(ours, serialize_message(msg), writer.padding(*values))
+
+
+def writer_values(seq: int, ns: int, reading: DeviceReading, applied: np.ndarray,
+                  status: int, env_wrench: np.ndarray | None) -> tuple:
+    sec, nanosec = divmod(ns, 10**9)
+    return (sec, nanosec, seq, reading.pose.size, reading.pose, reading.twist,
+            reading.hand_wrench, applied, status, () if env_wrench is None else env_wrench)
+
+
+@pytest.mark.parametrize('dim, env', [(3, None), (6, 6)])
+def test_device_command_bytes_are_rclpys_serialization(dim: int, env: int | None) -> None:
+    rng = np.random.default_rng(dim)
+    writer = command_writer(FRAME, GRAPH)
+    msg = DeviceCommand()
+    msg.header.frame_id, msg.graph_id = FRAME, GRAPH
+    for mode, update_seq in ((ControlMode.PENALTY, -1), (ControlMode.ZERO, 2**53)):
+        out = CycleOutput(*(rng.normal(size=dim) for _ in range(5)), constraint_count=2,
+                          mode=mode, env_wrench=None if env is None else rng.normal(size=env))
+        ns, age, cid = 1_764_000_000_000_000_001, 0.0123, 2**63 - 1
+        command_msg(msg, 77, ns_to_stamp(ns), out, age, cid, update_seq)
+        ours = command_cdr(writer, 77, ns, out, age, cid, update_seq)
+        assert deserialize_message(ours, DeviceCommand) == msg
+        sec, nanosec = divmod(ns, 10**9)
+        values = (sec, nanosec, 77, cid, int(mode), dim, out.wrench, out.vt_pose, out.vt_twist,
+                  2, age, () if out.env_wrench is None else out.env_wrench, update_seq)
+        _same_bytes_but_padding(ours, serialize_message(msg), writer.padding(*values))
+
+
+def test_sequence_lengths_may_change_between_messages() -> None:
+    """A layout per combination of lengths, empty sequences included (no alignment after
+    an empty sequence's length)."""
+    writer = CdrWriter(LmiUpdate, ('q', 'mass_matrix', 'constraint_count'))
+    for n in (0, 3, 1, 0, 7):
+        q, d = np.arange(n, dtype=float), np.ones(n * n)
+        msg = LmiUpdate(q=q.tolist(), mass_matrix=d.tolist(), constraint_count=n)
+        ours = writer.pack(q, d, n)
+        assert deserialize_message(ours, LmiUpdate) == msg
+        _same_bytes_but_padding(ours, serialize_message(msg), writer.padding(q, d, n))
+
+
+def test_bad_fields_and_values_are_refused_naming_them() -> None:
+    with pytest.raises(ValueError, match=r"no field \['posture'\]"):
+        CdrWriter(DeviceState, ('posture',))
+    with pytest.raises(ValueError, match='must be constants'):
+        CdrWriter(DeviceState, ('header.frame_id',))
+    with pytest.raises(ValueError, match='both given per message and constant'):
+        CdrWriter(DeviceState, ('graph_id',), {'graph_id': 1})
+    with pytest.raises(ValueError, match=r"HandInputs.stamp: type 'sequence<builtin_interfaces/"):
+        CdrWriter(HandInputs, ())
+    writer = CdrWriter(DeviceState, STATE_FIELDS)
+    with pytest.raises(ValueError, match='9 values for the 10 fields'):
+        writer.pack(*range(9))
+    good = (1, 2, 3, 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, 0, ())
+    assert deserialize_message(writer.pack(*good), DeviceState).seq == 3
+    with pytest.raises(ValueError, match='DeviceState: a value does not fit its field'):
+        writer.pack(*good[:8], 256, ())               # status is a uint8
