@@ -171,9 +171,12 @@ class HostedLoop:
         """Start the outbox thread (if not running) and the loop thread, with the driver's
         real-time settings, and the executor timer of :meth:`check`."""
         s = self.driver.cfg.settings
-        # The loop thread must get the GIL back within a fraction of its period when it
-        # wakes; CPython lets a thread keep it for up to the switch interval (5 ms).
-        sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
+        # A loop thread must get the GIL back within a fraction of its period when it wakes;
+        # CPython lets a thread keep it for up to the switch interval (5 ms). With the loop
+        # in its own process no thread here has a deadline: the default spares this
+        # process's threads the GIL hand-overs.
+        if self.process is None:
+            sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
         self.runner.may_engage = self.driver.may_engage()
         if self.process is not None:        # a new child: the controller loop starts over
             self.controller.admission.forget()
