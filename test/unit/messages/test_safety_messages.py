@@ -166,6 +166,18 @@ def test_contacts_round_trip_through_lmi_update() -> None:
     assert lmi_from_msg(_update(), TASK, DOF).contacts is None
 
 
+def test_lmi_update_fields_are_the_snapshots_entries_row_major() -> None:
+    """``lmi_msg`` hands each array over as one block; the field holds the same doubles in
+    row-major order, also from a matrix stored column-major."""
+    snap = _snapshot()
+    snap = dataclasses.replace(snap, mass_matrix=np.asfortranarray(snap.mass_matrix))
+    msg = lmi_msg(LmiUpdate(), snap, seconds_to_stamp(1.0))
+    assert list(msg.mass_matrix) == snap.mass_matrix.ravel().tolist()
+    assert list(msg.hand_jacobian) == snap.hand_jacobian.ravel().tolist()
+    assert list(msg.q) == snap.q.tolist() and list(msg.hand_pose) == snap.hand_pose.tolist()
+    np.testing.assert_array_equal(lmi_from_msg(msg, TASK, DOF).mass_matrix, snap.mass_matrix)
+
+
 CASES: list[tuple[str, Callable[[], Any], str, str]] = [
     ('lmi', lambda: _update(dof=4), 'dof', 'LmiUpdate.dof must be 3, got 4'),
     ('lmi', lambda: _update(task_dim=6), 'task_dim', 'LmiUpdate.task_dim must be 3, got 6'),
