@@ -14,11 +14,10 @@ aligned to its size from the end of that header), except that the alignment byte
 zeros where ``serialize_message`` leaves whatever its buffer held, and that they end with
 the last field: ``serialize_message`` may add slack after it (its size estimate counts
 alignment for each empty sequence: 8 bytes for a ``DeviceCommand`` with its ``env_wrench``
-empty), which no reader looks at. The tests check this
-byte for byte, and that rclpy deserializes the bytes to the message. Supported: the
-primitive types, strings, unbounded sequences of primitives and nested messages of these;
-anything else is refused when the writer is made. No rclpy here: the message classes carry
-their own field list.
+empty), which no reader looks at. The tests check this byte for byte, and that rclpy
+deserializes the bytes to the message. Supported: the primitive types, strings, unbounded
+sequences of primitives and nested messages of these; anything else is refused when the
+writer is made. No rclpy here: the message classes carry their own field list.
 """
 
 from __future__ import annotations
@@ -67,9 +66,8 @@ class _Layout:
         self.slots: dict[str, slice] = {}       # path -> its values in pack order
         self.counts: list[tuple[int, int]] = []  # (slot, value) of each length prefix
         self.lengths: dict[str, int] = {}       # path -> entries (bytes) of each sequence
+        self.padding: list[int] = []            # offsets of the pad bytes in the message
         sizes = iter(lengths)
-
-        self.padding: list[int] = []    # offsets (from the encapsulation) of pad bytes
 
         def align(size: int) -> None:
             nonlocal offset
@@ -117,7 +115,8 @@ class CdrWriter:
 
     ``fields``: the dotted paths (e.g. ``'header.stamp.sec'``, ``'pose'``) that
     :meth:`pack` takes, in its argument order: primitives as numbers, sequences as any sized
-    iterable of numbers (numpy arrays included); strings only as constants. ``constants``:
+    iterable of numbers (numpy arrays of any shape: their entries row-major); strings only as
+    constants. ``constants``:
     values of other fields that stay the same (e.g. ``{'header.frame_id': 'world'}``). A
     field in neither is the type's default. A message whose sequence lengths are new gets
     its layout worked out then (once).
@@ -173,23 +172,29 @@ class CdrWriter:
             hit = self._layouts[lengths] = (wheres, base, layout)
         return hit
 
-    def padding(self, *values: Any) -> list[int]:
-        """Offsets of the alignment bytes in :meth:`pack`'s result for ``values``: zeros
-        here; CDR leaves them unspecified (``serialize_message`` leaves what its buffer
-        held)."""
-        return list(self._layout(values)[2].padding)
-
-    def pack(self, *values: Any) -> bytes:
-        """The CDR bytes, encapsulation header included, of the message with ``values`` (in
-        the order of :attr:`fields`) over the constants."""
+    def _given(self, values: tuple[Any, ...]) -> list[Any]:
+        """``values`` with each sequence as a list (numpy arrays: their entries, at C
+        speed)."""
         if len(values) != len(self.fields):
             raise ValueError(f'{self.msg_type.__name__}: {len(values)} values for the '
                              f'{len(self.fields)} fields {self.fields}')
         given = list(values)
-        for n in self._sequences:               # numpy arrays: their floats, at C speed
+        for n in self._sequences:
             v = given[n]
             if v.__class__ is not list:
-                given[n] = v.tolist() if hasattr(v, 'tolist') else list(v)
+                given[n] = v.ravel().tolist() if hasattr(v, 'ravel') else list(v)
+        return given
+
+    def padding(self, *values: Any) -> list[int]:
+        """Offsets of the alignment bytes in :meth:`pack`'s result for ``values``: zeros
+        here; CDR leaves them unspecified (``serialize_message`` leaves what its buffer
+        held)."""
+        return list(self._layout(self._given(values))[2].padding)
+
+    def pack(self, *values: Any) -> bytes:
+        """The CDR bytes, encapsulation header included, of the message with ``values`` (in
+        the order of :attr:`fields`) over the constants."""
+        given = self._given(values)
         wheres, base, layout = self._layout(given)
         flat = base.copy()
         for where, value in zip(wheres, given, strict=True):

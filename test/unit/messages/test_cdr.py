@@ -84,11 +84,11 @@ def test_device_command_bytes_are_rclpys_serialization(dim: int, env: int | None
 
 def test_sequence_lengths_may_change_between_messages() -> None:
     """A layout per combination of lengths, empty sequences included (no alignment after
-    an empty sequence's length)."""
+    an empty sequence's length); a matrix goes in row-major, whatever its memory order."""
     writer = CdrWriter(LmiUpdate, ('q', 'mass_matrix', 'constraint_count'))
     for n in (0, 3, 1, 0, 7):
-        q, d = np.arange(n, dtype=float), np.ones(n * n)
-        msg = LmiUpdate(q=q.tolist(), mass_matrix=d.tolist(), constraint_count=n)
+        q, d = np.arange(n, dtype=float), np.arange(n * n, dtype=float).reshape(n, n).T
+        msg = LmiUpdate(q=q.tolist(), mass_matrix=d.ravel().tolist(), constraint_count=n)
         ours = writer.pack(q, d, n)
         assert deserialize_message(ours, LmiUpdate) == msg
         _same_bytes_but_padding(ours, serialize_message(msg), writer.padding(q, d, n))
