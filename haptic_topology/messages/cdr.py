@@ -193,7 +193,7 @@ class CdrWriter:
 
     def pack(self, *values: Any) -> bytes:
         """The CDR bytes, encapsulation header included, of the message with ``values`` (in
-        the order of :attr:`fields`) over the constants."""
+        the order of the ``fields`` the writer was made with) over the constants."""
         given = self._given(values)
         wheres, base, layout = self._layout(given)
         flat = base.copy()
