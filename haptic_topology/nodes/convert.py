@@ -36,7 +36,6 @@ from haptic_topology.device.backend import DeviceReading
 from haptic_topology.dynamics.constraints import PenaltyDirection
 from haptic_topology.dynamics.contacts import ContactParams, LocalContacts
 from haptic_topology.errors import MessageError
-from haptic_topology.messages.cdr import CdrWriter
 from haptic_topology.messages.check import (
     MAX_CONTROLLER_ID,
     MAX_SEQ,
@@ -100,29 +99,6 @@ def state_msg(msg: DeviceState, seq: int, stamp: Time, reading: DeviceReading,
     return msg
 
 
-#: The fields :func:`state_cdr` writes, in its order; the rest are the writer's constants.
-STATE_FIELDS = ('header.stamp.sec', 'header.stamp.nanosec', 'seq', 'task_dim', 'pose', 'twist',
-                'hand_wrench', 'applied_wrench', 'status', 'env_wrench')
-
-
-def state_writer(frame_id: str, graph_id: int) -> CdrWriter:
-    """The writer of :func:`state_cdr` in ``frame_id`` for the graph ``graph_id`` (its wire
-    value)."""
-    return CdrWriter(DeviceState, STATE_FIELDS,
-                     {'header.frame_id': frame_id, 'graph_id': graph_id})
-
-
-def state_cdr(writer: CdrWriter, seq: int, ns: int, reading: DeviceReading,
-              applied: np.ndarray, status: int, env_wrench: np.ndarray | None = None) -> bytes:
-    """The serialized ``DeviceState`` that :func:`state_msg` fills (stamped ``ns``), for
-    ``Publisher.publish(bytes)``: at 1 kHz this costs about half of filling and publishing
-    the message object (:mod:`haptic_topology.messages.cdr`)."""
-    sec, nanosec = divmod(int(ns), 1_000_000_000)
-    return writer.pack(sec, nanosec, seq, reading.pose.size, reading.pose, reading.twist,
-                       reading.hand_wrench, applied, int(status),
-                       () if env_wrench is None else env_wrench)
-
-
 def state_from_msg(msg: DeviceState, task: TaskSpace
                    ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray, int]:
     """``(seq, stamp_s, pose, twist, hand_wrench, status)``; every field checked
@@ -152,31 +128,6 @@ def command_msg(msg: DeviceCommand, state_seq: int, stamp: Time, out: CycleOutpu
     msg.update_seq = int(update_seq)
     msg.env_wrench = [] if out.env_wrench is None else out.env_wrench.tolist()
     return msg
-
-
-#: The fields :func:`command_cdr` writes, in its order; the rest are the writer's constants.
-COMMAND_FIELDS = ('header.stamp.sec', 'header.stamp.nanosec', 'state_seq', 'controller_id',
-                  'mode', 'task_dim', 'wrench', 'vt_pose', 'vt_twist', 'constraint_count',
-                  'update_age', 'env_wrench', 'update_seq')
-
-
-def command_writer(frame_id: str, graph_id: int) -> CdrWriter:
-    """The writer of :func:`command_cdr` in ``frame_id`` for the graph ``graph_id`` (its wire
-    value)."""
-    return CdrWriter(DeviceCommand, COMMAND_FIELDS,
-                     {'header.frame_id': frame_id, 'graph_id': graph_id})
-
-
-def command_cdr(writer: CdrWriter, state_seq: int, ns: int, out: CycleOutput,
-                update_age: float, controller_id: int = CONTROLLER_ID,
-                update_seq: int = -1) -> bytes:
-    """The serialized ``DeviceCommand`` that :func:`command_msg` fills (stamped ``ns``), for
-    ``Publisher.publish(bytes)`` (see :func:`state_cdr`)."""
-    sec, nanosec = divmod(int(ns), 1_000_000_000)
-    return writer.pack(sec, nanosec, state_seq, controller_id, int(out.mode), out.wrench.size,
-                       out.wrench, out.vt_pose, out.vt_twist, int(out.constraint_count),
-                       float(update_age), () if out.env_wrench is None else out.env_wrench,
-                       int(update_seq))
 
 
 def command_from_msg(msg: DeviceCommand, task: TaskSpace
@@ -338,8 +289,7 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
         contact_energy=float(getattr(msg, 'contact_energy', 0.0)))
 
 
-__all__ = ['COMMAND_FIELDS', 'CONTROLLER_ID', 'MAX_CONTROLLER_ID', 'MAX_SEQ', 'REASONS',
-           'STATE_FIELDS', 'GraphFilter', 'MessageError', 'RejectCounter', 'command_cdr',
-           'command_from_msg', 'command_msg', 'command_writer', 'hand_inputs_msg', 'lmi_from_msg',
-           'lmi_msg', 'ns_to_stamp', 'seconds_to_stamp', 'stamp_ns', 'stamp_seconds', 'state_cdr',
-           'state_from_msg', 'state_msg', 'state_writer', 'vt_wrenches_from_hand_inputs']
+__all__ = ['CONTROLLER_ID', 'MAX_CONTROLLER_ID', 'MAX_SEQ', 'REASONS', 'GraphFilter',
+           'MessageError', 'RejectCounter', 'command_from_msg', 'command_msg', 'hand_inputs_msg',
+           'lmi_from_msg', 'lmi_msg', 'ns_to_stamp', 'seconds_to_stamp', 'stamp_ns',
+           'stamp_seconds', 'state_from_msg', 'state_msg', 'vt_wrenches_from_hand_inputs']

@@ -59,19 +59,14 @@ from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, h
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
 from haptic_topology.model.frames import DEVICE_BASE
-from haptic_topology.nodes.convert import (
-    GraphFilter,
-    RejectCounter,
-    ns_to_stamp,
-    state_cdr,
-    state_writer,
-)
+from haptic_topology.nodes.convert import GraphFilter, RejectCounter, ns_to_stamp
 from haptic_topology.nodes.diagnostics import PublisherWatch, diagnostics, matched, monotonic
 from haptic_topology.nodes.hosting import HostedLoop, driver_layout, in_child
 from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import QOS_CLOCK, QOS_DIAGNOSTICS, loop_qos
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.separate import SeparateLoop
+from haptic_topology.nodes.wire import state_cdr, state_writer
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (
     TOPIC_CLOCK,

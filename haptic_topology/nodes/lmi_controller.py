@@ -59,8 +59,6 @@ from haptic_topology.nodes.convert import (
     GraphFilter,
     MessageError,
     RejectCounter,
-    command_cdr,
-    command_writer,
     hand_inputs_msg,
     lmi_from_msg,
     stamp_ns,
@@ -76,6 +74,7 @@ from haptic_topology.nodes.diagnostics import (
 from haptic_topology.nodes.parameters import declare_settings, declare_spec
 from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, QOS_LMI, hand_inputs_qos, loop_qos
 from haptic_topology.nodes.runtime import run_main
+from haptic_topology.nodes.wire import command_cdr, command_writer
 from haptic_topology.sim.lockstep import build_controller_loop
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (

@@ -11,14 +11,12 @@ from rclpy.serialization import deserialize_message, serialize_message
 from haptic_topology.control.controller import CycleOutput
 from haptic_topology.device.backend import DeviceReading
 from haptic_topology.messages.cdr import CdrWriter
-from haptic_topology.nodes.convert import (
+from haptic_topology.nodes.convert import command_msg, ns_to_stamp, state_msg
+from haptic_topology.nodes.wire import (
     STATE_FIELDS,
     command_cdr,
-    command_msg,
     command_writer,
-    ns_to_stamp,
     state_cdr,
-    state_msg,
     state_writer,
 )
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
