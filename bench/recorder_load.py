@@ -2,8 +2,11 @@
 
 Two processes besides this one, in a random ROS_DOMAIN_ID with discovery on this host only:
 
-* ``recorder`` (``python -m haptic_topology.nodes.recorder --ros-args -p output:=<tmp>/bag``),
-  the node as the graph runs it (EventsExecutor, raw subscriptions, writer thread, zstd MCAP);
+* ``recorder`` (``python -m haptic_topology.nodes.recorder --ros-args -p output:=<tmp>/bag
+  -p nice:=0``), the node as the graph runs it (EventsExecutor, raw subscriptions, writer
+  thread, zstd MCAP), at nice 0 like the publisher: this measures what the recorder can
+  store. At its default nice (+10, so that it yields to the 1 kHz loop) it yields to the
+  publisher too, which at 14x takes a whole core, and then it falls behind;
 * a synthetic publisher (this file, ``--role publisher``) with the graph's topics and QoS, per
   1x: ``DeviceState``, ``DeviceCommand`` at 1 kHz, ``HandInputs`` (batches of 10 samples) and
   ``LmiUpdate`` at 100 Hz, ``/diagnostics`` at 3 Hz, with the sizes of the planar 3-DOF
@@ -317,7 +320,7 @@ def run(duration: float = 60.0, factor: float = 1.0) -> dict[str, Any]:
         bag = Path(tmp) / 'bag'
         rec = subprocess.Popen(
             [sys.executable, '-m', 'haptic_topology.nodes.recorder', '--ros-args', '-p',
-             f'output:={bag}'],
+             f'output:={bag}', '-p', 'nice:=0'],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
             start_new_session=True)
         pub: subprocess.Popen[str] | None = None
