@@ -64,6 +64,9 @@ class ReplayStats:
     wall_s: float = 0.0
     #: Topics left out: recorded with an older definition of their type (module doc).
     left_out: list[str] = field(default_factory=list)
+    #: Reliable topics whose last messages a subscriber had not acknowledged when the replay
+    #: stopped waiting for it (10 s at the end of the replay).
+    unacknowledged: list[str] = field(default_factory=list)
 
     def line(self) -> str:
         text = (f'published {sum(self.published.values())} messages on '
@@ -71,6 +74,9 @@ class ReplayStats:
         if self.left_out:
             text += (f'; left out {", ".join(self.left_out)} (recorded with an older message '
                      'definition than the installed one)')
+        if self.unacknowledged:
+            text += (f'; not acknowledged by every subscriber: {", ".join(self.unacknowledged)} '
+                     '(a subscriber too slow or gone: it may have missed the last messages)')
         if self.late_ms:
             late = np.array(self.late_ms)
             text += (f'; behind the recorded timing p50 {np.percentile(late, 50):.3f} ms, '

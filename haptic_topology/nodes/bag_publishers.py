@@ -25,6 +25,9 @@ from haptic_topology.bag.replay import (
 )
 from haptic_topology.errors import BagError, ReplayError
 
+#: How long (s) a replay waits at its end for its reliable messages to be acknowledged.
+ACK_TIMEOUT = 10.0
+
 
 def _qos_profile(metadata: dict[str, str], topic: str) -> Any:
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -92,6 +95,16 @@ class Publishers:
         # The publisher sees the subscriber first; a reliable message sent before the
         # subscriber has matched this publisher in turn would be lost.
         time.sleep(0.5)
+
+    def wait_acked(self, timeout: float = ACK_TIMEOUT) -> list[str]:
+        """Wait until every matched subscriber of each reliable topic has acknowledged what
+        was published (at most ``timeout`` s in all); return the topics still waiting. A
+        publisher destroyed earlier drops what a slow subscriber has not taken yet."""
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + timeout
+        return sorted(t for t, pub in self.pubs.items() if not pub.wait_for_all_acked(
+            Duration(seconds=max(deadline - time.monotonic(), 0.0))))
 
     def publish(self, items: Sequence[Item], rate: float, loop: bool = False,
                 stop: threading.Event | None = None) -> ReplayStats:

@@ -101,6 +101,7 @@ def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None
         if wait_subscribers > 0:
             pubs.wait_for_subscribers(pubs.pubs, wait_subscribers)
         stats = pubs.publish(items, rate, loop, stop)
+        stats.unacknowledged = pubs.wait_acked()
         stats.left_out = [] if topics else sorted(left_out(bag))
         return stats
     finally:

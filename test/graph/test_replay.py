@@ -74,9 +74,11 @@ def test_plain_replay_is_recorded_again_in_full(tmp_path: Path, topic_prefix: st
     """`replay` of the LMI updates (reliable) with recorded timing into a recorder: the new
     bag holds every update of the reference, same bytes, same order."""
     bag = tmp_path / 'again'
+    # At nice 0: what is tested is the replay, not how the recorder yields to busy sessions
+    # (here the other test workers), as its default nice makes it do.
     rec = subprocess.Popen(
         [sys.executable, '-m', 'haptic_topology.nodes.recorder', '--ros-args', '-p',
-         f'output:={bag}', '-p', 'topics:=[haptic/lmi/update]', '-r',
+         f'output:={bag}', '-p', 'topics:=[haptic/lmi/update]', '-p', 'nice:=0', '-r',
          f'__ns:={topic_prefix}'],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
