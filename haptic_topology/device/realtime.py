@@ -95,6 +95,21 @@ def raise_session_nice(at_least: int) -> str | None:
     return f'session nice {target}: the kernel refused the write for 1 s; unchanged'
 
 
+def reset_session_nice() -> None:
+    """Set this process's autogroup back to nice 0 if it leads its own session (a node that
+    is stopping: its teardown, e.g. the recorder finishing its bag or Fast DDS deleting its
+    readers, then runs at the weight of any other session instead of waiting behind busy
+    ones). Lowering an autogroup's value to 0 needs no privilege. Errors are ignored: the
+    process is ending anyway."""
+    if os.getsid(0) != os.getpid():
+        return
+    try:
+        with open('/proc/self/autogroup', 'w') as f:
+            f.write('0')
+    except OSError:
+        pass
+
+
 def renice_thread(increment: int) -> str | None:
     """Raise the calling thread's nice value by ``increment``; None, or why it failed."""
     try:

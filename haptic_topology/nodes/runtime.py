@@ -22,7 +22,11 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from haptic_topology.config.params import NodeParams
-from haptic_topology.device.realtime import renice_process, set_realtime_priority
+from haptic_topology.device.realtime import (
+    renice_process,
+    reset_session_nice,
+    set_realtime_priority,
+)
 from haptic_topology.errors import ConfigError, HapticTopologyError
 from haptic_topology.nodes.dds_env import localhost_discovery_default
 from haptic_topology.nodes.parameters import check_config_args
@@ -63,6 +67,7 @@ def spin(nodes: Sequence[Node], kind: str) -> None:
             # A node that has not ended STOP_DUMP_AFTER s after the signal writes every
             # thread's Python stack to stderr (its log): where a stop hangs, not a guess.
             faulthandler.dump_traceback_later(STOP_DUMP_AFTER, exit=False)
+            reset_session_nice()        # the teardown does not wait behind busy sessions
         stop.append(signum)
 
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -69,7 +69,7 @@ def test_renice_process_raises_every_thread_and_renice_thread_only_its_own() -> 
 
 SESSION = r"""
 import json, os
-from haptic_topology.device.realtime import raise_session_nice, renice_process
+from haptic_topology.device.realtime import raise_session_nice, renice_process, reset_session_nice
 
 def group():
     return open('/proc/self/autogroup').read().split()
@@ -80,6 +80,8 @@ out['lower'] = raise_session_nice(2)       # a smaller value leaves it as it is
 out['after_lower'] = group()
 out['process'] = renice_process(7)
 out['after_process'] = group()
+reset_session_nice()                     # a stopping node: back to 0, without privilege
+out['after_reset'] = group()
 print(json.dumps(out))
 """
 
@@ -92,14 +94,17 @@ def _session_child(own_session: bool) -> dict:
 
 @pytest.mark.skipif(not Path('/proc/self/autogroup').exists(),
                     reason='kernel without CONFIG_SCHED_AUTOGROUP')
-def test_a_session_leader_raises_its_autogroup_and_another_process_leaves_it() -> None:
+def test_a_session_leader_raises_and_resets_its_autogroup_and_another_process_leaves_it(
+        ) -> None:
     leader = _session_child(True)
     assert leader['leader'] and leader['start'][-1] == '0'        # a new session's group
     assert leader['raise'] is None and leader['after_raise'][-1] == '4'
     assert leader['lower'] is None and leader['after_lower'][-1] == '4'
     assert leader['process'] is None and leader['after_process'][-1] == '7'
+    assert leader['after_reset'][-1] == '0'
     assert leader['after_process'][0] != open('/proc/self/autogroup').read().split()[0]
     member = _session_child(False)              # shares this session's group: untouched
     mine = open('/proc/self/autogroup').read().split()
     assert not member['leader'] and member['start'] == mine
     assert member['raise'] is None and member['after_process'] == mine
+    assert member['after_reset'] == mine
