@@ -64,6 +64,7 @@ def ros_domain_env() -> Iterator[dict[str, str]]:
     (CI and a developer, or parallel jobs) never share a domain and never see each other's
     nodes.
     """
+    from haptic_topology.device.realtime import SESSION_NICE_ENV
     from haptic_topology.nodes.dds_env import isolated_env
 
     lock = _lock_domain()
@@ -71,6 +72,9 @@ def ros_domain_env() -> Iterator[dict[str, str]]:
     # DDS on this host as the nodes run by default (the project's Fast DDS profile, user data
     # over UDP on the loopback), for the test processes too, unless the user set a profile.
     env = isolated_env(lock[0], saved)
+    # Node sessions at nice 0: the tests check function, not priority, and two workers
+    # running graphs would starve nodes whose session yields (test_realtime unsets it).
+    env[SESSION_NICE_ENV] = '0'
     os.environ.clear()
     os.environ.update(env)
     try:

@@ -6,11 +6,14 @@ own."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from haptic_topology.device.realtime import SESSION_NICE_ENV
 
 CHILD = r'''
 import json, os, threading
@@ -87,8 +90,9 @@ print(json.dumps(out))
 
 
 def _session_child(own_session: bool) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != SESSION_NICE_ENV}  # the default
     proc = subprocess.run([sys.executable, '-c', SESSION], capture_output=True, text=True,
-                          timeout=60, check=True, start_new_session=own_session)
+                          timeout=60, check=True, start_new_session=own_session, env=env)
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
