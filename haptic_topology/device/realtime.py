@@ -66,6 +66,13 @@ def renice_process(increment: int) -> str | None:
 #: other programs. The tests set it: on a machine that also runs other busy work (a second
 #: test worker) a session at nice 5 or 10 can be starved.
 SESSION_NICE_ENV = 'HAPTIC_TOPOLOGY_SESSION_NICE'
+#: This process's autogroup: ``"/autogroup-<id> nice <n>"``; write a number to set ``n``.
+AUTOGROUP = '/proc/self/autogroup'
+
+
+def _own_autogroup() -> bool:
+    """This process leads its session, so the autogroup is its own, and the kernel has one."""
+    return os.getsid(0) == os.getpid() and os.path.exists(AUTOGROUP)
 
 
 def raise_session_nice(at_least: int) -> str | None:
@@ -82,18 +89,17 @@ def raise_session_nice(at_least: int) -> str | None:
     write per 100 ms from an unprivileged process, so a refused write is retried for a second.
     A process that does not lead its session (e.g. several nodes started from one shell)
     leaves the session's value alone: it is shared with the other processes of the session.
+    With :data:`SESSION_NICE_ENV` set to ``0`` it does nothing.
     """
-    path = '/proc/self/autogroup'
-    if (os.getsid(0) != os.getpid() or not os.path.exists(path)
-            or os.environ.get(SESSION_NICE_ENV) == '0'):
+    if not _own_autogroup() or os.environ.get(SESSION_NICE_ENV) == '0':
         return None
     target = min(at_least, 19)
     for _ in range(11):
         try:
-            with open(path) as f:       # "/autogroup-<id> nice <n>"
+            with open(AUTOGROUP) as f:
                 if int(f.read().split()[-1]) >= target:
                     return None
-            with open(path, 'w') as f:
+            with open(AUTOGROUP, 'w') as f:
                 f.write(str(target))
             return None
         except BlockingIOError:         # EAGAIN: another process wrote in the last 100 ms
@@ -109,10 +115,10 @@ def reset_session_nice() -> None:
     readers, then runs at the weight of any other session instead of waiting behind busy
     ones). Lowering an autogroup's value to 0 needs no privilege. Errors are ignored: the
     process is ending anyway."""
-    if os.getsid(0) != os.getpid():
+    if not _own_autogroup():
         return
     try:
-        with open('/proc/self/autogroup', 'w') as f:
+        with open(AUTOGROUP, 'w') as f:
             f.write('0')
     except OSError:
         pass
