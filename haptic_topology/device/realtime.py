@@ -97,8 +97,11 @@ def raise_session_nice(at_least: int) -> str | None:
     for _ in range(11):
         try:
             with open(AUTOGROUP) as f:
-                if int(f.read().split()[-1]) >= target:
-                    return None
+                fields = f.read().split()
+            if not fields:      # the kernel's default group (no setsid since boot): none
+                return None
+            if int(fields[-1]) >= target:
+                return None
             with open(AUTOGROUP, 'w') as f:
                 f.write(str(target))
             return None

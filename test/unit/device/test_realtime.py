@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from haptic_topology.device import realtime
 from haptic_topology.device.realtime import SESSION_NICE_ENV
 
 CHILD = r'''
@@ -106,9 +107,22 @@ def test_a_session_leader_raises_and_resets_its_autogroup_and_another_process_le
     assert leader['lower'] is None and leader['after_lower'][-1] == '4'
     assert leader['process'] is None and leader['after_process'][-1] == '7'
     assert leader['after_reset'][-1] == '0'
-    assert leader['after_process'][0] != open('/proc/self/autogroup').read().split()[0]
+    mine = open('/proc/self/autogroup').read().split()   # empty in the kernel's default group
+    assert leader['after_process'][0] != (mine or [''])[0]
     member = _session_child(False)              # shares this session's group: untouched
-    mine = open('/proc/self/autogroup').read().split()
     assert not member['leader'] and member['start'] == mine
     assert member['raise'] is None and member['after_process'] == mine
     assert member['after_reset'] == mine
+
+
+def test_a_process_in_the_kernels_default_group_reads_an_empty_autogroup_and_leaves_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A process that never left the kernel's default group (e.g. a container's first process)
+    reads ``/proc/self/autogroup`` as empty: there is no group of its own to renice."""
+    empty = tmp_path / 'autogroup'
+    empty.write_text('')
+    monkeypatch.setattr(realtime, 'AUTOGROUP', str(empty))
+    monkeypatch.setattr(realtime, '_own_autogroup', lambda: True)
+    monkeypatch.delenv(SESSION_NICE_ENV, raising=False)
+    assert realtime.raise_session_nice(5) is None
+    assert empty.read_text() == ''
