@@ -391,6 +391,8 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.sim.scenario import load_scenario
 
     sc = load_scenario(args.scenario)  # validate before starting anything
+    for note in sc.linkage.notes:
+        print(note)
     modes: list[str] = args.mode or [sc.mode.label]
     duration = sc.duration if args.duration is None else args.duration
     if not duration > 0.0:

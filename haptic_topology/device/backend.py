@@ -50,7 +50,7 @@ import numpy as np
 
 from haptic_topology.device.maglev import DeviceParams, MaglevModel, PositionSensor
 from haptic_topology.device.users import UserModel, user_from_config
-from haptic_topology.errors import DeviceError
+from haptic_topology.errors import ConfigError, DeviceError
 from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 #: Entry point group through which other distributions can add backends.
@@ -206,6 +206,11 @@ class SimMaglevBackend(DeviceBackend):
                               f'{sorted(config.options)}')
         p = config.params
         self._model = MaglevModel(p, config.initial_pose)
+        outside = self._model.outside_workspace()
+        if outside is not None:
+            raise ConfigError(f'{config.source}: the device would start {outside} (the VT '
+                              'hand at scenario.q0 plus device.offset): choose a q0 or an '
+                              'offset inside it')
         self._sensor = PositionSensor(p)
         self._user = user_from_config(config.user, p.task, f'{config.source}: scenario.user',
                                       self._model.pose)

@@ -346,6 +346,23 @@ class MaglevModel:
             status |= DeviceStatus.WORKSPACE_LIMIT
         return status
 
+    def outside_workspace(self) -> str | None:
+        """Where the pose lies beyond the hard stops (``workspace.lo``/``hi`` per coordinate,
+        m / rad, and ``max_angle`` from the centre), in one line; None inside them."""
+        p = self.params
+        for i, (x, lo, hi) in enumerate(zip(self.pose, p.workspace_lo, p.workspace_hi,
+                                                    strict=True)):
+            if not lo <= x <= hi:
+                return (f'at pose[{i}] = {x:.6g}, outside device.workspace '
+                        f'[lo, hi] = [{lo:.6g}, {hi:.6g}]')
+        if self._rot_center is not None:
+            angle = float(np.linalg.norm(pin.log3(pin.exp3(self.pose[3:6])
+                                                  @ self._rot_center.T)))
+            if angle > p.max_angle:
+                return (f'{angle:.6g} rad from device.workspace.center, beyond '
+                        f'max_angle = {p.max_angle:.6g} rad')
+        return None
+
     def _orientation_stop(self) -> bool:
         """Hold the orientation within ``max_angle`` of the centre; cancel the angular velocity
         that turns further away. Returns whether the stop was hit."""

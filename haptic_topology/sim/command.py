@@ -10,8 +10,12 @@ import argparse
 import json
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from haptic_topology.vocabulary import LAW_MODES
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,10 +26,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--out', required=True, type=Path,
                         help='output directory (created; trace.csv, plot.png, summary.json)')
     parser.add_argument('--linkage', help='replace the scenario linkage (YAML or URDF file)')
+    parser.add_argument('--q0', metavar='Q,Q,...',
+                        help='initial joint positions (rad / m), comma-separated, e.g. '
+                        "--q0=0,pi/6,-pi/3; needed with a --linkage of another number of joints")
     parser.add_argument('--duration', type=float, help='override the duration (s)')
     parser.add_argument('--blend', type=float,
                         help='continuous penalty weight near the rank threshold: 0 = hard '
                         'switching (the paper), e.g. 1 = ramp over [tol, 2 tol]')
+
+
+def parse_q0(text: str, dof: int) -> np.ndarray:
+    """``--q0``: ``dof`` comma-separated numbers or expressions like ``-pi/4``."""
+    from haptic_topology.validate import as_angles
+
+    def value(item: str) -> float | str:
+        try:
+            return float(item)
+        except ValueError:
+            return item.replace(' ', '')
+    return as_angles([value(v) for v in text.split(',')], '--q0', dof)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,8 +58,12 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.vocabulary import ControlMode
 
     scenario = load_scenario(args.scenario)
-    if args.linkage:
-        scenario = scenario.with_linkage(load_linkage(args.linkage))
+    if args.linkage or args.q0 is not None:
+        linkage = load_linkage(args.linkage) if args.linkage else scenario.linkage
+        q0 = None if args.q0 is None else parse_q0(args.q0, linkage.dof)
+        scenario = scenario.with_linkage(linkage, q0)
+    for note in scenario.linkage.notes:
+        print(note)
     if args.duration is not None:
         if not args.duration > 0.0:
             raise SystemExit(f'--duration: expected a positive number of seconds, got '

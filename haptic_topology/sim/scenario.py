@@ -86,17 +86,33 @@ class Scenario:
     #: Obstacles and contact model; None: a VE without objects (F_env = 0).
     contacts: ContactSettings | None = None
 
-    def with_linkage(self, linkage: Linkage) -> Scenario:
-        """Same scenario on another linkage (the initial state must fit its dof)."""
+    def with_linkage(self, linkage: Linkage, q0: np.ndarray | None = None) -> Scenario:
+        """Same scenario on another linkage, starting at ``q0`` (rad / m, one per joint;
+        default the scenario's). Refused (:class:`ConfigError`) when the scenario's ``q0`` or
+        a nonzero ``dq0`` does not fit the linkage's joints and no ``q0`` is given: a state
+        made up for it would start the hand anywhere."""
         if linkage.task is not self.linkage.task:
             raise ConfigError(f'{linkage.source}: linkage.task is {linkage.task.value}, the '
                               f'scenario {self.name} needs {self.linkage.task.value}')
-        q0, dq0 = self.q0, self.dq0
-        if linkage.dof != self.linkage.dof:
-            q0, dq0 = np.zeros(linkage.dof), np.zeros(linkage.dof)
+        dq0 = self.dq0
+        if linkage.dof != self.dq0.size:
+            if np.any(self.dq0):
+                raise ConfigError(f'{self.source}: scenario.dq0 has {self.dq0.size} entries, '
+                                  f'the linkage {linkage.name} {linkage.dof} joints: give a '
+                                  'scenario for it')
+            dq0 = np.zeros(linkage.dof)
+        if q0 is None:
+            if linkage.dof != self.q0.size:
+                raise ConfigError(f'{self.source}: scenario.q0 has {self.q0.size} entries, the '
+                                  f'linkage {linkage.name} {linkage.dof} joints: give q0 '
+                                  '(simulate --q0) or a scenario for it')
+            q0 = self.q0
+        elif np.shape(q0) != (linkage.dof,):
+            raise ConfigError(f'q0: expected {linkage.dof} numbers (the joints of '
+                              f'{linkage.name}), got {np.size(q0)}')
         if self.contacts is not None:
             self.contacts.shapes(linkage)       # the per-link choices must fit it
-        return replace(self, linkage=linkage, q0=q0, dq0=dq0)
+        return replace(self, linkage=linkage, q0=np.array(q0, dtype=float), dq0=dq0)
 
     @property
     def lmi(self) -> LmiSettings:

@@ -115,6 +115,27 @@ def test_spatial_device_block_is_parsed_and_checked() -> None:
             device_from_config(_block(**extra), 'f: scenario.device', S)
 
 
+def test_the_simulated_device_refuses_to_start_beyond_its_stops() -> None:
+    """A start outside ``workspace.lo``/``hi`` or farther than ``max_angle`` from ``center``
+    is refused in one line naming the coordinate (at the stop is a valid start)."""
+    params, _ = device_from_config(_block(workspace={
+        'lo': [-0.1, -0.1, 0.0], 'hi': [0.1, 0.1, 0.2], 'max_angle': 0.3,
+        'center': [0.0, 0.0, 0.0]}), 'f: scenario.device', S)
+
+    def start(pose: list[float]) -> None:
+        SimMaglevBackend().configure(BackendConfig(params, np.array(pose), {
+            'type': 'constant_wrench', 'wrench': [0.0] * 6}, {}, 'f.yaml'))
+
+    start([0.1, -0.1, 0.0, 0.0, 0.3, 0.0])                  # on the stops: fine
+    with pytest.raises(ConfigError, match=r'^f\.yaml: the device would start at pose\[2\] = '
+                       r'0\.25, outside device\.workspace \[lo, hi\] = \[0, 0\.2\] \(the VT '
+                       r'hand at scenario\.q0 plus device\.offset\)'):
+        start([0.0, 0.0, 0.25, 0.0, 0.0, 0.0])
+    with pytest.raises(ConfigError, match=r'start 0\.4 rad from device\.workspace\.center, '
+                       r'beyond max_angle = 0\.3 rad'):
+        start([0.0, 0.0, 0.1, 0.4, 0.0, 0.0])
+
+
 @pytest.mark.parametrize(('extra', 'msg'), [
     ({'sensor': {'quantization': [1e-6, 1e-6]}}, r'sensor\.quantization: expected 3'),
     ({'sensor': {'noise_std': [-1.0, 0, 0]}}, r'sensor\.noise_std\[0\]: expected a value >= 0'),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -116,6 +117,50 @@ def test_simulate_with_another_linkage(tmp_path: Path) -> None:
                '--linkage', str(config_dir() / 'linkages' / 'spatial_arm4.yaml'))
     assert res.returncode == 1
     assert 'linkage.task is spatial, the scenario fig6 needs planar' in res.stderr
+
+
+def test_simulate_refuses_a_linkage_that_the_scenarios_q0_does_not_fit(tmp_path: Path) -> None:
+    """The Panda (7 joints) through spatial_arm4 (q0 of 4): one line, nothing written;
+    with ``--q0`` of the Panda's ready posture the device would start beyond
+    spatial_arm4's stops: refused, naming the coordinate."""
+    panda = str(config_dir() / 'linkages' / 'panda_link4.yaml')
+    out = tmp_path / 'o'
+    res = _cli('simulate', 'spatial_arm4', '--out', str(out), '--linkage', panda)
+    assert res.returncode == 1 and 'Traceback' not in res.stderr
+    assert res.stderr.strip().splitlines()[-1].endswith(
+        'spatial_arm4.yaml: scenario.q0 has 4 entries, the linkage panda_link4 7 joints: '
+        'give q0 (simulate --q0) or a scenario for it')
+    res = _cli('simulate', 'spatial_arm4', '--out', str(out), '--linkage', panda,
+               '--q0=0,-pi/4,0,-3*pi/4,0,pi/2,pi/4')
+    assert res.returncode == 1 and 'Traceback' not in res.stderr
+    last = res.stderr.strip().splitlines()[-1]
+    assert 'spatial_arm4.yaml: the device would start at pose[0] = -0.0606' in last
+    assert 'outside device.workspace [lo, hi] = [0.15, 0.257]' in last
+    assert not out.exists()
+    # The loader's note on the Panda's locked fingers is printed (stdout).
+    assert 'locked 2 side-branch joint(s) at panda_finger_joint1=0' in res.stdout
+
+
+def test_simulate_q0_sets_the_initial_state(tmp_path: Path) -> None:
+    """``--q0`` with the scenario's own linkage: the run starts there (same trace as a
+    scenario file with that q0); a wrong count or value is one line naming --q0."""
+    from haptic_topology.sim.command import parse_q0
+
+    np.testing.assert_array_equal(parse_q0('0, pi/6,-pi/3', 3), [0.0, math.pi / 6,
+                                                                 -math.pi / 3])
+    res = _cli('simulate', 'fig8', '--out', str(tmp_path / 'x'), '--q0=0,pi/6')
+    assert res.returncode == 1 and res.stderr.strip().endswith('--q0: expected 3 numbers, got 2')
+    doc = yaml.safe_load((config_dir() / 'scenarios' / 'fig8.yaml').read_text())
+    doc['scenario']['q0'] = [0.0, 0.5, -1.0]
+    doc['scenario']['linkage'] = str(config_dir() / 'linkages' / 'table1_planar3.yaml')
+    (tmp_path / 'fig8_q.yaml').write_text(yaml.safe_dump(doc))
+    a, b = tmp_path / 'a', tmp_path / 'b'
+    assert _cli('simulate', 'fig8', '--out', str(a), '--duration', '0.2',
+                '--q0=0,0.5,-1').returncode == 0
+    assert _cli('simulate', str(tmp_path / 'fig8_q.yaml'), '--out', str(b), '--duration',
+                '0.2').returncode == 0
+    assert (a / 'trace.csv').read_bytes() == (b / 'trace.csv').read_bytes()
+    assert (a / 'trace.csv').read_bytes() != b''
 
 
 @pytest.mark.parametrize(('mutate', 'expected'), [
