@@ -77,7 +77,7 @@ class HapticController:
         self.m_d = np.asarray(device_mass, dtype=float)
         self.c_d = np.asarray(device_christoffel, dtype=float)
         self.vt_coupling = vt_coupling
-        self.lmi = LocalModel(task, lmi_model)
+        self.lmi = LocalModel(task, lmi_model, device_inertia=self.m_d)
         #: Longest LMI step (s) this model integrates stably (see ``_stable_dt``).
         self.stable_dt = math.inf
         self._ml = np.zeros((m, m))           # M_d Lambda_h^-1 at the newest re-sync

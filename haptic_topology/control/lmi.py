@@ -120,13 +120,16 @@ class LocalModel:
     singular (no hand acceleration, hence no ``F_env``, along a constrained direction)."""
 
     def __init__(self, task: TaskSpace, model: LmiModel = LmiModel.EQ17,
-                 history: int = 1024) -> None:
+                 history: int = 1024, device_inertia: np.ndarray | None = None) -> None:
         # Imported here: loading the compiled code costs about 1 s, which a process that
         # only reads updates (a recorder, a bag reader) does not pay.
         from haptic_topology.control.compiled import lmi_replay, lmi_step
         self._lmi_step, self._lmi_replay = lmi_step, lmi_replay
         self.task = task
         self.model = model
+        #: ``M_d`` (m x m) of eq. 14: the metric of the penalty's directions (eq. 13, see
+        #: :meth:`ConstraintDirections.projector`); None: ``I``.
+        self.device_inertia = device_inertia
         self.snapshot: LmiSnapshot | None = None
         # The inputs recorded (a ring of the newest ``history``, in seq order): seq, F_vt
         # and the duration it was held (NaN until the next state gave it one).
@@ -195,8 +198,9 @@ class LocalModel:
             env_map = lambda_pinv @ (j @ contact_map[1])
             if not contacts.local:
                 held = contacts.forces(snap.q, snap.dq)
-        return LmiSync(snap, accel_map, accel_bias, lambda_inv,
-                       snap.constraints().projector(), contacts, contact_map, env_map, held)
+        projector = snap.constraints().projector(self.device_inertia)
+        return LmiSync(snap, accel_map, accel_bias, lambda_inv, projector, contacts,
+                       contact_map, env_map, held)
 
     def sync(self, update: LmiSnapshot | LmiSync) -> None:
         """Re-sync to an update (or to its :meth:`prepare`-d matrices): take its matrices and

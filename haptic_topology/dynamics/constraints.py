@@ -16,16 +16,19 @@ by the same factor scales every ``sigma_i`` by that factor: the decision is inde
 unit of length. ``S`` is invertible, so it does not change ``N(J_h^T)``; ``W`` maps it
 (``N(J_w^T) = W^-1 N(J_h^T)``), so an exactly singular ``J_h`` is detected exactly.
 
-The penalty of eq. 13, ``M_d sum_i (k_tc n_i^T e + b_tc n_i^T e_dot) n_i``, acts along an
-orthonormal basis ``n_i`` of ``N(J_h^T)`` (``penalty_direction: nullspace``, the default): the
-weighting decides only the rank, i.e. how many directions are constrained. The directions are
-``W u_i`` for the constrained columns ``u_i`` of ``U_w`` (``N(J_w^T) = W^-1 N(J_h^T)``),
-orthonormalised in the plain Euclidean sense, so the penalty force ``f`` satisfies
-``f . (J_h qd) = 0`` for every joint rate ``qd``: it does no work on any motion the linkage
-allows (force x velocity is power, whatever the units; N m/rad . rad/s = W). Inside the
-tolerance band (``J_h`` nearly but not exactly singular) the ``n_i`` span the left null space
-of the rank-r truncation of ``J_h`` that the weighted SVD chose. The projector is
-``P = sum_i w_i n_i n_i^T`` (symmetric, 0 <= P <= I).
+The penalty of eq. 13, ``M_d sum_i (k_tc n_i^T e + b_tc n_i^T e_dot) n_i``, acts along a basis
+``n_i`` of ``N(J_h^T)`` (``penalty_direction: nullspace``, the default): the weighting decides
+only the rank, i.e. how many directions are constrained. The directions are ``W u_i`` for the
+constrained columns ``u_i`` of ``U_w`` (``N(J_w^T) = W^-1 N(J_h^T)``), orthonormalised in the
+metric ``M_d^-1`` of the device inertia that multiplies the penalty in eq. 14
+(``n_i^T M_d^-1 n_j = delta_ij``), so the penalty wrench ``f = M_d P a`` satisfies
+``f . (J_h qd) = 0`` for every joint rate ``qd`` (it does no work on any motion the linkage
+allows) and is the same physical wrench in any unit of length: eq. 13's plain ``n_i^T n_i = 1``
+adds N and N m, so it would change with the unit. Where ``J_h`` is exactly singular,
+``P = I - J_h (J_h^T M_d J_h)^+ J_h^T M_d``; with ``M_d = I`` (SI, the paper's device) it is
+eq. 13 exactly. Inside the tolerance band (``J_h`` nearly but not exactly singular) the ``n_i``
+span the left null space of the rank-r truncation of ``J_h`` that the weighted SVD chose. The
+projector is ``P = M_d^-1 sum_i w_i n_i n_i^T`` (``M_d P`` symmetric, ``0 <= M_d P <= M_d``).
 
 ``penalty_direction: weighted`` uses the weighted projector
 ``P = W^-1 U_w diag(w) U_w^T W``: the penalty in the weighted coordinates ``e_w = W e``
@@ -69,11 +72,16 @@ class ConstraintDirections:
     task_scale: np.ndarray
     direction: PenaltyDirection = PenaltyDirection.NULLSPACE
 
-    def projector(self) -> np.ndarray:
-        """Penalty projector of eq. 13 (m x m, task coordinates): ``sum_i w_i n_i n_i^T``.
+    def projector(self, inertia: np.ndarray | None = None) -> np.ndarray:
+        """Penalty projector ``P`` of eq. 13 (m x m, task coordinates), for the device inertia
+        ``M_d`` (m x m, kg / kg m^2; default ``I``) that multiplies it in eq. 14.
 
-        ``nullspace``: ``n_i`` an orthonormal basis of ``N(J_h^T)`` (Euclidean), the most
-        constrained direction first; ``weighted``: ``W^-1 U diag(w) U^T W``.
+        ``nullspace``: ``P = M_d^-1 sum_i w_i n_i n_i^T`` with ``n_i`` a basis of
+        ``N(J_h^T)`` orthonormal in the metric ``M_d^-1`` of wrenches, the most constrained
+        direction first, so that the penalty wrench ``M_d P a`` lies in ``N(J_h^T)`` and is
+        the same physical wrench whatever the unit of length (see the module docstring).
+        With ``M_d = I`` this is the paper's ``sum_i w_i n_i n_i^T``, bit for bit.
+        ``weighted``: ``W^-1 U diag(w) U^T W`` (``inertia`` not used).
         """
         u = self.left_vectors
         if self.direction is PenaltyDirection.WEIGHTED:
@@ -83,8 +91,21 @@ class ConstraintDirections:
         order = [i for i in range(u.shape[1] - 1, -1, -1) if self.weights[i] > 0.0]
         if not order:
             return np.zeros((u.shape[0], u.shape[0]))
-        basis, _ = np.linalg.qr(self.task_scale[:, None] * u[:, order])   # W u_i -> n_i
-        return (basis * self.weights[order]) @ basis.T
+        c = self.task_scale[:, None] * u[:, order]          # W u_i: a basis of N(J_h^T)
+        w = self.weights[order]
+        if inertia is None:
+            basis, _ = np.linalg.qr(c)
+            return (basis * w) @ basis.T
+        # M_d = R R^T: Q = qr(R^-1 C) is orthonormal, n = R Q has n^T M_d^-1 n = I, and
+        # P = M_d^-1 n diag(w) n^T = R^-T Q diag(w) Q^T R^T. A diagonal M_d (the usual
+        # case) takes the element-wise path, exact for M_d = I.
+        if not np.any(inertia - np.diag(np.diag(inertia))):
+            r = np.sqrt(np.diag(inertia))
+            basis, _ = np.linalg.qr(c / r[:, None])
+            return ((basis * w) @ basis.T) * r[None, :] / r[:, None]
+        r_low = np.linalg.cholesky(inertia)
+        basis, _ = np.linalg.qr(np.linalg.solve(r_low, c))
+        return np.linalg.solve(r_low.T, (basis * w) @ basis.T) @ r_low.T
 
 
 def task_scale(task: TaskSpace, characteristic_length: float) -> np.ndarray:
