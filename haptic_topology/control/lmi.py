@@ -128,7 +128,8 @@ class LocalModel:
         self.task = task
         self.model = model
         #: ``M_d`` (m x m) of eq. 14: the metric of the penalty's directions (eq. 13, see
-        #: :meth:`ConstraintDirections.projector`); None: ``I``.
+        #: :meth:`~haptic_topology.dynamics.constraints.ConstraintDirections.projector`);
+        #: None: ``I``.
         self.device_inertia = device_inertia
         self.snapshot: LmiSnapshot | None = None
         # The inputs recorded (a ring of the newest ``history``, in seq order): seq, F_vt

@@ -88,9 +88,9 @@ class Scenario:
 
     def with_linkage(self, linkage: Linkage, q0: np.ndarray | None = None) -> Scenario:
         """Same scenario on another linkage, starting at ``q0`` (rad / m, one per joint;
-        default the scenario's). Refused (:class:`ConfigError`) when the scenario's ``q0`` or
-        a nonzero ``dq0`` does not fit the linkage's joints and no ``q0`` is given: a state
-        made up for it would start the hand anywhere."""
+        default the scenario's). Refused (:class:`~haptic_topology.errors.ConfigError`) when
+        the scenario's ``q0`` or a nonzero ``dq0`` does not fit the linkage's joints and no
+        ``q0`` is given: a state made up for it would start the hand anywhere."""
         if linkage.task is not self.linkage.task:
             raise ConfigError(f'{linkage.source}: linkage.task is {linkage.task.value}, the '
                               f'scenario {self.name} needs {self.linkage.task.value}')
