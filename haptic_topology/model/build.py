@@ -24,6 +24,9 @@ class LinkageModel:
     linkage: Linkage
     model: pin.Model
     hand_frame: int
+    #: Per loop closure (``linkage.loops``): the frames at its two points, ``(link side,
+    #: to side)``, oriented as the link's and the ``to`` link's (or world's) frame.
+    loop_frames: tuple[tuple[int, int], ...] = ()
 
 
 def _joint_model(link: LinkSpec, task: TaskSpace) -> Any:
@@ -65,6 +68,16 @@ def build_model(linkage: Linkage) -> LinkageModel:
     jid = linkage.link_names.index(linkage.grasp_link) + 1
     hand = model.addFrame(pin.Frame('hand', jid, 0, pin.SE3(np.eye(3), linkage.grasp_point),
                                     pin.FrameType.OP_FRAME))
-    return LinkageModel(linkage, model, hand)
+    names = linkage.link_names
+    loop_frames = []
+    for loop in linkage.loops:
+        ends = []
+        for side, end, point in (('a', loop.link, loop.point), ('b', loop.to, loop.to_point)):
+            parent = names.index(end) + 1 if end in names else 0    # 0: the world
+            ends.append(model.addFrame(pin.Frame(f'loop:{loop.name}:{side}', parent, 0,
+                                                 pin.SE3(np.eye(3), point),
+                                                 pin.FrameType.OP_FRAME)))
+        loop_frames.append((ends[0], ends[1]))
+    return LinkageModel(linkage, model, hand, tuple(loop_frames))
 
 

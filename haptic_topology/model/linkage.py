@@ -25,6 +25,7 @@ YAML layout (``config/linkages/table1_planar3.yaml`` is the paper's Table I)::
         ...
       grasp: {link: link3}      # point: [x, y, z] in the link frame, default the COM
       constraints: {rank_tolerance: 0.05, blend: 0.0, penalty_direction: nullspace}
+      loops: [...]              # optional loop closures, see haptic_topology.model.loops
 
 Per link: ``com`` (default ``[length/2, 0, 0]``), ``inertia`` about the COM (planar: the scalar
 Izz; spatial: ``[ixx, iyy, izz]``, ``[ixx, iyy, izz, ixy, ixz, iyz]`` or a 3x3 list),
@@ -64,6 +65,7 @@ import pinocchio as pin
 from haptic_topology.errors import ConfigError, LinkageError
 from haptic_topology.model.build import LinkageModel, build_model
 from haptic_topology.model.links import CollisionShape, JointType, LinkSpec
+from haptic_topology.model.loops import LoopClosure, parse_loops
 from haptic_topology.model.urdf_import import UrdfSource, links_from_urdf, read_urdf
 from haptic_topology.paths import PACKAGE_URI, resolve_package_uri
 from haptic_topology.validate import (
@@ -119,6 +121,8 @@ class Linkage:
     notes: tuple[str, ...] = ()         # one line each: what loading did (URDF joints locked)
     #: The URDF the chain was read from, as read once (None: a YAML chain).
     urdf: UrdfSource | None = None
+    #: Loop closures (:mod:`~haptic_topology.model.loops`): empty for a serial linkage.
+    loops: tuple[LoopClosure, ...] = ()
 
     @property
     def dof(self) -> int:
@@ -138,8 +142,7 @@ class Linkage:
                 f'{", ".join(names)})')
         spec = self.links[names.index(link)]
         p = spec.com.copy() if point is None else np.asarray(point, dtype=float).reshape(3)
-        return Linkage(self.name, self.task, self.links, self.gravity, link, p,
-                       self.constraints, self.urdf_path, self.source, self.notes, self.urdf)
+        return replace(self, grasp_link=link, grasp_point=p)
 
 
 _LINK_KEYS = ('name', 'joint', 'length', 'mass', 'com', 'inertia', 'axis', 'origin')
@@ -296,7 +299,7 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     where = f'{source}: linkage'
     raw = check_keys(top['linkage'], where,
                      optional=('name', 'task', 'gravity', 'links', 'grasp', 'constraints',
-                               'urdf', 'locked_joints'), error=LinkageError)
+                               'urdf', 'locked_joints', 'loops'), error=LinkageError)
     name = as_str(raw.get('name', Path(source).stem), f'{where}.name', error=LinkageError)
     task = TaskSpace(as_str(raw.get('task', 'planar'), f'{where}.task',
                             ('planar', 'spatial'), error=LinkageError))
@@ -355,10 +358,12 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
         raise LinkageError(f'{where}.grasp.point: z must be 0 for a planar linkage')
     constraints = _parse_constraints(raw.get('constraints', {}), f'{where}.constraints',
                                      reach(links, grasp_link, point))
+    loops = (parse_loops(raw['loops'], f'{where}.loops', task, tuple(names))
+             if 'loops' in raw else ())
     for note in notes:
         _LOG.info(note)
     linkage = Linkage(name, task, links, gravity, grasp_link, point, constraints, urdf_path,
-                      source, notes, urdf)
+                      source, notes, urdf, loops)
     build_model(linkage)  # fail now, not later, on anything Pinocchio rejects
     return linkage
 
@@ -420,7 +425,8 @@ def to_dict(linkage: Linkage) -> dict[str, Any]:
         'grasp': {'link': linkage.grasp_link, 'point': linkage.grasp_point.tolist()},
         'constraints': {'characteristic_length': c.characteristic_length,
                         'rank_tolerance': c.rank_tolerance, 'blend': c.blend,
-                        'penalty_direction': c.penalty_direction.value}}}
+                        'penalty_direction': c.penalty_direction.value},
+        **({'loops': [lp.to_dict() for lp in linkage.loops]} if linkage.loops else {})}}
 
 
 __all__ = ['CollisionShape', 'ConstraintSettings', 'JointType', 'LinkSpec', 'Linkage',

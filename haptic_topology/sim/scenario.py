@@ -48,6 +48,7 @@ from haptic_topology.control.lmi import LmiModel, LmiSettings
 from haptic_topology.device.maglev import DeviceParams, device_from_config
 from haptic_topology.device.users import user_from_config
 from haptic_topology.dynamics.contacts import ContactSettings
+from haptic_topology.dynamics.loops import check_assembled
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage, load_linkage
 from haptic_topology.paths import resolve_config
@@ -112,6 +113,7 @@ class Scenario:
                               f'{linkage.name}), got {np.size(q0)}')
         if self.contacts is not None:
             self.contacts.shapes(linkage)       # the per-link choices must fit it
+        check_start(linkage, np.asarray(q0, dtype=float), dq0, 'scenario')
         return replace(self, linkage=linkage, q0=np.array(q0, dtype=float), dq0=dq0)
 
     @property
@@ -172,6 +174,19 @@ def load_scenario(name_or_path: str) -> Scenario:
     name = as_str(raw.get('name', path.stem), f'{w}.name')
     contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage)
                 if 'contacts' in raw else None)
+    check_start(linkage, q0, dq0, w)
     return Scenario(name, linkage, q0, dq0, duration, dt, mode, device, offset, dict(user),
                     gains, lmi.model, lmi.update_period, ve.internal_step, ve.vt_coupling, src,
                     contacts)
+
+
+def check_start(linkage: Linkage, q0: np.ndarray, dq0: np.ndarray, where: str) -> None:
+    """A closed-chain linkage (``linkage.loops``) must start assembled and mobile
+    (:func:`~haptic_topology.dynamics.loops.check_assembled`); the VE and the LMI of this
+    version then refuse it: they model serial linkages only."""
+    if not linkage.loops:
+        return
+    check_assembled(linkage, q0, dq0, where)
+    raise ConfigError(f'{linkage.source}: linkage.loops: a closed-loop linkage is checked '
+                      '(assembly, mobility) but not simulated yet: the VE and the LMI model '
+                      'serial linkages only')

@@ -1,0 +1,270 @@
+"""Kinematics and dynamics of loop closures (:mod:`haptic_topology.model.loops`).
+
+A closed-chain linkage is its serial chain (eq. 1 with ``d`` joints) plus closures
+``phi(q) = 0`` (``c`` rows) with Jacobian ``J_c = d phi / dq`` (c x d). Its velocities lie in
+``N(J_c)``; ``f = d - rank(J_c)`` is the mechanism's mobility at ``q``.
+
+Rank decision: as for ``J_h`` (:mod:`~haptic_topology.dynamics.constraints`), ``J_c`` is
+weighted so that every entry is a length, ``J_w = W_c J_c S`` (``W_c``: 1 for the rows of
+point equations, ``L_c`` for the rows of axis equations; ``S``: ``L_c`` for prismatic
+columns), and a singular value of ``J_w`` counts when it is at least ``tolerance * L_c``; the
+decision does not depend on the unit of length. Redundant equations (a planar loop closed
+with a 3-D ``spherical`` point, whose z row is zero) are dropped by the same decision.
+
+Dynamics (eq. 1 with constraint forces): ``D qdd + B + G = tau + J_c^T lambda`` with
+``J_c qdd = -Jdot_c qd``, solved with the ``r`` independent rows the rank decision keeps
+(Gauss's principle: ``qdd`` is the unconstrained acceleration corrected in the metric ``D``).
+Drift: after each integration step :meth:`LoopClosures.project` moves ``q`` back onto
+``phi = 0`` (Gauss-Newton, minimum-norm steps in the weighted coordinates) and removes the
+velocity component that violates ``J_c qd = 0`` in the metric ``D`` (the smallest change of
+kinetic energy that satisfies the closures).
+
+Units SI; rows of ``phi`` in m (points) and rad (axes, to first order); frames world-aligned.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from haptic_topology.dynamics.constraints import joint_scale
+from haptic_topology.dynamics.spd import spd_factor, spd_solve
+from haptic_topology.errors import ConfigError, LinkageError
+from haptic_topology.model.build import LinkageModel, build_model
+from haptic_topology.model.linkage import Linkage
+from haptic_topology.model.loops import LoopKind
+
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+#: Default rank tolerance of ``J_c``, a fraction of ``L_c``: only exact (to rounding)
+#: rank drops change the mobility.
+LOOP_RANK_TOLERANCE = 1e-8
+
+
+def _perpendiculars(axis: np.ndarray) -> np.ndarray:
+    """Two unit vectors (2 x 3) perpendicular to the unit ``axis`` and to each other."""
+    helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    p1 = np.cross(axis, helper)
+    p1 /= np.linalg.norm(p1)
+    return np.array([p1, np.cross(axis, p1)])
+
+
+@dataclass(frozen=True)
+class ClosureBasis:
+    """The rank decision on ``J_c`` at one ``q``: ``rows`` (r x d) are ``r`` independent
+    combinations of the closure rows (``A = Sigma_r^-1 U_r^T W_c J_c``, so ``A = V_r^T
+    S^-1``), ``null`` (d x f) an orthonormal basis of ``N(J_c)``, ``singular_values`` of
+    ``J_w`` (m, descending) and ``mobility`` f = d - r."""
+
+    rows: np.ndarray
+    null: np.ndarray
+    singular_values: np.ndarray
+    row_map: np.ndarray
+
+    @property
+    def mobility(self) -> int:
+        return int(self.null.shape[1])
+
+
+class LoopClosures:
+    """``phi(q)``, ``J_c(q)``, ``Jdot_c qd`` of a linkage's closures, the mechanism's
+    velocity space, assembly, projection and the constrained acceleration.
+
+    ``tolerance``: the rank decision on ``J_c`` (a fraction of ``L_c``).
+    """
+
+    def __init__(self, linkage: Linkage | LinkageModel,
+                 tolerance: float = LOOP_RANK_TOLERANCE) -> None:
+        lm = linkage if isinstance(linkage, LinkageModel) else build_model(linkage)
+        self.linkage: Linkage = lm.linkage
+        if not self.linkage.loops:
+            raise LinkageError(f'{self.linkage.source}: linkage.loops: none (a serial '
+                               'linkage has no closures)')
+        self.model = lm.model
+        self.data = lm.model.createData()
+        self.dof = lm.model.nv
+        self.tolerance = tolerance
+        lc = self.linkage.constraints.characteristic_length
+        self.length = lc
+        self._ends = lm.loop_frames
+        self._rows: list[list[int]] = []          # point rows of each closure
+        self._axes: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
+        weights: list[float] = []
+        for loop in self.linkage.loops:
+            rows = [0, 1] if loop.kind is LoopKind.PIN else [0, 1, 2]
+            self._rows.append(rows)
+            weights += [1.0] * len(rows)
+            if loop.kind is LoopKind.REVOLUTE:
+                assert loop.axis is not None and loop.to_axis is not None
+                self._axes.append((loop.axis, loop.to_axis, _perpendiculars(loop.axis)))
+                weights += [lc, lc]
+            else:
+                self._axes.append(None)
+        #: ``W_c``: 1 for point rows, ``L_c`` for axis rows (c entries).
+        self.row_scale = np.array(weights)
+        #: ``S``: ``L_c`` for prismatic columns, 1 for revolute (d entries).
+        self.column_scale = joint_scale(self.linkage)
+        self.equations = int(self.row_scale.size)
+
+    # -- kinematics -----------------------------------------------------------------------
+    def residual(self, q: np.ndarray) -> np.ndarray:
+        """``phi(q)`` (c): point a minus point b (m), and for revolute closures
+        ``p_i . (b x a)`` with ``a``, ``b`` the world axes and ``p_i`` perpendicular to ``a``
+        (rad to first order)."""
+        model, data = self.model, self.data
+        pin.framesForwardKinematics(model, data, q)
+        out = []
+        for (fa, fb), rows, axes in zip(self._ends, self._rows, self._axes, strict=True):
+            oa, ob = data.oMf[fa], data.oMf[fb]
+            out.extend((oa.translation - ob.translation)[rows])
+            if axes is not None:
+                a, b = oa.rotation @ axes[0], ob.rotation @ axes[1]
+                out.extend((oa.rotation @ axes[2].T).T @ np.cross(b, a))
+        return np.array(out)
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """``J_c(q)`` (c x d): ``J_c qd`` is the rate of ``phi`` on the closed chain (the point
+        rows exactly, the axis rows where the axes are parallel)."""
+        model, data = self.model, self.data
+        pin.computeJointJacobians(model, data, q)
+        pin.updateFramePlacements(model, data)
+        out = []
+        for (fa, fb), rows, axes in zip(self._ends, self._rows, self._axes, strict=True):
+            rel = (pin.getFrameJacobian(model, data, fa, _LWA)
+                   - pin.getFrameJacobian(model, data, fb, _LWA)).reshape(6, self.dof)
+            out.append(rel[rows])
+            if axes is not None:
+                out.append((data.oMf[fa].rotation @ axes[2].T).T @ rel[3:])
+        return np.vstack(out)
+
+    def drift(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """``Jdot_c qd`` (c): the closure rows' acceleration at ``qdd = 0`` (classical
+        accelerations of the points; for axis rows ``(w_a x p_i) . w_rel + p_i . alpha_rel``)."""
+        model, data = self.model, self.data
+        pin.forwardKinematics(model, data, q, dq, np.zeros(self.dof))
+        pin.updateFramePlacements(model, data)
+        out = []
+        for (fa, fb), rows, axes in zip(self._ends, self._rows, self._axes, strict=True):
+            acc = (pin.getFrameClassicalAcceleration(model, data, fa, _LWA).vector
+                   - pin.getFrameClassicalAcceleration(model, data, fb, _LWA).vector)
+            out.extend(acc[:3][rows])
+            if axes is not None:
+                w_a = pin.getFrameVelocity(model, data, fa, _LWA).angular
+                w_rel = w_a - pin.getFrameVelocity(model, data, fb, _LWA).angular
+                perp = (data.oMf[fa].rotation @ axes[2].T).T
+                out.extend(np.cross(w_a, perp) @ w_rel + perp @ acc[3:])
+        return np.array(out)
+
+    def basis(self, q: np.ndarray, jacobian: np.ndarray | None = None) -> ClosureBasis:
+        """The rank decision on the weighted ``J_c`` at ``q`` (module docstring)."""
+        j = self.jacobian(q) if jacobian is None else jacobian
+        jw = self.row_scale[:, None] * j * self.column_scale[None, :]
+        u, s, vt = np.linalg.svd(jw, full_matrices=True)
+        r = int(np.count_nonzero(s >= self.tolerance * self.length))
+        rows = vt[:r] / self.column_scale[None, :]                   # V_r^T S^-1
+        null, _ = np.linalg.qr(self.column_scale[:, None] * vt[r:].T)  # S V_null
+        row_map = (u[:, :r] / s[:r]).T * self.row_scale[None, :]       # Sigma^-1 U^T W_c
+        return ClosureBasis(rows, null, s, row_map)
+
+    def mobility(self, q: np.ndarray) -> int:
+        """f = d - rank(J_c) at ``q``."""
+        return self.basis(q).mobility
+
+    # -- assembly and projection ----------------------------------------------------------
+    def assemble(self, q0: np.ndarray, fixed: tuple[int, ...] = (),
+                 iterations: int = 50, tol: float = 1e-13) -> tuple[np.ndarray, float]:
+        """The assembled configuration nearest ``q0`` (Gauss-Newton from ``q0``, minimum-norm
+        steps in the weighted coordinates, the joints ``fixed`` held), and the weighted
+        residual norm (m) it reached."""
+        q = np.array(q0, dtype=float)
+        free = [i for i in range(self.dof) if i not in fixed]
+        err = np.inf
+        for _ in range(iterations):
+            phi = self.row_scale * self.residual(q)
+            err = float(np.linalg.norm(phi))
+            if err <= tol * max(self.length, 1.0):
+                break
+            jw = (self.row_scale[:, None] * self.jacobian(q)[:, free]
+                  * self.column_scale[None, free])
+            step = np.linalg.lstsq(jw, phi, rcond=self.tolerance)[0]
+            q[free] -= self.column_scale[free] * step
+        return q, err
+
+    def project(self, q: np.ndarray, dq: np.ndarray,
+                mass_matrix: Callable[[np.ndarray], np.ndarray]
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """``q`` moved back onto ``phi = 0`` (:meth:`assemble`) and ``dq`` with the component
+        that violates ``J_c dq = 0`` removed in the metric ``D = mass_matrix(q)`` at the
+        projected ``q``."""
+        q, _ = self.assemble(q, iterations=10)
+        a = self.basis(q).rows
+        factor = spd_factor(mass_matrix(q))
+        dinv_at = spd_solve(factor, a.T)
+        lam = np.linalg.solve(a @ dinv_at, a @ dq)
+        return q, dq - dinv_at @ lam
+
+    def acceleration(self, q: np.ndarray, dq: np.ndarray, mass_matrix: np.ndarray,
+                     free_torque: np.ndarray) -> np.ndarray:
+        """``qdd`` of eq. 1 with the closures' forces: ``D qdd = free_torque + J_c^T
+        lambda`` (``free_torque = tau - B - G``), ``J_c qdd = -Jdot_c qd``."""
+        basis = self.basis(q)
+        a = basis.rows
+        rhs = -(basis.row_map @ self.drift(q, dq))
+        factor = spd_factor(mass_matrix)
+        free = spd_solve(factor, free_torque)
+        dinv_at = spd_solve(factor, a.T)
+        lam = np.linalg.solve(a @ dinv_at, rhs - a @ free)
+        return free + dinv_at @ lam
+
+
+    def step(self, q: np.ndarray, dq: np.ndarray, h: float,
+             mass_and_torque: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """One classical RK4 step of ``h`` s of the closed chain, then :meth:`project`;
+        ``mass_and_torque(q, dq)`` gives ``(D, tau - B - G)`` at a stage."""
+        def deriv(qs: np.ndarray, vs: np.ndarray) -> np.ndarray:
+            d, free = mass_and_torque(qs, vs)
+            return self.acceleration(qs, vs, d, free)
+
+        a1 = deriv(q, dq)
+        q2, v2 = q + 0.5 * h * dq, dq + 0.5 * h * a1
+        a2 = deriv(q2, v2)
+        q3, v3 = q + 0.5 * h * v2, dq + 0.5 * h * a2
+        a3 = deriv(q3, v3)
+        q4, v4 = q + h * v3, dq + h * a3
+        a4 = deriv(q4, v4)
+        q_new = q + h / 6.0 * (dq + 2.0 * v2 + 2.0 * v3 + v4)
+        dq_new = dq + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+        q_new, dq_new = self.project(q_new, dq_new, lambda qp: mass_and_torque(qp, dq_new)[0])
+        return q_new, dq_new
+
+
+#: How far apart (weighted, m) a closure's points may be at a scenario's ``q0``.
+ASSEMBLY_TOLERANCE = 1e-9
+
+
+def check_assembled(linkage: Linkage, q0: np.ndarray, dq0: np.ndarray, where: str) -> None:
+    """Refuse (:class:`~haptic_topology.errors.ConfigError`, naming ``where``'s field) a
+    start ``(q0, dq0)`` of a closed chain whose closures are open beyond
+    :data:`ASSEMBLY_TOLERANCE` (offering the nearest assembled ``q0``), whose mobility is 0,
+    or whose ``dq0`` violates ``J_c dq0 = 0``."""
+    cl = LoopClosures(linkage)
+    gap = float(np.linalg.norm(cl.row_scale * cl.residual(q0)))
+    if gap > ASSEMBLY_TOLERANCE:
+        q, err = cl.assemble(q0)
+        offer = (f'the nearest assembled q0 is [{", ".join(f"{v:.12g}" for v in q)}]'
+                 if err <= ASSEMBLY_TOLERANCE else 'no assembled configuration was found '
+                 'near it')
+        raise ConfigError(f'{where}.q0: the loop closures of linkage {linkage.name} are open '
+                          f'by {gap:.3g} m at q0 (expected <= {ASSEMBLY_TOLERANCE:g} m); '
+                          f'{offer}')
+    basis = cl.basis(q0)
+    if basis.mobility == 0:
+        raise ConfigError(f'{where}.q0: linkage {linkage.name} cannot move at q0: mobility 0 '
+                          f'({cl.dof} joints, {cl.dof} independent closure equations)')
+    rate = float(np.linalg.norm(basis.rows @ dq0)) * cl.length
+    if rate > ASSEMBLY_TOLERANCE * max(1.0, float(np.linalg.norm(dq0))):
+        raise ConfigError(f'{where}.dq0: violates the loop closures of linkage '
+                          f'{linkage.name} (J_c dq0 = {rate:.3g} m/s, expected 0)')
