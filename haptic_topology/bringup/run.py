@@ -387,12 +387,14 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.messages.package import require_msgs_package
 
     require_msgs_package()      # before anything starts: one line if the messages are missing
+    from haptic_topology.config.resolve import serial_only
     from haptic_topology.paths import config_dir
     from haptic_topology.sim.scenario import load_scenario
 
     sc = load_scenario(args.scenario)  # validate before starting anything
     for note in sc.linkage.notes:
         print(note)
+    serial_only(sc, 'run')
     modes: list[str] = args.mode or [sc.mode.label]
     duration = sc.duration if args.duration is None else args.duration
     if not duration > 0.0:

@@ -18,6 +18,7 @@ from haptic_topology.dynamics.constraints import (
     constraint_directions,
     joint_scale,
 )
+from haptic_topology.dynamics.loops import LoopClosures
 from haptic_topology.dynamics.spd import spd_factor, spd_solve
 from haptic_topology.dynamics.taskspace import pose_from_placement
 from haptic_topology.model.build import LinkageModel, build_model
@@ -67,6 +68,9 @@ class LinkageDynamics:
         self._lower = np.tril(np.ones((self.dof, self.dof), dtype=bool), -1)
         #: G(q) is identically zero (no gravity): the snapshot skips its RNEA pass.
         self._no_gravity = not np.any(np.asarray(self.model.gravity.linear))
+        #: The loop closures of a closed chain (None: a serial linkage), see
+        #: :meth:`mechanism_basis`.
+        self.loops = LoopClosures(lm) if lm.linkage.loops else None
 
     # -- configuration-space terms (eq. 1) ------------------------------------------------
     def mass_matrix(self, q: np.ndarray) -> np.ndarray:
@@ -159,8 +163,20 @@ class LinkageDynamics:
         np.copyto(minv, minv.T, where=self._lower)
         return jacobian @ minv @ jacobian.T
 
+    def mechanism_basis(self, q: np.ndarray) -> np.ndarray:
+        """``N`` (d x f): the closed chain's velocities are ``dq = N v`` (``N = S N_w``,
+        ``N_w`` an orthonormal basis of ``N(J_c S)``, so that ``v`` is unit-independent like
+        the weighted joint rates); the identity for a serial linkage."""
+        if self.loops is None:
+            return np.eye(self.dof)
+        return self.loops.column_scale[:, None] * self.loops.basis(q).scaled_null
+
     def constraints(self, q: np.ndarray) -> ConstraintDirections:
-        """Weighted SVD of J_h and directions of topological constraint (eq. 13, 18)."""
+        """Weighted SVD of J_h and directions of topological constraint (eq. 13, 18); of
+        ``J_h N`` for a closed chain (``t = m - rank(J_h N)``)."""
+        if self.loops is not None:
+            return constraint_directions(self.hand_jacobian(q) @ self.mechanism_basis(q),
+                                         self.task, self.linkage.constraints)
         return constraint_directions(self.hand_jacobian(q), self.task,
                                      self.linkage.constraints, self._joint_scale)
 
@@ -170,7 +186,9 @@ class LinkageDynamics:
 
     def snapshot(self, q: np.ndarray, dq: np.ndarray,
                  hand: tuple[np.ndarray, np.ndarray] | None = None) -> DynamicsSnapshot:
-        """All LMI quantities at (q, dq) in one pass (CRBA, RNEA, frame Jacobian, SVD).
+        """All LMI quantities at (q, dq) in one pass (CRBA, RNEA, frame Jacobian, SVD); for a
+        closed chain in its independent velocities (``D_r = N^T D N``, ``G_r = N^T G``,
+        ``J_r = J_h N`` with ``N`` of :meth:`mechanism_basis`; ``q`` 0, ``dq = v``).
 
         ``hand``: the grasp frame's 6 x d Jacobian (:meth:`hand_frame_jacobian`) and task pose
         at this ``q`` when the caller has them already (the VE after an integration).
@@ -186,8 +204,24 @@ class LinkageDynamics:
         else:
             j6, pose = hand
         j = j6[self._rows, :]
+        if self.loops is not None:
+            return self._reduced(q, dq, d, g, b, j, pose)
         cons = constraint_directions(j, self.task, self.linkage.constraints, self._joint_scale)
         return DynamicsSnapshot(q, dq, d, g, b, j, pose, j @ dq, cons)
+
+    def _reduced(self, q: np.ndarray, dq: np.ndarray, d: np.ndarray, g: np.ndarray,
+                 b: np.ndarray, j: np.ndarray, pose: np.ndarray) -> DynamicsSnapshot:
+        """The closed chain's snapshot in its ``f`` independent velocities ``v``
+        (``dq = N v``, :meth:`mechanism_basis`): ``D_r = N^T D N``, ``G_r = N^T G``,
+        ``B_r = N^T B``, ``J_r = J_h N`` (eqs. 17-19 on the mechanism); ``q`` is the local
+        coordinate of ``v`` (0 at the snapshot) and ``dq = v``."""
+        n = self.mechanism_basis(q)
+        v = np.linalg.lstsq(n, dq, rcond=None)[0]
+        jr = j @ n
+        cons = constraint_directions(jr, self.task, self.linkage.constraints)
+        dr = n.T @ d @ n
+        return DynamicsSnapshot(np.zeros(v.size), v, 0.5 * (dr + dr.T), n.T @ g, n.T @ b, jr,
+                                pose, jr @ v, cons)
 
 
 def inverse_operational_inertia(jacobian: np.ndarray, mass_matrix: np.ndarray) -> np.ndarray:

@@ -62,6 +62,9 @@ class ClosureBasis:
     null: np.ndarray
     singular_values: np.ndarray
     row_map: np.ndarray
+    #: ``N_w`` (d x f): an orthonormal basis of ``N(J_c S)`` (``null`` is ``S N_w``
+    #: orthonormalised).
+    scaled_null: np.ndarray
 
     @property
     def mobility(self) -> int:
@@ -166,7 +169,7 @@ class LoopClosures:
         rows = vt[:r] / self.column_scale[None, :]                   # V_r^T S^-1
         null, _ = np.linalg.qr(self.column_scale[:, None] * vt[r:].T)  # S V_null
         row_map = (u[:, :r] / s[:r]).T * self.row_scale[None, :]       # Sigma^-1 U^T W_c
-        return ClosureBasis(rows, null, s, row_map)
+        return ClosureBasis(rows, null, s, row_map, vt[r:].T)
 
     def mobility(self, q: np.ndarray) -> int:
         """f = d - rank(J_c) at ``q``."""

@@ -21,7 +21,10 @@ from haptic_topology.control.laws import StableHold
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.constraints import task_scale
 from haptic_topology.dynamics.contacts import ContactModel
-from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+from haptic_topology.dynamics.linkage_dynamics import (
+    LinkageDynamics,
+    inverse_operational_inertia,
+)
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.validate import as_bool, as_float, check_keys
 
@@ -155,6 +158,10 @@ class VirtualEnvironment:
             return
         n = max(1, math.ceil(duration / self.internal_step - 1e-9))
         h = duration / n
+        if self.dyn.loops is not None:
+            self._integrate_loops(wrench, n, h)
+            self.time += duration
+            return
         if self.contacts is not None:
             self._integrate_contacts(wrench, n, h)
             self.time += duration
@@ -238,6 +245,29 @@ class VirtualEnvironment:
         self.q, self.dq = q, dq
         self._state_out = (None, None)
 
+    def _integrate_loops(self, wrench: np.ndarray, n: int, h: float) -> None:
+        """``n`` RK4 steps of ``h`` s of the closed chain, ``D qdd = J_h^T F - B - G +
+        J_c^T lambda`` (:meth:`~haptic_topology.dynamics.loops.LoopClosures.step`: the
+        closures held by a projection after each step)."""
+        model, data, frame, jacobian = self._pin
+        loops = self.dyn.loops
+        assert loops is not None
+        w6 = self._wrench6
+        w6[self._task_rows] = wrench
+        dyn = self.dyn
+
+        def mass_and_torque(qs: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            tau = w6.dot(jacobian(model, data, qs, frame, _LWA)) - dyn.bias(qs, vs)
+            return dyn.mass_matrix(qs), tau
+
+        q, dq = np.array(self.q), np.array(self.dq)
+        for _ in range(n):
+            q, dq = loops.step(q, dq, h, mass_and_torque)
+        q.flags.writeable = False
+        dq.flags.writeable = False
+        self.q, self.dq = q, dq
+        self._state_out = (None, None)
+
     def push_input(self, seq: int, stamp: float, wrench: np.ndarray) -> None:
         """Take the hand input of device state ``seq`` at time ``stamp`` (s).
 
@@ -283,6 +313,8 @@ class VirtualEnvironment:
             q = q + step * min(1.0, 0.2 / max(float(np.abs(step).max()), 1e-12))
         j = scale[:, None] * self.dyn.hand_jacobian(q)
         dq = j.T @ np.linalg.solve(j @ j.T + 1e-6 * np.eye(j.shape[0]), scale * twist)
+        if self.dyn.loops is not None:     # back onto the closures, in the metric of D
+            q, dq = self.dyn.loops.project(q, dq, self.dyn.mass_matrix)
         self.q, self.dq = q, dq
         return err
 
@@ -309,7 +341,9 @@ class VirtualEnvironment:
                                         else self.contacts.local(self.q),
                                         self.contact_energy_balance())
         if self._stable_hold is not None:
-            lambda_inv = self.dyn.inverse_operational_inertia_aba(self.q, out.hand_jacobian)
+            lambda_inv = (self.dyn.inverse_operational_inertia_aba(self.q, out.hand_jacobian)
+                          if self.dyn.loops is None else inverse_operational_inertia(
+                              out.hand_jacobian, out.mass_matrix))
             self.hold_limit = min(self.max_gap, self._stable_hold(lambda_inv))
         return out
 

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from fourbar_closed_form import branch_of, freudenstein
 
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics.loops import LoopClosures
@@ -20,8 +21,6 @@ from haptic_topology.model.loops import LoopKind
 from haptic_topology.paths import config_dir
 
 FOURBAR = load_linkage(config_dir() / 'linkages' / 'fourbar.yaml')
-A, B, C, D_GROUND = 0.04, 0.09, 0.07, 0.10        # crank, coupler, rocker, ground (m)
-COUPLER_POINT = np.array([0.045, 0.03])            # grasp point in the coupler frame (m)
 
 
 def _fourbar_doc(**loop: Any) -> dict[str, Any]:
@@ -108,36 +107,18 @@ def test_jacobian_and_drift_match_finite_differences(kind: str) -> None:
     assert cl.equations == equations and cl.mobility(q) == 1
 
 
-def _freudenstein(theta2: float, branch: float) -> tuple[np.ndarray, float]:
-    """Coupler point (m) and rocker angle at crank angle ``theta2`` from Freudenstein's
-    equation ``K1 cos t4 - K2 cos t2 + K3 = cos(t2 - t4)``, ``K1 = d/a``, ``K2 = d/c``,
-    ``K3 = (a^2 - b^2 + c^2 + d^2) / (2 a c)``."""
-    k1, k2 = D_GROUND / A, D_GROUND / C
-    k3 = (A * A - B * B + C * C + D_GROUND * D_GROUND) / (2 * A * C)
-    # (K1 - cos t2) cos t4 - sin t2 sin t4 = K2 cos t2 - K3
-    pa, pb, pc = k1 - math.cos(theta2), -math.sin(theta2), k2 * math.cos(theta2) - k3
-    theta4 = math.atan2(pb, pa) + branch * math.acos(pc / math.hypot(pa, pb))
-    b_pt = A * np.array([math.cos(theta2), math.sin(theta2)])
-    c_pt = np.array([D_GROUND, 0.0]) + C * np.array([math.cos(theta4), math.sin(theta4)])
-    assert abs(np.linalg.norm(c_pt - b_pt) - B) < 1e-12        # the closed form closes
-    u = (c_pt - b_pt) / B
-    return b_pt + COUPLER_POINT[0] * u + COUPLER_POINT[1] * np.array([-u[1], u[0]]), theta4
-
-
 def test_the_coupler_curve_is_freudensteins() -> None:
     """Assembled at 72 crank angles (held, the others solved from the previous
     configuration), the grasp point lies on Freudenstein's coupler curve to 1e-12 m."""
     cl, dyn = LoopClosures(FOURBAR), LinkageDynamics(FOURBAR)
     q, _ = cl.assemble(np.array([0.0, 0.5, 2.0]), fixed=(0,))
-    rocker = q[0] + q[1] + q[2] + math.pi         # angle of O4 -> C (the chain runs C -> O4)
-    branch = min((1.0, -1.0), key=lambda br: abs(math.remainder(
-        _freudenstein(0.0, br)[1] - rocker, 2 * math.pi)))
+    branch = branch_of(q)
     worst = 0.0
     for theta in np.linspace(0.0, 2 * math.pi, 72, endpoint=False):
         q[0] = theta
         q, err = cl.assemble(q, fixed=(0,))
         assert err < 1e-13
-        point, _ = _freudenstein(theta, branch)
+        point, _ = freudenstein(theta, branch)
         worst = max(worst, float(np.abs(dyn.hand_pose(q)[:2] - point).max()))
     assert worst < 1e-12
 
@@ -154,9 +135,7 @@ def test_a_passive_closed_chain_keeps_its_closure_and_its_energy() -> None:
         return dyn.mass_matrix(qs), -dyn.bias(qs, vs)
 
     energy0 = 0.5 * dq @ dyn.mass_matrix(q) @ dq
-    rocker = q[0] + q[1] + q[2] + math.pi
-    branch = min((1.0, -1.0), key=lambda br: abs(math.remainder(
-        _freudenstein(q[0], br)[1] - rocker, 2 * math.pi)))
+    branch = branch_of(q)
     closure = energy = curve = 0.0
     turned = q[0]
     for _ in range(5000):
@@ -164,7 +143,7 @@ def test_a_passive_closed_chain_keeps_its_closure_and_its_energy() -> None:
         closure = max(closure, float(np.abs(cl.residual(q)).max()))
         energy = max(energy, abs(0.5 * dq @ dyn.mass_matrix(q) @ dq - energy0) / energy0)
         curve = max(curve, float(np.abs(dyn.hand_pose(q)[:2]
-                                        - _freudenstein(q[0], branch)[0]).max()))
+                                        - freudenstein(q[0], branch)[0]).max()))
     assert closure < 1e-9 and energy < 1e-6 and curve < 1e-9
     assert abs(q[0] - turned) > 2 * math.pi           # the crank went round at least once
 
@@ -207,17 +186,66 @@ def test_a_start_that_is_open_immobile_or_moving_off_the_closures_is_refused() -
         check_assembled(pinned, q, np.zeros(2), 's.yaml: scenario')
 
 
-def test_a_closed_loop_scenario_is_refused_until_it_can_be_simulated(tmp_path: Path) -> None:
-    """Never silently simulated as the open chain: one line saying so."""
+def test_the_node_graph_refuses_a_closed_loop_scenario_in_one_line() -> None:
+    """``simulate`` runs a closed chain; the graph's nodes refuse it by name."""
+    from haptic_topology.config.resolve import serial_only
     from haptic_topology.errors import ConfigError
     from haptic_topology.sim import load_scenario
 
-    cl = LoopClosures(FOURBAR)
-    q, _ = cl.assemble(np.array([math.pi / 3, -0.6, 4.3]), fixed=(0,))
-    doc = yaml.safe_load((config_dir() / 'scenarios' / 'fig8.yaml').read_text())
-    doc['scenario'].update(linkage=str(config_dir() / 'linkages' / 'fourbar.yaml'),
-                           q0=q.tolist())
+    sc = load_scenario('fourbar')
+    with pytest.raises(ConfigError, match=r'^ve_sim: scenario fourbar: linkage fourbar has '
+                       r'loop closures; the node graph runs serial linkages only'):
+        serial_only(sc, 've_sim')
+    serial_only(load_scenario('fig8'), 've_sim')
+
+
+def test_a_closed_chain_with_obstacles_is_refused(tmp_path: Path) -> None:
+    from haptic_topology.errors import ConfigError
+    from haptic_topology.sim import load_scenario
+
+    doc = yaml.safe_load((config_dir() / 'scenarios' / 'fourbar.yaml').read_text())
+    doc['scenario']['contacts'] = yaml.safe_load(
+        (config_dir() / 'scenarios' / 'wall.yaml').read_text())['scenario']['contacts']
+    doc['scenario']['linkage'] = str(config_dir() / 'linkages' / 'fourbar.yaml')
     (tmp_path / 's.yaml').write_text(yaml.safe_dump(doc))
-    with pytest.raises(ConfigError, match=r'fourbar\.yaml: linkage\.loops: a closed-loop '
-                       r'linkage is checked \(assembly, mobility\) but not simulated yet'):
+    with pytest.raises(ConfigError, match=r'scenario\.contacts: obstacles on a closed-loop '
+                       r'linkage \(fourbar\) are not modelled yet'):
         load_scenario(str(tmp_path / 's.yaml'))
+
+
+@pytest.mark.parametrize('kind', ['pin', 'revolute'])
+def test_the_reduced_model_is_the_constrained_mobility(kind: str) -> None:
+    """``Lambda_h^-1`` of the reduction, ``J_h N (N^T D N)^-1 N^T J_h^T``, equals the mobility
+    of the constrained chain ``J_h (D^-1 - D^-1 J_c^T (J_c D^-1 J_c^T)^+ J_c D^-1) J_h^T``,
+    and its null space is ``N((J_h N)^T)`` (the directions of topological constraint); the
+    snapshot carries ``D_r = N^T D N``, ``G_r = N^T G``, ``J_r = J_h N`` and ``v``."""
+    lk = FOURBAR if kind == 'pin' else linkage_from_dict(_spatial_doc(axis=[0, 0, 1]), 'f')
+    dyn = LinkageDynamics(lk)
+    cl = dyn.loops
+    assert cl is not None
+    rng = np.random.default_rng(11)
+    q, _ = cl.assemble(np.array([0.4, -0.6, 4.3]), fixed=(0,))
+    for _ in range(5):
+        q, _ = cl.assemble(q + 0.4 * cl.basis(q).null[:, 0] * rng.normal())
+        n = dyn.mechanism_basis(q)
+        d, j, jc = dyn.mass_matrix(q), dyn.hand_jacobian(q), cl.jacobian(q)
+        np.testing.assert_allclose(jc @ n, 0.0, atol=1e-12)
+        dinv = np.linalg.inv(d)
+        mobility = j @ (dinv - dinv @ jc.T @ np.linalg.pinv(jc @ dinv @ jc.T, rcond=1e-10)
+                        @ jc @ dinv) @ j.T
+        jr = j @ n
+        reduced = jr @ np.linalg.solve(n.T @ d @ n, jr.T)
+        np.testing.assert_allclose(reduced, mobility, atol=1e-9 * np.abs(mobility).max())
+        w, v = np.linalg.eigh(reduced)
+        kernel = v[:, w < 1e-9 * w.max()]
+        t = dyn.constraints(q).count
+        assert kernel.shape[1] == t == j.shape[0] - np.linalg.matrix_rank(jr)
+        np.testing.assert_allclose(jr.T @ kernel, 0.0, atol=1e-9)
+        dq = n @ rng.normal(size=n.shape[1])
+        snap = dyn.snapshot(q, dq)
+        np.testing.assert_allclose(snap.mass_matrix, n.T @ d @ n, atol=1e-15)
+        np.testing.assert_allclose(snap.gravity, n.T @ dyn.gravity(q), atol=1e-15)
+        np.testing.assert_allclose(snap.hand_jacobian, jr, atol=1e-15)
+        np.testing.assert_allclose(n @ snap.dq, dq, atol=1e-12)
+        np.testing.assert_allclose(snap.hand_twist, j @ dq, atol=1e-12)
+        assert snap.q.shape == (n.shape[1],) and not np.any(snap.q)
