@@ -11,6 +11,8 @@ Layout (``config/scenarios/fig6.yaml``)::
       dt: 0.001                                  # device period (s)
       mode: penalty                              # default control law (CLI --mode overrides)
       gravity: [0, 0, 0]                         # m/s^2, world; default: the linkage's
+      grasp: {link: link2, point: [0.02, 0, 0]}  # optional: held elsewhere than the linkage
+                                                 # file says (point m, default the COM)
       device:
         offset: [0.005, 0.003, 0.0]              # initial device pose - VT hand pose
         mass: [1, 1, 1]                          # diagonal of M_d (eq. 9)
@@ -49,7 +51,7 @@ from haptic_topology.device.maglev import DeviceParams, device_from_config
 from haptic_topology.device.users import user_from_config
 from haptic_topology.dynamics.contacts import ContactSettings
 from haptic_topology.dynamics.loops import check_assembled
-from haptic_topology.errors import ConfigError
+from haptic_topology.errors import ConfigError, LinkageError
 from haptic_topology.model.linkage import Linkage, load_linkage
 from haptic_topology.paths import resolve_config
 from haptic_topology.sim.ve import VeSettings
@@ -61,7 +63,7 @@ from haptic_topology.validate import (
     check_keys,
     load_yaml,
 )
-from haptic_topology.vocabulary import ControlMode
+from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
 @dataclass(frozen=True)
@@ -140,8 +142,8 @@ def load_scenario(name_or_path: str) -> Scenario:
     top = check_keys(doc, src, required=('scenario',))
     w = f'{src}: scenario'
     raw = check_keys(top['scenario'], w, required=('linkage', 'q0', 'duration'), optional=(
-        'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'device', 'user', 'control', 'lmi',
-        've', 'contacts'))
+        'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'grasp', 'device', 'user',
+        'control', 'lmi', 've', 'contacts'))
     link_ref = as_str(raw['linkage'], f'{w}.linkage')
     link_path = Path(link_ref)
     if not link_path.is_absolute() and (path.parent / link_path).is_file():
@@ -149,6 +151,15 @@ def load_scenario(name_or_path: str) -> Scenario:
     linkage = load_linkage(resolve_config(str(link_path), 'linkages'))
     if 'gravity' in raw:
         linkage = replace(linkage, gravity=as_vector(raw['gravity'], f'{w}.gravity', 3))
+    if 'grasp' in raw:      # the linkage held elsewhere than its file says
+        grasp = check_keys(raw['grasp'], f'{w}.grasp', required=('link',), optional=('point',))
+        point = as_vector(grasp['point'], f'{w}.grasp.point', 3) if 'point' in grasp else None
+        if point is not None and linkage.task is TaskSpace.PLANAR and point[2] != 0.0:
+            raise ConfigError(f'{w}.grasp.point: z must be 0 for a planar linkage')
+        try:
+            linkage = linkage.with_grasp(as_str(grasp['link'], f'{w}.grasp.link'), point)
+        except LinkageError as exc:
+            raise ConfigError(f'{w}.grasp.link: {str(exc).split("grasp.link: ", 1)[-1]}') from None
     d, m = linkage.dof, linkage.task.dim
     q0 = as_angles(raw['q0'], f'{w}.q0', d)
     dq0 = as_angles(raw.get('dq0', [0.0] * d), f'{w}.dq0', d)
