@@ -275,7 +275,6 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
         raise ConfigError(f'--layout: expected one of {", ".join(LAYOUTS)}, got {layout!r}')
     if bag.exists():
         raise ConfigError(f'--out: {bag} already exists')
-    composed = layout == 'composed'
     host = 'false' if layout == 'separate' else 'true'
 
     graph = graph_id or new_graph_id(scenario)
@@ -319,7 +318,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                                     log_dir, env))
             for name in LAYOUTS[layout]:
                 argv = py + [f'haptic_topology.nodes.{name}'] + ros
-                if name == 'device_driver':
+                if name in ('device_driver', 'composed'):     # the driver waits for us
                     argv += ['-p', 'device_driver:autostart:=false']
                 argv = [*(node_prefix or {}).get(name, ()), *argv]   # --node-prefix
                 procs.append(_start(name, argv, log_dir, env))
@@ -328,20 +327,19 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                            'foxglove_bridge serving')
                 print(f'foxglove: {watch.status[FOXGLOVE_STATUS].get("url")} (Foxglove or '
                       'Lichtblick: Open connection, Foxglove WebSocket)', flush=True)
-            if not composed:
-                # As a lifecycle manager: the loop starts with the device, only once the
-                # recorder is matched to the controller's and the VE's publishers (discovery
-                # can take seconds) and to the device's own state publisher, so the bag
-                # holds the run's first state.
-                watch.wait(watch.recorder_connected, startup_timeout,
-                           'recorder connected to the loop topics')
-                watch.wait(lambda: watch.recorder_sees(TOPIC_STATE), startup_timeout,
-                           'recorder matched to the device state publisher')
-                readers = loop_readers(layout)
-                watch.wait(lambda: watch.writers_matched(readers), startup_timeout,
-                           f'publishers matched to their readers ({readers})')
-                for transition in ('configure', 'activate'):
-                    watch.change_state('device_driver', transition, startup_timeout)
+            # As a lifecycle manager (every layout): the loop starts with the device, only
+            # once the recorder is matched to the controller's and the VE's publishers
+            # (discovery can take seconds) and to the device's own state publisher, so the
+            # bag holds the run's first state, and the run's CPU window below is the run.
+            watch.wait(watch.recorder_connected, startup_timeout,
+                       'recorder connected to the loop topics')
+            watch.wait(lambda: watch.recorder_sees(TOPIC_STATE), startup_timeout,
+                       'recorder matched to the device state publisher')
+            readers = loop_readers(layout)
+            watch.wait(lambda: watch.writers_matched(readers), startup_timeout,
+                       f'publishers matched to their readers ({readers})')
+            for transition in ('configure', 'activate'):
+                watch.change_state('device_driver', transition, startup_timeout)
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
                                            startup_timeout, poll=0.2)
             # The loop process ends with the run: the driver has waited for it by then.
