@@ -160,12 +160,16 @@ class LoopClosures:
                 out.extend(np.cross(w_a, perp) @ w_rel + perp @ acc[3:])
         return np.array(out)
 
-    def basis(self, q: np.ndarray, jacobian: np.ndarray | None = None) -> ClosureBasis:
-        """The rank decision on the weighted ``J_c`` at ``q`` (module docstring)."""
+    def basis(self, q: np.ndarray, jacobian: np.ndarray | None = None,
+              rank: int | None = None) -> ClosureBasis:
+        """The rank decision on the weighted ``J_c`` at ``q`` (module docstring); ``rank``:
+        keep that many directions instead (a configuration slightly off the closures, e.g. a
+        Runge-Kutta stage, where the redundant equations of an overconstrained loop are no
+        longer exactly dependent)."""
         j = self.jacobian(q) if jacobian is None else jacobian
         jw = self.row_scale[:, None] * j * self.column_scale[None, :]
         u, s, vt = np.linalg.svd(jw, full_matrices=True)
-        r = int(np.count_nonzero(s >= self.tolerance * self.length))
+        r = int(np.count_nonzero(s >= self.tolerance * self.length)) if rank is None else rank
         rows = vt[:r] / self.column_scale[None, :]                   # V_r^T S^-1
         null, _ = np.linalg.qr(self.column_scale[:, None] * vt[r:].T)  # S V_null
         row_map = (u[:, :r] / s[:r]).T * self.row_scale[None, :]       # Sigma^-1 U^T W_c
@@ -177,10 +181,12 @@ class LoopClosures:
 
     # -- assembly and projection ----------------------------------------------------------
     def assemble(self, q0: np.ndarray, fixed: tuple[int, ...] = (),
-                 iterations: int = 50, tol: float = 1e-13) -> tuple[np.ndarray, float]:
+                 iterations: int = 50, tol: float = 1e-13,
+                 rank: int | None = None) -> tuple[np.ndarray, float]:
         """The assembled configuration nearest ``q0`` (Gauss-Newton from ``q0``, minimum-norm
-        steps in the weighted coordinates, the joints ``fixed`` held), and the weighted
-        residual norm (m) it reached."""
+        steps in the weighted coordinates, the joints ``fixed`` held; ``rank``: the steps
+        use that many singular directions, see :meth:`basis`), and the weighted residual
+        norm (m) it reached."""
         q = np.array(q0, dtype=float)
         free = [i for i in range(self.dof) if i not in fixed]
         err = np.inf
@@ -191,28 +197,32 @@ class LoopClosures:
                 break
             jw = (self.row_scale[:, None] * self.jacobian(q)[:, free]
                   * self.column_scale[None, free])
-            step = np.linalg.lstsq(jw, phi, rcond=self.tolerance)[0]
+            if rank is None:
+                step = np.linalg.lstsq(jw, phi, rcond=self.tolerance)[0]
+            else:
+                u, sv, vt = np.linalg.svd(jw, full_matrices=False)
+                step = vt[:rank].T @ ((u[:, :rank].T @ phi) / sv[:rank])
             q[free] -= self.column_scale[free] * step
         return q, err
 
     def project(self, q: np.ndarray, dq: np.ndarray,
-                mass_matrix: Callable[[np.ndarray], np.ndarray]
+                mass_matrix: Callable[[np.ndarray], np.ndarray], rank: int | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
         """``q`` moved back onto ``phi = 0`` (:meth:`assemble`) and ``dq`` with the component
         that violates ``J_c dq = 0`` removed in the metric ``D = mass_matrix(q)`` at the
         projected ``q``."""
-        q, _ = self.assemble(q, iterations=10)
-        a = self.basis(q).rows
+        q, _ = self.assemble(q, iterations=10, rank=rank)
+        a = self.basis(q, rank=rank).rows
         factor = spd_factor(mass_matrix(q))
         dinv_at = spd_solve(factor, a.T)
         lam = np.linalg.solve(a @ dinv_at, a @ dq)
         return q, dq - dinv_at @ lam
 
     def acceleration(self, q: np.ndarray, dq: np.ndarray, mass_matrix: np.ndarray,
-                     free_torque: np.ndarray) -> np.ndarray:
+                     free_torque: np.ndarray, rank: int | None = None) -> np.ndarray:
         """``qdd`` of eq. 1 with the closures' forces: ``D qdd = free_torque + J_c^T
         lambda`` (``free_torque = tau - B - G``), ``J_c qdd = -Jdot_c qd``."""
-        basis = self.basis(q)
+        basis = self.basis(q, rank=rank)
         a = basis.rows
         rhs = -(basis.row_map @ self.drift(q, dq))
         factor = spd_factor(mass_matrix)
@@ -226,10 +236,15 @@ class LoopClosures:
              mass_and_torque: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
              ) -> tuple[np.ndarray, np.ndarray]:
         """One classical RK4 step of ``h`` s of the closed chain, then :meth:`project`;
-        ``mass_and_torque(q, dq)`` gives ``(D, tau - B - G)`` at a stage."""
+        ``mass_and_torque(q, dq)`` gives ``(D, tau - B - G)`` at a stage. The rank of ``J_c``
+        is decided once, at ``q`` (on the closures), and kept for the stages and the
+        projection: off the closures the redundant equations of an overconstrained loop
+        (a Bennett linkage) become independent and would lock it."""
+        rank = self.basis(q).rows.shape[0]
+
         def deriv(qs: np.ndarray, vs: np.ndarray) -> np.ndarray:
             d, free = mass_and_torque(qs, vs)
-            return self.acceleration(qs, vs, d, free)
+            return self.acceleration(qs, vs, d, free, rank)
 
         a1 = deriv(q, dq)
         q2, v2 = q + 0.5 * h * dq, dq + 0.5 * h * a1
@@ -240,7 +255,8 @@ class LoopClosures:
         a4 = deriv(q4, v4)
         q_new = q + h / 6.0 * (dq + 2.0 * v2 + 2.0 * v3 + v4)
         dq_new = dq + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-        q_new, dq_new = self.project(q_new, dq_new, lambda qp: mass_and_torque(qp, dq_new)[0])
+        q_new, dq_new = self.project(q_new, dq_new, lambda qp: mass_and_torque(qp, dq_new)[0],
+                                     rank)
         return q_new, dq_new
 
 

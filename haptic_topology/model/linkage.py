@@ -69,6 +69,7 @@ from haptic_topology.model.loops import LoopClosure, parse_loops
 from haptic_topology.model.urdf_import import UrdfSource, links_from_urdf, read_urdf
 from haptic_topology.paths import PACKAGE_URI, resolve_package_uri
 from haptic_topology.validate import (
+    as_angles,
     as_float,
     as_str,
     as_vector,
@@ -206,7 +207,7 @@ def _parse_link(raw: Any, i: int, task: TaskSpace, where: str) -> LinkSpec:
         if 'xyz' in o:
             origin_xyz = as_vector(o['xyz'], f'{w}.origin.xyz', 3, error=LinkageError)
         if 'rpy' in o:
-            origin_rpy = as_vector(o['rpy'], f'{w}.origin.rpy', 3, error=LinkageError)
+            origin_rpy = as_angles(o['rpy'], f'{w}.origin.rpy', 3, error=LinkageError)
     return LinkSpec(name, joint, length, mass, com, inertia, axis / norm, origin_xyz,
                     origin_rpy)
 
