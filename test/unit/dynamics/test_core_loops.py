@@ -281,3 +281,23 @@ def test_a_passive_bennett_linkage_keeps_its_closure_and_its_energy() -> None:
         closure = max(closure, float(np.abs(cl.residual(q)).max()))
     assert worst < 1e-6 and closure < 1e-9
     assert abs(q[0] - start) > 1.0
+
+
+def test_drift_of_a_revolute_closure_between_two_moving_links() -> None:
+    """The Bennett linkage on a turntable: its closure joins link3 to the turning base, so
+    both ends rotate and the axis rows' ``(w_a x p_i) . w_rel`` term of ``Jdot_c qd`` is
+    exercised (it vanishes for a closure to the world); mobility 2."""
+    doc = yaml.safe_load((config_dir() / 'linkages' / 'bennett.yaml').read_text())
+    lk = doc['linkage']
+    lk['links'].insert(0, {'name': 'base', 'joint': 'revolute', 'axis': [1.0, 0.2, 0.1],
+                           'length': 0.05, 'mass': 0.5, 'inertia': [0.001, 0.001, 0.001]})
+    lk['links'][1]['origin'] = {'xyz': [0.0, 0.0, 0.0]}
+    lk['loops'][0]['to'] = 'base'
+    cl = LoopClosures(linkage_from_dict(doc, 'turntable.yaml'))
+    q, err = cl.assemble(np.array([0.4, 1.27, -2.61, -1.27]))
+    assert err < 1e-13 and cl.mobility(q) == 2
+    for v in (np.array([1.0, 0.0]), np.array([0.3, 1.0]), np.array([-1.0, 2.0])):
+        dq = cl.basis(q).null @ v
+        jac, drift = _finite_differences(cl, q, dq)
+        np.testing.assert_allclose(cl.jacobian(q), jac, atol=1e-8)
+        np.testing.assert_allclose(cl.drift(q, dq), drift, atol=1e-7)
