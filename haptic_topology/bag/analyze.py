@@ -105,7 +105,7 @@ def load_run(path: str | Path) -> Run:
                 from haptic_topology.sim.scenario import load_scenario
 
                 sc = load_scenario(scenario)
-                dof, task_dim, name = sc.linkage.dof, sc.linkage.task.dim, sc.name
+                dof, task_dim, name = sc.lmi_dof, sc.linkage.task.dim, sc.name
             except ConfigError:
                 pass
         size = sum(f.stat().st_size for f in ([p] if p.is_file() else p.glob('*.mcap')))

@@ -332,7 +332,7 @@ def _admitted(updates: list[Any], scenario: str, m: int, dof: int,
     if linkage is None and scenario:
         linkage = load_scenario(scenario).linkage
     if linkage is not None:
-        if linkage.dof == dof and linkage.task.dim == m:
+        if linkage.dof == dof and linkage.task.dim == m and not linkage.loops:
             dyn = LinkageDynamics(linkage)
     task = TaskSpace.PLANAR if m == TaskSpace.PLANAR.dim else TaskSpace.SPATIAL
     admission = UpdateAdmission(dyn)

@@ -385,14 +385,12 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.messages.package import require_msgs_package
 
     require_msgs_package()      # before anything starts: one line if the messages are missing
-    from haptic_topology.config.resolve import serial_only
     from haptic_topology.paths import config_dir
     from haptic_topology.sim.scenario import load_scenario
 
     sc = load_scenario(args.scenario)  # validate before starting anything
     for note in sc.linkage.notes:
         print(note)
-    serial_only(sc, 'run')
     modes: list[str] = args.mode or [sc.mode.label]
     duration = sc.duration if args.duration is None else args.duration
     if not duration > 0.0:
@@ -431,7 +429,7 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
                                                                args.foxglove),
                   node_prefix=node_prefixes(args.node_prefix, layout),
                   overrides=overrides, claim=False)
-        result = read_graph_bag(bag, sc.name, sc.linkage.dof, task_dim=sc.linkage.task.dim,
+        result = read_graph_bag(bag, sc.name, sc.lmi_dof, task_dim=sc.linkage.task.dim,
                                 linkage=sc.linkage)
         trace = result.trace
         trace.to_csv(bag / 'trace.csv')

@@ -96,20 +96,10 @@ def _device_rate(s: DeviceDriverSettings, sc: Scenario, clock: Clock) -> tuple[f
     return s.rate_hz, 1.0 / s.rate_hz, round(1e9 / s.rate_hz)
 
 
-def serial_only(sc: Scenario, node: str) -> None:
-    """Refuse a closed-loop linkage (``linkage.loops``) in the node graph: ``simulate`` runs
-    it, the graph's LMI updates do not carry its reduction yet."""
-    if sc.linkage.loops:
-        raise ConfigError(f'{node}: scenario {sc.name}: linkage {sc.linkage.name} has loop '
-                          'closures; the node graph runs serial linkages only (closed loops '
-                          'run in haptic-topology simulate)')
-
-
 def resolve_device_driver(s: DeviceDriverSettings, sc: Scenario) -> DeviceDriverConfig:
     """``device_driver``'s configuration: ``rate_hz`` 0.0 -> 1/dt (with ``clock: lockstep``
     any other value than 1/dt is refused), ``wrench_limit`` [0.0] -> the scenario's,
     ``watchdog_damping`` of one value -> every axis, ``backend_options`` parsed."""
-    serial_only(sc, 'device_driver')
     m = sc.linkage.task.dim
     clock = Clock.parse(s.clock)
     rate, period, period_ns = _device_rate(s, sc, clock)
@@ -162,7 +152,6 @@ class ControllerConfig:
 def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> ControllerConfig:
     """``lmi_controller``'s configuration: ``mode``/``k_tc``/``b_tc`` None -> the scenario's
     (a scenario built in code, not loaded, is checked here against the same range)."""
-    serial_only(sc, 'lmi_controller')
     mode = sc.mode if s.mode is None else ControlMode.parse(s.mode)
     k_tc = float(sc.gains.k_tc) if s.k_tc is None else s.k_tc
     b_tc = float(sc.gains.b_tc) if s.b_tc is None else s.b_tc
@@ -203,7 +192,6 @@ class VeSimConfig:
 def resolve_ve_sim(s: VeSimSettings, sc: Scenario) -> VeSimConfig:
     """``ve_sim``'s configuration: ``update_period`` 0 -> the scenario's lmi.update_period
     (with ``clock: lockstep`` no other value: the controller expects the scenario's)."""
-    serial_only(sc, 've_sim')
     if (Clock.parse(s.clock) is Clock.LOCKSTEP and s.update_period
             and s.update_period != sc.update_period):
         raise ConfigError(f've_sim: parameter update_period: clock lockstep needs 0 or the '

@@ -106,7 +106,7 @@ class LmiController(Node):
         self.port = ControllerPort(self.loop, sc.update_period, sc.linkage.task.dim, sc.dt,
                                    lockstep, c.lockstep_wait)
         self.flush_period = self.port.flush_period
-        self.task, self.dof = sc.linkage.task, sc.linkage.dof
+        self.task, self.dof = sc.linkage.task, sc.lmi_dof
         self.penalty_direction = sc.linkage.constraints.penalty_direction
         self.add_on_set_parameters_callback(self._on_set_parameters)
         qos = loop_qos(c.clock)
@@ -135,8 +135,9 @@ class LmiController(Node):
         # who publishes its inputs in the graph (the driver's states: separate layout only)
         inputs = {TOPIC_LMI: ('ve_sim',), **({} if hosted else {TOPIC_STATE: ('device_driver',)})}
         self.input_publishers = PublisherWatch(self, inputs, self._publish_diagnostics)
-        self.admission = UpdateAdmission(LinkageDynamics(sc.linkage),
-                                         self.input_publishers.gates[TOPIC_LMI])
+        # A closed chain's updates are reduced (q local): no model to check them against.
+        self.admission = UpdateAdmission(None if sc.linkage.loops else LinkageDynamics(
+            sc.linkage), self.input_publishers.gates[TOPIC_LMI])
         if hosted:
             self.process_sched_priority = 0       # the driver's loop thread has its own
             return

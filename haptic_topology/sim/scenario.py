@@ -50,7 +50,7 @@ from haptic_topology.control.lmi import LmiModel, LmiSettings
 from haptic_topology.device.maglev import DeviceParams, device_from_config
 from haptic_topology.device.users import user_from_config
 from haptic_topology.dynamics.contacts import ContactSettings
-from haptic_topology.dynamics.loops import check_assembled
+from haptic_topology.dynamics.loops import LoopClosures, check_assembled
 from haptic_topology.errors import ConfigError, LinkageError
 from haptic_topology.model.linkage import Linkage, load_linkage
 from haptic_topology.paths import resolve_config
@@ -117,6 +117,15 @@ class Scenario:
             self.contacts.shapes(linkage)       # the per-link choices must fit it
         check_start(linkage, np.asarray(q0, dtype=float), dq0, 'scenario', self.contacts)
         return replace(self, linkage=linkage, q0=np.array(q0, dtype=float), dq0=dq0)
+
+    @property
+    def lmi_dof(self) -> int:
+        """The joints the LMI integrates (the size of its updates): the linkage's ``d``, or a
+        closed chain's mobility ``f`` at ``q0`` (its updates are in the independent
+        velocities, :meth:`~haptic_topology.dynamics.linkage_dynamics.LinkageDynamics.snapshot`)."""
+        if not self.linkage.loops:
+            return self.linkage.dof
+        return LoopClosures(self.linkage).mobility(self.q0)
 
     @property
     def lmi(self) -> LmiSettings:

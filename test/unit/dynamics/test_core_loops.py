@@ -186,19 +186,6 @@ def test_a_start_that_is_open_immobile_or_moving_off_the_closures_is_refused() -
         check_assembled(pinned, q, np.zeros(2), 's.yaml: scenario')
 
 
-def test_the_node_graph_refuses_a_closed_loop_scenario_in_one_line() -> None:
-    """``simulate`` runs a closed chain; the graph's nodes refuse it by name."""
-    from haptic_topology.config.resolve import serial_only
-    from haptic_topology.errors import ConfigError
-    from haptic_topology.sim import load_scenario
-
-    sc = load_scenario('fourbar')
-    with pytest.raises(ConfigError, match=r'^ve_sim: scenario fourbar: linkage fourbar has '
-                       r'loop closures; the node graph runs serial linkages only'):
-        serial_only(sc, 've_sim')
-    serial_only(load_scenario('fig8'), 've_sim')
-
-
 def test_a_closed_chain_with_obstacles_is_refused(tmp_path: Path) -> None:
     from haptic_topology.errors import ConfigError
     from haptic_topology.sim import load_scenario
