@@ -122,7 +122,8 @@ class Scenario:
     def lmi_dof(self) -> int:
         """The joints the LMI integrates (the size of its updates): the linkage's ``d``, or a
         closed chain's mobility ``f`` at ``q0`` (its updates are in the independent
-        velocities, :meth:`~haptic_topology.dynamics.linkage_dynamics.LinkageDynamics.snapshot`)."""
+        velocities, see
+        :meth:`~haptic_topology.dynamics.linkage_dynamics.LinkageDynamics.snapshot`)."""
         if not self.linkage.loops:
             return self.linkage.dof
         return LoopClosures(self.linkage).mobility(self.q0)
