@@ -233,31 +233,31 @@ class LoopClosures:
 
 
     def step(self, q: np.ndarray, dq: np.ndarray, h: float,
-             mass_and_torque: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-             ) -> tuple[np.ndarray, np.ndarray]:
+             stage: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, float]]
+             ) -> tuple[np.ndarray, np.ndarray, float]:
         """One classical RK4 step of ``h`` s of the closed chain, then :meth:`project`;
-        ``mass_and_torque(q, dq)`` gives ``(D, tau - B - G)`` at a stage. The rank of ``J_c``
-        is decided once, at ``q`` (on the closures), and kept for the stages and the
-        projection: off the closures the redundant equations of an overconstrained loop
-        (a Bennett linkage) become independent and would lock it."""
+        ``stage(q, dq)`` gives ``(D, tau - B - G, P)`` at a stage, ``P`` a power (W) whose
+        integral over the step is returned (e.g. the contacts' work on the chain, J). The
+        rank of ``J_c`` is decided once, at ``q`` (on the closures), and kept for the stages
+        and the projection: off the closures the redundant equations of an overconstrained
+        loop (a Bennett linkage) become independent and would lock it."""
         rank = self.basis(q).rows.shape[0]
 
-        def deriv(qs: np.ndarray, vs: np.ndarray) -> np.ndarray:
-            d, free = mass_and_torque(qs, vs)
-            return self.acceleration(qs, vs, d, free, rank)
+        def deriv(qs: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, float]:
+            d, free, power = stage(qs, vs)
+            return self.acceleration(qs, vs, d, free, rank), power
 
-        a1 = deriv(q, dq)
+        a1, p1 = deriv(q, dq)
         q2, v2 = q + 0.5 * h * dq, dq + 0.5 * h * a1
-        a2 = deriv(q2, v2)
+        a2, p2 = deriv(q2, v2)
         q3, v3 = q + 0.5 * h * v2, dq + 0.5 * h * a2
-        a3 = deriv(q3, v3)
+        a3, p3 = deriv(q3, v3)
         q4, v4 = q + h * v3, dq + h * a3
-        a4 = deriv(q4, v4)
+        a4, p4 = deriv(q4, v4)
         q_new = q + h / 6.0 * (dq + 2.0 * v2 + 2.0 * v3 + v4)
         dq_new = dq + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-        q_new, dq_new = self.project(q_new, dq_new, lambda qp: mass_and_torque(qp, dq_new)[0],
-                                     rank)
-        return q_new, dq_new
+        q_new, dq_new = self.project(q_new, dq_new, lambda qp: stage(qp, dq_new)[0], rank)
+        return q_new, dq_new, h / 6.0 * (p1 + 2.0 * p2 + 2.0 * p3 + p4)
 
 
 #: How far apart (weighted, m) a closure's points may be at a scenario's ``q0``.

@@ -115,7 +115,7 @@ class Scenario:
                               f'{linkage.name}), got {np.size(q0)}')
         if self.contacts is not None:
             self.contacts.shapes(linkage)       # the per-link choices must fit it
-        check_start(linkage, np.asarray(q0, dtype=float), dq0, 'scenario', self.contacts)
+        check_start(linkage, np.asarray(q0, dtype=float), dq0, 'scenario')
         return replace(self, linkage=linkage, q0=np.array(q0, dtype=float), dq0=dq0)
 
     @property
@@ -195,20 +195,14 @@ def load_scenario(name_or_path: str) -> Scenario:
     name = as_str(raw.get('name', path.stem), f'{w}.name')
     contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage)
                 if 'contacts' in raw else None)
-    check_start(linkage, q0, dq0, w, contacts)
+    check_start(linkage, q0, dq0, w)
     return Scenario(name, linkage, q0, dq0, duration, dt, mode, device, offset, dict(user),
                     gains, lmi.model, lmi.update_period, ve.internal_step, ve.vt_coupling, src,
                     contacts)
 
 
-def check_start(linkage: Linkage, q0: np.ndarray, dq0: np.ndarray, where: str,
-                contacts: ContactSettings | None = None) -> None:
+def check_start(linkage: Linkage, q0: np.ndarray, dq0: np.ndarray, where: str) -> None:
     """A closed-chain linkage (``linkage.loops``) must start assembled and mobile
-    (:func:`~haptic_topology.dynamics.loops.check_assembled`); obstacles on a closed chain are
-    refused (the LMI's contacts act in joint coordinates, which a closed chain reduces)."""
-    if not linkage.loops:
-        return
-    check_assembled(linkage, q0, dq0, where)
-    if contacts is not None:
-        raise ConfigError(f'{where}.contacts: obstacles on a closed-loop linkage '
-                          f'({linkage.name}) are not modelled yet; remove contacts')
+    (:func:`~haptic_topology.dynamics.loops.check_assembled`)."""
+    if linkage.loops:
+        check_assembled(linkage, q0, dq0, where)

@@ -11,7 +11,7 @@ state k+1, the same convention as the LMI (:mod:`haptic_topology.control.lmi`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -246,23 +246,27 @@ class VirtualEnvironment:
         self._state_out = (None, None)
 
     def _integrate_loops(self, wrench: np.ndarray, n: int, h: float) -> None:
-        """``n`` RK4 steps of ``h`` s of the closed chain, ``D qdd = J_h^T F - B - G +
-        J_c^T lambda`` (:meth:`~haptic_topology.dynamics.loops.LoopClosures.step`: the
-        closures held by a projection after each step)."""
+        """``n`` RK4 steps of ``h`` s of the closed chain, ``D qdd = J_h^T F + sum_i J_i^T F_i
+        - B - G + J_c^T lambda`` (:meth:`~haptic_topology.dynamics.loops.LoopClosures.step`:
+        the closures held by a projection after each step), and of the contacts' work."""
         model, data, frame, jacobian = self._pin
-        loops = self.dyn.loops
+        loops, contacts = self.dyn.loops, self.contacts
         assert loops is not None
         w6 = self._wrench6
         w6[self._task_rows] = wrench
         dyn = self.dyn
 
-        def mass_and_torque(qs: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def stage(qs: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
             tau = w6.dot(jacobian(model, data, qs, frame, _LWA)) - dyn.bias(qs, vs)
-            return dyn.mass_matrix(qs), tau
+            if contacts is None:
+                return dyn.mass_matrix(qs), tau, 0.0
+            tau_c, power = contacts.torques(qs, vs)
+            return dyn.mass_matrix(qs), tau + tau_c, power
 
         q, dq = np.array(self.q), np.array(self.dq)
         for _ in range(n):
-            q, dq = loops.step(q, dq, h, mass_and_torque)
+            q, dq, work = loops.step(q, dq, h, stage)
+            self.contact_work += work
         q.flags.writeable = False
         dq.flags.writeable = False
         self.q, self.dq = q, dq
@@ -334,11 +338,15 @@ class VirtualEnvironment:
         """The LMI update for the current state (eqs. 17-19)."""
         j6, pose = self._hand_now()
         snap = self.dyn.snapshot(self.q, self.dq, (j6, pose.copy()))
+        local = None if self.contacts is None else self.contacts.local(self.q)
+        if local is not None and self.dyn.loops is not None:
+            # In the closed chain's independent velocities, as the rest of the snapshot.
+            n = self.dyn.mechanism_basis(self.q)
+            local = replace(local, q=np.zeros(n.shape[1]),
+                            jacobians=np.einsum('cid,df->cif', local.jacobians, n))
         out = LmiSnapshot.from_dynamics(snap, self.dyn.task,
                                         self.dyn.linkage.constraints.characteristic_length,
-                                        seq, self.hand_input_seq,
-                                        None if self.contacts is None
-                                        else self.contacts.local(self.q),
+                                        seq, self.hand_input_seq, local,
                                         self.contact_energy_balance())
         if self._stable_hold is not None:
             lambda_inv = (self.dyn.inverse_operational_inertia_aba(self.q, out.hand_jacobian)

@@ -1,6 +1,7 @@
 """Closed-loop linkages through the node graph: the lock-step graph equals ``simulate`` to
 1e-9 at every cycle (the four-bar, hosted and in the separate layout; the Bennett linkage
-with the 6-DOF device), and a wall-clock run renders the four-bar."""
+with the 6-DOF device; the four-bar on a floor, contacts included), and a wall-clock run
+renders the four-bar."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ PARAMS = config_dir() / 'haptic_topology.yaml'
 RUNS = (('fourbar', 'penalty', 'hosted', 'lockstep', 2.0),
         ('fourbar', 'acceleration_only', 'separate', 'lockstep', 2.0),
         ('bennett', 'penalty', 'hosted', 'lockstep', 1.0),
+        ('fourbar_floor', 'penalty', 'hosted', 'lockstep', 1.5),
         ('fourbar', 'penalty', 'hosted', 'wall', 1.0))
 
 
@@ -62,7 +64,7 @@ def test_a_wall_clock_run_renders_the_four_bar(
     """What holds on any machine: the loop ran, the controller took the reduced LMI updates
     (two constrained directions: one independent velocity) and its forces stayed finite and
     within the device's limits."""
-    run = runs[RUNS[3]]
+    run = runs[next(k for k in RUNS if k[3] == 'wall')]
     sc = load_scenario('fourbar')
     trace = run.trace
     assert len(trace) > 100
