@@ -91,7 +91,9 @@ class LoopClosures:
         self.tolerance = tolerance
         lc = self.linkage.constraints.characteristic_length
         self.length = lc
-        self._ends = lm.loop_frames
+        #: Per closure, the frames at its two points (``model`` frame ids: link side, ``to``
+        #: side); ``data.oMf`` holds their placements after a kinematics pass.
+        self.ends: tuple[tuple[int, int], ...] = lm.loop_frames
         self._rows: list[list[int]] = []          # point rows of each closure
         self._axes: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
         weights: list[float] = []
@@ -119,7 +121,7 @@ class LoopClosures:
         model, data = self.model, self.data
         pin.framesForwardKinematics(model, data, q)
         out = []
-        for (fa, fb), rows, axes in zip(self._ends, self._rows, self._axes, strict=True):
+        for (fa, fb), rows, axes in zip(self.ends, self._rows, self._axes, strict=True):
             oa, ob = data.oMf[fa], data.oMf[fb]
             out.extend((oa.translation - ob.translation)[rows])
             if axes is not None:
@@ -134,7 +136,7 @@ class LoopClosures:
         pin.computeJointJacobians(model, data, q)
         pin.updateFramePlacements(model, data)
         out = []
-        for (fa, fb), rows, axes in zip(self._ends, self._rows, self._axes, strict=True):
+        for (fa, fb), rows, axes in zip(self.ends, self._rows, self._axes, strict=True):
             rel = (pin.getFrameJacobian(model, data, fa, _LWA)
                    - pin.getFrameJacobian(model, data, fb, _LWA)).reshape(6, self.dof)
             out.append(rel[rows])
@@ -149,7 +151,7 @@ class LoopClosures:
         pin.forwardKinematics(model, data, q, dq, np.zeros(self.dof))
         pin.updateFramePlacements(model, data)
         out = []
-        for (fa, fb), rows, axes in zip(self._ends, self._rows, self._axes, strict=True):
+        for (fa, fb), rows, axes in zip(self.ends, self._rows, self._axes, strict=True):
             acc = (pin.getFrameClassicalAcceleration(model, data, fa, _LWA).vector
                    - pin.getFrameClassicalAcceleration(model, data, fb, _LWA).vector)
             out.extend(acc[:3][rows])

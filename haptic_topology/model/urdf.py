@@ -15,8 +15,10 @@ floats. The VE sets no joint limits; URDF demands some for a prismatic joint:
 :func:`robot_description` is what ``ve_sim`` publishes on ``/robot_description``: for a
 linkage read from a URDF the user's own file, unchanged (its meshes, its side branches), once
 every joint of the linkage is checked to be in it with the same name, kind and child link;
-else the generated URDF. Its movable joints not on the linkage's chain (side branches: a
-gripper's fingers) stand at the linkage YAML's ``locked_joints`` positions (default 0).
+else the generated URDF. A closed chain's loop closures follow as ``<haptic_topology_loop>``
+elements (:func:`loop_elements`), in both. Its movable joints not on the linkage's chain (side
+branches: a gripper's fingers) stand at the linkage YAML's ``locked_joints`` positions
+(default 0).
 
 :class:`LinkFrames` is the workspace (Pinocchio model and data of that URDF, as
 ``model``/``data`` elsewhere) that turns joint positions into the transforms of ``/tf``:
@@ -47,6 +49,7 @@ import pinocchio as pin
 from haptic_topology.errors import LinkageError
 from haptic_topology.model import frames
 from haptic_topology.model.linkage import JointType, Linkage, LinkSpec, reach
+from haptic_topology.model.loops import WORLD
 from haptic_topology.model.urdf_import import UrdfJoint, UrdfSource, parse_urdf, read_urdf
 from haptic_topology.vocabulary import TaskSpace
 
@@ -157,8 +160,26 @@ def linkage_urdf(linkage: Linkage, radius: float | None = None) -> str:
                 else np.array([link.length, 0.0, 0.0]))
         _visual(element, np.asarray(span, dtype=float), radius)
         parent = link.name
+    for element in loop_elements(linkage, root_link_name(linkage)):
+        robot.append(element)
     ET.indent(robot, space='  ')
     return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding='unicode') + '\n'
+
+
+def loop_elements(linkage: Linkage, root: str) -> list[ET.Element]:
+    """The linkage's loop closures as ``<haptic_topology_loop>`` elements, the documented
+    extras of its URDF (URDF has no closed chains; tools ignore unknown elements): ``name``,
+    ``kind``, ``link`` and ``point`` (m, link frame), ``to`` (a link, or ``root`` for the
+    world) and ``to_point``, and for a revolute closure ``axis`` and ``to_axis``."""
+    out = []
+    for loop in linkage.loops:
+        attrs = {'name': loop.name, 'kind': loop.kind.value, 'link': loop.link,
+                 'point': _vec(loop.point), 'to': root if loop.to == WORLD else loop.to,
+                 'to_point': _vec(loop.to_point)}
+        if loop.axis is not None and loop.to_axis is not None:
+            attrs.update(axis=_vec(loop.axis), to_axis=_vec(loop.to_axis))
+        out.append(ET.Element('haptic_topology_loop', attrs))
+    return out
 
 
 @dataclass(frozen=True)
@@ -209,6 +230,11 @@ def robot_description(linkage: Linkage,
         src = linkage.urdf or read_urdf(linkage.urdf_path)
         text, generated, where = src.text, False, str(src.path)
         root, joints, links = src.root_link, src.joints, src.link_names
+        if linkage.loops:       # the closures of the YAML on top, before </robot>
+            extras = ''.join('  ' + ET.tostring(e, encoding='unicode') + '\n'
+                             for e in loop_elements(linkage, root))
+            end = text.rindex('</robot>')
+            text = text[:end] + extras + text[end:]
     clash = sorted(set(links) & set(frames.RESERVED))
     if clash:
         raise LinkageError(f'{where}: link name(s) {", ".join(clash)} are frames of the graph '

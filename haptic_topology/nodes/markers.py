@@ -1,7 +1,7 @@
-"""The linkage as markers (``visualization_msgs/MarkerArray``): links, grasp point, device
-ghost, constraint directions and wrenches, from the VE's state and the newest device and
-coupling samples (:class:`DeviceSample`, :class:`CouplingSample`). Used by
-:class:`~haptic_topology.nodes.viz.RobotViz`."""
+"""The linkage as markers (``visualization_msgs/MarkerArray``): links, grasp point, the closing
+joints of a closed chain, device ghost, constraint directions and wrenches, from the VE's state
+and the newest device and coupling samples (:class:`DeviceSample`, :class:`CouplingSample`).
+Used by :class:`~haptic_topology.nodes.viz.RobotViz`."""
 
 from __future__ import annotations
 
@@ -131,6 +131,11 @@ def linkage_markers(dyn: LinkageDynamics, q: np.ndarray, device: DeviceSample | 
     grasp.pose.position = _point(hand)
     markers = MarkerArray()
     markers.markers = [link, grasp]
+    if dyn.loops is not None:      # the closing joints: both points of each closure
+        closing = marker(3, 'loops', Marker.SPHERE_LIST, (0.2, 0.4, 0.9), 0.006)
+        closing.points = [_point(np.asarray(dyn.data.oMf[f].translation))
+                          for ends in dyn.loops.ends for f in ends]
+        markers.markers.append(closing)
     dev_point = None
     if device is not None:
         ghost = marker(2, 'device', Marker.CUBE, (0.9, 0.2, 0.2), DEVICE_SIZE, alpha=0.5)

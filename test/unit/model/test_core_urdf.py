@@ -346,3 +346,26 @@ def test_a_urdf_file_is_parsed_once_for_the_linkage_and_its_robot_description(
     LinkFrames(desc)
     assert len(reads) == 1 and len(parsed) == 1
     assert desc.urdf == lk.urdf.text and desc.source is lk.urdf
+
+
+@pytest.mark.parametrize('name', ['fourbar', 'bennett'])
+def test_a_closed_chains_urdf_carries_its_closures_as_extras(name: str) -> None:
+    """URDF has no loops: the tree is the serial chain, and each closure follows as a
+    ``<haptic_topology_loop>`` element whose attributes give the closure back exactly (the
+    world as the root link); Pinocchio reads the URDF as the tree it is."""
+    import xml.etree.ElementTree as ET
+
+    lk = load_linkage(config_dir() / 'linkages' / f'{name}.yaml')
+    rd = robot_description(lk)
+    elements = ET.fromstring(rd.urdf.split('\n', 1)[1]).findall('haptic_topology_loop')
+    assert len(elements) == len(lk.loops) == 1
+    (el,), (loop,) = elements, lk.loops
+    assert (el.get('name'), el.get('kind'), el.get('link'), el.get('to')) == (
+        loop.name, loop.kind.value, loop.link, rd.root_link)
+    for attr, value in (('point', loop.point), ('to_point', loop.to_point),
+                        ('axis', loop.axis), ('to_axis', loop.to_axis)):
+        if value is None:
+            assert el.get(attr) is None
+        else:
+            np.testing.assert_array_equal([float(v) for v in el.get(attr, '').split()], value)
+    assert pin.buildModelFromXML(rd.urdf).nv == lk.dof

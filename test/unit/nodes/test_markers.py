@@ -37,3 +37,19 @@ def test_kept_markers_equal_fresh_ones_call_after_call() -> None:
         cases += {mk.action for mk in fresh.markers} == {Marker.ADD, Marker.DELETE}
     assert cases > 0     # arrows were deleted and added again within the sequence
     assert len(kept) == len({(mk.ns, mk.id) for mk in fresh.markers} | {('device', 2)})
+
+
+def test_a_closed_chain_draws_its_closing_joints() -> None:
+    """The four-bar: the 'loops' marker holds both points of its closure, which coincide
+    (assembled) at the rocker's free end, on the ground pivot O4 = (0.1, 0)."""
+    sc = load_scenario('fourbar')
+    ve = virtual_environment(sc)
+    dyn = LinkageDynamics(sc.linkage)
+    markers = linkage_markers(dyn, ve.q, None, None, ve.snapshot(seq=0), 'world', Time())
+    (closing,) = [mk for mk in markers.markers if mk.ns == 'loops']
+    a, b = ([p.x, p.y, p.z] for p in closing.points)
+    np.testing.assert_allclose(a, [0.1, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(b, [0.1, 0.0, 0.0], atol=1e-15)
+    serial = linkage_markers(LinkageDynamics(load_scenario('fig8').linkage),
+                             np.zeros(3), None, None, ve.snapshot(seq=0), 'world', Time())
+    assert 'loops' not in [mk.ns for mk in serial.markers]
