@@ -31,6 +31,7 @@ import numpy as np
 import pinocchio as pin
 
 from haptic_topology.dynamics.constraints import joint_scale
+from haptic_topology.dynamics.rk4 import rk4_step
 from haptic_topology.dynamics.spd import spd_factor, spd_solve
 from haptic_topology.errors import ConfigError, LinkageError
 from haptic_topology.model.build import LinkageModel, build_model
@@ -249,17 +250,9 @@ class LoopClosures:
             d, free, power = stage(qs, vs)
             return self.acceleration(qs, vs, d, free, rank), power
 
-        a1, p1 = deriv(q, dq)
-        q2, v2 = q + 0.5 * h * dq, dq + 0.5 * h * a1
-        a2, p2 = deriv(q2, v2)
-        q3, v3 = q + 0.5 * h * v2, dq + 0.5 * h * a2
-        a3, p3 = deriv(q3, v3)
-        q4, v4 = q + h * v3, dq + h * a3
-        a4, p4 = deriv(q4, v4)
-        q_new = q + h / 6.0 * (dq + 2.0 * v2 + 2.0 * v3 + v4)
-        dq_new = dq + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+        q_new, dq_new, work = rk4_step(deriv, q, dq, h)
         q_new, dq_new = self.project(q_new, dq_new, lambda qp: stage(qp, dq_new)[0], rank)
-        return q_new, dq_new, h / 6.0 * (p1 + 2.0 * p2 + 2.0 * p3 + p4)
+        return q_new, dq_new, work
 
 
 #: How far apart (weighted, m) a closure's points may be at a scenario's ``q0``.

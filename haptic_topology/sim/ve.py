@@ -25,6 +25,7 @@ from haptic_topology.dynamics.linkage_dynamics import (
     LinkageDynamics,
     inverse_operational_inertia,
 )
+from haptic_topology.dynamics.rk4 import rk4_step
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.validate import as_bool, as_float, check_keys
 
@@ -229,16 +230,8 @@ class VirtualEnvironment:
             return np.array(pin.aba(model, data, qs, vs, tau, _ABA_FRAME)), power
 
         for _ in range(n):
-            a1, p1 = deriv(q, dq)
-            q2, v2 = q + 0.5 * h * dq, dq + 0.5 * h * a1
-            a2, p2 = deriv(q2, v2)
-            q3, v3 = q + 0.5 * h * v2, dq + 0.5 * h * a2
-            a3, p3 = deriv(q3, v3)
-            q4, v4 = q + h * v3, dq + h * a3
-            a4, p4 = deriv(q4, v4)
-            q = q + h / 6.0 * (dq + 2.0 * v2 + 2.0 * v3 + v4)
-            dq = dq + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-            work += h / 6.0 * (p1 + 2.0 * p2 + 2.0 * p3 + p4)
+            q, dq, step_work = rk4_step(deriv, q, dq, h)
+            work += step_work
         self.contact_work += work
         q.flags.writeable = False
         dq.flags.writeable = False
