@@ -135,18 +135,20 @@ def trace_figure(trace: Trace, linkage: Linkage | None = None, title: str | None
     ax.set_title('(c) drift')
     ax.grid(alpha=0.3)
 
-    _constraint_panel(axes[2], trace)
+    _constraint_panel(axes[2], trace, linkage)
     if forces is not None:
         _forces_panel(forces, trace, '(e)', [axes[1], axes[2]])
     _finish(fig, trace, title)
     return fig
 
 
-def _constraint_panel(ax: plt.Axes, trace: Trace) -> None:
-    """Constraint count over time with the intervals at a workspace limit."""
+def _constraint_panel(ax: plt.Axes, trace: Trace, linkage: Linkage | None) -> None:
+    """Constraint count over time with the intervals at a workspace limit (of the
+    mechanism's hand Jacobian ``J_h N`` for a closed chain)."""
     t = trace.t
+    closed = linkage is not None and bool(linkage.loops)
     ax.step(t, trace.columns['constraint_count'], where='post', color='tab:green',
-            label='t = m - rank(J_h) (VE)')
+            label=f't = m - rank(J_h{" N" if closed else ""}) (VE)')
     at_limit = (trace.columns['status'] & 1) > 0
     if at_limit.any():
         ax.fill_between(t, 0, 1, where=at_limit, step='post', color='tab:orange', alpha=0.3,
@@ -408,7 +410,7 @@ def _plot_spatial(trace: Trace, linkage: Linkage | None, title: str | None,
     ax.legend(lines, [str(ln.get_label()) for ln in lines], loc='upper left')
     ax.set_title('(e) drift')
     ax.grid(alpha=0.3)
-    _constraint_panel(grid[1, 2], trace)
+    _constraint_panel(grid[1, 2], trace, linkage)
     grid[1, 2].set_title('(f) directions of topological constraint')
     if forces is not None:
         _forces_panel(forces, trace, '(g)', [ax, grid[1, 2]])
