@@ -257,13 +257,17 @@ class LoopClosures:
 
 #: How far apart (weighted, m) a closure's points may be at a scenario's ``q0``.
 ASSEMBLY_TOLERANCE = 1e-9
+#: Step (rad, or L_c-scaled m) along each free direction at which a start is probed for
+#: being a singular configuration of the closures.
+SINGULAR_PROBE = 1e-3
 
 
 def check_assembled(linkage: Linkage, q0: np.ndarray, dq0: np.ndarray, where: str) -> None:
     """Refuse (:class:`~haptic_topology.errors.ConfigError`, naming ``where``'s field) a
     start ``(q0, dq0)`` of a closed chain whose closures are open beyond
     :data:`ASSEMBLY_TOLERANCE` (offering the nearest assembled ``q0``), whose mobility is 0,
-    or whose ``dq0`` violates ``J_c dq0 = 0``."""
+    that is a singular configuration of the closures (a change point: more mobility than
+    around it), or whose ``dq0`` violates ``J_c dq0 = 0``."""
     cl = LoopClosures(linkage)
     gap = float(np.linalg.norm(cl.row_scale * cl.residual(q0)))
     if gap > ASSEMBLY_TOLERANCE:
@@ -278,6 +282,14 @@ def check_assembled(linkage: Linkage, q0: np.ndarray, dq0: np.ndarray, where: st
     if basis.mobility == 0:
         raise ConfigError(f'{where}.q0: linkage {linkage.name} cannot move at q0: mobility 0 '
                           f'({cl.dof} joints, {cl.dof} independent closure equations)')
+    # A singular configuration of the closures themselves (a four-bar's change point, where
+    # its links are collinear) has a larger mobility than the configurations around it:
+    # the LMI's updates would change size as the linkage leaves it.
+    around = min(cl.mobility(cl.assemble(q0 + SINGULAR_PROBE * v)[0]) for v in basis.null.T)
+    if around < basis.mobility:
+        raise ConfigError(f'{where}.q0: a singular configuration of the loop closures of '
+                          f'linkage {linkage.name} (mobility {basis.mobility} there, {around} '
+                          "around it, e.g. a four-bar's change point): start away from it")
     rate = float(np.linalg.norm(basis.rows @ dq0)) * cl.length
     if rate > ASSEMBLY_TOLERANCE * max(1.0, float(np.linalg.norm(dq0))):
         raise ConfigError(f'{where}.dq0: violates the loop closures of linkage '
