@@ -51,7 +51,7 @@ from haptic_topology.device.maglev import DeviceParams, device_from_config
 from haptic_topology.device.users import user_from_config
 from haptic_topology.dynamics.contacts import ContactSettings
 from haptic_topology.dynamics.loops import LoopClosures, check_assembled
-from haptic_topology.errors import ConfigError, LinkageError
+from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage, load_linkage
 from haptic_topology.paths import resolve_config
 from haptic_topology.sim.ve import VeSettings
@@ -166,10 +166,8 @@ def load_scenario(name_or_path: str) -> Scenario:
         point = as_vector(grasp['point'], f'{w}.grasp.point', 3) if 'point' in grasp else None
         if point is not None and linkage.task is TaskSpace.PLANAR and point[2] != 0.0:
             raise ConfigError(f'{w}.grasp.point: z must be 0 for a planar linkage')
-        try:
-            linkage = linkage.with_grasp(as_str(grasp['link'], f'{w}.grasp.link'), point)
-        except LinkageError as exc:
-            raise ConfigError(f'{w}.grasp.link: {str(exc).split("grasp.link: ", 1)[-1]}') from None
+        link = as_str(grasp['link'], f'{w}.grasp.link', linkage.link_names)
+        linkage = linkage.with_grasp(link, point)
     d, m = linkage.dof, linkage.task.dim
     q0 = as_angles(raw['q0'], f'{w}.q0', d)
     dq0 = as_angles(raw.get('dq0', [0.0] * d), f'{w}.dq0', d)
