@@ -45,6 +45,9 @@ class DynamicsSnapshot:
     hand_pose: np.ndarray
     hand_twist: np.ndarray
     constraints: ConstraintDirections
+    #: A closed chain's ``N`` (d x f, :meth:`LinkageDynamics.mechanism_basis`) that the
+    #: snapshot is reduced with; None for a serial linkage.
+    mechanism: np.ndarray | None = None
 
 
 class LinkageDynamics:
@@ -221,7 +224,7 @@ class LinkageDynamics:
         cons = constraint_directions(jr, self.task, self.linkage.constraints)
         dr = n.T @ d @ n
         return DynamicsSnapshot(np.zeros(v.size), v, 0.5 * (dr + dr.T), n.T @ g, n.T @ b, jr,
-                                pose, jr @ v, cons)
+                                pose, jr @ v, cons, n)
 
 
 def inverse_operational_inertia(jacobian: np.ndarray, mass_matrix: np.ndarray) -> np.ndarray:

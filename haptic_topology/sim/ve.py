@@ -332,9 +332,9 @@ class VirtualEnvironment:
         j6, pose = self._hand_now()
         snap = self.dyn.snapshot(self.q, self.dq, (j6, pose.copy()))
         local = None if self.contacts is None else self.contacts.local(self.q)
-        if local is not None and self.dyn.loops is not None:
+        n = snap.mechanism
+        if local is not None and n is not None:
             # In the closed chain's independent velocities, as the rest of the snapshot.
-            n = self.dyn.mechanism_basis(self.q)
             local = replace(local, q=np.zeros(n.shape[1]),
                             jacobians=np.einsum('cid,df->cif', local.jacobians, n))
         out = LmiSnapshot.from_dynamics(snap, self.dyn.task,
