@@ -277,12 +277,10 @@ def test_drift_of_a_revolute_closure_between_two_moving_links() -> None:
 
 
 def _change_point_fourbar() -> LinkageDynamics:
-    """A four-bar with s + l = p + q (crank 40, coupler 100, rocker 60, ground 80 mm): its
+    """The four-bar at the Grashof limit (config/linkages/fourbar_change_point.yaml): its
     links can all lie on one line (q = (0, 0, pi)), where rank(J_c) drops to 1."""
-    doc = _fourbar_doc(point=[0.06, 0.0, 0.0], to_point=[0.08, 0.0, 0.0])
-    links = doc['linkage']['links']
-    links[1]['length'], links[2]['length'] = 0.10, 0.06
-    return LinkageDynamics(linkage_from_dict(doc, 'change_point.yaml'))
+    return LinkageDynamics(load_linkage(config_dir() / 'linkages'
+                                        / 'fourbar_change_point.yaml'))
 
 
 def test_a_start_at_a_change_point_is_refused() -> None:
@@ -293,8 +291,9 @@ def test_a_start_at_a_change_point_is_refused() -> None:
     flat = np.array([0.0, 0.0, math.pi])
     assert dyn.loops is not None and dyn.loops.mobility(flat) == 2
     with pytest.raises(ConfigError, match=r'^s\.yaml: scenario\.q0: a singular configuration '
-                       r'of the loop closures of linkage fourbar \(mobility 2 there, 1 around '
-                       r"it, e\.g\. a four-bar's change point\): start away from it$"):
+                       r'of the loop closures of linkage fourbar_change_point \(mobility 2 '
+                       r"there, 1 around it, e\.g\. a four-bar's change point\): start away "
+                       r'from it$'):
         check_assembled(dyn.linkage, flat, np.zeros(3), 's.yaml: scenario')
     q, _ = dyn.loops.assemble(np.array([0.6, -0.5, 2.0]), fixed=(0,))
     check_assembled(dyn.linkage, q, np.zeros(3), 's.yaml: scenario')    # away from it: fine
