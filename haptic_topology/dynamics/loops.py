@@ -222,10 +222,12 @@ class LoopClosures:
         return q, dq - dinv_at @ lam
 
     def acceleration(self, q: np.ndarray, dq: np.ndarray, mass_matrix: np.ndarray,
-                     free_torque: np.ndarray, rank: int | None = None) -> np.ndarray:
+                     free_torque: np.ndarray, rank: int | None = None,
+                     basis: ClosureBasis | None = None) -> np.ndarray:
         """``qdd`` of eq. 1 with the closures' forces: ``D qdd = free_torque + J_c^T
-        lambda`` (``free_torque = tau - B - G``), ``J_c qdd = -Jdot_c qd``."""
-        basis = self.basis(q, rank=rank)
+        lambda`` (``free_torque = tau - B - G``), ``J_c qdd = -Jdot_c qd``; ``basis``: the
+        rank decision at ``q`` when the caller has it."""
+        basis = self.basis(q, rank=rank) if basis is None else basis
         a = basis.rows
         rhs = -(basis.row_map @ self.drift(q, dq))
         factor = spd_factor(mass_matrix)
@@ -233,7 +235,6 @@ class LoopClosures:
         dinv_at = spd_solve(factor, a.T)
         lam = np.linalg.solve(a @ dinv_at, rhs - a @ free)
         return free + dinv_at @ lam
-
 
     def step(self, q: np.ndarray, dq: np.ndarray, h: float,
              stage: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, float]]
@@ -244,11 +245,12 @@ class LoopClosures:
         rank of ``J_c`` is decided once, at ``q`` (on the closures), and kept for the stages
         and the projection: off the closures the redundant equations of an overconstrained
         loop (a Bennett linkage) become independent and would lock it."""
-        rank = self.basis(q).rows.shape[0]
+        first = self.basis(q)
+        rank = first.rows.shape[0]
 
         def deriv(qs: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, float]:
             d, free, power = stage(qs, vs)
-            return self.acceleration(qs, vs, d, free, rank), power
+            return self.acceleration(qs, vs, d, free, rank, first if qs is q else None), power
 
         q_new, dq_new, work = rk4_step(deriv, q, dq, h)
         q_new, dq_new = self.project(q_new, dq_new, lambda qp: stage(qp, dq_new)[0], rank)
