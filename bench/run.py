@@ -85,9 +85,11 @@ BUSY = 'import os\nos.sched_setaffinity(0, {0})\nwhile True:\n    pass\n'
 
 def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle',
                mode: str | None = None, busy: bool = False,
-               startup_timeout: float = 30.0) -> dict[str, Any]:
+               startup_timeout: float = 30.0,
+               driver: dict[str, Any] | None = None) -> dict[str, Any]:
     """One recorded run of ``scenario`` (a name or a file) on the graph in ``layout``
-    (``busy``: beside :data:`BUSY`); loop figures, the VE's update rate, CPU and memory."""
+    (``busy``: beside :data:`BUSY`; ``driver``: device_driver parameters other than the
+    config file's); loop figures, the VE's update rate, CPU and memory."""
     import yaml
 
     from haptic_topology.paths import config_dir
@@ -99,6 +101,7 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
         if fifo:
             params['device_driver']['ros__parameters']['sched_priority'] = DEVICE_PRIORITY
             params['lmi_controller']['ros__parameters']['sched_priority'] = CONTROLLER_PRIORITY
+        params['device_driver']['ros__parameters'].update(driver or {})
         params_file = Path(tmp) / 'params.yaml'
         params_file.write_text(yaml.safe_dump(params), encoding='utf-8')
         cmd = [str(Path(sys.executable).with_name('haptic-topology')), 'run', scenario,
@@ -196,7 +199,10 @@ LOOP_RUNS = (('hosted', 'hosted', False, False), ('separate', 'separate', False,
              ('thread', 'thread', False, False), ('hosted_busy', 'hosted', False, True),
              ('thread_busy', 'thread', False, True), ('hosted_fifo', 'hosted', True, False),
              ('separate_fifo', 'separate', True, False),
-             ('thread_fifo', 'thread', True, False))
+             ('thread_fifo', 'thread', True, False), ('hosted_slice0', 'hosted', False, False))
+#: device_driver parameters of a run of :data:`LOOP_RUNS` other than the config file's: the
+#: loop process with the kernel's default scheduler slice instead of ``sched_slice_us`` 100.
+RUN_DRIVER_PARAMS = {'hosted_slice0': {'sched_slice_us': 0.0}}
 
 
 def _pingpong(duration: float, fifo: bool) -> dict[str, Any]:
@@ -230,7 +236,8 @@ def run(loop_duration: float, recorder_duration: float,
             res[base] = _pingpong(loop_duration, with_fifo)
         print(f'== graph, {key}, {loop_duration:g} s ...', flush=True)
         try:
-            res[key] = graph_loop(loop_duration, layout, with_fifo, busy=busy)
+            res[key] = graph_loop(loop_duration, layout, with_fifo, busy=busy,
+                                  driver=RUN_DRIVER_PARAMS.get(key))
         except RuntimeError as exc:
             if not with_fifo:
                 raise
@@ -315,7 +322,7 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'max_links_within_30pct_spatial': core['max_links_within_30pct_spatial'],
     }
     for key in ('thread', 'hosted_busy', 'thread_busy', 'hosted_fifo', 'separate_fifo',
-                'thread_fifo'):
+                'thread_fifo', 'hosted_slice0'):
         if key in res:
             out[f'answered_fraction_{key}'] = res[key]['answered_fraction']
             out[f'max_consecutive_missed_{key}'] = res[key]['max_consecutive_missed']
@@ -358,6 +365,7 @@ def goals(head: dict[str, Any]) -> str:
     rows = [
         _answered_row(h, 'hosted_busy', 'loop process, beside a busy process', 0.995),
         _answered_row(h, 'hosted_fifo', 'loop process, SCHED_FIFO', 0.999),
+        _answered_row(h, 'hosted_slice0', "loop process, the kernel's default slice", 0.999),
         _answered_row(h, 'thread', 'loop thread', 0.999),
         _answered_row(h, 'thread_busy', 'loop thread, beside a busy process', 0.995),
         ('cycles answered in time (loop process, the default)',

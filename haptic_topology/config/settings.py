@@ -29,6 +29,7 @@ import yaml
 
 from haptic_topology.config.params import ParamSpec, check_value
 from haptic_topology.control.laws import GAIN_MAX, check_gain
+from haptic_topology.device.realtime import SLICE_RANGE_US
 from haptic_topology.device.watchdog import WatchdogFallback
 from haptic_topology.errors import ConfigError
 from haptic_topology.vocabulary import LAW_MODES, Clock
@@ -266,6 +267,16 @@ class DeviceDriverSettings(NodeSettings):
     lock_memory: bool = param(False, 'mlockall(MCL_CURRENT | MCL_FUTURE) at activation, so '
                               'the loop never waits for a page fault; needs CAP_IPC_LOCK or '
                               'a memlock limit (else one warning)')
+    sched_slice_us: float = param(
+        100.0, 'under normal scheduling, the scheduler slice (us) the loop (process or thread; '
+        'separate layout: the executor) asks for (Linux >= 6.12, EEVDF): a short one lets it '
+        'preempt a busy task as soon as it wakes instead of after that task\'s slice (0.7-3 '
+        'ms); its share of the CPU is unchanged, no privilege needed; 0 = the kernel\'s '
+        'default; the kernel accepts 100-100000', lo=0.0, hi=100000.0)
+    timer_slack_ns: int = param(
+        0, 'timer slack of the loop (ns): how much later than its deadline the kernel may '
+        'wake it to batch timers (prctl PR_SET_TIMERSLACK; 50000 by default; none under '
+        'SCHED_FIFO), e.g. 1000; 0 = unchanged', lo=0, hi=10_000_000)
     publisher_nice: int = param(5, 'with the loop process: nice increment of the thread '
                                 'that publishes its records (DeviceState, DeviceCommand, '
                                 "hand inputs), and the nice value of this node's autogroup "
@@ -280,6 +291,11 @@ class DeviceDriverSettings(NodeSettings):
                               f'or a value in [{RATE_MIN:g}, {RATE_MAX:g}] Hz, got '
                               f'{self.rate_hz!r}')
         parse_backend_options(self.backend_options)
+        lo, hi = SLICE_RANGE_US
+        if self.sched_slice_us != 0.0 and not lo <= self.sched_slice_us <= hi:
+            raise ConfigError(f'device_driver: parameter sched_slice_us: expected 0.0 (the '
+                              f"kernel's default) or a value in [{lo:g}, {hi:g}] us, got "
+                              f'{self.sched_slice_us!r}')
         cpus = os.cpu_count() or 1
         if self.cpu_affinity != (-1,) and not all(0 <= c < cpus for c in self.cpu_affinity):
             raise ConfigError(f'device_driver: parameter cpu_affinity: expected [-1] (no '

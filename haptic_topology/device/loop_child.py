@@ -166,7 +166,8 @@ class _Child:
         s = self.spec
         name_os_thread('device_loop')
         self.notices.extend(set_thread_realtime(s.sched_priority, s.cpu_affinity,
-                                                s.lock_memory))
+                                                s.lock_memory, s.sched_slice_us,
+                                                s.timer_slack_ns))
         self.backend.activate()
         self.runner.pacer.start()
         gc.collect()

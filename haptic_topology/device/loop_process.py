@@ -128,6 +128,8 @@ class LoopSpec:
     sched_priority: int
     cpu_affinity: tuple[int, ...]
     lock_memory: bool
+    sched_slice_us: float
+    timer_slack_ns: int
     rings: dict[str, str]
     update_bytes: int
     wake_node: int            # eventfd the child writes (lock-step: after each record)

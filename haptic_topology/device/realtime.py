@@ -1,9 +1,14 @@
 """Real-time settings of a process or of the loop thread: SCHED_FIFO, CPU affinity,
-``mlockall``, the thread's name. No rclpy: the device loop calls these from its own thread."""
+``mlockall``, the scheduler slice, the timer slack, the thread's name. No rclpy: the device
+loop calls these from its own thread."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
+import platform
+import struct
 import time
 from collections.abc import Sequence
 
@@ -136,11 +141,15 @@ def renice_thread(increment: int) -> str | None:
     return None
 
 
-def set_thread_realtime(priority: int, cpus: Sequence[int], lock_memory: bool) -> list[str]:
-    """Real-time settings of the calling thread (the hosted device loop thread): SCHED_FIFO
-    at ``priority`` (0: keep normal scheduling), pinned to ``cpus`` (``[-1]``: no pinning),
-    and ``mlockall(MCL_CURRENT | MCL_FUTURE)`` for the process when ``lock_memory``. Returns
-    one line per setting that was not permitted (the loop then runs without it)."""
+def set_thread_realtime(priority: int, cpus: Sequence[int], lock_memory: bool,
+                        slice_us: float = 0.0, timer_slack_ns: int = 0) -> list[str]:
+    """Real-time settings of the calling thread (the loop process or the hosted loop thread):
+    SCHED_FIFO at ``priority`` (0: keep normal scheduling), pinned to ``cpus`` (``[-1]``: no
+    pinning), ``mlockall(MCL_CURRENT | MCL_FUTURE)`` for the process when ``lock_memory``,
+    under normal scheduling a scheduler slice of ``slice_us`` (:func:`set_sched_slice`; 0:
+    the kernel's) and a timer slack of ``timer_slack_ns`` (:func:`set_timer_slack`; 0: the
+    kernel's). Returns one line per setting that was not permitted (the loop then runs
+    without it)."""
     problems = []
     if priority:
         try:
@@ -150,6 +159,10 @@ def set_thread_realtime(priority: int, cpus: Sequence[int], lock_memory: bool) -
                             'an rtprio limit); normal scheduling')
         except OSError as exc:
             problems.append(f'sched_priority {priority}: {exc}; normal scheduling')
+    if slice_us and os.sched_getscheduler(0) != os.SCHED_FIFO:
+        problems.extend(filter(None, [set_sched_slice(slice_us)]))
+    if timer_slack_ns:
+        problems.extend(filter(None, [set_timer_slack(timer_slack_ns)]))
     if list(cpus) != [-1]:
         try:
             os.sched_setaffinity(0, set(cpus))
@@ -160,25 +173,95 @@ def set_thread_realtime(priority: int, cpus: Sequence[int], lock_memory: bool) -
     return problems
 
 
+#: ``sched_setattr`` / ``sched_getattr`` system call numbers (no wrapper in glibc or ``os``).
+_SCHED_ATTR_SYSCALLS = {'x86_64': (314, 315), 'aarch64': (274, 275)}
+#: ``struct sched_attr`` (SCHED_ATTR_SIZE_VER1, 56 bytes): size, policy, flags, nice,
+#: priority, runtime, deadline, period, util_min, util_max.
+_SCHED_ATTR = struct.Struct('IIQiIQQQII')
+#: The slices (us) the kernel accepts for a task under normal scheduling.
+SLICE_RANGE_US = (100.0, 100_000.0)
+
+
+def set_sched_slice(slice_us: float) -> str | None:
+    """Ask the fair scheduler (EEVDF, Linux >= 6.12) for a slice of ``slice_us`` for the
+    calling thread: ``sched_setattr`` with ``SCHED_OTHER``, its nice value kept and
+    ``sched_runtime`` = the slice. Returns None, or why it was not applied.
+
+    Why: EEVDF runs the eligible task with the earliest virtual deadline, which is its
+    virtual start plus its slice. With the default slice (0.7-3 ms, by the number of CPUs) a
+    loop that wakes while a batch task (a node's executor, the recorder) runs on each core
+    often waits out that task's slice; with a short one its deadline is earlier and it
+    preempts at once. The slice does not change the thread's share of the CPU (its weight,
+    i.e. nice, does), and needs no privilege. Older kernels ignore ``sched_runtime`` for
+    normal tasks: the slice read back with ``sched_getattr`` tells, and then this says so.
+    """
+    lo, hi = SLICE_RANGE_US
+    calls = _SCHED_ATTR_SYSCALLS.get(platform.machine())
+    if calls is None:
+        return f'sched_slice_us {slice_us:g}: sched_setattr unknown on {platform.machine()}'
+    if os.sched_getscheduler(0) != os.SCHED_OTHER:
+        return f'sched_slice_us {slice_us:g}: the thread is not under normal scheduling'
+    libc = _libc()
+    runtime = int(round(min(max(slice_us, lo), hi) * 1e3))
+    nice = os.getpriority(os.PRIO_PROCESS, 0)
+    attr = ctypes.create_string_buffer(
+        _SCHED_ATTR.pack(_SCHED_ATTR.size, os.SCHED_OTHER, 0, nice, 0, runtime, 0, 0, 0, 0))
+    if libc.syscall(calls[0], 0, attr, 0) != 0:
+        return f'sched_slice_us {slice_us:g}: {os.strerror(ctypes.get_errno())}; not applied'
+    got = sched_slice_ns()
+    if got != runtime:
+        return (f'sched_slice_us {slice_us:g}: this kernel keeps no slice per task (Linux >= '
+                '6.12 does); not applied')
+    return None
+
+
+def sched_slice_ns(tid: int = 0) -> int | None:
+    """Thread ``tid``'s (0: the caller's) slice under normal scheduling (ns) as
+    ``sched_getattr`` reads it; 0 where the kernel keeps none per task; None where the call
+    is unknown or fails."""
+    calls = _SCHED_ATTR_SYSCALLS.get(platform.machine())
+    if calls is None:
+        return None
+    buf = ctypes.create_string_buffer(_SCHED_ATTR.size)
+    if _libc().syscall(calls[1], tid, buf, _SCHED_ATTR.size, 0) != 0:
+        return None
+    return int(_SCHED_ATTR.unpack(buf.raw)[5])
+
+
+_PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30
+
+
+def set_timer_slack(slack_ns: int) -> str | None:
+    """The calling thread's timer slack (``prctl(PR_SET_TIMERSLACK)``, ns): how much later
+    than asked the kernel may end its sleeps, to wake several timers at once (50 us by
+    default for a normal thread; SCHED_FIFO threads have none). A smaller slack wakes the
+    loop closer to its deadline. Needs no privilege. Returns None, or why it failed."""
+    libc = _libc()
+    if libc.prctl(_PR_SET_TIMERSLACK, ctypes.c_ulong(slack_ns), 0, 0, 0) != 0:
+        return f'timer_slack_ns {slack_ns}: {os.strerror(ctypes.get_errno())}; unchanged'
+    return None
+
+
+def timer_slack_ns() -> int:
+    """The calling thread's timer slack (ns)."""
+    return int(_libc().prctl(_PR_GET_TIMERSLACK, 0, 0, 0, 0))
+
+
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL(ctypes.util.find_library('c'), use_errno=True)
+
+
 def name_os_thread(name: str) -> None:
     """Give the calling thread ``name`` (at most 15 bytes) in /proc/<pid>/task/<tid>/comm,
     so ``top -H`` and the benchmark's CPU per thread can tell the loop thread apart."""
-    import ctypes
-    import ctypes.util
-
     pr_set_name = 15
-    libc = ctypes.CDLL(ctypes.util.find_library('c'), use_errno=True)
-    libc.prctl(pr_set_name, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
+    _libc().prctl(pr_set_name, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
 
 
 def lock_all_memory() -> str | None:
     """``mlockall(MCL_CURRENT | MCL_FUTURE)``; None, or why it failed."""
-    import ctypes
-    import ctypes.util
-
-    libc = ctypes.CDLL(ctypes.util.find_library('c'), use_errno=True)
     mcl_current, mcl_future = 1, 2
-    if libc.mlockall(mcl_current | mcl_future) != 0:
+    if _libc().mlockall(mcl_current | mcl_future) != 0:
         err = ctypes.get_errno()
         return (f'lock_memory: mlockall failed: {os.strerror(err)} (needs CAP_IPC_LOCK or a '
                 'memlock limit, e.g. ulimit -l unlimited); memory not locked')

@@ -185,7 +185,8 @@ class HostedLoop:
         def on_start() -> None:     # in the loop thread
             name_os_thread('device_loop')
             self._problems.extend(set_thread_realtime(s.sched_priority, s.cpu_affinity,
-                                                      s.lock_memory))
+                                                      s.lock_memory, s.sched_slice_us,
+                                                      s.timer_slack_ns))
 
         self.runner.start(on_start=on_start)
         self._timer = self.driver.create_timer(0.02, self.check)
@@ -266,7 +267,8 @@ def loop_spec(driver: Any, controller: ControllerLoop, pacing: RunnerConfig) -> 
                 limit=np.asarray(c.wrench_limit, dtype=float), watchdog=c.watchdog,
                 period=c.period, takeover_after=c.takeover_after, controller=controller,
                 runner=pacing, sched_priority=s.sched_priority,
-                cpu_affinity=tuple(s.cpu_affinity), lock_memory=s.lock_memory)
+                cpu_affinity=tuple(s.cpu_affinity), lock_memory=s.lock_memory,
+                sched_slice_us=s.sched_slice_us, timer_slack_ns=s.timer_slack_ns)
 
 
 def driver_layout(driver: Any, hosted: Any) -> HostedLoop | SeparateLoop:

@@ -33,11 +33,13 @@ class SeparateLoop:
         self._timers: list[Any] = []
 
     def start(self) -> None:
-        """The executor thread's real-time settings (``cpu_affinity``, ``lock_memory``;
-        ``sched_priority`` is the process's) and the loop's timers."""
-        d, c = self.driver, self.driver.cfg
-        for text in set_thread_realtime(0, c.settings.cpu_affinity,
-                                               c.settings.lock_memory):
+        """The executor thread's real-time settings (``cpu_affinity``, ``lock_memory``,
+        ``sched_slice_us``, ``timer_slack_ns``; ``sched_priority`` is the process's) and the
+        loop's timers."""
+        d, s = self.driver, self.driver.cfg.settings
+        c = d.cfg
+        for text in set_thread_realtime(0, s.cpu_affinity, s.lock_memory, s.sched_slice_us,
+                                        s.timer_slack_ns):
             d.get_logger().warn(text)
         timers = [(c.period, self._tick_idle if d.lockstep else self._tick_wall)]
         if d.lockstep:

@@ -25,5 +25,6 @@ def spec_for(name: str, lockstep: bool, duration: float) -> tuple[dict[str, Any]
         controller=build_controller_loop(sc, sc.mode,
                                          update_period=sc.update_period if lockstep else None),
         runner=RunnerConfig(sc.dt, lockstep, duration, 60.0),
-        sched_priority=0, cpu_affinity=(-1,), lock_memory=False)
+        sched_priority=0, cpu_affinity=(-1,), lock_memory=False, sched_slice_us=100.0,
+        timer_slack_ns=0)
     return spec, sc.linkage.task.dim, sc.linkage.dof

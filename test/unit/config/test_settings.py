@@ -65,6 +65,8 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
         ('loop_process', True, None, None, None, True),
         ('cpu_affinity', [-1], None, None, None, True),
         ('lock_memory', False, None, None, None, True),
+        ('sched_slice_us', 100.0, 0.0, 100000.0, None, True),
+        ('timer_slack_ns', 0, 0, 10_000_000, None, True),
         ('publisher_nice', 5, 0, 19, None, True)],
     LmiControllerSettings: [*_COMMON,
         ('mode', 'penalty', None, None, ('penalty', 'acceleration_only'), False),

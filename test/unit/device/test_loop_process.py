@@ -24,6 +24,7 @@ from haptic_topology.device.backend import DeviceReading
 from haptic_topology.device.hosted import HostedStep
 from haptic_topology.device.loop import DeviceTick
 from haptic_topology.device.loop_process import LoopProcess
+from haptic_topology.device.realtime import sched_slice_ns
 from haptic_topology.device.records import CycleCodec
 from haptic_topology.device.runner import Published
 from haptic_topology.errors import DeviceError
@@ -140,6 +141,12 @@ def test_a_killed_child_is_a_fault_and_close_leaves_no_segment() -> None:
         assert proc.status and proc.error is None
         # A session of its own: its autogroup is not shared with this process's threads.
         assert os.getsid(proc.pid or 0) == proc.pid != os.getsid(0)
+        # Its one thread asked for the spec's scheduler slice (100 us) where the kernel
+        # keeps one per task, and said why not elsewhere.
+        if sched_slice_ns(proc.pid or 0):
+            assert sched_slice_ns(proc.pid or 0) == 100_000, proc.notices
+        else:
+            assert any('sched_slice_us 100' in n for n in proc.notices), proc.notices
         os.kill(proc.pid or 0, signal.SIGKILL)
         while proc.error is None and time.monotonic() < deadline:
             time.sleep(0.002)

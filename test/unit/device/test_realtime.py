@@ -126,3 +126,79 @@ def test_a_process_in_the_kernels_default_group_reads_an_empty_autogroup_and_lea
     monkeypatch.delenv(SESSION_NICE_ENV, raising=False)
     assert realtime.raise_session_nice(5) is None
     assert empty.read_text() == ''
+
+
+SLICE_CHILD = r'''
+import json, os, sys
+from haptic_topology.device.realtime import (sched_slice_ns, set_thread_realtime,
+                                             timer_slack_ns)
+out = {'default_slice': sched_slice_ns(), 'default_slack': timer_slack_ns()}
+out['problems'] = set_thread_realtime(0, [-1], False, float(sys.argv[1]), int(sys.argv[2]))
+out['slice'], out['slack'] = sched_slice_ns(), timer_slack_ns()
+out['nice'] = os.getpriority(os.PRIO_PROCESS, 0)
+print(json.dumps(out))
+'''
+
+
+def _kernel_keeps_slices() -> bool:
+    """Linux >= 6.12 keeps a slice per task under normal scheduling (``sched_setattr``'s
+    ``sched_runtime``)."""
+    major, minor = (int(x) for x in os.uname().release.split('.')[:2])
+    return (major, minor) >= (6, 12)
+
+
+def _slice_child(slice_us: float, slack_ns: int, nice: int = 0) -> dict:
+    res = subprocess.run(['nice', '-n', str(nice), sys.executable, '-c', SLICE_CHILD,
+                          str(slice_us), str(slack_ns)],
+                         capture_output=True, text=True, timeout=60, check=True)
+    return dict(json.loads(res.stdout))
+
+
+def test_the_slice_and_the_timer_slack_are_the_threads_own_and_keep_its_nice() -> None:
+    """The loop asks for a 250 us slice and 1 us of timer slack: both read back from the
+    kernel; the nice value the process started with stays (sched_setattr sets it too)."""
+    out = _slice_child(250.0, 1000, nice=3)
+    assert out['slack'] == 1000 and out['default_slack'] != 1000
+    assert out['nice'] == 3
+    if _kernel_keeps_slices():
+        assert out['problems'] == []
+        assert out['slice'] == 250_000 and out['default_slice'] != 250_000
+    else:
+        assert out['problems'] == ['sched_slice_us 250: this kernel keeps no slice per task '
+                                   '(Linux >= 6.12 does); not applied']
+
+
+def test_zero_leaves_the_kernels_slice_and_slack() -> None:
+    out = _slice_child(0.0, 0)
+    assert out['problems'] == []
+    assert (out['slice'], out['slack']) == (out['default_slice'], out['default_slack'])
+
+
+FIFO_CHILD = r'''
+import os
+from haptic_topology.device.realtime import set_thread_realtime
+problems = set_thread_realtime(5, [-1], False, 100.0, 0)
+print(problems, os.sched_getscheduler(0) == os.SCHED_FIFO)
+'''
+
+
+def test_a_sched_fifo_loop_keeps_sched_fifo_the_slice_is_for_normal_scheduling() -> None:
+    """sched_setattr with SCHED_OTHER would undo SCHED_FIFO: with a priority the slice is not
+    asked for (where SCHED_FIFO is refused, the loop gets the slice instead)."""
+    res = subprocess.run([sys.executable, '-c', FIFO_CHILD], capture_output=True, text=True,
+                         timeout=60, check=True)
+    if 'sched_priority 5: not permitted' in res.stdout:
+        assert res.stdout.strip().endswith(' False'), res.stdout
+    else:
+        assert res.stdout.strip() == '[] True', res.stdout
+
+
+def test_a_slice_outside_the_kernels_range_is_refused_naming_the_parameter() -> None:
+    from haptic_topology.config.settings import DeviceDriverSettings
+    from haptic_topology.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"parameter sched_slice_us: expected 0.0 \(the "
+                       r"kernel's default\) or a value in \[100, 100000\] us, got 50.0"):
+        DeviceDriverSettings(sched_slice_us=50.0).check()
+    DeviceDriverSettings(sched_slice_us=100.0).check()
+    DeviceDriverSettings(sched_slice_us=0.0).check()
