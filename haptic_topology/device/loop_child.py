@@ -96,7 +96,7 @@ class _Child:
                                  spec.period, spec.takeover_after)
         self.cycle = _RingCycle(self.device, spec.controller, updates, spec.wake_child,
                                 self.poll_control)
-        self.runner = LoopRunner(self.cycle, spec.runner, wake=self.flush)
+        self.runner = LoopRunner(self.cycle, spec.runner, sleep=self.sleep, wake=self.flush)
         # The statistics the node sorts for the percentiles, in memory it reads.
         self.arrays = [SharedArray.attach(spec.periods, PERIOD_WINDOW),
                        SharedArray.attach(spec.round_trips, RTT_KEEP)]
@@ -106,6 +106,14 @@ class _Child:
         self.stop = False
         self.parent_gone = False
         self._status_at = 0.0
+
+    def sleep(self, seconds: float) -> None:
+        """The pacer's sleep until the next deadline: it ends early when the node signals
+        (an update or a request), and the updates that came are decoded then, between two
+        cycles, so the cycle that follows only applies them (as it would have: the pacer
+        sleeps again until the deadline)."""
+        if wait_eventfd(self.spec.wake_child, seconds):
+            self.cycle.pull()
 
     def poll_control(self) -> None:
         for data in payloads(self.control):
