@@ -5,8 +5,9 @@ A bag is a directory ``<name>/`` holding ``metadata.yaml`` and ``<name>_0.mcap``
 (bytes) or ``max_bag_duration`` (s) the bag is split as rosbag2 splits it: at the first flush
 after the current file has reached the size or spans the duration, the file is finished
 (summary, footer) and ``<name>_1.mcap``, ``<name>_2.mcap``, ... follow; ``metadata.yaml``
-lists them in order with their counts, so a long recording never keeps more than one file's
-chunk index in memory. The MCAP file has profile
+lists them in order with their counts. The chunk indexes of the file being written wait in an
+unnamed temporary file beside it (:class:`SpilledChunkIndexes`), not in memory, until the
+file's summary takes them. The MCAP file has profile
 ``ros2``, one ``ros2msg`` schema per message type whose text is the .msg definition followed by
 every dependency in rosbag2's concatenated form (``====...\\nMSG: std_msgs/Header\\n...``),
 ``cdr`` message encoding, and per channel the ``offered_qos_profiles`` (YAML) and
@@ -29,14 +30,16 @@ from __future__ import annotations
 
 import os
 import struct
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
 import yaml
+from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.records import MessageIndex
+from mcap.records import ChunkIndex, MessageIndex
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rosbags.interfaces import (
@@ -98,6 +101,43 @@ def schema_text(typestore: Typestore, msgtype: str,
 #: libyaml's emitter where PyYAML has it (its wheels do): the same text as the pure-Python
 #: ``yaml.safe_dump``, about 5x faster; the recorder rewrites ``metadata.yaml`` at every flush.
 _DUMPER = getattr(yaml, 'CSafeDumper', yaml.SafeDumper)
+
+
+class SpilledChunkIndexes:
+    """Stands in for the list of chunk indexes that mcap's ``Writer`` keeps until
+    ``finish()`` writes them into the summary: each index is serialized as it comes (the
+    summary record itself) into an unnamed temporary file in ``directory``, and read back
+    once, when the summary is written. Kept as objects, an index is ~1.1 kB of Python
+    (its per-channel offsets are a dict), and the recorder closes a chunk every flush
+    (0.2 s): 5.5 kB/s of memory held until the file ends. The spill file takes ~0.2 kB per
+    chunk of disk and none of memory beyond the OS's page cache."""
+
+    def __init__(self, directory: Path) -> None:
+        self._spill = tempfile.TemporaryFile(dir=directory)
+        self._count = 0
+
+    def append(self, index: ChunkIndex) -> None:
+        record = RecordBuilder()
+        index.write(record)
+        self._spill.write(record.end())
+        self._count += 1
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __iter__(self) -> Any:
+        """One item whose ``write`` puts every index record into the summary, in order."""
+        self._spill.seek(0)
+        yield _RawRecords(self._spill.read())
+        self._spill.close()
+
+
+@dataclass(frozen=True)
+class _RawRecords:
+    data: bytes
+
+    def write(self, stream: RecordBuilder) -> None:
+        stream.write(self.data)
 
 
 def dump_yaml(data: Any) -> str:
@@ -236,6 +276,8 @@ class BagWriter:
                            f'({exc.strerror})') from None
         self._mcap = McapWriter(self._file, chunk_size=self._chunk_size,
                                 compression=self._compression)
+        if hasattr(self._mcap, '_Writer__chunk_indices'):    # mcap 1.x (requirements.lock)
+            self._mcap._Writer__chunk_indices = SpilledChunkIndexes(self.path)  # type: ignore[attr-defined]
         self._mcap.start(profile='ros2', library=f'haptic_topology {__version__}')
         schema_ids = {t: self._mcap.register_schema(t, 'ros2msg', text)
                       for t, text in self._schemas.items()}

@@ -94,3 +94,44 @@ def test_a_recorder_killed_in_a_later_file_leaves_a_bag_that_reads_and_repairs(
 def test_split_limits_must_not_be_negative(tmp_path: Path) -> None:
     with pytest.raises(BagError, match='max_bag_size'):
         _write(tmp_path / 'n', 1, max_bag_size=-1)
+
+
+def test_chunk_indexes_wait_on_disk_and_the_summary_indexes_every_chunk(
+        tmp_path: Path) -> None:
+    """The chunk indexes of the file being written are not kept as Python objects (1.1 kB
+    each, one per 0.2 s flush, for as long as the file lasts): the summary written at the
+    end still indexes every chunk, at the offsets where the chunks are, and readers that
+    seek through it (mcap's, rosbags') read every message."""
+    import tracemalloc
+
+    from mcap.data_stream import ReadDataStream
+    from mcap.reader import make_reader
+    from mcap.records import Chunk
+
+    tracemalloc.start()
+    w = _write(tmp_path / 'b', 500, flush_every=1)      # 500 chunks of one message each
+    before = tracemalloc.get_traced_memory()[0]
+    for i in range(501, 1501):
+        w.write(0, 1_000_000_000 + i * 1_000_000, _state_bytes(i))
+        w.flush()
+    grown = tracemalloc.get_traced_memory()[0] - before
+    tracemalloc.stop()
+    w.close()
+    # 1000 more chunks: mcap's own ChunkIndex objects would hold > 500 kB here.
+    assert grown < 100_000, grown
+    path = tmp_path / 'b' / 'b_0.mcap'
+    with path.open('rb') as f:
+        summary = make_reader(f).get_summary()
+        assert summary is not None
+        indexes = summary.chunk_indexes
+        assert len(indexes) == 1500
+        for ci in indexes:
+            f.seek(ci.chunk_start_offset + 9)
+            chunk = Chunk.read(ReadDataStream(f))
+            assert (chunk.message_start_time, chunk.message_end_time) == (
+                ci.message_start_time, ci.message_end_time)
+        f.seek(0)
+        seqs = [int(m.log_time) for _, _, m in make_reader(f).iter_messages()]
+    assert seqs == [1_000_000_000 + i * 1_000_000 for i in range(1, 1501)]
+    with AnyReader([tmp_path / 'b'], default_typestore=typestore_with_haptic_msgs()) as r:
+        assert sum(1 for _ in r.messages()) == 1500
