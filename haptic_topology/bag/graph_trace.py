@@ -284,9 +284,7 @@ def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
             for i, s in enumerate(seqs[1:], start=1):
                 if int(s) - 1 in vt_path:
                     vt[i] = vt_path[int(s) - 1]
-        counts = np.array([int(known[r].constraint_count) for r in rows])
-        idx = np.searchsorted(rows, np.arange(len(seqs)), side='right') - 1
-        trace.columns['constraint_count'][:] = np.where(idx >= 0, counts[np.maximum(idx, 0)], 0)
+        trace.hold_constraint_counts(rows, [int(known[r].constraint_count) for r in rows])
         if contacts:
             # The VE's deepest contact and energy balance at each update, held until the next
             # one (the VE reports them at its rate), NaN after the last.

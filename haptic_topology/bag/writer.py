@@ -277,7 +277,7 @@ class BagWriter:
         self._mcap = McapWriter(self._file, chunk_size=self._chunk_size,
                                 compression=self._compression)
         if hasattr(self._mcap, '_Writer__chunk_indices'):    # mcap 1.x (requirements.lock)
-            self._mcap._Writer__chunk_indices = SpilledChunkIndexes(self.path)  # type: ignore[attr-defined]
+            self._mcap._Writer__chunk_indices = SpilledChunkIndexes(self.path)
         self._mcap.start(profile='ros2', library=f'haptic_topology {__version__}')
         schema_ids = {t: self._mcap.register_schema(t, 'ros2msg', text)
                       for t, text in self._schemas.items()}

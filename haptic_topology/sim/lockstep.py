@@ -115,7 +115,6 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     task = sc.linkage.task
     ve = virtual_environment(sc)
     dyn = ve.dyn
-    ve_check = LinkageDynamics(sc.linkage)  # separate workspace for the trace's truth
     cycle = HostedCycle(build_device_loop(sc),
                         build_controller_loop(sc, mode, update_period=sc.update_period))
     first = ve.snapshot(seq=0)
@@ -138,6 +137,7 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     update_seq = 1
     # (row, depth m, energy J) per update; the VE's initial state describes the first row
     contact_rows = [(0, _depth(first), first.contact_energy)]
+    count_rows = [(0, first.constraint_count)]      # (row, t) per update, as the graph's
     for k in range(n):
         t = ns_to_seconds(k * step_ns)
         if cycle.waiting_for_update():
@@ -156,7 +156,6 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
         trace.record(k, t=t, device_pose=r.pose, device_twist=r.twist,
                      hand_wrench=r.hand_wrench, command=ans.out.wrench, applied=tick.applied,
                      vt_pose=vt_pose, lmi_pose=ans.out.vt_pose, q=ve.q,
-                     constraint_count=ve_check.constraints(ve.q).count,
                      lmi_constraint_count=ans.out.constraint_count, status=int(tick.status))
         if ve.contacts is not None:
             trace.record_env_wrench(k, ans.out.env_wrench)
@@ -167,6 +166,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
             update_seq += 1
             # It describes the VE after the input before this one: at this row's state.
             contact_rows.append((k, _depth(snap), snap.contact_energy))
+            count_rows.append((k, snap.constraint_count))
+    trace.hold_constraint_counts([r for r, _ in count_rows], [c for _, c in count_rows])
     if ve.contacts is not None:
         rows, depth, energy = zip(*contact_rows, strict=True)
         trace.hold_contacts(np.array(rows, dtype=int), list(depth), list(energy))

@@ -2,7 +2,10 @@
 
 A trace is what both the offline simulation and a recorded bag reduce to: device pose/twist,
 hand wrench, command, the VT hand pose in the VE, the LMI's VT hand pose, joint positions and
-constraint counts. It is written as CSV with a one-line JSON comment header (metadata).
+constraint counts. It is written as CSV with a one-line JSON comment header (metadata). The
+VE's constraint count ``constraint_count`` (``t`` of eq. 18) is the one its LMI updates report,
+held until the next (:meth:`Trace.hold_constraint_counts`), in the offline simulation as in a
+recorded run; ``lmi_constraint_count`` is the controller's at every cycle.
 
 Drift (the paper's Fig. 6 / Fig. 8 measure): the translational distance (m) between the
 device and the VT's grasp point in the VE at the same instant.
@@ -89,6 +92,19 @@ class Trace:
         at = np.maximum(idx, 0)
         self.columns['penetration'][:] = np.where(held, np.asarray(depth)[at], np.nan)
         self.columns['contact_energy'][:] = np.where(held, np.asarray(energy)[at], np.nan)
+
+    def hold_constraint_counts(self, rows: np.ndarray | list[int],
+                               counts: np.ndarray | list[int]) -> None:
+        """The VE's constraint count as its LMI updates report it: update ``i`` describes
+        row ``rows[i]`` (ascending) and holds until the next one (after the last too); 0
+        before the first."""
+        rows = np.asarray(rows, dtype=int)
+        col = self.columns['constraint_count']
+        if rows.size == 0:
+            col[:] = 0
+            return
+        idx = np.searchsorted(rows, np.arange(len(self)), side='right') - 1
+        col[:] = np.where(idx >= 0, np.asarray(counts)[np.maximum(idx, 0)], 0)
 
     def record(self, k: int, t: float, **values: Any) -> None:
         self.t[k] = t
