@@ -50,12 +50,19 @@ _PR_SET_PDEATHSIG = 1
 
 
 class _RingCycle(HostedCycle):
-    """A :class:`HostedCycle` whose updates come from the node's ring."""
+    """A :class:`HostedCycle` whose updates come from the node's ring.
+
+    :meth:`apply_early` applies the updates that came while the loop sleeps towards its next
+    deadline: nothing changes the loop's state between the end of one cycle and the start of
+    the next, so the controller ends up where applying them at the start of the next cycle
+    would leave it (the same loop time, the same inputs replayed), and the cycle that follows
+    has only the step left. Their verdicts are returned with that cycle's."""
 
     def __init__(self, device: DeviceLoop, controller: ControllerLoop, ring: ShmRing,
                  wake_fd: int, poll: Any) -> None:
         super().__init__(device, controller)
         self._ring, self._wake_fd, self._poll = ring, wake_fd, poll
+        self._early: tuple[str, ...] = ()
 
     def pull(self) -> bool:
         got = False
@@ -66,7 +73,13 @@ class _RingCycle(HostedCycle):
 
     def apply_updates(self) -> tuple[str, ...]:
         self.pull()
-        return super().apply_updates()
+        early, self._early = self._early, ()
+        return early + super().apply_updates()
+
+    def apply_early(self) -> None:
+        """Take and apply the updates in the ring now, between two cycles (see class doc)."""
+        self.pull()
+        self._early += super().apply_updates()
 
     def wait_offered(self, timeout: float) -> bool:
         if self.pull():
@@ -109,11 +122,11 @@ class _Child:
 
     def sleep(self, seconds: float) -> None:
         """The pacer's sleep until the next deadline: it ends early when the node signals
-        (an update or a request), and the updates that came are decoded then, between two
-        cycles, so the cycle that follows only applies them (as it would have: the pacer
-        sleeps again until the deadline)."""
+        (an update or a request), and the updates that came are decoded and applied then,
+        between two cycles (:meth:`_RingCycle.apply_early`); the pacer sleeps again until the
+        deadline."""
         if wait_eventfd(self.spec.wake_child, seconds):
-            self.cycle.pull()
+            self.cycle.apply_early()
 
     def poll_control(self) -> None:
         for data in payloads(self.control):

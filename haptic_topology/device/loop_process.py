@@ -28,7 +28,8 @@ In lock-step each side wakes the other with an ``eventfd`` after writing (the ch
 cycle's record, the node after an update); with the wall clock the node takes the records
 every few milliseconds and the child never makes a system call for it, and the child sleeps
 towards its next deadline on the node's ``eventfd``: an update that comes while it sleeps is
-decoded then, off the deadline path, and applied at the start of the next cycle.
+decoded and applied then, off the deadline path (the loop's state does not change between
+two cycles, so this is what applying it at the start of the next cycle would do).
 
 Lifetimes: the node creates (and unlinks) the rings. The child stops at a stop request, or
 when its parent dies (``PR_SET_PDEATHSIG`` delivers SIGTERM, and the parent pid is checked

@@ -25,7 +25,6 @@ from haptic_topology.device.loop import (
     ns_to_seconds,
     period_ns,
 )
-from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.errors import ConfigError
 from haptic_topology.sim.lockstep import (
     build_controller_loop,
@@ -47,14 +46,17 @@ def _cycle(sc: Scenario, mode: ControlMode, **kwargs: Any) -> tuple[HostedCycle,
 
 def _simulate_direct(sc: Scenario, mode: ControlMode) -> Trace:
     """``simulate`` as it was before HostedCycle: DeviceLoop and ControllerLoop wired by hand
-    (the reference the hosted cycle must reproduce exactly)."""
+    (the reference the hosted cycle must reproduce exactly). It applies each LMI update
+    right after the cycle whose input completed it, where the hosted cycle applies it at the
+    start of the next one (as the loop process does when it sleeps); both must agree."""
     task = sc.linkage.task
     ve = virtual_environment(sc)      # shared with simulate: the VE is not under test here
     dyn = ve.dyn
-    ve_check = LinkageDynamics(sc.linkage)
     device = build_device_loop(sc)
     loop = build_controller_loop(sc, mode, update_period=sc.update_period)
-    loop.on_update(ve.snapshot(seq=0))
+    first = ve.snapshot(seq=0)
+    loop.on_update(first)
+    counts = [(0, first.constraint_count)]
     step_ns = period_ns(sc.dt)
 
     def answer(tick: DeviceTick, stamp: float) -> Answer:
@@ -85,11 +87,13 @@ def _simulate_direct(sc: Scenario, mode: ControlMode) -> Trace:
         trace.record(k, t=t, device_pose=r.pose, device_twist=r.twist,
                      hand_wrench=r.hand_wrench, command=ans.out.wrench, applied=tick.applied,
                      vt_pose=vt_pose, lmi_pose=ans.out.vt_pose, q=ve.q,
-                     constraint_count=ve_check.constraints(ve.q).count,
                      lmi_constraint_count=ans.out.constraint_count, status=int(tick.status))
         if hand is not None and inputs % sc.update_period == 0:
-            loop.on_update(ve.snapshot(seq=update_seq))
+            snap = ve.snapshot(seq=update_seq)
+            loop.on_update(snap)
+            counts.append((k, snap.constraint_count))
             update_seq += 1
+    trace.hold_constraint_counts([r for r, _ in counts], [c for _, c in counts])
     return trace
 
 
