@@ -23,6 +23,7 @@ from rclpy.node import Node
 
 from haptic_topology.config.params import NodeParams
 from haptic_topology.device.realtime import (
+    fix_mmap_threshold,
     renice_process,
     reset_session_nice,
     set_realtime_priority,
@@ -104,6 +105,7 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
     argv = list(sys.argv if args is None else args)
     localhost_discovery_default(os.environ)
     start_from_env()
+    fix_mmap_threshold()        # before rclpy allocates: RSS stays flat over long runs
     if params is not None:
         try:
             check_config_args(argv, params, prog if prog in params else None)

@@ -202,3 +202,43 @@ def test_a_slice_outside_the_kernels_range_is_refused_naming_the_parameter() -> 
         DeviceDriverSettings(sched_slice_us=50.0).check()
     DeviceDriverSettings(sched_slice_us=100.0).check()
     DeviceDriverSettings(sched_slice_us=0.0).check()
+
+
+MMAP_CHILD = r'''
+import ctypes, ctypes.util, json, sys
+from haptic_topology.device.realtime import fix_mmap_threshold
+
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in (
+        'arena', 'ordblks', 'smblks', 'hblks', 'hblkhd', 'usmblks', 'fsmblks', 'uordblks',
+        'fordblks', 'keepcost')]
+
+
+libc = ctypes.CDLL(ctypes.util.find_library('c'))
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = [ctypes.c_void_p]
+libc.mallinfo2.restype = MallInfo2
+fixed = fix_mmap_threshold() if sys.argv[1] == 'fixed' else None
+libc.free(libc.malloc(4 << 20))     # a mapped block freed: glibc's dynamic threshold rises
+before = libc.mallinfo2().hblks
+block = libc.malloc(512 << 10)      # above the fixed threshold, below the raised one
+print(json.dumps({'fixed': fixed, 'mapped_blocks': libc.mallinfo2().hblks - before}))
+libc.free(block)
+'''
+
+
+def _mmap_child(mode: str) -> dict:
+    res = subprocess.run([sys.executable, '-c', MMAP_CHILD, mode], capture_output=True,
+                         text=True, timeout=60, check=True)
+    return dict(json.loads(res.stdout))
+
+
+@pytest.mark.skipif(not hasattr(__import__('ctypes').CDLL(None), 'mallinfo2'),
+                    reason='the C library is not glibc >= 2.33')
+def test_the_mmap_threshold_stays_fixed_after_a_mapped_block_is_freed() -> None:
+    """Every node process fixes glibc's mmap threshold (``run_main``): a 512 KiB block is
+    still mapped after a 4 MiB one was freed, where glibc's dynamic threshold would have
+    taken it from the heap (which then grows while the bytes in use stay the same)."""
+    assert _mmap_child('fixed') == {'fixed': True, 'mapped_blocks': 1}
+    assert _mmap_child('dynamic') == {'fixed': None, 'mapped_blocks': 0}
