@@ -166,13 +166,15 @@ class LinkageDynamics:
         np.copyto(minv, minv.T, where=self._lower)
         return jacobian @ minv @ jacobian.T
 
-    def mechanism_basis(self, q: np.ndarray) -> np.ndarray:
+    def mechanism_basis(self, q: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
         """``N`` (d x f): the closed chain's velocities are ``dq = N v`` (``N = S N_w``,
         ``N_w`` an orthonormal basis of ``N(J_c S)``, so that ``v`` is unit-independent like
-        the weighted joint rates); the identity for a serial linkage."""
+        the weighted joint rates); the identity for a serial linkage. ``dq``: the joint rates
+        at ``q``, which choose the free directions at a singular configuration of the
+        closures (:meth:`~haptic_topology.dynamics.loops.LoopClosures.basis`)."""
         if self.loops is None:
             return np.eye(self.dof)
-        return self.loops.column_scale[:, None] * self.loops.basis(q).scaled_null
+        return self.loops.column_scale[:, None] * self.loops.basis(q, velocity=dq).scaled_null
 
     def constraints(self, q: np.ndarray) -> ConstraintDirections:
         """Weighted SVD of J_h and directions of topological constraint (eq. 13, 18); of
@@ -218,7 +220,7 @@ class LinkageDynamics:
         (``dq = N v``, :meth:`mechanism_basis`): ``D_r = N^T D N``, ``G_r = N^T G``,
         ``B_r = N^T B``, ``J_r = J_h N`` (eqs. 17-19 on the mechanism); ``q`` is the local
         coordinate of ``v`` (0 at the snapshot) and ``dq = v``."""
-        n = self.mechanism_basis(q)
+        n = self.mechanism_basis(q, dq)
         v = np.linalg.lstsq(n, dq, rcond=None)[0]
         jr = j @ n
         cons = constraint_directions(jr, self.task, self.linkage.constraints)

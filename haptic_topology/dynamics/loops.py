@@ -11,6 +11,17 @@ columns), and a singular value of ``J_w`` counts when it is at least ``tolerance
 decision does not depend on the unit of length. Redundant equations (a planar loop closed
 with a 3-D ``spherical`` point, whose z row is zero) are dropped by the same decision.
 
+Singular configurations of the closures (a four-bar's change point, where its links lie on
+one line) have a larger mobility than the configurations around them, and a run could pass
+exactly through one. A run keeps the rank of its start (:meth:`LoopClosures.keep_rank`; a
+start cannot be singular, see :func:`check_assembled`), so the mechanism's mobility and the
+size of the LMI's updates never change. Where fewer singular values than that rank count, the
+directions that stay free are chosen, among those whose singular value does not count, as
+the ones the velocity points along (the branch the chain came in on); the closures give no
+acceleration condition along the others (their ``row_map`` rows are 0: ``Jdot_c qd`` has no
+component there to divide by a zero singular value), and the Gauss-Newton steps of the
+projection use only the counted singular values.
+
 Dynamics (eq. 1 with constraint forces): ``D qdd + B + G = tau + J_c^T lambda`` with
 ``J_c qdd = -Jdot_c qd``, solved with the ``r`` independent rows the rank decision keeps
 (Gauss's principle: ``qdd`` is the unconstrained acceleration corrected in the metric ``D``).
@@ -113,6 +124,9 @@ class LoopClosures:
         #: ``S``: ``L_c`` for prismatic columns, 1 for revolute (d entries).
         self.column_scale = joint_scale(self.linkage)
         self.equations = int(self.row_scale.size)
+        #: The rank of ``J_c`` kept through a run (:meth:`keep_rank`); None: decided at each
+        #: ``q``.
+        self.rank: int | None = None
 
     # -- kinematics -----------------------------------------------------------------------
     def residual(self, q: np.ndarray) -> np.ndarray:
@@ -164,19 +178,51 @@ class LoopClosures:
         return np.array(out)
 
     def basis(self, q: np.ndarray, jacobian: np.ndarray | None = None,
-              rank: int | None = None) -> ClosureBasis:
+              rank: int | None = None, velocity: np.ndarray | None = None) -> ClosureBasis:
         """The rank decision on the weighted ``J_c`` at ``q`` (module docstring); ``rank``:
         keep that many directions instead (a configuration slightly off the closures, e.g. a
         Runge-Kutta stage, where the redundant equations of an overconstrained loop are no
-        longer exactly dependent)."""
+        longer exactly dependent; default: :attr:`rank`, else decided here). Where fewer
+        singular values count than are kept, the free directions are chosen along
+        ``velocity`` (joint rates at ``q``; module docstring)."""
         j = self.jacobian(q) if jacobian is None else jacobian
         jw = self.row_scale[:, None] * j * self.column_scale[None, :]
         u, s, vt = np.linalg.svd(jw, full_matrices=True)
-        r = int(np.count_nonzero(s >= self.tolerance * self.length)) if rank is None else rank
+        counted = int(np.count_nonzero(s >= self.tolerance * self.length))
+        r = rank if rank is not None else self.rank if self.rank is not None else counted
+        if r > counted:
+            vt = np.vstack([vt[:counted], self._free_last(vt[counted:], r - counted,
+                                                          velocity)])
         rows = vt[:r] / self.column_scale[None, :]                   # V_r^T S^-1
         null, _ = np.linalg.qr(self.column_scale[:, None] * vt[r:].T)  # S V_null
-        row_map = (u[:, :r] / s[:r]).T * self.row_scale[None, :]       # Sigma^-1 U^T W_c
+        k = min(r, counted)
+        row_map = (u[:, :k] / s[:k]).T * self.row_scale[None, :]       # Sigma^-1 U^T W_c
+        if k < r:       # no acceleration condition along the rows that do not count
+            row_map = np.vstack([row_map, np.zeros((r - k, j.shape[0]))])
         return ClosureBasis(rows, null, s, row_map, vt[r:].T)
+
+    def _free_last(self, near: np.ndarray, extra: int, velocity: np.ndarray | None
+                   ) -> np.ndarray:
+        """The rows ``near`` (orthonormal, weighted joint space: directions whose singular
+        value does not count) re-ordered so that the first ``extra`` are constrained and the
+        rest free, the velocity's component among them first of the free ones."""
+        if velocity is None:
+            return near
+        w = near @ (np.asarray(velocity, dtype=float) / self.column_scale)
+        norm = float(np.linalg.norm(w))
+        if norm <= 1e-12 * max(1.0, float(np.linalg.norm(velocity))):
+            return near                 # at rest along them: the SVD's order
+        # An orthonormal basis of the rows' span whose last vector is the velocity's direction.
+        basis, _ = np.linalg.qr(np.column_stack([w / norm, np.eye(w.size)]))
+        coeff = np.roll(basis[:, :w.size], -1, axis=1)
+        return (near.T @ coeff).T
+
+    def keep_rank(self, q: np.ndarray) -> int:
+        """Keep the rank of ``J_c`` at ``q`` (a run's start, not a singular configuration:
+        :func:`check_assembled`) for every later :meth:`basis`; returns it."""
+        self.rank = None
+        self.rank = int(self.basis(q).rows.shape[0])
+        return self.rank
 
     def mobility(self, q: np.ndarray) -> int:
         """f = d - rank(J_c) at ``q``."""
@@ -202,9 +248,10 @@ class LoopClosures:
                   * self.column_scale[None, free])
             if rank is None:
                 step = np.linalg.lstsq(jw, phi, rcond=self.tolerance)[0]
-            else:
+            else:       # at most the singular values that count (module docstring)
                 u, sv, vt = np.linalg.svd(jw, full_matrices=False)
-                step = vt[:rank].T @ ((u[:, :rank].T @ phi) / sv[:rank])
+                k = min(rank, int(np.count_nonzero(sv >= self.tolerance * self.length)))
+                step = vt[:k].T @ ((u[:, :k].T @ phi) / sv[:k])
             q[free] -= self.column_scale[free] * step
         return q, err
 
@@ -215,7 +262,7 @@ class LoopClosures:
         that violates ``J_c dq = 0`` removed in the metric ``D = mass_matrix(q)`` at the
         projected ``q``."""
         q, _ = self.assemble(q, iterations=10, rank=rank)
-        a = self.basis(q, rank=rank).rows
+        a = self.basis(q, rank=rank, velocity=dq).rows
         factor = spd_factor(mass_matrix(q))
         dinv_at = spd_solve(factor, a.T)
         lam = np.linalg.solve(a @ dinv_at, a @ dq)
@@ -227,7 +274,7 @@ class LoopClosures:
         """``qdd`` of eq. 1 with the closures' forces: ``D qdd = free_torque + J_c^T
         lambda`` (``free_torque = tau - B - G``), ``J_c qdd = -Jdot_c qd``; ``basis``: the
         rank decision at ``q`` when the caller has it."""
-        basis = self.basis(q, rank=rank) if basis is None else basis
+        basis = self.basis(q, rank=rank, velocity=dq) if basis is None else basis
         a = basis.rows
         rhs = -(basis.row_map @ self.drift(q, dq))
         factor = spd_factor(mass_matrix)
@@ -245,7 +292,7 @@ class LoopClosures:
         rank of ``J_c`` is decided once, at ``q`` (on the closures), and kept for the stages
         and the projection: off the closures the redundant equations of an overconstrained
         loop (a Bennett linkage) become independent and would lock it."""
-        first = self.basis(q)
+        first = self.basis(q, velocity=dq)
         rank = first.rows.shape[0]
 
         def deriv(qs: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, float]:

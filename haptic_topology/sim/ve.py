@@ -80,6 +80,8 @@ class VirtualEnvironment:
         self.dyn = dynamics
         self.q = np.array(q0, dtype=float)
         self.dq = np.array(dq0, dtype=float)
+        if dynamics.loops is not None:      # the mobility of the start, through the run
+            dynamics.loops.keep_rank(self.q)
         self.internal_step = internal_step
         self.max_gap = max_gap
         #: ``(K_pc, B_pc)`` when the hand input carries the coordination wrench (VT

@@ -299,6 +299,65 @@ def test_a_start_at_a_change_point_is_refused() -> None:
     check_assembled(dyn.linkage, q, np.zeros(3), 's.yaml: scenario')    # away from it: fine
 
 
+def _branch_tangents(cl: LoopClosures, q: np.ndarray) -> list[np.ndarray]:
+    """The unit joint-rate directions at the singular configuration ``q`` (rank of ``J_c``
+    one less than around it) along which the closures can be kept to second order: ``t`` in
+    ``N(J_c)`` with ``Jdot_c(t) t`` in the range of ``J_c`` (a quadratic in the null space's
+    coordinates, one root per assembly branch through ``q``)."""
+    basis = cl.basis(q)
+    assert basis.mobility == 2
+    n1, n2 = basis.null.T
+    u, _, _ = np.linalg.svd(cl.row_scale[:, None] * cl.jacobian(q))
+    left = u[:, -1]                     # the weighted J_c's left null vector
+
+    def f(t: np.ndarray) -> float:
+        return float(left @ (cl.row_scale * cl.drift(q, t)))
+
+    a, c = f(n1), f(n2)
+    b = f(n1 + n2) - a - c
+    roots = np.roots([a, b, c])
+    assert np.all(np.isreal(roots)) and abs(roots[0] - roots[1]) > 0.1
+    return [(t := x.real * n1 + n2) / np.linalg.norm(t) for x in roots]
+
+
+@pytest.mark.parametrize('branch', [0, 1])
+@pytest.mark.parametrize('sign', [1.0, -1.0])
+def test_a_run_through_the_change_point_itself_keeps_its_mobility_and_its_branch(
+        branch: int, sign: float) -> None:
+    """At the change point itself (q = (0, 0, pi): rank(J_c) 1, mobility 2) a run keeps the
+    mobility of its start (``keep_rank``): the LMI's basis has one velocity, along the branch
+    the chain moves on, and the passive chain leaves along that branch (its first step turns
+    the velocity by less than 1e-5 rad; deciding the rank at the point instead gives two
+    velocities and turns it by 2e-5) with the closure held to 1e-9 m and the energy to 1e-6,
+    for either branch and direction."""
+    dyn = _change_point_fourbar()
+    cl = dyn.loops
+    assert cl is not None
+    flat = np.array([0.0, 0.0, math.pi])
+    tangent = sign * _branch_tangents(cl, flat)[branch]
+    start, _ = cl.assemble(np.array([0.6, -0.5, 2.0]), fixed=(0,))
+    assert cl.keep_rank(start) == 2 and cl.mobility(flat) == 1
+    dq = 5.0 * tangent
+    n = dyn.mechanism_basis(flat, dq)
+    assert n.shape == (3, 1) and abs(float(n[:, 0] @ tangent)) > 1 - 1e-12
+    snap = dyn.snapshot(flat, dq)
+    assert snap.mechanism is not None and snap.dq.shape == (1,)
+    np.testing.assert_allclose(snap.mechanism @ snap.dq, dq, rtol=0, atol=1e-12)
+
+    def stage(qs: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        return dyn.mass_matrix(qs), -dyn.bias(qs, vs), 0.0
+
+    energy0 = 0.5 * dq @ dyn.mass_matrix(flat) @ dq
+    q1, dq1, _ = cl.step(flat, dq, 1e-3, stage)
+    turn = math.acos(min(1.0, float(dq1 @ tangent) / float(np.linalg.norm(dq1))))
+    assert turn < 1e-5 and float((q1 - flat) @ tangent) > 0.0
+    q, v = q1, dq1
+    for _ in range(300):
+        q, v, _ = cl.step(q, v, 1e-3, stage)
+        assert float(np.abs(cl.residual(q)).max()) < 1e-9
+        assert abs(0.5 * v @ dyn.mass_matrix(q) @ v - energy0) / energy0 < 1e-6
+
+
 def test_a_passive_four_bar_passes_near_its_change_point_without_blowing_up() -> None:
     """The change-point four-bar whirling passively (8 rad/s, 3 s, RK4 at 1 ms) comes within
     3e-4 L_c of its change point (the smallest weighted singular value of J_c) several times;
