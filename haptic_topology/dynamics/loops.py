@@ -191,8 +191,7 @@ class LoopClosures:
         counted = int(np.count_nonzero(s >= self.tolerance * self.length))
         r = rank if rank is not None else self.rank if self.rank is not None else counted
         if r > counted:
-            vt = np.vstack([vt[:counted], self._free_last(vt[counted:], r - counted,
-                                                          velocity)])
+            vt = np.vstack([vt[:counted], self._free_last(vt[counted:], velocity)])
         rows = vt[:r] / self.column_scale[None, :]                   # V_r^T S^-1
         null, _ = np.linalg.qr(self.column_scale[:, None] * vt[r:].T)  # S V_null
         k = min(r, counted)
@@ -201,11 +200,11 @@ class LoopClosures:
             row_map = np.vstack([row_map, np.zeros((r - k, j.shape[0]))])
         return ClosureBasis(rows, null, s, row_map, vt[r:].T)
 
-    def _free_last(self, near: np.ndarray, extra: int, velocity: np.ndarray | None
-                   ) -> np.ndarray:
-        """The rows ``near`` (orthonormal, weighted joint space: directions whose singular
-        value does not count) re-ordered so that the first ``extra`` are constrained and the
-        rest free, the velocity's component among them first of the free ones."""
+    def _free_last(self, near: np.ndarray, velocity: np.ndarray | None) -> np.ndarray:
+        """Another orthonormal basis (rows) of the span of the rows ``near`` (weighted joint
+        space: the directions whose singular value does not count), whose last row is the
+        direction of ``velocity``'s component in it: :meth:`basis` keeps the last rows free
+        (without a velocity along them, ``near`` as it is)."""
         if velocity is None:
             return near
         w = near @ (np.asarray(velocity, dtype=float) / self.column_scale)
