@@ -105,7 +105,7 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
     argv = list(sys.argv if args is None else args)
     localhost_discovery_default(os.environ)
     start_from_env()
-    fix_mmap_threshold()        # before rclpy allocates: RSS stays flat over long runs
+    fix_mmap_threshold()        # before rclpy.init and the nodes: RSS stays flat over hours
     if params is not None:
         try:
             check_config_args(argv, params, prog if prog in params else None)
