@@ -162,3 +162,29 @@ def integrate_pose(pose: np.ndarray, twist: np.ndarray, dt: float) -> None:
     for i in range(3):
         pose[i] = pose[i] + twist[i] * dt
     log3(r, pose[3:6])
+
+
+@njit(void(VEC, VEC, VEC, float64, VEC, VEC), cache=True)
+def rk4_stage(x: np.ndarray, v: np.ndarray, a: np.ndarray, c: float, k_a: np.ndarray,
+              out: np.ndarray) -> None:
+    """One stage of classical RK4 on the state ``x = [q, dq]`` (2d) of a second-order system
+    whose stage derivative is ``[v, a]`` (``v`` the stage's velocity, ``a`` its acceleration,
+    d each): ``k_a`` (d) takes ``a``, and ``out`` (2d) = ``x + c [v, a]``, each entry
+    computed as ``x_i + (k_i c)`` (the bits of numpy's ``x + c * k``)."""
+    d = v.size
+    for i in range(d):
+        k_a[i] = a[i]
+        out[i] = x[i] + v[i] * c
+        out[d + i] = x[d + i] + a[i] * c
+
+
+@njit(void(MAT, float64, VEC), cache=True)
+def rk4_finish(k: np.ndarray, sixth: float, x: np.ndarray) -> None:
+    """The end of a classical RK4 step, in place: ``x += sixth (k1 + 2 k2 + 2 k3 + k4)``
+    with the stage derivatives ``k`` (4 x 2d) summed in that order and ``sixth = h / 6``
+    (the bits of numpy's ``x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)``)."""
+    for i in range(x.size):
+        s = k[0, i] * 1.0 + k[1, i] * 2.0
+        s = s + k[2, i] * 2.0
+        s = s + k[3, i] * 1.0
+        x[i] = x[i] + s * sixth

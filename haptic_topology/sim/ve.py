@@ -19,6 +19,7 @@ import pinocchio as pin
 
 from haptic_topology.control.laws import StableHold
 from haptic_topology.control.lmi import LmiSnapshot
+from haptic_topology.dynamics.compiled import rk4_finish, rk4_stage
 from haptic_topology.dynamics.constraints import task_scale
 from haptic_topology.dynamics.contacts import ContactModel
 from haptic_topology.dynamics.linkage_dynamics import (
@@ -34,7 +35,6 @@ _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 #: Table I, 1e-11 for a 100-link chain whose D has a condition number of 1e8) and 10-18 %
 #: faster from ~100 joints on.
 _ABA_FRAME = pin.Convention.WORLD
-_RK4_WEIGHTS = np.array([[1.0], [2.0], [2.0], [1.0]])
 
 
 def _frame_jacobian_6x1(model: pin.Model, data: pin.Data, q: np.ndarray, frame: int,
@@ -103,10 +103,7 @@ class VirtualEnvironment:
         self._views = (tuple(z[i, :d] for i in stages), tuple(z[i, d:2 * d] for i in stages),
                        tuple(z[i, 2 * d:] for i in stages),
                        tuple(z[i, :2 * d] for i in stages),   # stage states [q_i, dq_i]
-                       tuple(z[i, d:] for i in stages),       # derivatives [dq_i, qdd_i]
-                       z[:, d:])
-        self._weighted = np.zeros((4, 2 * d))
-        self._incr = np.zeros(2 * d)
+                       z[:, d:])                               # derivatives [dq_i, qdd_i]
         self._wrench6 = np.zeros(6)
         self._pin = (dynamics.model, dynamics.data, dynamics.hand_frame,
                      pin.computeFrameJacobian if d > 1 else _frame_jacobian_6x1)
@@ -173,40 +170,31 @@ class VirtualEnvironment:
         aba = pin.aba
         w6 = self._wrench6
         w6[self._task_rows] = wrench   # zero in the rows outside the task (planar)
-        mul, add = np.multiply, np.add
-        weighted, incr = self._weighted, self._incr
         (q1, q2, q3, q4), (v1, v2, v3, v4), (a1, a2, a3, a4), (x1, x2, x3, x4), \
-            (k1, k2, k3, _), derivs = self._views
+            derivs = self._views
         j6 = self._hand_now()[0]
         if self.q is not self._state_out[0] or self.dq is not self._state_out[1]:
             q1[:] = self.q      # else stage 1 still holds the state the last call left
             v1[:] = self.dq
         half = 0.5 * h
         sixth = h / 6.0
-        # (ufuncs with a positional out and w6.dot(J): ~0.2-0.4 us less per call than the
-        # keyword / J.T.dot spellings, same bits)
+        # Each stage: the acceleration a_i from Pinocchio, then one compiled call stores it
+        # and forms the next stage's state x + c k_i (w6.dot(J): ~0.2-0.4 us less per call
+        # than J.T.dot, same bits).
         for step in range(n):
             if step:
                 j6 = jacobian(model, data, q1, frame, _LWA)
-            a1[:] = aba(model, data, q1, v1, w6.dot(j6), _ABA_FRAME)
-            mul(k1, half, incr)
-            add(x1, incr, x2)                                   # x + h/2 k1
-            a2[:] = aba(model, data, q2, v2,
-                        w6.dot(jacobian(model, data, q2, frame, _LWA)), _ABA_FRAME)
-            mul(k2, half, incr)
-            add(x1, incr, x3)                                   # x + h/2 k2
-            a3[:] = aba(model, data, q3, v3,
-                        w6.dot(jacobian(model, data, q3, frame, _LWA)), _ABA_FRAME)
-            mul(k3, h, incr)
-            add(x1, incr, x4)                                   # x + h k3
+            rk4_stage(x1, v1, aba(model, data, q1, v1, w6.dot(j6), _ABA_FRAME), half, a1,
+                      x2)                                       # x + h/2 k1
+            rk4_stage(x1, v2, aba(model, data, q2, v2,
+                                  w6.dot(jacobian(model, data, q2, frame, _LWA)),
+                                  _ABA_FRAME), half, a2, x3)    # x + h/2 k2
+            rk4_stage(x1, v3, aba(model, data, q3, v3,
+                                  w6.dot(jacobian(model, data, q3, frame, _LWA)),
+                                  _ABA_FRAME), h, a3, x4)       # x + h k3
             a4[:] = aba(model, data, q4, v4,
                         w6.dot(jacobian(model, data, q4, frame, _LWA)), _ABA_FRAME)
-            # x += h/6 (k1 + 2 k2 + 2 k3 + k4), summed k1 first as written (reduce over axis
-            # 0 adds the rows in order)
-            mul(derivs, _RK4_WEIGHTS, weighted)
-            add.reduce(weighted, axis=0, out=incr)
-            mul(incr, sixth, incr)
-            add(x1, incr, x1)
+            rk4_finish(derivs, sixth, x1)     # x += h/6 (k1 + 2 k2 + 2 k3 + k4)
         q = q1.copy()
         dq = v1.copy()
         q.flags.writeable = False
