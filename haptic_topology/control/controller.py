@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,8 +18,7 @@ from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LmiSync, LocalMod
 from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
-@dataclass(frozen=True)
-class CycleOutput:
+class CycleOutput(NamedTuple):
     """Result of one cycle (task vectors, m entries).
 
     ``wrench`` u for the device (eq. 14 / eq. 10); ``coupling`` F_pc; ``vt_wrench`` the wrench

@@ -34,7 +34,7 @@ offline simulation exactly.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -50,8 +50,7 @@ _IDLE_BIT = int(DeviceStatus.IDLE)
 _VT_KEEP = 512
 
 
-@dataclass(frozen=True)
-class StateSample:
+class StateSample(NamedTuple):
     """One device state as the controller sees it: ``seq`` (device's, from 1), ``stamp`` (s,
     loop time), pose, twist and hand wrench F_h (task vectors), status bits."""
 
@@ -63,8 +62,7 @@ class StateSample:
     status: int = 0
 
 
-@dataclass(frozen=True)
-class HandSample:
+class HandSample(NamedTuple):
     """The hand input for the VE: ``seq`` (from 1, per controller), ``state_seq`` (the loop
     seq it belongs to), ``stamp`` (s, the state's), pose, twist, F_h, F_pc, ``F_vt``."""
 
@@ -78,8 +76,7 @@ class HandSample:
     vt_wrench: np.ndarray
 
 
-@dataclass(frozen=True)
-class Answer:
+class Answer(NamedTuple):
     """The command for device state ``state_seq`` and, while running, the hand input;
     ``update_seq``: the seq of the newest LMI update taken before it (-1: none), which with
     the states makes the answer reproducible (``DeviceCommand.update_seq``)."""
@@ -191,7 +188,7 @@ class ControllerLoop:
         self._vt[slot, 0] = out.vt_pose
         self._vt[slot, 1] = out.vt_twist
         if scale < 1.0:
-            out = replace(out, wrench=scaled_wrench(out.wrench, scale, self.limit))
+            out = out._replace(wrench=scaled_wrench(out.wrench, scale, self.limit))
         hand = None
         if out.mode is not ControlMode.ZERO:
             hand = self._hand_input(loop_seq, s, out, scale)

@@ -44,7 +44,7 @@ import importlib
 import importlib.metadata as md
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
@@ -77,8 +77,7 @@ class BackendConfig:
 _TASK_NAMES = {t.dim: t.value for t in TaskSpace}
 
 
-@dataclass(frozen=True)
-class DeviceReading:
+class DeviceReading(NamedTuple):
     """One sample of the device: pose, twist, measured hand wrench ``F_h`` (task vectors, units
     of :mod:`haptic_topology.device.maglev`), status bits. ``status`` may carry
     ``WORKSPACE_LIMIT``, ``SATURATED`` and ``FAULT`` (the device reports a fault, see the

@@ -23,6 +23,11 @@ answer (command and :class:`~haptic_topology.control.loop.HandSample` for the VE
 became of the updates and the command. The wrench written is finite and within the device's
 limit whatever the controller computes (NaN, inf, huge): ``DeviceLoop`` clamps it.
 
+The records a cycle builds (``DeviceReading``, ``DeviceTick``, ``StateSample``,
+``CycleOutput``, ``HandSample``, ``Answer``, ``HostedStep``, ``Published``) are
+:class:`typing.NamedTuple` classes: immutable like frozen dataclasses, and built in about a
+fifth of the time (0.15 against 0.6 us for eight fields), which the cycle pays eight times.
+
 Threads: :meth:`HostedCycle.offer_update` may be called from any thread (the executor thread
 that receives ``LmiUpdate``). It computes there what a re-sync computes from the update alone
 (:meth:`~haptic_topology.control.controller.HapticController.prepare`: the LMI's matrices,
@@ -37,7 +42,7 @@ belongs to the loop thread.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from haptic_topology.control.controller import PreparedUpdate
 from haptic_topology.control.lmi import LmiSnapshot
@@ -55,8 +60,7 @@ def state_sample(tick: DeviceTick, stamp: float) -> StateSample:
     return StateSample(tick.seq, stamp, r.pose, r.twist, r.hand_wrench, int(tick.status))
 
 
-@dataclass(frozen=True, slots=True)
-class HostedStep:
+class HostedStep(NamedTuple):
     """What one :meth:`HostedCycle.step` did: the published state ``tick`` and its ``stamp``
     (s); the controller's ``answer`` (None: it had nothing to answer) and the
     :class:`~haptic_topology.device.loop.CommandVerdict` value of that answer (None without
@@ -112,6 +116,10 @@ class HostedCycle:
         """Apply the updates offered so far, oldest first; returns their
         :class:`~haptic_topology.control.loop.UpdateVerdict` values (:meth:`step` does this
         first)."""
+        if not self._inbox:
+            # Nothing offered (most cycles): no lock taken. An offer racing with this read
+            # is applied at the next step, as one that came a moment later would be.
+            return ()
         with self._offered:
             if not self._inbox:
                 return ()

@@ -62,7 +62,7 @@ checked by a test)::
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -109,8 +109,7 @@ class CommandVerdict:
     FOREIGN = 'foreign'          # from another controller than the one followed
 
 
-@dataclass(frozen=True)
-class DeviceTick:
+class DeviceTick(NamedTuple):
     """One published device state: ``seq`` (from 1), ``run_index`` (0 at the first engaged
     state, -1 while idle), the backend's reading, the wrench written (N, N m) and status."""
 

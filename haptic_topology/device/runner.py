@@ -47,6 +47,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiSnapshot
@@ -92,8 +93,7 @@ class RunnerConfig:
             raise ConfigError(f'outbox must be >= 1 entry, got {self.outbox}')
 
 
-@dataclass(frozen=True, slots=True)
-class Published:
+class Published(NamedTuple):
     """One outbox entry: the cycle ``step`` and its state's stamp ``stamp_ns`` (integer ns,
     loop time: wall or simulated)."""
 

@@ -271,7 +271,7 @@ def test_applied_wrench_stays_finite_and_within_the_limit(
         wrench[len(outputs) % wrench.size] = bad
         wrench[(len(outputs) + 1) % wrench.size] = 1e6 * limit[0]
         outputs.append(wrench)
-        return replace(out, wrench=wrench)
+        return out._replace(wrench=wrench)
 
     monkeypatch.setattr(ctrl, 'cycle', broken)
     cycle.offer_update(ve.snapshot(seq=0))

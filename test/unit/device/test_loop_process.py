@@ -49,7 +49,7 @@ def test_cycle_record_round_trip() -> None:
                       _v(3, 0, 0))
     full = Published(HostedStep(tick, 0.04, Answer(41, out, hand, 12), None, ()),
                      40_000_000)
-    bare = Published(HostedStep(replace(tick, env_wrench=None), 0.0, None, None, ()), 0)
+    bare = Published(HostedStep(tick._replace(env_wrench=None), 0.0, None, None, ()), 0)
     for e in (full, bare):
         ints, floats = codec.encode(e)
         rec = np.zeros((), codec.dtype)
