@@ -82,14 +82,12 @@ class Trace:
         report them: update ``i`` describes row ``rows[i]`` (ascending) and holds until the
         next one; NaN before the first and after the last. The offline simulation and a
         recorded run sample them alike, at the VE's update rate."""
-        n = len(self)
         rows = np.asarray(rows, dtype=int)
         if rows.size == 0:
             self.columns['penetration'][:] = self.columns['contact_energy'][:] = np.nan
             return
-        idx = np.searchsorted(rows, np.arange(n), side='right') - 1
-        held = (idx >= 0) & (np.arange(n) <= rows[-1])
-        at = np.maximum(idx, 0)
+        at, held = self._held_updates(rows)
+        held &= np.arange(len(self)) <= rows[-1]
         self.columns['penetration'][:] = np.where(held, np.asarray(depth)[at], np.nan)
         self.columns['contact_energy'][:] = np.where(held, np.asarray(energy)[at], np.nan)
 
@@ -103,8 +101,15 @@ class Trace:
         if rows.size == 0:
             col[:] = 0
             return
+        at, held = self._held_updates(rows)
+        col[:] = np.where(held, np.asarray(counts)[at], 0)
+
+    def _held_updates(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each row of the trace, the index of the newest update at or before it (update
+        ``i`` describes row ``rows[i]``, ascending; 0 before the first) and whether there is
+        one."""
         idx = np.searchsorted(rows, np.arange(len(self)), side='right') - 1
-        col[:] = np.where(idx >= 0, np.asarray(counts)[np.maximum(idx, 0)], 0)
+        return np.maximum(idx, 0), idx >= 0
 
     def record(self, k: int, t: float, **values: Any) -> None:
         self.t[k] = t
