@@ -7,8 +7,10 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    each (default 30), in the default hosted layout (the controller hosted by the device
    driver, the cycle in its loop process), with the cycle in the driver's loop thread
    instead (``--layout thread``) and in the separate-process layout, each without
-   SCHED_FIFO and, where the OS permits it, with it, and the hosted and thread layouts beside
-   a busy Python process pinned to CPU 0: cycles answered in time, device period
+   SCHED_FIFO and, where the OS permits it, with it, the hosted and thread layouts beside
+   a busy Python process pinned to CPU 0, and the hosted layout with the kernel's default
+   scheduler slice and with the other nodes not under SCHED_BATCH (:data:`RUN_PARAMS`):
+   cycles answered in time, device period
    p50/p99/max, the longest
    run of consecutive missed cycles, round trip p50/p99 (separate layout), CPU per process
    and in total. A bare rclpy ping-pong of two processes with the same messages, QoS and
@@ -86,10 +88,10 @@ BUSY = 'import os\nos.sched_setaffinity(0, {0})\nwhile True:\n    pass\n'
 def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle',
                mode: str | None = None, busy: bool = False,
                startup_timeout: float = 30.0,
-               driver: dict[str, Any] | None = None) -> dict[str, Any]:
+               nodes: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
     """One recorded run of ``scenario`` (a name or a file) on the graph in ``layout``
-    (``busy``: beside :data:`BUSY`; ``driver``: device_driver parameters other than the
-    config file's); loop figures, the VE's update rate, CPU and memory."""
+    (``busy``: beside :data:`BUSY`; ``nodes``: per node, parameters other than the config
+    file's); loop figures, the VE's update rate, CPU and memory."""
     import yaml
 
     from haptic_topology.paths import config_dir
@@ -101,7 +103,8 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
         if fifo:
             params['device_driver']['ros__parameters']['sched_priority'] = DEVICE_PRIORITY
             params['lmi_controller']['ros__parameters']['sched_priority'] = CONTROLLER_PRIORITY
-        params['device_driver']['ros__parameters'].update(driver or {})
+        for node, values in (nodes or {}).items():
+            params[node]['ros__parameters'].update(values)
         params_file = Path(tmp) / 'params.yaml'
         params_file.write_text(yaml.safe_dump(params), encoding='utf-8')
         cmd = [str(Path(sys.executable).with_name('haptic-topology')), 'run', scenario,
@@ -208,10 +211,16 @@ LOOP_RUNS = (('hosted', 'hosted', False, False), ('separate', 'separate', False,
              ('thread', 'thread', False, False), ('hosted_busy', 'hosted', False, True),
              ('thread_busy', 'thread', False, True), ('hosted_fifo', 'hosted', True, False),
              ('separate_fifo', 'separate', True, False),
-             ('thread_fifo', 'thread', True, False), ('hosted_slice0', 'hosted', False, False))
-#: device_driver parameters of a run of :data:`LOOP_RUNS` other than the config file's: the
-#: loop process with the kernel's default scheduler slice instead of ``sched_slice_us`` 100.
-RUN_DRIVER_PARAMS = {'hosted_slice0': {'sched_slice_us': 0.0}}
+             ('thread_fifo', 'thread', True, False), ('hosted_slice0', 'hosted', False, False),
+             ('hosted_nobatch', 'hosted', False, False))
+#: Node parameters of a run of :data:`LOOP_RUNS` other than the config file's: the loop
+#: process with the kernel's default scheduler slice instead of ``sched_slice_us`` 100; the
+#: other nodes under normal scheduling instead of SCHED_BATCH (``sched_batch``).
+RUN_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
+    'hosted_slice0': {'device_driver': {'sched_slice_us': 0.0}},
+    'hosted_nobatch': {node: {'sched_batch': False}
+                       for node in ('device_driver', 've_sim', 'recorder')},
+}
 
 
 def _pingpong(duration: float, fifo: bool) -> dict[str, Any]:
@@ -246,7 +255,7 @@ def run(loop_duration: float, recorder_duration: float,
         print(f'== graph, {key}, {loop_duration:g} s ...', flush=True)
         try:
             res[key] = graph_loop(loop_duration, layout, with_fifo, busy=busy,
-                                  driver=RUN_DRIVER_PARAMS.get(key))
+                                  nodes=RUN_PARAMS.get(key))
         except RuntimeError as exc:
             if not with_fifo:
                 raise
@@ -331,7 +340,7 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'max_links_within_30pct_spatial': core['max_links_within_30pct_spatial'],
     }
     for key in ('thread', 'hosted_busy', 'thread_busy', 'hosted_fifo', 'separate_fifo',
-                'thread_fifo', 'hosted_slice0'):
+                'thread_fifo', 'hosted_slice0', 'hosted_nobatch'):
         if key in res:
             out[f'answered_fraction_{key}'] = res[key]['answered_fraction']
             out[f'max_consecutive_missed_{key}'] = res[key]['max_consecutive_missed']
@@ -375,6 +384,8 @@ def goals(head: dict[str, Any]) -> str:
         _answered_row(h, 'hosted_busy', 'loop process, beside a busy process', 0.995),
         _answered_row(h, 'hosted_fifo', 'loop process, SCHED_FIFO', 0.999),
         _answered_row(h, 'hosted_slice0', "loop process, the kernel's default slice", 0.999),
+        _answered_row(h, 'hosted_nobatch', 'loop process, the other nodes not SCHED_BATCH',
+                      0.999),
         _answered_row(h, 'thread', 'loop thread', 0.999),
         _answered_row(h, 'thread_busy', 'loop thread, beside a busy process', 0.995),
         ('cycles answered in time (loop process, the default)',

@@ -179,6 +179,13 @@ def _nice(default: int) -> Any:
                  'are busy; raising nice needs no privilege. 0 = unchanged', lo=0, hi=19)
 
 
+def _sched_batch() -> Any:
+    return param(True, 'run every thread of this process under SCHED_BATCH from start-up: '
+                 'its threads then never preempt the running 1 kHz loop when they wake, '
+                 'they wait for its cycle to end; their share of the CPU is unchanged and '
+                 'no privilege is needed. false = normal scheduling')
+
+
 def _clock(lockstep: str) -> Any:
     return param('wall', f'wall: the graph runs in real time; {lockstep}',
                  choices=tuple(c.value for c in Clock))
@@ -284,6 +291,13 @@ class DeviceDriverSettings(NodeSettings):
                                 'loop process when the cores are busy; 0 = unchanged. Not '
                                 'applied to a loop thread layout, where it would hold the '
                                 'GIL the loop waits for', lo=0, hi=19)
+    sched_batch: bool = param(True, 'with the loop process: every thread of this node (its '
+                              'executor, DDS\'s threads, the publisher) runs under '
+                              'SCHED_BATCH, so it never preempts the running loop process '
+                              'when it wakes; the loop process keeps normal scheduling (or '
+                              'SCHED_FIFO). No privilege needed; not applied to a loop '
+                              'thread or the separate layout, where the loop runs in this '
+                              'process. false = normal scheduling')
 
     def check(self) -> None:
         if self.rate_hz != 0.0 and not RATE_MIN <= self.rate_hz <= RATE_MAX:
@@ -376,6 +390,7 @@ class VeSimSettings(NodeSettings):
     graph_id: str = _graph_id()
     sched_priority: int = _sched_priority()
     nice: int = _nice(5)
+    sched_batch: bool = _sched_batch()
     update_period: int = param(0, 'hand inputs per LMI update (10 at 1 kHz = 100 Hz); 0 = the '
                                "scenario's lmi.update_period", lo=0, hi=10000)
     idle_update_rate_hz: float = param(50.0, 'LMI updates per second while no hand input '
@@ -405,6 +420,7 @@ class RecorderSettings(NodeSettings):
     graph_id: str = _graph_id()
     sched_priority: int = _sched_priority()
     nice: int = _nice(10)
+    sched_batch: bool = _sched_batch()
     output: str = param('', 'bag directory to create (must not exist); empty: '
                         'bags/<scenario>_<timestamp>')
     topics: tuple[str, ...] = param([''], 'topics to record (empty: all of the graph)')
@@ -446,6 +462,7 @@ class FoxgloveBridgeSettings(NodeSettings):
                           "graph's common -p graph_id:=... applies): the bridge serves what "
                           'is on the topics')
     nice: int = _nice(10)
+    sched_batch: bool = _sched_batch()
     host: str = param('127.0.0.1', 'address the WebSocket server listens on (0.0.0.0: every '
                       'interface, for a Foxglove app on another machine)')
     port: int = param(8765, 'TCP port of the WebSocket server (0: any free port; the port '

@@ -26,6 +26,7 @@ from haptic_topology.device.realtime import (
     fix_mmap_threshold,
     renice_process,
     reset_session_nice,
+    set_batch_process,
     set_realtime_priority,
 )
 from haptic_topology.errors import ConfigError, HapticTopologyError
@@ -137,11 +138,15 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
                 nodes[0].get_logger().info(f'SCHED_FIFO priority {priority}')
         # Nodes off the deadline path yield the CPU (``nice``); a process that also holds a
         # node without the parameter (the composed graph, with the loop) stays as it is.
+        # They also run under SCHED_BATCH (``sched_batch``), unless under SCHED_FIFO.
         if nodes and all(n.has_parameter('nice') for n in nodes):
             nice = min(int(n.get_parameter('nice').value) for n in nodes)
-            problem = renice_process(nice) if nice else None
-            if problem:
-                nodes[0].get_logger().warn(problem)
+            problems = [renice_process(nice) if nice else None]
+            if not priority and all(n.has_parameter('sched_batch')
+                                    and n.get_parameter('sched_batch').value for n in nodes):
+                problems.append(set_batch_process())
+            for text in filter(None, problems):
+                nodes[0].get_logger().warn(text)
         spin(nodes, kind)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -136,3 +136,31 @@ def test_a_killed_driver_ends_its_loop_process(graph: Any) -> None:
     assert wait_exit(fd, WAIT), f'the loop process outlived its driver: {describe(child[0])}'
     out = driver.stdout.read().decode(errors='replace') if driver.stdout else ''
     assert 'parent gone: output zeroed, device released' in out, out[-3000:]
+
+
+def _policies(pid: int) -> dict[str, set[int]]:
+    """The scheduling policies of ``pid``'s threads, by thread name."""
+    out: dict[str, set[int]] = {}
+    for task in Path(f'/proc/{pid}/task').iterdir():
+        try:
+            name = (task / 'comm').read_text().strip()
+            out.setdefault(name, set()).add(os.sched_getscheduler(int(task.name)))
+        except OSError:
+            continue            # the thread ended meanwhile
+    return out
+
+
+def test_the_nodes_run_batch_and_the_loop_process_normal(graph: Any) -> None:
+    """``sched_batch`` (default): every thread of ve_sim and of the driver's ROS side (its
+    executor, DDS's threads, the publisher) is under SCHED_BATCH; the loop process, which
+    the driver started, runs its cycle under normal scheduling."""
+    procs, _ = graph
+    ve, driver = procs
+    child = _children(driver.pid)
+    assert len(child) == 1, child
+    for node in (ve.pid, driver.pid):
+        policies = _policies(node)
+        assert set().union(*policies.values()) == {os.SCHED_BATCH}, policies
+        assert any(name.startswith('dds.') for name in policies), policies
+    assert 'device_publish' in _policies(driver.pid)
+    assert _policies(child[0])['device_loop'] == {os.SCHED_OTHER}

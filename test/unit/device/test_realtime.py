@@ -242,3 +242,81 @@ def test_the_mmap_threshold_stays_fixed_after_a_mapped_block_is_freed() -> None:
     taken it from the heap (which then grows while the bytes in use stay the same)."""
     assert _mmap_child('fixed') == {'fixed': True, 'mapped_blocks': 1}
     assert _mmap_child('dynamic') == {'fixed': None, 'mapped_blocks': 0}
+
+
+BATCH_CHILD = r'''
+import json, os, subprocess, sys, threading
+from haptic_topology.device.realtime import set_batch_process, set_thread_realtime
+
+def policies():
+    return {int(t): os.sched_getscheduler(int(t)) for t in os.listdir('/proc/self/task')}
+
+os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))    # whatever the runner's was
+started = threading.Event()
+def worker():
+    out['worker_tid'] = threading.get_native_id()
+    started.set()
+    threading.Event().wait(5)   # stays alive until the process exits
+
+out = {}
+threading.Thread(target=worker, daemon=True).start()
+started.wait()
+out['start'] = policies()
+out['problem'] = set_batch_process()
+out['after'] = policies()
+late = []
+t = threading.Thread(target=lambda: late.append(os.sched_getscheduler(0)))
+t.start(); t.join()
+out['new_thread'] = late[0]
+out['child_process'] = int(subprocess.run(
+    [sys.executable, '-c', 'import os; print(os.sched_getscheduler(0))'],
+    capture_output=True, text=True, check=True).stdout)
+out['nice'] = os.getpriority(os.PRIO_PROCESS, 0)
+out['loop_problems'] = set_thread_realtime(0, [-1], False, 0.0, 0)   # the loop's start
+out['loop'] = policies()
+out['loop_nice'] = os.getpriority(os.PRIO_PROCESS, 0)
+out['main_tid'] = threading.get_native_id()
+print(json.dumps(out))
+'''
+
+
+def test_batch_covers_every_thread_and_what_they_start_and_the_loop_returns_to_normal() -> None:
+    """A node off the deadline path puts all its threads under SCHED_BATCH (DDS's threads
+    exist before it does): threads and processes it starts later inherit it, the loop
+    process included, whose real-time settings put its own thread back under normal
+    scheduling; nice values stay."""
+    res = subprocess.run(['nice', '-n', '2', sys.executable, '-c', BATCH_CHILD],
+                         capture_output=True, text=True, timeout=60, check=True)
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    start = {int(k): v for k, v in out['start'].items()}
+    assert len(start) >= 2 and set(start.values()) == {os.SCHED_OTHER}
+    assert out['problem'] is None
+    assert {int(k): v for k, v in out['after'].items()} == dict.fromkeys(start, os.SCHED_BATCH)
+    assert out['new_thread'] == os.SCHED_BATCH
+    assert out['child_process'] == os.SCHED_BATCH
+    assert out['loop_problems'] == []
+    loop = {int(k): v for k, v in out['loop'].items()}
+    assert loop[out['main_tid']] == os.SCHED_OTHER              # the loop's thread only
+    assert loop[out['worker_tid']] == os.SCHED_BATCH
+    assert out['nice'] == out['loop_nice'] == 2
+
+
+SLICE_AFTER_BATCH = r'''
+import os
+from haptic_topology.device.realtime import set_batch_process, set_thread_realtime, sched_slice_ns
+set_batch_process()
+problems = set_thread_realtime(0, [-1], False, 250.0, 0)
+print(problems, os.sched_getscheduler(0) == os.SCHED_OTHER, sched_slice_ns())
+'''
+
+
+def test_a_loop_started_under_batch_gets_its_slice() -> None:
+    """The slice is asked for under normal scheduling: a loop process that inherited
+    SCHED_BATCH from its node gets it all the same."""
+    res = subprocess.run([sys.executable, '-c', SLICE_AFTER_BATCH], capture_output=True,
+                         text=True, timeout=60, check=True)
+    if _kernel_keeps_slices():
+        assert res.stdout.strip() == '[] True 250000', res.stdout
+    else:
+        assert res.stdout.strip().startswith("['sched_slice_us 250: this kernel keeps no "
+                                             "slice per task"), res.stdout
