@@ -116,4 +116,6 @@ def put_bytes(ring: ShmRing, data: bytes, what: str, overwrite: bool = True) -> 
 
 def payloads(ring: ShmRing) -> list[bytes]:
     """The byte records waiting in ``ring``, oldest first (taken)."""
+    if not ring.pending:
+        return []
     return [bytes(r['b'][:int(r['n'])]) for r in ring.take()]

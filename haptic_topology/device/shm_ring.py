@@ -88,6 +88,7 @@ class ShmRing:
         self.lost = 0
         self.torn = 0
         self._next = 0          # consumer: index of the next record to take
+        self._none = np.empty(0, dtype)     # what take() returns when nothing is new
 
     @property
     def name(self) -> str:
@@ -162,6 +163,8 @@ class ShmRing:
         ``limit``), as an array of ``dtype``; records overwritten meanwhile are skipped
         and counted in :attr:`lost`."""
         written = int(self._header[_WRITTEN])
+        if written == self._next:       # nothing new (most calls: the loop polls each cycle)
+            return self._none
         oldest = written - self.capacity
         if self._next < oldest:
             self.lost += oldest - self._next
