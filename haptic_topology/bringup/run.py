@@ -230,8 +230,12 @@ def _start(name: str, argv: list[str], log_dir: Path,
     log = log_dir / f'{name}.log'
     handle = log.open('wb')
     env = dict(os.environ, PYTHONUNBUFFERED='1', **(env_extra or {}))
+    # A process group of its own (the terminal's Ctrl-C reaches only this command, which
+    # stops the nodes in order), in this command's session: under the kernel's autogroup
+    # (sched(7)) the scheduler then weighs the graph's threads against each other, by their
+    # nice value, SCHED_BATCH and the loop's slice, not each node's session as one whole.
     popen = subprocess.Popen(argv, stdout=handle, stderr=subprocess.STDOUT, env=env,
-                             start_new_session=True)
+                             process_group=0)
     return _Proc(name, popen, log, handle)
 
 

@@ -197,11 +197,12 @@ class LoopProcess:
                         wake_child=self._fds[1], parent=os.getpid(),
                         generation=self.generation, periods=self._arrays['periods'].name,
                         round_trips=self._arrays['round_trips'].name)
-        # A session of its own: under the kernel's autogroup the loop's share of the CPU is
-        # then its session's, not shared with this node's threads (realtime.raise_session_nice).
+        # This node's session (as haptic-topology run starts every node), a process group of
+        # its own: under the kernel's autogroup the scheduler weighs the loop thread against
+        # the nodes' threads directly, by nice, SCHED_BATCH and its slice (docs/nodes.md).
         self._proc = subprocess.Popen(
             [sys.executable, '-m', CHILD_MODULE],
-            stdin=subprocess.PIPE, pass_fds=self._fds, close_fds=True, start_new_session=True)
+            stdin=subprocess.PIPE, pass_fds=self._fds, close_fds=True, process_group=0)
         assert self._proc.stdin is not None
         self._proc.stdin.write(pickle.dumps(spec))
         self._proc.stdin.close()

@@ -125,8 +125,9 @@ def raise_session_nice(at_least: int) -> str | None:
     Why: with ``CONFIG_SCHED_AUTOGROUP`` (on by default in most distribution kernels; see
     sched(7)) the scheduler first shares the CPU among sessions, then among the threads of a
     session, and a thread's nice value ranks it only within its session. A node that leads
-    its own session (as ``haptic-topology run`` starts each one, and the loop process is
-    started) yields the CPU to the other sessions only through its autogroup's nice value,
+    its own session (started with ``setsid``; ``haptic-topology run`` starts the nodes and
+    the loop process in its own session) yields the CPU to the other sessions only through
+    its autogroup's nice value,
     ``/proc/self/autogroup``. Raising it needs no privilege; the kernel accepts one such
     write per 100 ms from an unprivileged process, so a refused write is retried for a second.
     A process that does not lead its session (e.g. several nodes started from one shell)

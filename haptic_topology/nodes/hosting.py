@@ -108,7 +108,7 @@ class OutboxThread:
 
     def _body(self) -> None:
         name_os_thread('device_publish')
-        if self._nice:      # the loop is in its own session: this node's session yields too
+        if self._nice:      # and this node's autogroup, when the node leads its session
             self.problem = renice_thread(self._nice) or raise_session_nice(self._nice)
         try:
             while True:
