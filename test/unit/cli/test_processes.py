@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -115,3 +116,19 @@ def test_the_series_keeps_a_sample_every_step() -> None:
     series = s.growth(series_step=10.0)['a']['series']
     assert [t for t, _ in series] == [0.0, 10.0, 20.0, 30.0]
     assert series[1][1] == 21.0      # MiB at 10 s
+
+
+def test_run_starts_a_node_in_its_session_and_a_process_group_of_its_own(
+        tmp_path: Path) -> None:
+    """One session for the graph (the kernel's autogroup then weighs the loop against the
+    nodes' threads, not against whole sessions); a process group per node, so the
+    terminal's Ctrl-C reaches only ``run``, which stops the nodes in order."""
+    from haptic_topology.bringup.run import _start, stop
+
+    node = _start('sleeper', [sys.executable, '-c', 'import time; time.sleep(30)'], tmp_path)
+    try:
+        assert os.getsid(node.popen.pid) == os.getsid(0)
+        assert os.getpgid(node.popen.pid) == node.popen.pid != os.getpgid(0)
+    finally:
+        stop([node], timeout=5.0)
+    assert node.popen.poll() is not None

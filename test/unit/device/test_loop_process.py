@@ -139,8 +139,10 @@ def test_a_killed_child_is_a_fault_and_close_leaves_no_segment() -> None:
             proc.wait(0.05)
             proc.drain()
         assert proc.status and proc.error is None
-        # A session of its own: its autogroup is not shared with this process's threads.
-        assert os.getsid(proc.pid or 0) == proc.pid != os.getsid(0)
+        # This process's session (one autogroup with the node's threads), a process group of
+        # its own (the terminal's Ctrl-C is not for it).
+        assert os.getsid(proc.pid or 0) == os.getsid(0)
+        assert os.getpgid(proc.pid or 0) == proc.pid != os.getpgid(0)
         # Its one thread asked for the spec's scheduler slice (100 us) where the kernel
         # keeps one per task, and said why not elsewhere.
         if sched_slice_ns(proc.pid or 0):
