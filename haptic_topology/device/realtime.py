@@ -126,10 +126,10 @@ def raise_session_nice(at_least: int) -> str | None:
     sched(7)) the scheduler first shares the CPU among sessions, then among the threads of a
     session, and a thread's nice value ranks it only within its session. A node that leads
     its own session (started with ``setsid``; ``haptic-topology run`` starts the nodes and
-    the loop process in its own session) yields the CPU to the other sessions only through
-    its autogroup's nice value,
-    ``/proc/self/autogroup``. Raising it needs no privilege; the kernel accepts one such
-    write per 100 ms from an unprivileged process, so a refused write is retried for a second.
+    the loop process in run's session, which they do not lead) yields the CPU to the other
+    sessions only through its autogroup's nice value, ``/proc/self/autogroup``. Raising it
+    needs no privilege; the kernel accepts one such write per 100 ms from an unprivileged
+    process, so a refused write is retried for a second.
     A process that does not lead its session (e.g. several nodes started from one shell)
     leaves the session's value alone: it is shared with the other processes of the session.
     With :data:`SESSION_NICE_ENV` set to ``0`` it does nothing.
