@@ -141,12 +141,15 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
         # They also run under SCHED_BATCH (``sched_batch``), unless under SCHED_FIFO.
         if nodes and all(n.has_parameter('nice') for n in nodes):
             nice = min(int(n.get_parameter('nice').value) for n in nodes)
-            problems = [renice_process(nice) if nice else None]
-            if not priority and all(n.has_parameter('sched_batch')
-                                    and n.get_parameter('sched_batch').value for n in nodes):
-                problems.append(set_batch_process())
+            batch = not priority and all(n.has_parameter('sched_batch')
+                                         and n.get_parameter('sched_batch').value
+                                         for n in nodes)
+            problems = [renice_process(nice) if nice else None,
+                        set_batch_process() if batch else None]
             for text in filter(None, problems):
                 nodes[0].get_logger().warn(text)
+            nodes[0].get_logger().info(
+                f'nice +{nice}' + (', SCHED_BATCH' if batch and problems[1] is None else ''))
         spin(nodes, kind)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

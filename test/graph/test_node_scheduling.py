@@ -1,0 +1,72 @@
+"""The scheduling of the nodes off the deadline path (``nice``, ``sched_batch``), read back
+from the kernel for every thread of a real ``recorder`` process: the node says in its log
+how it runs, and its threads, DDS's included, run so."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.graph
+
+WAIT = 60.0           # s: generous, a loaded machine is only slower
+
+
+def _policies(pid: int) -> dict[str, set[int]]:
+    """The scheduling policies of ``pid``'s threads, by thread name."""
+    out: dict[str, set[int]] = {}
+    for task in Path(f'/proc/{pid}/task').iterdir():
+        try:
+            name = (task / 'comm').read_text().strip()
+            out.setdefault(name, set()).add(os.sched_getscheduler(int(task.name)))
+        except OSError:
+            continue            # the thread ended meanwhile
+    return out
+
+
+def _normal() -> None:
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def _recorder_scheduling(tmp_path: Path, *params: str) -> tuple[str, dict[str, set[int]]]:
+    """Start a recorder with ``params``; its log line on scheduling and its threads' policies
+    once it has said it."""
+    args = [f'output:={tmp_path / "bag"}', *params]
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'haptic_topology.nodes.recorder', '--ros-args',
+         *[x for a in args for x in ('-p', a)]],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True,
+        preexec_fn=_normal)     # whatever this test's own class is
+    try:
+        assert proc.stdout is not None
+        deadline = time.monotonic() + WAIT
+        seen: list[str] = []
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            seen.append(line)
+            if 'nice +' in line:
+                return line.strip(), _policies(proc.pid)
+            assert line or proc.poll() is None, ''.join(seen)[-3000:]
+        raise AssertionError(f'no scheduling line within {WAIT:g} s:\n{"".join(seen)[-3000:]}')
+    finally:
+        proc.terminate()
+        proc.wait(WAIT)
+
+
+def test_a_recorder_runs_every_thread_batch_and_at_its_nice(tmp_path: Path) -> None:
+    line, policies = _recorder_scheduling(tmp_path)
+    assert line.endswith('nice +10, SCHED_BATCH'), line
+    assert any(name.startswith('dds.') for name in policies), policies
+    assert set().union(*policies.values()) == {os.SCHED_BATCH}, policies
+
+
+def test_sched_batch_false_keeps_normal_scheduling(tmp_path: Path) -> None:
+    line, policies = _recorder_scheduling(tmp_path, 'sched_batch:=false', 'nice:=0')
+    assert line.endswith('nice +0'), line
+    assert set().union(*policies.values()) == {os.SCHED_OTHER}, policies
