@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from procs import describe, pidfd, stop_process, wait_exit
+from procs import describe, pidfd, stop_process, thread_policies, wait_exit
 
 from haptic_topology.paths import config_dir
 
@@ -138,18 +138,6 @@ def test_a_killed_driver_ends_its_loop_process(graph: Any) -> None:
     assert 'parent gone: output zeroed, device released' in out, out[-3000:]
 
 
-def _policies(pid: int) -> dict[str, set[int]]:
-    """The scheduling policies of ``pid``'s threads, by thread name."""
-    out: dict[str, set[int]] = {}
-    for task in Path(f'/proc/{pid}/task').iterdir():
-        try:
-            name = (task / 'comm').read_text().strip()
-            out.setdefault(name, set()).add(os.sched_getscheduler(int(task.name)))
-        except OSError:
-            continue            # the thread ended meanwhile
-    return out
-
-
 def test_the_nodes_run_batch_and_the_loop_process_normal(graph: Any) -> None:
     """``sched_batch`` (default): every thread of ve_sim and of the driver's ROS side (its
     executor, DDS's threads, the publisher) is under SCHED_BATCH; the loop process, which
@@ -159,8 +147,8 @@ def test_the_nodes_run_batch_and_the_loop_process_normal(graph: Any) -> None:
     child = _children(driver.pid)
     assert len(child) == 1, child
     for node in (ve.pid, driver.pid):
-        policies = _policies(node)
+        policies = thread_policies(node)
         assert set().union(*policies.values()) == {os.SCHED_BATCH}, policies
         assert any(name.startswith('dds.') for name in policies), policies
-    assert 'device_publish' in _policies(driver.pid)
-    assert _policies(child[0])['device_loop'] == {os.SCHED_OTHER}
+    assert 'device_publish' in thread_policies(driver.pid)
+    assert thread_policies(child[0])['device_loop'] == {os.SCHED_OTHER}

@@ -11,22 +11,11 @@ import time
 from pathlib import Path
 
 import pytest
+from procs import thread_policies
 
 pytestmark = pytest.mark.graph
 
 WAIT = 60.0           # s: generous, a loaded machine is only slower
-
-
-def _policies(pid: int) -> dict[str, set[int]]:
-    """The scheduling policies of ``pid``'s threads, by thread name."""
-    out: dict[str, set[int]] = {}
-    for task in Path(f'/proc/{pid}/task').iterdir():
-        try:
-            name = (task / 'comm').read_text().strip()
-            out.setdefault(name, set()).add(os.sched_getscheduler(int(task.name)))
-        except OSError:
-            continue            # the thread ended meanwhile
-    return out
 
 
 def _normal() -> None:
@@ -51,7 +40,7 @@ def _recorder_scheduling(tmp_path: Path, *params: str) -> tuple[str, dict[str, s
             line = proc.stdout.readline()
             seen.append(line)
             if 'nice +' in line:
-                return line.strip(), _policies(proc.pid)
+                return line.strip(), thread_policies(proc.pid)
             assert line or proc.poll() is None, ''.join(seen)[-3000:]
         raise AssertionError(f'no scheduling line within {WAIT:g} s:\n{"".join(seen)[-3000:]}')
     finally:

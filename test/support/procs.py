@@ -53,3 +53,15 @@ def describe(pid: int) -> str:
     except OSError:
         return f'{pid}: gone'
     return f'{pid}: state {stat!r}, wchan {wchan!r}, cmdline {cmd!r}'
+
+
+def thread_policies(pid: int) -> dict[str, set[int]]:
+    """The scheduling policies (``os.SCHED_*``) of process ``pid``'s threads, by thread name."""
+    out: dict[str, set[int]] = {}
+    for task in Path(f'/proc/{pid}/task').iterdir():
+        try:
+            name = (task / 'comm').read_text().strip()
+            out.setdefault(name, set()).add(os.sched_getscheduler(int(task.name)))
+        except OSError:
+            continue            # the thread ended meanwhile
+    return out
