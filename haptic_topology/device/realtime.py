@@ -11,7 +11,7 @@ import os
 import platform
 import struct
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 
 def _thread_ids() -> list[int]:
@@ -20,6 +20,19 @@ def _thread_ids() -> list[int]:
         return [int(t) for t in os.listdir('/proc/self/task')]
     except OSError:
         return [0]
+
+
+def _each_thread(apply: Callable[[int], object]) -> OSError | None:
+    """``apply(tid)`` for every thread of this process; a thread that ended meanwhile is
+    skipped. Returns the first error (the remaining threads are left as they are), or None."""
+    for tid in _thread_ids():
+        try:
+            apply(tid)
+        except ProcessLookupError:
+            continue
+        except OSError as exc:
+            return exc
+    return None
 
 
 def _renice(tid: int, increment: int) -> None:
@@ -64,14 +77,9 @@ def set_batch_process() -> str | None:
     cycles (321 times for more than 0.3 ms), nearly always by the other nodes' threads; with
     them under ``SCHED_BATCH``, in 4 % (79 times). Needs no privilege (sched(7)). The loop
     process sets itself back to normal scheduling (:func:`set_thread_realtime`)."""
-    for tid in _thread_ids():
-        try:
-            os.sched_setscheduler(tid, os.SCHED_BATCH, os.sched_param(0))
-        except ProcessLookupError:
-            continue            # the thread ended meanwhile
-        except OSError as exc:
-            return f'sched_batch: {exc}; normal scheduling'
-    return None
+    exc = _each_thread(lambda tid: os.sched_setscheduler(tid, os.SCHED_BATCH,
+                                                         os.sched_param(0)))
+    return None if exc is None else f'sched_batch: {exc}; normal scheduling'
 
 
 def normal_scheduling() -> str | None:
@@ -93,13 +101,9 @@ def renice_process(increment: int) -> str | None:
     (:func:`raise_session_nice`). Linux keeps a nice value per thread, so ``os.nice`` alone
     would change only the calling one. Raising nice needs no privilege. Returns None, or why
     it failed."""
-    for tid in _thread_ids():
-        try:
-            _renice(tid, increment)
-        except ProcessLookupError:
-            continue            # the thread ended meanwhile
-        except OSError as exc:
-            return f'nice {increment}: {exc}; priority unchanged'
+    exc = _each_thread(lambda tid: _renice(tid, increment))
+    if exc is not None:
+        return f'nice {increment}: {exc}; priority unchanged'
     return raise_session_nice(increment)
 
 
