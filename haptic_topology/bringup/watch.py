@@ -61,7 +61,9 @@ def import_type_supports() -> None:
 
 class GraphWatcher:
     """An rclpy node of its own (own context) that watches the graph; use as a context
-    manager. ``alive``: called while waiting, raises if a process of the graph has died."""
+    manager. ``alive``: called while waiting, raises if a process of the graph has died;
+    ``args``: ROS arguments of its context (default none: never the command line, whose
+    ``-p NODE:NAME:=VALUE`` items are the nodes', not the watcher's)."""
 
     def __init__(self, name: str = 'haptic_watch', alive: Callable[[], None] | None = None,
                  args: list[str] | None = None,
@@ -86,6 +88,7 @@ class GraphWatcher:
         self._rclpy = rclpy
         localhost_discovery_default(os.environ)   # the nodes' DDS setup (run_main)
         self.context = rclpy.Context()
+        args = [] if args is None else args
         if domain_id is None:
             rclpy.init(context=self.context, args=args)
         else:
