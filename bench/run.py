@@ -9,7 +9,8 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    instead (``--layout thread``) and in the separate-process layout, each without
    SCHED_FIFO and, where the OS permits it, with it, the hosted and thread layouts beside
    a busy Python process pinned to CPU 0, and the hosted layout with the kernel's default
-   scheduler slice and with the other nodes not under SCHED_BATCH (:data:`RUN_PARAMS`):
+   scheduler slice, with the other nodes not under SCHED_BATCH, and with the VE and the
+   recorder under SCHED_IDLE, alone and beside the busy process (:data:`RUN_PARAMS`):
    cycles answered in time, device period
    p50/p99/max, the longest
    run of consecutive missed cycles, round trip p50/p99 (separate layout), CPU per process
@@ -212,14 +213,19 @@ LOOP_RUNS = (('hosted', 'hosted', False, False), ('separate', 'separate', False,
              ('thread_busy', 'thread', False, True), ('hosted_fifo', 'hosted', True, False),
              ('separate_fifo', 'separate', True, False),
              ('thread_fifo', 'thread', True, False), ('hosted_slice0', 'hosted', False, False),
-             ('hosted_nobatch', 'hosted', False, False))
+             ('hosted_nobatch', 'hosted', False, False), ('hosted_idle', 'hosted', False, False),
+             ('hosted_busy_idle', 'hosted', False, True))
 #: Node parameters of a run of :data:`LOOP_RUNS` other than the config file's: the loop
 #: process with the kernel's default scheduler slice instead of ``sched_slice_us`` 100; the
-#: other nodes under normal scheduling instead of SCHED_BATCH (``sched_batch``).
+#: other nodes under normal scheduling instead of SCHED_BATCH (``sched_policy`` other); the
+#: VE and the recorder under SCHED_IDLE (``sched_policy`` idle; the driver keeps SCHED_BATCH).
+_IDLE = {node: {'sched_policy': 'idle'} for node in ('ve_sim', 'recorder')}
 RUN_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
     'hosted_slice0': {'device_driver': {'sched_slice_us': 0.0}},
-    'hosted_nobatch': {node: {'sched_batch': False}
+    'hosted_nobatch': {node: {'sched_policy': 'other'}
                        for node in ('device_driver', 've_sim', 'recorder')},
+    'hosted_idle': _IDLE,
+    'hosted_busy_idle': _IDLE,
 }
 
 
@@ -340,7 +346,8 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'max_links_within_30pct_spatial': core['max_links_within_30pct_spatial'],
     }
     for key in ('thread', 'hosted_busy', 'thread_busy', 'hosted_fifo', 'separate_fifo',
-                'thread_fifo', 'hosted_slice0', 'hosted_nobatch'):
+                'thread_fifo', 'hosted_slice0', 'hosted_nobatch', 'hosted_idle',
+                'hosted_busy_idle'):
         if key in res:
             out[f'answered_fraction_{key}'] = res[key]['answered_fraction']
             out[f'max_consecutive_missed_{key}'] = res[key]['max_consecutive_missed']
@@ -386,6 +393,9 @@ def goals(head: dict[str, Any]) -> str:
         _answered_row(h, 'hosted_slice0', "loop process, the kernel's default slice", 0.999),
         _answered_row(h, 'hosted_nobatch', 'loop process, the other nodes not SCHED_BATCH',
                       0.999),
+        _answered_row(h, 'hosted_idle', 'loop process, VE and recorder SCHED_IDLE', 0.999),
+        _answered_row(h, 'hosted_busy_idle',
+                      'loop process, VE and recorder SCHED_IDLE, beside a busy process', 0.995),
         _answered_row(h, 'thread', 'loop thread', 0.999),
         _answered_row(h, 'thread_busy', 'loop thread, beside a busy process', 0.995),
         ('cycles answered in time (loop process, the default)',

@@ -29,7 +29,7 @@ import yaml
 
 from haptic_topology.config.params import ParamSpec, check_value
 from haptic_topology.control.laws import GAIN_MAX, check_gain
-from haptic_topology.device.realtime import SLICE_RANGE_US
+from haptic_topology.device.realtime import NODE_POLICIES, SLICE_RANGE_US
 from haptic_topology.device.watchdog import WatchdogFallback
 from haptic_topology.errors import ConfigError
 from haptic_topology.vocabulary import LAW_MODES, Clock
@@ -179,11 +179,15 @@ def _nice(default: int) -> Any:
                  'are busy; raising nice needs no privilege. 0 = unchanged', lo=0, hi=19)
 
 
-def _sched_batch() -> Any:
-    return param(True, 'run every thread of this process under SCHED_BATCH from start-up: '
-                 'its threads then never preempt the running 1 kHz loop when they wake, '
-                 'they wait for its cycle to end; their share of the CPU is unchanged and '
-                 'no privilege is needed. false = normal scheduling')
+def _sched_policy() -> Any:
+    return param('batch', 'scheduling policy of every thread of this process from start-up, '
+                 'so that it yields the CPU to the 1 kHz loop (no privilege needed). batch: '
+                 'SCHED_BATCH, its threads never preempt the running loop when they wake, '
+                 'their share of the CPU is unchanged; idle: SCHED_IDLE, the loop also '
+                 'preempts them at once when it wakes (fewer missed cycles beside a busy '
+                 'process), but they get a core only when no normal thread wants it, so they '
+                 'stall while other work keeps every core busy; other: unchanged (normal '
+                 'scheduling)', choices=tuple(NODE_POLICIES))
 
 
 def _clock(lockstep: str) -> Any:
@@ -291,13 +295,16 @@ class DeviceDriverSettings(NodeSettings):
                                 'loop process when the cores are busy; 0 = unchanged. Not '
                                 'applied to a loop thread layout, where it would hold the '
                                 'GIL the loop waits for', lo=0, hi=19)
-    sched_batch: bool = param(True, 'with the loop process: every thread of this node (its '
-                              'executor, DDS\'s threads, the publisher) runs under '
-                              'SCHED_BATCH, so it never preempts the running loop process '
-                              'when it wakes; the loop process keeps normal scheduling (or '
-                              'SCHED_FIFO). No privilege needed; not applied to a loop '
-                              'thread or the separate layout, where the loop runs in this '
-                              'process. false = normal scheduling')
+    sched_policy: str = param('batch', 'with the loop process: scheduling policy of every '
+                              "thread of this node (its executor, DDS's threads, the "
+                              'publisher). batch: SCHED_BATCH, they never preempt the running '
+                              'loop process when they wake; the loop process keeps normal '
+                              'scheduling (or SCHED_FIFO). No privilege needed; not applied '
+                              'to a loop thread or the separate layout, where the loop runs '
+                              'in this process. other = normal scheduling. (SCHED_IDLE is '
+                              'not offered here: the loop process this node starts would '
+                              'inherit it, and without privilege it could not leave it.)',
+                              choices=('other', 'batch'))
 
     def check(self) -> None:
         if self.rate_hz != 0.0 and not RATE_MIN <= self.rate_hz <= RATE_MAX:
@@ -390,7 +397,7 @@ class VeSimSettings(NodeSettings):
     graph_id: str = _graph_id()
     sched_priority: int = _sched_priority()
     nice: int = _nice(5)
-    sched_batch: bool = _sched_batch()
+    sched_policy: str = _sched_policy()
     update_period: int = param(0, 'hand inputs per LMI update (10 at 1 kHz = 100 Hz); 0 = the '
                                "scenario's lmi.update_period", lo=0, hi=10000)
     idle_update_rate_hz: float = param(50.0, 'LMI updates per second while no hand input '
@@ -420,7 +427,7 @@ class RecorderSettings(NodeSettings):
     graph_id: str = _graph_id()
     sched_priority: int = _sched_priority()
     nice: int = _nice(10)
-    sched_batch: bool = _sched_batch()
+    sched_policy: str = _sched_policy()
     output: str = param('', 'bag directory to create (must not exist); empty: '
                         'bags/<scenario>_<timestamp>')
     topics: tuple[str, ...] = param([''], 'topics to record (empty: all of the graph)')
@@ -462,7 +469,7 @@ class FoxgloveBridgeSettings(NodeSettings):
                           "graph's common -p graph_id:=... applies): the bridge serves what "
                           'is on the topics')
     nice: int = _nice(10)
-    sched_batch: bool = _sched_batch()
+    sched_policy: str = _sched_policy()
     host: str = param('127.0.0.1', 'address the WebSocket server listens on (0.0.0.0: every '
                       'interface, for a Foxglove app on another machine)')
     port: int = param(8765, 'TCP port of the WebSocket server (0: any free port; the port '

@@ -1,7 +1,7 @@
-"""Real-time settings of a process or of the loop thread: SCHED_FIFO, SCHED_BATCH for the
-nodes off the deadline path, CPU affinity, ``mlockall``, the scheduler slice, the timer
-slack, the thread's name, and the allocator's fixed mmap threshold of every node process.
-No rclpy: the device loop calls these from its own thread."""
+"""Real-time settings of a process or of the loop thread: SCHED_FIFO, SCHED_BATCH or
+SCHED_IDLE for the nodes off the deadline path, CPU affinity, ``mlockall``, the scheduler
+slice, the timer slack, the thread's name, and the allocator's fixed mmap threshold of every
+node process. No rclpy: the device loop calls these from its own thread."""
 
 from __future__ import annotations
 
@@ -64,28 +64,47 @@ def set_realtime_priority(priority: int) -> str | None:
     return None
 
 
-def set_batch_process() -> str | None:
-    """Put every thread of this process under ``SCHED_BATCH`` (threads started later inherit
-    it from their creator); the nice values stay. Returns None, or why it failed.
+#: The scheduling policies a node off the deadline path may run under (``sched_policy``):
+#: ``other`` leaves the process as it started (normally ``SCHED_OTHER``).
+NODE_POLICIES: dict[str, int] = {'other': os.SCHED_OTHER, 'batch': os.SCHED_BATCH,
+                                 'idle': os.SCHED_IDLE}
 
-    Why: a thread that wakes may preempt the one running on its core at once (EEVDF's wake-up
-    preemption); a ``SCHED_BATCH`` thread never does, it waits for the running one to sleep
-    or to use up its slice. A node off the deadline path (the VE, the recorder, the driver's
-    ROS side beside its loop process) then does not cut into a loop cycle each time one of
-    its threads (its executor, DDS's receive threads) wakes; its share of the CPU is the same.
-    Traced on ``run circle`` (15 s, 2 cores): the loop process was preempted in 11 % of its
-    cycles (321 times for more than 0.3 ms), nearly always by the other nodes' threads; with
-    them under ``SCHED_BATCH``, in 4 % (79 times). Needs no privilege (sched(7)). The loop
-    process sets itself back to normal scheduling (:func:`set_thread_realtime`)."""
-    exc = _each_thread(lambda tid: os.sched_setscheduler(tid, os.SCHED_BATCH,
-                                                         os.sched_param(0)))
-    return None if exc is None else f'sched_batch: {exc}; normal scheduling'
+
+def set_process_policy(policy: str) -> str | None:
+    """Put every thread of this process under the :data:`NODE_POLICIES` policy ``policy``
+    (threads and processes started later inherit it from their creator); nice values stay.
+    ``'other'`` changes nothing. Returns None, or why it failed.
+
+    Why ``batch``: a thread that wakes may preempt the one running on its core at once
+    (EEVDF's wake-up preemption); a ``SCHED_BATCH`` thread never does, it waits for the
+    running one to sleep or to use up its slice. A node off the deadline path (the VE, the
+    recorder, the driver's ROS side beside its loop process) then does not cut into a loop
+    cycle each time one of its threads (its executor, DDS's receive threads) wakes; its share
+    of the CPU is the same. Traced on ``run circle`` (15 s, 2 cores): the loop process was
+    preempted in 11 % of its cycles (321 times for more than 0.3 ms), nearly always by the
+    other nodes' threads; with them under ``SCHED_BATCH``, in 4 % (79 times).
+
+    Why ``idle``: a waking normal thread preempts a ``SCHED_IDLE`` thread at once, whatever
+    the latter's slice, so the loop process never waits behind the VE's computation for its
+    core (under ``SCHED_BATCH`` it may wait out the VE thread's slice, 1-2 ms, when a busy
+    process holds the other core). The price: a ``SCHED_IDLE`` thread gets a core only when
+    no normal thread wants it, so beside busy work on every core it stalls. Neither needs
+    privilege (sched(7)), but an unprivileged process cannot leave ``SCHED_IDLE`` again, nor
+    can the processes it starts: a node that starts the loop process must not use it."""
+    if policy not in NODE_POLICIES:
+        return (f'sched_policy: {policy!r} is not one of {", ".join(NODE_POLICIES)}; '
+                'unchanged')
+    if policy == 'other':
+        return None
+    cls = NODE_POLICIES[policy]
+    exc = _each_thread(lambda tid: os.sched_setscheduler(tid, cls, os.sched_param(0)))
+    return None if exc is None else f'sched_policy {policy}: {exc}; normal scheduling'
 
 
 def normal_scheduling() -> str | None:
     """Put the calling thread back under normal scheduling (``SCHED_OTHER``) if it runs under
     ``SCHED_BATCH`` or ``SCHED_IDLE``, e.g. inherited from the node that started it
-    (:func:`set_batch_process`); its nice value stays. None, or why it failed."""
+    (:func:`set_process_policy`); its nice value stays. None, or why it failed."""
     if os.sched_getscheduler(0) not in (os.SCHED_BATCH, os.SCHED_IDLE):
         return None
     try:

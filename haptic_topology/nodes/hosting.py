@@ -36,7 +36,7 @@ from haptic_topology.device.realtime import (
     name_os_thread,
     raise_session_nice,
     renice_thread,
-    set_batch_process,
+    set_process_policy,
     set_thread_realtime,
 )
 from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
@@ -182,8 +182,7 @@ class HostedLoop:
         if self.process is not None:        # a new child: the controller loop starts over
             self.controller.admission.forget()
             # This node's threads, off the deadline path, never preempt the loop process.
-            if s.sched_batch:
-                self._problems.extend(filter(None, [set_batch_process()]))
+            self._problems.extend(filter(None, [set_process_policy(s.sched_policy)]))
         self.outbox.start()
 
         def on_start() -> None:     # in the loop thread

@@ -23,10 +23,11 @@ from rclpy.node import Node
 
 from haptic_topology.config.params import NodeParams
 from haptic_topology.device.realtime import (
+    NODE_POLICIES,
     fix_mmap_threshold,
     renice_process,
     reset_session_nice,
-    set_batch_process,
+    set_process_policy,
     set_realtime_priority,
 )
 from haptic_topology.errors import ConfigError, HapticTopologyError
@@ -138,18 +139,19 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
                 nodes[0].get_logger().info(f'SCHED_FIFO priority {priority}')
         # Nodes off the deadline path yield the CPU (``nice``); a process that also holds a
         # node without the parameter (the composed graph, with the loop) stays as it is.
-        # They also run under SCHED_BATCH (``sched_batch``), unless under SCHED_FIFO.
+        # They also run under SCHED_BATCH or SCHED_IDLE (``sched_policy``), unless under
+        # SCHED_FIFO; of several nodes in one process, the one that yields least decides.
         if nodes and all(n.has_parameter('nice') for n in nodes):
             nice = min(int(n.get_parameter('nice').value) for n in nodes)
-            batch = not priority and all(n.has_parameter('sched_batch')
-                                         and n.get_parameter('sched_batch').value
-                                         for n in nodes)
-            problems = [renice_process(nice) if nice else None,
-                        set_batch_process() if batch else None]
+            policy = 'other' if priority else min(
+                (str(n.get_parameter('sched_policy').value) if n.has_parameter('sched_policy')
+                 else 'other' for n in nodes), key=list(NODE_POLICIES).index)
+            problems = [renice_process(nice) if nice else None, set_process_policy(policy)]
             for text in filter(None, problems):
                 nodes[0].get_logger().warn(text)
-            nodes[0].get_logger().info(
-                f'nice +{nice}' + (', SCHED_BATCH' if batch and problems[1] is None else ''))
+            applied = policy != 'other' and problems[1] is None
+            nodes[0].get_logger().info(f'nice +{nice}'
+                                       + (f', SCHED_{policy.upper()}' if applied else ''))
         spin(nodes, kind)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -139,7 +139,7 @@ def test_a_killed_driver_ends_its_loop_process(graph: Any) -> None:
 
 
 def test_the_nodes_run_batch_and_the_loop_process_normal(graph: Any) -> None:
-    """``sched_batch`` (default): every thread of ve_sim and of the driver's ROS side (its
+    """``sched_policy`` batch (default): every thread of ve_sim and of the driver's ROS side (its
     executor, DDS's threads, the publisher) is under SCHED_BATCH; the loop process, which
     the driver started, runs its cycle under normal scheduling."""
     procs, _ = graph

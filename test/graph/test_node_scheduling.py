@@ -1,4 +1,4 @@
-"""The scheduling of the nodes off the deadline path (``nice``, ``sched_batch``), read back
+"""The scheduling of the nodes off the deadline path (``nice``, ``sched_policy``), read back
 from the kernel for every thread of a real ``recorder`` process: the node says in its log
 how it runs, and its threads, DDS's included, run so."""
 
@@ -55,7 +55,13 @@ def test_a_recorder_runs_every_thread_batch_and_at_its_nice(tmp_path: Path) -> N
     assert set().union(*policies.values()) == {os.SCHED_BATCH}, policies
 
 
-def test_sched_batch_false_keeps_normal_scheduling(tmp_path: Path) -> None:
-    line, policies = _recorder_scheduling(tmp_path, 'sched_batch:=false', 'nice:=0')
+def test_sched_policy_idle_puts_every_thread_under_sched_idle(tmp_path: Path) -> None:
+    line, policies = _recorder_scheduling(tmp_path, 'sched_policy:=idle')
+    assert line.endswith('nice +10, SCHED_IDLE'), line
+    assert set().union(*policies.values()) == {os.SCHED_IDLE}, policies
+
+
+def test_sched_policy_other_keeps_normal_scheduling(tmp_path: Path) -> None:
+    line, policies = _recorder_scheduling(tmp_path, 'sched_policy:=other', 'nice:=0')
     assert line.endswith('nice +0'), line
     assert set().union(*policies.values()) == {os.SCHED_OTHER}, policies

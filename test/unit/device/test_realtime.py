@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from haptic_topology.device import realtime
-from haptic_topology.device.realtime import SESSION_NICE_ENV
+from haptic_topology.device.realtime import SESSION_NICE_ENV, set_process_policy
 
 CHILD = r'''
 import json, os, threading
@@ -244,9 +244,9 @@ def test_the_mmap_threshold_stays_fixed_after_a_mapped_block_is_freed() -> None:
     assert _mmap_child('dynamic') == {'fixed': None, 'mapped_blocks': 0}
 
 
-BATCH_CHILD = r'''
+POLICY_CHILD = r'''
 import json, os, subprocess, sys, threading
-from haptic_topology.device.realtime import set_batch_process, set_thread_realtime
+from haptic_topology.device.realtime import set_process_policy, set_thread_realtime
 
 def policies():
     return {int(t): os.sched_getscheduler(int(t)) for t in os.listdir('/proc/self/task')}
@@ -262,7 +262,7 @@ out = {}
 threading.Thread(target=worker, daemon=True).start()
 started.wait()
 out['start'] = policies()
-out['problem'] = set_batch_process()
+out['problem'] = set_process_policy(sys.argv[1])
 out['after'] = policies()
 late = []
 t = threading.Thread(target=lambda: late.append(os.sched_getscheduler(0)))
@@ -280,31 +280,45 @@ print(json.dumps(out))
 '''
 
 
-def test_batch_covers_every_thread_and_what_they_start_and_the_loop_returns_to_normal() -> None:
-    """A node off the deadline path puts all its threads under SCHED_BATCH (DDS's threads
-    exist before it does): threads and processes it starts later inherit it, the loop
-    process included, whose real-time settings put its own thread back under normal
-    scheduling; nice values stay."""
-    res = subprocess.run(['nice', '-n', '2', sys.executable, '-c', BATCH_CHILD],
+@pytest.mark.parametrize(('policy', 'cls'), [('batch', os.SCHED_BATCH),
+                                             ('idle', os.SCHED_IDLE)])
+def test_a_policy_covers_every_thread_and_what_they_start_and_the_loop_returns_to_normal(
+        policy: str, cls: int) -> None:
+    """A node off the deadline path puts all its threads under SCHED_BATCH or SCHED_IDLE
+    (DDS's threads exist before it does): threads and processes it starts later inherit it,
+    the loop process included, whose real-time settings put its own thread back under
+    normal scheduling (this suite runs where that is permitted; without privilege only
+    SCHED_BATCH can be left, which is why device_driver does not offer idle); nice values
+    stay."""
+    res = subprocess.run(['nice', '-n', '2', sys.executable, '-c', POLICY_CHILD, policy],
                          capture_output=True, text=True, timeout=60, check=True)
     out = json.loads(res.stdout.strip().splitlines()[-1])
     start = {int(k): v for k, v in out['start'].items()}
     assert len(start) >= 2 and set(start.values()) == {os.SCHED_OTHER}
     assert out['problem'] is None
-    assert {int(k): v for k, v in out['after'].items()} == dict.fromkeys(start, os.SCHED_BATCH)
-    assert out['new_thread'] == os.SCHED_BATCH
-    assert out['child_process'] == os.SCHED_BATCH
+    assert {int(k): v for k, v in out['after'].items()} == dict.fromkeys(start, cls)
+    assert out['new_thread'] == cls
+    assert out['child_process'] == cls
     assert out['loop_problems'] == []
     loop = {int(k): v for k, v in out['loop'].items()}
     assert loop[out['main_tid']] == os.SCHED_OTHER              # the loop's thread only
-    assert loop[out['worker_tid']] == os.SCHED_BATCH
+    assert loop[out['worker_tid']] == cls
     assert out['nice'] == out['loop_nice'] == 2
+
+
+def test_policy_other_changes_nothing_and_an_unknown_one_is_named() -> None:
+    before = os.sched_getscheduler(0)
+    assert set_process_policy('other') is None
+    assert os.sched_getscheduler(0) == before
+    assert set_process_policy('fifo') == ("sched_policy: 'fifo' is not one of other, batch, "
+                                          'idle; unchanged')
+    assert os.sched_getscheduler(0) == before
 
 
 SLICE_AFTER_BATCH = r'''
 import os
-from haptic_topology.device.realtime import set_batch_process, set_thread_realtime, sched_slice_ns
-set_batch_process()
+from haptic_topology.device.realtime import set_process_policy, set_thread_realtime, sched_slice_ns
+set_process_policy('batch')
 problems = set_thread_realtime(0, [-1], False, 250.0, 0)
 print(problems, os.sched_getscheduler(0) == os.SCHED_OTHER, sched_slice_ns())
 '''
