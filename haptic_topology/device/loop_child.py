@@ -49,6 +49,13 @@ from haptic_topology.device.watchdog import CommandWatchdog
 _PR_SET_PDEATHSIG = 1
 
 
+#: Wall clock: an LMI update is applied between two cycles only while at least this long (s)
+#: is left before the next deadline; its decoding and re-sync take 0.1-0.2 ms here, and one
+#: that came later would delay the next cycle. It waits in the ring for the gap after that
+#: cycle instead.
+APPLY_BEFORE = 0.3e-3
+
+
 class _RingCycle(HostedCycle):
     """A :class:`HostedCycle` whose updates come from the node's ring.
 
@@ -56,13 +63,21 @@ class _RingCycle(HostedCycle):
     deadline: nothing changes the loop's state between the end of one cycle and the start of
     the next, so the controller ends up where applying them at the start of the next cycle
     would leave it (the same loop time, the same inputs replayed), and the cycle that follows
-    has only the step left. Their verdicts are returned with that cycle's."""
+    has only the step left. Their verdicts are returned with that cycle's.
+
+    ``lockstep``: every step first takes what is in the ring, so each state is answered
+    after exactly the updates the offline simulation applies before it. With the wall clock
+    a step takes from the ring only the updates :meth:`defer` left there (no gap came since:
+    the loop overran); the others wait for the gap after the step, so a step never waits for
+    an update's re-sync."""
 
     def __init__(self, device: DeviceLoop, controller: ControllerLoop, ring: ShmRing,
-                 wake_fd: int, poll: Any) -> None:
+                 wake_fd: int, poll: Any, lockstep: bool) -> None:
         super().__init__(device, controller)
         self._ring, self._wake_fd, self._poll = ring, wake_fd, poll
         self._early: tuple[str, ...] = ()
+        self._lockstep = lockstep
+        self._deferred = False
 
     def pull(self) -> bool:
         got = False
@@ -71,15 +86,28 @@ class _RingCycle(HostedCycle):
             got = True
         return got
 
+    @property
+    def waiting(self) -> bool:
+        """Updates are waiting in the ring."""
+        return self._ring.pending > 0
+
     def apply_updates(self) -> tuple[str, ...]:
-        self.pull()
+        if self._lockstep or self._deferred:
+            self._deferred = False
+            self.pull()
         early, self._early = self._early, ()
         return early + super().apply_updates()
 
     def apply_early(self) -> None:
         """Take and apply the updates in the ring now, between two cycles (see class doc)."""
+        self._deferred = False
         self.pull()
         self._early += super().apply_updates()
+
+    def defer(self) -> None:
+        """Leave the updates in the ring for the next gap between two cycles; if the loop
+        steps before one comes (an overrun), that step takes them."""
+        self._deferred = True
 
     def wait_offered(self, timeout: float) -> bool:
         if self.pull():
@@ -108,7 +136,7 @@ class _Child:
         self.device = DeviceLoop(self.backend, spec.limit, CommandWatchdog(spec.watchdog, dim),
                                  spec.period, spec.takeover_after)
         self.cycle = _RingCycle(self.device, spec.controller, updates, spec.wake_child,
-                                self.poll_control)
+                                self.poll_control, spec.runner.lockstep)
         self.runner = LoopRunner(self.cycle, spec.runner, sleep=self.sleep, wake=self.flush)
         # The statistics the node sorts for the percentiles, in memory it reads.
         self.arrays = [SharedArray.attach(spec.periods, PERIOD_WINDOW),
@@ -122,11 +150,19 @@ class _Child:
 
     def sleep(self, seconds: float) -> None:
         """The pacer's sleep until the next deadline: it ends early when the node signals
-        (an update or a request), and the updates that came are decoded and applied then,
-        between two cycles (:meth:`_RingCycle.apply_early`); the pacer sleeps again until the
-        deadline."""
-        if wait_eventfd(self.spec.wake_child, seconds):
+        (an update or a request), and the updates waiting are decoded and applied then,
+        between two cycles (:meth:`_RingCycle.apply_early`), if at least
+        :data:`APPLY_BEFORE` is left; the pacer sleeps again until the deadline. Else they
+        wait for the gap after the next cycle (:meth:`_RingCycle.defer`)."""
+        end = time.monotonic() + seconds
+        if not self.cycle.waiting and not wait_eventfd(self.spec.wake_child, seconds):
+            return
+        left = end - time.monotonic()
+        if left > APPLY_BEFORE:
             self.cycle.apply_early()
+        else:
+            self.cycle.defer()
+            time.sleep(max(left, 0.0))
 
     def poll_control(self) -> None:
         for data in payloads(self.control):

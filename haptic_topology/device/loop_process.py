@@ -29,7 +29,9 @@ cycle's record, the node after an update); with the wall clock the node takes th
 every few milliseconds and the child never makes a system call for it, and the child sleeps
 towards its next deadline on the node's ``eventfd``: an update that comes while it sleeps is
 decoded and applied then, off the deadline path (the loop's state does not change between
-two cycles, so this is what applying it at the start of the next cycle would do).
+two cycles, so this is what applying it at the start of the next cycle would do), unless
+less than ``loop_child.APPLY_BEFORE`` (0.3 ms) is left: then it waits for the gap after
+the next cycle, which runs on the model it has.
 
 Lifetimes: the node creates (and unlinks) the rings. The child stops at a stop request, or
 when its parent dies (``PR_SET_PDEATHSIG`` delivers SIGTERM, and the parent pid is checked
