@@ -13,7 +13,8 @@ the params file (default ``config/haptic_topology.yaml``) plus ``scenario``, ``c
 engages, so the bag holds the whole run) and ``device_driver.run_duration``. It waits on what
 ROS tools see (:mod:`haptic_topology.bringup.watch`), never on log lines: the device driver
 is started once the recorder's ``/diagnostics`` status says it is matched to the
-controller's and the VE's publishers; the run is over when the driver's lifecycle state is
+controller's and the VE's publishers, and each publisher of a recorded topic (the device's
+state publisher included) reports its readers matched (:func:`loop_readers`); the run is over when the driver's lifecycle state is
 ``inactive`` (it deactivates itself after ``run_duration`` from engagement). Then it stops
 the device, controller, VE and the recorder with SIGINT (SIGTERM, then SIGKILL, after a
 timeout each), reads the bag back into a trace and writes ``trace.csv``, ``plot.png`` and
@@ -70,27 +71,34 @@ FOXGLOVE_NODE = 'foxglove_bridge'
 FOXGLOVE_STATUS = 'foxglove_bridge: server'
 
 
-def loop_readers(layout: str) -> dict[tuple[str, str], int]:
+def loop_readers(layout: str, min_subscribers: int = 2) -> dict[tuple[str, str], int]:
     """``(status name, topic) -> readers``: the DDS readers each publisher of the run's
     recorded topics has in ``layout`` (``hosted`` or ``separate``), the recorder's included.
 
     The LMI updates go to the controller (hosted: in the device driver's process) and the
     recorder, the VE's path to the recorder, the hand inputs to the VE and the recorder, the
     commands to the recorder and, in the separate layout, to the device driver (hosted, it
-    takes none from DDS). The device's states are covered by ``min_subscribers``.
+    takes none from DDS). The device's states go to the ``min_subscribers`` readers it
+    engages with (a hosted controller counts as one of them, without a reader): matched
+    before the driver is activated, since its first states, published before it engages,
+    are in the bag too.
     """
     from haptic_topology.bringup.watch import CONTROLLER_STATUS as ctl
+    from haptic_topology.bringup.watch import DEVICE_STATUS as dev
     from haptic_topology.bringup.watch import VE_STATUS as ve
     from haptic_topology.vocabulary import (
         TOPIC_COMMAND,
         TOPIC_HAND_INPUTS,
         TOPIC_LMI,
+        TOPIC_STATE,
         TOPIC_VT_PATH,
     )
 
+    hosted = layout != 'separate'
     return {(ve, TOPIC_LMI): 2, (ve, TOPIC_VT_PATH): 1,
             (ctl, TOPIC_HAND_INPUTS): 2,
-            (ctl, TOPIC_COMMAND): 2 if layout == 'separate' else 1}
+            (ctl, TOPIC_COMMAND): 1 if hosted else 2,
+            (dev, TOPIC_STATE): min_subscribers - (1 if hosted else 0)}
 
 
 @dataclass
@@ -255,7 +263,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
               foxglove: tuple[str, int] | None = None,
               node_prefix: dict[str, list[str]] | None = None,
               overrides: list[str] | None = None, claim: bool = True,
-              graph_id: str | None = None) -> dict[str, int]:
+              graph_id: str | None = None, min_subscribers: int = 2) -> dict[str, int]:
     """Run the graph once in ``layout`` (a key of :data:`LAYOUTS`), recording to ``bag``;
     return the processes' exit codes.
 
@@ -271,6 +279,10 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``claim``: claim the domain for the run (:func:`claim_domain`); False: the caller has.
     ``graph_id``: the nodes' ``graph_id`` (default: a new one, :func:`new_graph_id`), so a
     message of another graph on the domain (another run, a replayed bag) is never applied.
+    ``min_subscribers``: the device's state readers it engages with and that bringup waits
+    for (:func:`loop_readers`): 2, the controller and the recorder; one more for each other
+    process that reads the states (a test's impostor), so they cannot stand in for the
+    recorder.
     """
     from haptic_topology.bringup.watch import GraphWatcher
     from haptic_topology.errors import WaitTimeout
@@ -284,7 +296,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     graph = graph_id or new_graph_id(scenario)
     ros = ['--ros-args', '--params-file', str(params), '-p', f'scenario:={scenario}',
            '-p', f'clock:={clock}', '-p', f'lmi_controller:mode:={mode}',
-           '-p', f'recorder:output:={bag}', '-p', 'device_driver:min_subscribers:=2',
+           '-p', f'recorder:output:={bag}',
+           '-p', f'device_driver:min_subscribers:={min_subscribers}',
            '-p', f'device_driver:run_duration:={float(duration)!r}',
            '-p', f'device_driver:host_controller:={host}',
            '-p', f'graph_id:={graph}']
@@ -339,7 +352,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                        'recorder connected to the loop topics')
             watch.wait(lambda: watch.recorder_sees(TOPIC_STATE), startup_timeout,
                        'recorder matched to the device state publisher')
-            readers = loop_readers(layout)
+            readers = loop_readers(layout, min_subscribers)
             watch.wait(lambda: watch.writers_matched(readers), startup_timeout,
                        f'publishers matched to their readers ({readers})')
             for transition in ('configure', 'activate'):

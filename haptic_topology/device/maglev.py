@@ -374,8 +374,8 @@ class MaglevModel:
 
         The rotation angle from the centre is at most the distance ``|r - c|`` of the rotation
         vectors (SO(3) is positively curved, so its exponential map shortens distances): a
-        pose that close to the centre is inside without the exponential and logarithm, which
-        cost about 9 us per cycle."""
+        pose that close to the centre is inside without the exponential and logarithm (the
+        step then takes about 3.8 instead of 7.4 us)."""
         assert self._rot_center is not None
         d = self.pose[3:6] - self._rot_center_vec
         if d.dot(d) <= self._inside_sq:

@@ -84,10 +84,10 @@ def set_process_policy(policy: str) -> str | None:
     preempted in 11 % of its cycles (321 times for more than 0.3 ms), nearly always by the
     other nodes' threads; with them under ``SCHED_BATCH``, in 4 % (79 times).
 
-    Why ``idle``: a waking normal thread preempts a ``SCHED_IDLE`` thread at once, whatever
-    the latter's slice, so the loop process never waits behind the VE's computation for its
-    core (under ``SCHED_BATCH`` it may wait out the VE thread's slice, 1-2 ms, when a busy
-    process holds the other core). The price: a ``SCHED_IDLE`` thread gets a core only when
+    Why ``idle``: a waking normal thread preempts a ``SCHED_IDLE`` thread at once, so the
+    loop process does not wait behind the VE's computation for its core (traced under
+    ``SCHED_BATCH`` with a busy process holding the other core: wake-ups that waited 1-1.8 ms
+    behind ve_sim's main thread). The price: a ``SCHED_IDLE`` thread gets a core only when
     no normal thread wants it, so beside busy work on every core it stalls. Neither needs
     privilege (sched(7)), but an unprivileged process cannot leave ``SCHED_IDLE`` again, nor
     can the processes it starts: a node that starts the loop process must not use it."""

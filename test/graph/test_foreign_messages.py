@@ -306,8 +306,10 @@ def test_impostor_commands_answering_real_states_are_never_applied(tmp_path: Pat
     impostor = Impostor()
     try:
         with ThreadPoolExecutor(1) as pool:
+            # The impostor reads the states too: one more reader, so that it cannot stand
+            # in for the recorder when the driver starts and engages.
             job = pool.submit(run_graph, 'fig8', 'penalty', DURATION, bag, PARAMS, layout,
-                              startup_timeout=60.0, clock='lockstep')
+                              startup_timeout=60.0, clock='lockstep', min_subscribers=3)
             impostor.spin_until(job.done)
             codes = job.result()
         assert all(c == 0 for c in codes.values()), codes
