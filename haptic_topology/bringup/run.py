@@ -14,8 +14,9 @@ engages, so the bag holds the whole run) and ``device_driver.run_duration``. It 
 ROS tools see (:mod:`haptic_topology.bringup.watch`), never on log lines: the device driver
 is started once the recorder's ``/diagnostics`` status says it is matched to the
 controller's and the VE's publishers, and each publisher of a recorded topic (the device's
-state publisher included) reports its readers matched (:func:`loop_readers`); the run is over when the driver's lifecycle state is
-``inactive`` (it deactivates itself after ``run_duration`` from engagement). Then it stops
+state publisher included) reports its readers matched (:func:`loop_readers`); the run is
+over when the driver's lifecycle state is ``inactive`` (it deactivates itself after
+``run_duration`` from engagement). Then it stops
 the device, controller, VE and the recorder with SIGINT (SIGTERM, then SIGKILL, after a
 timeout each), reads the bag back into a trace and writes ``trace.csv``, ``plot.png`` and
 ``summary.json`` next to the bag's files, and prints the drift summary (as ``simulate``) and
