@@ -126,10 +126,12 @@ class NodeSettings:
             object.__setattr__(self, name, value)
             if value is None and name in nullable:
                 continue       # "the scenario's" (see scenario_defaults)
-            if isinstance(value, tuple) and not value:
+            if isinstance(value, tuple) and not value and not name.endswith('cpu_affinity'):
                 continue       # an empty array has no ROS type; each node decides
             check_value(spec, list(value) if isinstance(value, tuple) else value,
                         f'{self.NODE}: parameter {name}')
+            if name.endswith('cpu_affinity'):
+                check_cpus(value, f'{self.NODE}: parameter {name}')
         self.check()
 
     def check(self) -> None:
@@ -171,6 +173,21 @@ def _graph_id() -> Any:
                  "message on the graph's topics and applies only messages that carry it "
                  "(others are foreign: counted in /diagnostics, never applied). "
                  "haptic-topology run gives each run its own; empty: the default graph")
+
+
+def check_cpus(cpus: tuple[int, ...], where: str) -> None:
+    """A CPU affinity parameter: ``[-1]`` (no pinning) or CPU numbers of this machine."""
+    n = os.cpu_count() or 1
+    if cpus != (-1,) and not (cpus and all(0 <= c < n for c in cpus)):
+        raise ConfigError(f'{where}: expected [-1] (no pinning) or CPU numbers in '
+                          f'[0, {n - 1}], got {list(cpus)}')
+
+
+def _cpu_affinity() -> Any:
+    return param([-1], 'CPUs every thread of the process runs on from start-up (threads and '
+                 'processes started later inherit them), e.g. [0] to keep the other core '
+                 "for the loop process (device_driver's cpu_affinity); no privilege needed. "
+                 '[-1] = no pinning')
 
 
 def _nice(default: int) -> Any:
@@ -305,6 +322,12 @@ class DeviceDriverSettings(NodeSettings):
                               'not offered here: the loop process this node starts would '
                               'inherit it, and without privilege it could not leave it.)',
                               choices=('other', 'batch'))
+    node_cpu_affinity: tuple[int, ...] = param(
+        [-1], 'with the loop process: CPUs every thread of this node runs on (its executor, '
+        "DDS's threads, the publisher), e.g. [0] with cpu_affinity [1]: the loop process then "
+        "has a core that this node's threads never take. The loop process runs on "
+        'cpu_affinity (with [-1] there: on the CPUs this process had before). No privilege '
+        'needed; not applied to a loop thread or the separate layout. [-1] = no pinning')
 
     def check(self) -> None:
         if self.rate_hz != 0.0 and not RATE_MIN <= self.rate_hz <= RATE_MAX:
@@ -317,11 +340,6 @@ class DeviceDriverSettings(NodeSettings):
             raise ConfigError(f'device_driver: parameter sched_slice_us: expected 0.0 (the '
                               f"kernel's default) or a value in [{lo:g}, {hi:g}] us, got "
                               f'{self.sched_slice_us!r}')
-        cpus = os.cpu_count() or 1
-        if self.cpu_affinity != (-1,) and not all(0 <= c < cpus for c in self.cpu_affinity):
-            raise ConfigError(f'device_driver: parameter cpu_affinity: expected [-1] (no '
-                              f'pinning) or CPU numbers in [0, {cpus - 1}], got '
-                              f'{list(self.cpu_affinity)}')
 
 
 @dataclass(frozen=True)
@@ -398,6 +416,7 @@ class VeSimSettings(NodeSettings):
     sched_priority: int = _sched_priority()
     nice: int = _nice(5)
     sched_policy: str = _sched_policy()
+    cpu_affinity: tuple[int, ...] = _cpu_affinity()
     update_period: int = param(0, 'hand inputs per LMI update (10 at 1 kHz = 100 Hz); 0 = the '
                                "scenario's lmi.update_period", lo=0, hi=10000)
     idle_update_rate_hz: float = param(50.0, 'LMI updates per second while no hand input '
@@ -428,6 +447,7 @@ class RecorderSettings(NodeSettings):
     sched_priority: int = _sched_priority()
     nice: int = _nice(10)
     sched_policy: str = _sched_policy()
+    cpu_affinity: tuple[int, ...] = _cpu_affinity()
     output: str = param('', 'bag directory to create (must not exist); empty: '
                         'bags/<scenario>_<timestamp>')
     topics: tuple[str, ...] = param([''], 'topics to record (empty: all of the graph)')
@@ -470,6 +490,7 @@ class FoxgloveBridgeSettings(NodeSettings):
                           'is on the topics')
     nice: int = _nice(10)
     sched_policy: str = _sched_policy()
+    cpu_affinity: tuple[int, ...] = _cpu_affinity()
     host: str = param('127.0.0.1', 'address the WebSocket server listens on (0.0.0.0: every '
                       'interface, for a Foxglove app on another machine)')
     port: int = param(8765, 'TCP port of the WebSocket server (0: any free port; the port '

@@ -33,9 +33,11 @@ from haptic_topology.control.loop import ControllerLoop
 from haptic_topology.device.hosted import HostedCycle
 from haptic_topology.device.loop_process import LoopProcess
 from haptic_topology.device.realtime import (
+    loop_cpus,
     name_os_thread,
     raise_session_nice,
     renice_thread,
+    set_process_affinity,
     set_process_policy,
     set_thread_realtime,
 )
@@ -181,8 +183,10 @@ class HostedLoop:
         self.runner.may_engage = self.driver.may_engage()
         if self.process is not None:        # a new child: the controller loop starts over
             self.controller.admission.forget()
-            # This node's threads, off the deadline path, never preempt the loop process.
-            self._problems.extend(filter(None, [set_process_policy(s.sched_policy)]))
+            # This node's threads, off the deadline path, never preempt the loop process
+            # (and with node_cpu_affinity stay off its core).
+            self._problems.extend(filter(None, [set_process_policy(s.sched_policy),
+                                                set_process_affinity(s.node_cpu_affinity)]))
         self.outbox.start()
 
         def on_start() -> None:     # in the loop thread
@@ -270,7 +274,8 @@ def loop_spec(driver: Any, controller: ControllerLoop, pacing: RunnerConfig) -> 
                 limit=np.asarray(c.wrench_limit, dtype=float), watchdog=c.watchdog,
                 period=c.period, takeover_after=c.takeover_after, controller=controller,
                 runner=pacing, sched_priority=s.sched_priority,
-                cpu_affinity=tuple(s.cpu_affinity), lock_memory=s.lock_memory,
+                cpu_affinity=loop_cpus(s.cpu_affinity, s.node_cpu_affinity),
+                lock_memory=s.lock_memory,
                 sched_slice_us=s.sched_slice_us, timer_slack_ns=s.timer_slack_ns)
 
 

@@ -27,6 +27,7 @@ from haptic_topology.device.realtime import (
     fix_mmap_threshold,
     renice_process,
     reset_session_nice,
+    set_process_affinity,
     set_process_policy,
     set_realtime_priority,
 )
@@ -146,12 +147,19 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
             policy = 'other' if priority else min(
                 (str(n.get_parameter('sched_policy').value) if n.has_parameter('sched_policy')
                  else 'other' for n in nodes), key=list(NODE_POLICIES).index)
-            problems = [renice_process(nice) if nice else None, set_process_policy(policy)]
+            # Pinned only when every node asks for it (the union of their CPUs).
+            pins = [tuple(n.get_parameter('cpu_affinity').value)
+                    if n.has_parameter('cpu_affinity') else (-1,) for n in nodes]
+            cpus = [-1] if (-1,) in pins else sorted(set().union(*pins))
+            problems = [renice_process(nice) if nice else None, set_process_policy(policy),
+                        set_process_affinity(cpus)]
             for text in filter(None, problems):
                 nodes[0].get_logger().warn(text)
             applied = policy != 'other' and problems[1] is None
+            pinned = cpus != [-1] and problems[2] is None
             nodes[0].get_logger().info(f'nice +{nice}'
-                                       + (f', SCHED_{policy.upper()}' if applied else ''))
+                                       + (f', SCHED_{policy.upper()}' if applied else '')
+                                       + (f', CPUs {cpus}' if pinned else ''))
         spin(nodes, kind)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

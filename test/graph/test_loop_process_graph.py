@@ -16,7 +16,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from procs import describe, pidfd, stop_process, thread_policies, wait_exit
+from procs import (
+    describe,
+    pidfd,
+    stop_process,
+    thread_affinities,
+    thread_policies,
+    wait_exit,
+)
 
 from haptic_topology.paths import config_dir
 
@@ -152,3 +159,34 @@ def test_the_nodes_run_batch_and_the_loop_process_normal(graph: Any) -> None:
         assert any(name.startswith('dds.') for name in policies), policies
     assert 'device_publish' in thread_policies(driver.pid)
     assert thread_policies(child[0])['device_loop'] == {os.SCHED_OTHER}
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason='a partition needs two CPUs')
+def test_a_cpu_partition_keeps_the_loops_core_for_the_loop_process() -> None:
+    """``cpu_affinity`` (the loop process's core) with ``node_cpu_affinity`` and ve_sim's
+    ``cpu_affinity`` on the other CPUs (what ``run --loop-cpu`` sets): every thread of the
+    nodes, DDS's and the publisher included, stays off the loop's core, and the loop process
+    runs its cycle there."""
+    cpus = sorted(os.sched_getaffinity(0))
+    loop, rest = cpus[-1], tuple(cpus[:-1])
+    nodes = ','.join(map(str, rest))
+    procs = [_start('ve_sim', '-p', f'cpu_affinity:=[{nodes}]'),
+             _start('device_driver', '-p', 'loop_process:=true', '-p',
+                    f'cpu_affinity:=[{loop}]', '-p', f'node_cpu_affinity:=[{nodes}]')]
+    watch = _Watch()
+    try:
+        watch.wait(lambda: watch.running >= 200, 'the loop process running', procs)
+        ve, driver = procs
+        child = _children(driver.pid)
+        assert len(child) == 1, child
+        for node in (ve.pid, driver.pid):
+            pinned = thread_affinities(node)
+            assert set().union(*pinned.values()) == {rest}, pinned
+            assert any(name.startswith('dds.') for name in pinned), pinned
+        assert 'device_publish' in thread_affinities(driver.pid)
+        assert thread_affinities(child[0])['device_loop'] == {(loop,)}
+    finally:
+        watch.close()
+        for p in procs:
+            if p.poll() is None:
+                stop_process(p)

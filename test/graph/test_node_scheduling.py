@@ -8,10 +8,12 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
-from procs import thread_policies
+from procs import thread_affinities, thread_policies
 
 pytestmark = pytest.mark.graph
 
@@ -22,9 +24,11 @@ def _normal() -> None:
     os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
-def _recorder_scheduling(tmp_path: Path, *params: str) -> tuple[str, dict[str, set[int]]]:
-    """Start a recorder with ``params``; its log line on scheduling and its threads' policies
-    once it has said it."""
+def _recorder_scheduling(tmp_path: Path, *params: str,
+                         read: Callable[[int], dict[str, set[Any]]] = thread_policies
+                         ) -> tuple[str, dict[str, set[Any]]]:
+    """Start a recorder with ``params``; its log line on scheduling and what ``read`` gives
+    for its threads (their policies) once it has said it."""
     args = [f'output:={tmp_path / "bag"}', *params]
     proc = subprocess.Popen(
         [sys.executable, '-m', 'haptic_topology.nodes.recorder', '--ros-args',
@@ -40,7 +44,7 @@ def _recorder_scheduling(tmp_path: Path, *params: str) -> tuple[str, dict[str, s
             line = proc.stdout.readline()
             seen.append(line)
             if 'nice +' in line:
-                return line.strip(), thread_policies(proc.pid)
+                return line.strip(), read(proc.pid)
             assert line or proc.poll() is None, ''.join(seen)[-3000:]
         raise AssertionError(f'no scheduling line within {WAIT:g} s:\n{"".join(seen)[-3000:]}')
     finally:
@@ -65,3 +69,12 @@ def test_sched_policy_other_keeps_normal_scheduling(tmp_path: Path) -> None:
     line, policies = _recorder_scheduling(tmp_path, 'sched_policy:=other', 'nice:=0')
     assert line.endswith('nice +0'), line
     assert set().union(*policies.values()) == {os.SCHED_OTHER}, policies
+
+
+def test_cpu_affinity_pins_every_thread_and_the_log_says_so(tmp_path: Path) -> None:
+    cpu = max(os.sched_getaffinity(0))
+    line, pinned = _recorder_scheduling(tmp_path, f'cpu_affinity:=[{cpu}]',
+                                        read=thread_affinities)
+    assert line.endswith(f'nice +10, SCHED_BATCH, CPUs [{cpu}]'), line
+    assert any(name.startswith('dds.') for name in pinned), pinned
+    assert set().union(*pinned.values()) == {(cpu,)}, pinned

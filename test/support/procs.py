@@ -65,3 +65,15 @@ def thread_policies(pid: int) -> dict[str, set[int]]:
         except OSError:
             continue            # the thread ended meanwhile
     return out
+
+
+def thread_affinities(pid: int) -> dict[str, set[tuple[int, ...]]]:
+    """The CPUs (sorted) each thread of process ``pid`` may run on, by thread name."""
+    out: dict[str, set[tuple[int, ...]]] = {}
+    for task in Path(f'/proc/{pid}/task').iterdir():
+        try:
+            name = (task / 'comm').read_text().strip()
+            out.setdefault(name, set()).add(tuple(sorted(os.sched_getaffinity(int(task.name)))))
+        except OSError:
+            continue            # the thread ended meanwhile
+    return out

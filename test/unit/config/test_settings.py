@@ -5,6 +5,7 @@ expected), scenario defaults, frozen objects."""
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ from haptic_topology.config.resolve import (
 )
 from haptic_topology.config.settings import (
     DeviceDriverSettings,
+    FoxgloveBridgeSettings,
     LmiControllerSettings,
     NodeSettings,
     RecorderSettings,
@@ -33,6 +35,8 @@ from haptic_topology.device.watchdog import WatchdogFallback
 from haptic_topology.errors import ConfigError
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import Clock, ControlMode
+
+_CPUS = os.cpu_count() or 1
 
 _EX = ('events', 'single_threaded')
 _COMMON: list[tuple[str, Any, float | None, float | None, tuple[str, ...] | None, bool]] = [
@@ -68,7 +72,8 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
         ('sched_slice_us', 100.0, 0.0, 100000.0, None, True),
         ('timer_slack_ns', 0, 0, 10_000_000, None, True),
         ('publisher_nice', 5, 0, 19, None, True),
-        ('sched_policy', 'batch', None, None, ('other', 'batch'), True)],
+        ('sched_policy', 'batch', None, None, ('other', 'batch'), True),
+        ('node_cpu_affinity', [-1], None, None, None, True)],
     LmiControllerSettings: [*_COMMON,
         ('mode', 'penalty', None, None, ('penalty', 'acceleration_only'), False),
         ('k_tc', 0.0, 0.0, 1e5, None, False),
@@ -84,6 +89,7 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
     VeSimSettings: [*_COMMON,
         ('nice', 5, 0, 19, None, True),
         ('sched_policy', 'batch', None, None, ('other', 'batch', 'idle'), True),
+        ('cpu_affinity', [-1], None, None, None, True),
         ('update_period', 0, 0, 10000, None, True),
         ('idle_update_rate_hz', 50.0, 0.1, 1000.0, None, True),
         ('max_hand_wrench', 1000.0, 1e-3, 1e9, None, True),
@@ -93,6 +99,7 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
     RecorderSettings: [*_COMMON,
         ('nice', 10, 0, 19, None, True),
         ('sched_policy', 'batch', None, None, ('other', 'batch', 'idle'), True),
+        ('cpu_affinity', [-1], None, None, None, True),
         ('output', '', None, None, None, True),
         ('topics', [''], None, None, None, True),
         ('topic_regex', '', None, None, None, True),
@@ -197,6 +204,21 @@ def test_settings_are_frozen_and_normalised() -> None:
      None),
     (lambda: RecorderSettings(sched_policy='fifo'),
      "recorder: parameter sched_policy: expected one of other, batch, idle, got 'fifo'"),
+    (lambda: DeviceDriverSettings(cpu_affinity=(_CPUS,)),
+     f'device_driver: parameter cpu_affinity: expected [-1] (no pinning) or CPU numbers in '
+     f'[0, {_CPUS - 1}], got [{_CPUS}]'),
+    (lambda: DeviceDriverSettings(node_cpu_affinity=(-2,)),
+     f'device_driver: parameter node_cpu_affinity: expected [-1] (no pinning) or CPU numbers '
+     f'in [0, {_CPUS - 1}], got [-2]'),
+    (lambda: VeSimSettings(cpu_affinity=()),
+     've_sim: parameter cpu_affinity: expected an integer array, got empty array []'),
+    (lambda: RecorderSettings(cpu_affinity=(0, -1)),
+     f'recorder: parameter cpu_affinity: expected [-1] (no pinning) or CPU numbers in '
+     f'[0, {_CPUS - 1}], got [0, -1]'),
+    (lambda: FoxgloveBridgeSettings(cpu_affinity=('0',)),  # type: ignore[arg-type]
+     "foxglove_bridge: parameter cpu_affinity: expected"),
+    (lambda: RecorderSettings(cpu_affinity=(0,)),
+     None),
     (lambda: RecorderSettings.from_values({'outptu': 'x'}),
      'recorder: unknown parameter outptu (expected one of: chunk_kib, clock, compression,'),
 ])

@@ -14,7 +14,13 @@ from pathlib import Path
 import pytest
 
 from haptic_topology.device import realtime
-from haptic_topology.device.realtime import SESSION_NICE_ENV, set_process_policy
+from haptic_topology.device.realtime import (
+    SESSION_NICE_ENV,
+    START_CPUS,
+    loop_cpus,
+    set_process_affinity,
+    set_process_policy,
+)
 
 CHILD = r'''
 import json, os, threading
@@ -313,6 +319,77 @@ def test_policy_other_changes_nothing_and_an_unknown_one_is_named() -> None:
     assert set_process_policy('fifo') == ("sched_policy: 'fifo' is not one of other, batch, "
                                           'idle; unchanged')
     assert os.sched_getscheduler(0) == before
+
+
+AFFINITY_CHILD = r'''
+import json, os, subprocess, sys, threading
+from haptic_topology.device.realtime import set_process_affinity, set_thread_realtime
+
+def affinities():
+    return {int(t): sorted(os.sched_getaffinity(int(t))) for t in os.listdir('/proc/self/task')}
+
+node, loop = json.loads(sys.argv[1]), json.loads(sys.argv[2])
+started = threading.Event()
+def worker():
+    out['worker_tid'] = threading.get_native_id()
+    started.set()
+    threading.Event().wait(5)
+
+out = {'all': sorted(os.sched_getaffinity(0))}
+threading.Thread(target=worker, daemon=True).start()
+started.wait()
+out['problem'] = set_process_affinity(node)
+out['after'] = affinities()
+late = []
+t = threading.Thread(target=lambda: late.append(sorted(os.sched_getaffinity(0))))
+t.start(); t.join()
+out['new_thread'] = late[0]
+out['child_process'] = json.loads(subprocess.run(
+    [sys.executable, '-c', 'import os; print(sorted(os.sched_getaffinity(0)))'],
+    capture_output=True, text=True, check=True).stdout)
+out['loop_problems'] = set_thread_realtime(0, loop, False, 0.0, 0)   # the loop's start
+out['loop'] = affinities()
+out['main_tid'] = threading.get_native_id()
+print(json.dumps(out))
+'''
+
+
+def test_a_pinned_node_pins_every_thread_and_what_it_starts_and_the_loop_pins_its_own() -> None:
+    """A node pinned to a core pins every thread it has (DDS's exist before it does) and the
+    threads and processes it starts later inherit the pinning; the loop process, started by
+    such a node, pins its own thread to its own core."""
+    cpus = sorted(os.sched_getaffinity(0))
+    node, loop = [cpus[0]], [cpus[-1]]      # two different cores where there are two
+    res = subprocess.run([sys.executable, '-c', AFFINITY_CHILD, json.dumps(node),
+                          json.dumps(loop)], capture_output=True, text=True, timeout=60,
+                         check=True)
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    after = {int(k): v for k, v in out['after'].items()}
+    assert out['problem'] is None
+    assert len(after) >= 2 and set(map(tuple, after.values())) == {tuple(node)}
+    assert out['new_thread'] == out['child_process'] == node
+    assert out['loop_problems'] == []
+    pinned = {int(k): v for k, v in out['loop'].items()}
+    assert pinned[out['main_tid']] == loop                       # the loop's thread only
+    assert pinned[out['worker_tid']] == node
+
+
+def test_the_loop_keeps_its_own_cpus_or_the_ones_its_pinned_node_started_with() -> None:
+    assert loop_cpus([1], [0]) == (1,)
+    assert loop_cpus([-1], [-1]) == (-1,)            # nothing pinned: nothing to undo
+    assert loop_cpus([-1], [0]) == START_CPUS        # not narrowed to the node's CPUs
+    assert START_CPUS == tuple(sorted(os.sched_getaffinity(0)))
+
+
+def test_no_pinning_changes_nothing_and_a_cpu_not_there_is_named() -> None:
+    before = os.sched_getaffinity(0)
+    assert set_process_affinity([-1]) is None
+    assert os.sched_getaffinity(0) == before
+    n = os.cpu_count() or 1
+    problem = set_process_affinity([n + 7])
+    assert problem is not None and problem.startswith(f'cpu_affinity [{n + 7}]: ')
+    assert problem.endswith('; not pinned')
+    assert os.sched_getaffinity(0) == before
 
 
 SLICE_AFTER_BATCH = r'''
