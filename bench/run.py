@@ -10,7 +10,9 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    SCHED_FIFO and, where the OS permits it, with it, the hosted and thread layouts beside
    a busy Python process pinned to CPU 0, and the hosted layout with the kernel's default
    scheduler slice, with the other nodes not under SCHED_BATCH, and with the VE and the
-   recorder under SCHED_IDLE, alone and beside the busy process (:data:`RUN_PARAMS`):
+   recorder under SCHED_IDLE, alone and beside the busy process (:data:`RUN_PARAMS`), and
+   with the loop process alone on a CPU (``run --loop-cpu``, :data:`RUN_LOOP_CPU`), alone
+   and beside the busy process on the nodes' CPU or on the loop's:
    cycles answered in time, device period
    p50/p99/max, the longest
    run of consecutive missed cycles, round trip p50/p99 (separate layout), CPU per process
@@ -31,7 +33,7 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    resident set growth after its first minute (``run``'s ``rss_growth_kb_s_<process>``).
 
 Then a table of every figure beside its goal (issues 11 and 26). Run: ``make bench`` (about
-24 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
+26 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
 its figures are not written to RESULTS.md).
 """
 
@@ -89,10 +91,12 @@ BUSY = 'import os\nos.sched_setaffinity(0, {0})\nwhile True:\n    pass\n'
 def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle',
                mode: str | None = None, busy: bool = False,
                startup_timeout: float = 30.0,
-               nodes: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+               nodes: dict[str, dict[str, Any]] | None = None,
+               loop_cpu: int | None = None) -> dict[str, Any]:
     """One recorded run of ``scenario`` (a name or a file) on the graph in ``layout``
     (``busy``: beside :data:`BUSY`; ``nodes``: per node, parameters other than the config
-    file's); loop figures, the VE's update rate, CPU and memory."""
+    file's; ``loop_cpu``: ``run --loop-cpu``); loop figures, the VE's update rate, CPU and
+    memory."""
     import yaml
 
     from haptic_topology.paths import config_dir
@@ -113,6 +117,8 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
                str(params_file), '--layout', layout, '--startup-timeout', str(startup_timeout)]
         if mode:
             cmd += ['--mode', mode]
+        if loop_cpu is not None:
+            cmd += ['--loop-cpu', str(loop_cpu)]
         hog = subprocess.Popen([sys.executable, '-c', BUSY]) if busy else None
         try:
             res = subprocess.run(cmd, env=_env(), capture_output=True, text=True,
@@ -214,7 +220,10 @@ LOOP_RUNS = (('hosted', 'hosted', False, False), ('separate', 'separate', False,
              ('separate_fifo', 'separate', True, False),
              ('thread_fifo', 'thread', True, False), ('hosted_slice0', 'hosted', False, False),
              ('hosted_nobatch', 'hosted', False, False), ('hosted_idle', 'hosted', False, False),
-             ('hosted_busy_idle', 'hosted', False, True))
+             ('hosted_busy_idle', 'hosted', False, True),
+             ('hosted_partition', 'hosted', False, False),
+             ('hosted_busy_partition', 'hosted', False, True),
+             ('hosted_busy_partition_shared', 'hosted', False, True))
 #: Node parameters of a run of :data:`LOOP_RUNS` other than the config file's: the loop
 #: process with the kernel's default scheduler slice instead of ``sched_slice_us`` 100; the
 #: other nodes under normal scheduling instead of SCHED_BATCH (``sched_policy`` other); the
@@ -227,6 +236,17 @@ RUN_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
     'hosted_idle': _IDLE,
     'hosted_busy_idle': _IDLE,
 }
+
+
+#: ``run --loop-cpu`` of a run of :data:`LOOP_RUNS`: the loop process alone on the last CPU
+#: and every other thread of the graph on the others, the busy process (pinned to CPU 0)
+#: among them; ``_shared``: the loop on CPU 0, beside the busy process, the nodes on the
+#: others. Run where there are two CPUs or more.
+_CPUS = sorted(os.sched_getaffinity(0))
+RUN_LOOP_CPU: dict[str, int] = ({'hosted_partition': _CPUS[-1],
+                                 'hosted_busy_partition': _CPUS[-1],
+                                 'hosted_busy_partition_shared': 0}
+                                if len(_CPUS) >= 2 and _CPUS[0] == 0 else {})
 
 
 def _pingpong(duration: float, fifo: bool) -> dict[str, Any]:
@@ -253,6 +273,9 @@ def run(loop_duration: float, recorder_duration: float,
         if with_fifo and not fifo:
             print(f'== graph, {key}: skipped, SCHED_FIFO not permitted here', flush=True)
             continue
+        if key.endswith(('_partition', '_partition_shared')) and key not in RUN_LOOP_CPU:
+            print(f'== graph, {key}: skipped, needs CPU 0 and one more', flush=True)
+            continue
         if layout == 'separate':
             base = 'baseline_fifo' if with_fifo else 'baseline'
             print(f'== bare ping-pong{" (SCHED_FIFO)" if with_fifo else ""}, '
@@ -261,7 +284,7 @@ def run(loop_duration: float, recorder_duration: float,
         print(f'== graph, {key}, {loop_duration:g} s ...', flush=True)
         try:
             res[key] = graph_loop(loop_duration, layout, with_fifo, busy=busy,
-                                  nodes=RUN_PARAMS.get(key))
+                                  nodes=RUN_PARAMS.get(key), loop_cpu=RUN_LOOP_CPU.get(key))
         except RuntimeError as exc:
             if not with_fifo:
                 raise
@@ -347,7 +370,8 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
     }
     for key in ('thread', 'hosted_busy', 'thread_busy', 'hosted_fifo', 'separate_fifo',
                 'thread_fifo', 'hosted_slice0', 'hosted_nobatch', 'hosted_idle',
-                'hosted_busy_idle'):
+                'hosted_busy_idle', 'hosted_partition', 'hosted_busy_partition',
+                'hosted_busy_partition_shared'):
         if key in res:
             out[f'answered_fraction_{key}'] = res[key]['answered_fraction']
             out[f'max_consecutive_missed_{key}'] = res[key]['max_consecutive_missed']
@@ -396,6 +420,12 @@ def goals(head: dict[str, Any]) -> str:
         _answered_row(h, 'hosted_idle', 'loop process, VE and recorder SCHED_IDLE', 0.999),
         _answered_row(h, 'hosted_busy_idle',
                       'loop process, VE and recorder SCHED_IDLE, beside a busy process', 0.995),
+        _answered_row(h, 'hosted_partition', 'loop process alone on a CPU (run --loop-cpu)',
+                      0.999),
+        _answered_row(h, 'hosted_busy_partition', 'loop process alone on a CPU, beside a busy '
+                      "process on the nodes' CPU", 0.995),
+        _answered_row(h, 'hosted_busy_partition_shared', 'loop process on a CPU without the '
+                      "nodes, beside a busy process on the loop's CPU", 0.995),
         _answered_row(h, 'thread', 'loop thread', 0.999),
         _answered_row(h, 'thread_busy', 'loop thread, beside a busy process', 0.995),
         ('cycles answered in time (loop process, the default)',

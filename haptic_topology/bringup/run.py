@@ -183,6 +183,28 @@ def param_overrides(items: list[str]) -> list[str]:
     return out
 
 
+def loop_cpu_overrides(cpu: int | None, layout: str) -> list[str]:
+    """``--loop-cpu``: ``-p`` arguments that keep CPU ``cpu`` for the loop process (its
+    ``cpu_affinity``) and pin every other thread of the graph (``device_driver``'s own,
+    ``ve_sim``'s, the recorder's, ``foxglove_bridge``'s) to the other CPUs this command may
+    use; none for ``None``."""
+    if cpu is None:
+        return []
+    if layout != 'hosted':
+        raise ConfigError(f'--loop-cpu: needs --layout hosted (the loop process), got {layout}')
+    cpus = sorted(os.sched_getaffinity(0))
+    rest = [c for c in cpus if c != cpu]
+    if cpu not in cpus or not rest:
+        raise ConfigError(f'--loop-cpu: expected one of the CPUs {cpus} this command may use, '
+                          'with at least one other left for the nodes, got '
+                          f'{cpu}')
+    nodes = ','.join(map(str, rest))
+    return ['-p', f'device_driver:cpu_affinity:=[{cpu}]',
+            '-p', f'device_driver:node_cpu_affinity:=[{nodes}]',
+            *[x for node in ('ve_sim', 'recorder', FOXGLOVE_NODE)
+              for x in ('-p', f'{node}:cpu_affinity:=[{nodes}]')]]
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('scenario', help='scenario name (fig6, fig8) or a scenario YAML file')
     parser.add_argument('--mode', action='append', choices=LAW_MODES,
@@ -217,6 +239,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--foxglove-host', default='127.0.0.1', metavar='HOST',
                         help='address the Foxglove server listens on (default 127.0.0.1; '
                         '0.0.0.0 for an app on another machine)')
+    parser.add_argument('--loop-cpu', type=int, metavar='CPU',
+                        help='keep CPU for the loop process: pin it there and every other '
+                        'thread of the graph to the other CPUs (hosted layout; no privilege '
+                        'needed; docs/nodes.md, real-time options)')
     parser.add_argument('-p', '--param', action='append', default=[],
                         metavar='NODE:NAME:=VALUE',
                         help='a node parameter over the params file, e.g. '
@@ -421,7 +447,9 @@ def run(args: argparse.Namespace) -> int:
     scenario_ref = args.scenario if Path(args.scenario).suffix == '' else str(
         Path(args.scenario).resolve())
     layout = 'composed' if args.composed else args.layout
-    overrides = param_overrides(args.param)
+    overrides = loop_cpu_overrides(args.loop_cpu, layout) + param_overrides(args.param)
+    if args.loop_cpu is not None:   # this command's own threads (its graph watcher's) too
+        os.sched_setaffinity(0, set(os.sched_getaffinity(0)) - {args.loop_cpu})
     domain_lock = claim_domain(environment_domain())    # before any output: one line
     try:
         return _run_modes(args, sc, modes, duration, params, scenario_ref, layout, overrides)

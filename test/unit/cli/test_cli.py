@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -62,6 +63,33 @@ def test_run_param_overrides_pass_node_parameters_and_refuse_other_forms(
     assert out.err == ("haptic-topology run: error: -p: expected NODE:NAME:=VALUE with NODE "
                        "one of recorder, ve_sim, lmi_controller, device_driver, "
                        "foxglove_bridge, got 've_sim:nice'\n")
+
+
+def test_loop_cpu_keeps_one_cpu_for_the_loop_and_pins_every_other_thread_off_it(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from haptic_topology.bringup.run import loop_cpu_overrides
+    from haptic_topology.errors import ConfigError
+
+    cpus = sorted(os.sched_getaffinity(0))
+    assert loop_cpu_overrides(None, 'separate') == []
+    if len(cpus) >= 2:
+        loop, rest = cpus[-1], ','.join(map(str, cpus[:-1]))
+        assert loop_cpu_overrides(loop, 'hosted') == [
+            '-p', f'device_driver:cpu_affinity:=[{loop}]',
+            '-p', f'device_driver:node_cpu_affinity:=[{rest}]',
+            '-p', f've_sim:cpu_affinity:=[{rest}]', '-p', f'recorder:cpu_affinity:=[{rest}]',
+            '-p', f'foxglove_bridge:cpu_affinity:=[{rest}]']
+    with pytest.raises(ConfigError, match=r'^--loop-cpu: needs --layout hosted \(the loop '
+                       r'process\), got separate$'):
+        loop_cpu_overrides(cpus[0], 'separate')
+    absent = max(cpus) + 1
+    with pytest.raises(ConfigError, match=rf'^--loop-cpu: expected one of the CPUs '
+                       rf'\[{", ".join(map(str, cpus))}\] this command may use, with at least '
+                       rf'one other left for the nodes, got {absent}$'):
+        loop_cpu_overrides(absent, 'hosted')
+    # as a user types it: one line, before any node starts
+    assert cli.main(['run', 'circle', '--loop-cpu', str(absent)]) == 1
+    assert capsys.readouterr().err.startswith('haptic-topology run: error: --loop-cpu: ')
 
 
 def test_a_second_run_on_a_claimed_domain_refuses_in_one_line(
