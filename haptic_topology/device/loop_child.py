@@ -5,9 +5,10 @@ its one thread, no rclpy (``python -m haptic_topology.device.loop_child``; the m
 It reads its :class:`~haptic_topology.device.loop_process.LoopSpec` from stdin, opens the
 device, builds the :class:`~haptic_topology.device.hosted.HostedCycle` (its updates taken
 from the node's ring) and a :class:`~haptic_topology.device.runner.LoopRunner` whose outbox
-goes into the cycle ring, applies the real-time options to itself, freezes the collector's
-view of everything built so far, and runs the cycles until asked to stop, until the run's
-end, or until its parent dies; then it writes zero wrench and releases the device.
+goes into the cycle ring, applies the real-time options to itself and the LMI updates that
+came while it started, freezes the collector's view of everything built so far, and runs
+the cycles until asked to stop, until the run's end, or until its parent dies; then it
+writes zero wrench and releases the device.
 """
 
 from __future__ import annotations
@@ -226,10 +227,15 @@ class _Child:
                                                 s.lock_memory, s.sched_slice_us,
                                                 s.timer_slack_ns))
         self.backend.activate()
-        self.runner.pacer.start()
+        # The updates that came while this process started (the VE's keep-alives, up to the
+        # ring's UPDATE_RECORDS) are applied now, before the first deadline: in the first gap
+        # between two cycles their copy and re-syncs overran it (5 ms with 3 links, 35 ms
+        # with 100). Then the collection, also before the clock starts.
+        self.cycle.apply_early()
         gc.collect()
         gc.freeze()
         gc.disable()
+        self.runner.pacer.start()
         k = 0
         try:
             while not self.stop and not self.runner.finished:

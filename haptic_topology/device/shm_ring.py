@@ -44,9 +44,10 @@ Example (checked by ``test/unit/device/test_shm_ring.py``)::
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from multiprocessing import resource_tracker
 from multiprocessing.shared_memory import SharedMemory
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -56,6 +57,7 @@ from haptic_topology.errors import ConfigError
 #: record size in bytes (both sides check they agree on the layout).
 _WRITTEN, _TAKEN, _CAPACITY, _ITEMSIZE = range(4)
 _HEADER_WORDS = 8
+T = TypeVar('T')
 #: Segments created (and not yet unlinked) by this process.
 _OWNED: set[str] = set()
 
@@ -158,37 +160,60 @@ class ShmRing:
         return int(self._header[_WRITTEN])
 
     # -- consumer ------------------------------------------------------------------------------
-    def take(self, limit: int | None = None) -> np.ndarray:
-        """Copies of the records written since the last take, oldest first (at most
-        ``limit``), as an array of ``dtype``; records overwritten meanwhile are skipped
-        and counted in :attr:`lost`."""
+    def _claim(self, limit: int | None) -> range:
+        """The record numbers to take now (at most ``limit``), marked taken; records the
+        producer overwrote before they were taken are counted in :attr:`lost`."""
         written = int(self._header[_WRITTEN])
         if written == self._next:       # nothing new (most calls: the loop polls each cycle)
-            return self._none
+            return range(0)
         oldest = written - self.capacity
         if self._next < oldest:
             self.lost += oldest - self._next
             self._next = oldest
-        n = written - self._next
-        if limit is not None:
-            n = min(n, limit)
-        out = np.empty(n, self.dtype)
-        got = 0
-        for k in range(self._next, self._next + n):
-            slot = k % self.capacity
-            want = 2 * k + 2
-            if int(self._seq[slot]) != want:
-                self.lost += 1       # rewritten (or being rewritten) by a later record
-                continue
-            out[got] = self._slots[slot]
-            if int(self._seq[slot]) != want:
-                self.torn += 1
-                self.lost += 1
-                continue
-            got += 1
+        n = written - self._next if limit is None else min(written - self._next, limit)
+        ks = range(self._next, self._next + n)
         self._next += n
         self._header[_TAKEN] = self._next
+        return ks
+
+    def _intact(self, k: int, before: bool) -> bool:
+        """Whether slot ``k % capacity`` still holds record ``k`` (``before`` the copy: not
+        yet rewritten; after it: not rewritten during it, else a torn read); counts the
+        losses."""
+        if int(self._seq[k % self.capacity]) == 2 * k + 2:
+            return True
+        self.lost += 1
+        self.torn += 0 if before else 1
+        return False
+
+    def take(self, limit: int | None = None) -> np.ndarray:
+        """Copies of the records written since the last take, oldest first (at most
+        ``limit``), as an array of ``dtype``; records overwritten meanwhile are skipped
+        and counted in :attr:`lost`."""
+        ks = self._claim(limit)
+        if not ks:
+            return self._none
+        out = np.empty(len(ks), self.dtype)
+        got = 0
+        for k in ks:
+            if self._intact(k, before=True):
+                out[got] = self._slots[k % self.capacity]
+                got += self._intact(k, before=False)
         return out[:got]
+
+    def take_each(self, copy: Callable[[Any], T], limit: int | None = None) -> list[T]:
+        """What ``copy`` makes of each record written since the last take (it gets a view of
+        the slot and must copy what it keeps), oldest first, at most ``limit``; a record
+        overwritten before or during its copy is skipped as in :meth:`take`. For records of
+        which only a part is used, e.g. the bytes a record of a size fixed for the largest
+        payload holds: nothing else of the record is copied."""
+        out: list[T] = []
+        for k in self._claim(limit):
+            if self._intact(k, before=True):
+                item = copy(self._slots[k % self.capacity])
+                if self._intact(k, before=False):
+                    out.append(item)
+        return out
 
     @property
     def pending(self) -> int:

@@ -1,5 +1,6 @@
 """The shared-memory ring (``haptic_topology/device/shm_ring.py``): order, a full ring both
-ways, torn reads detected (forced, and under a producer in another process), and a segment's
+ways, torn reads detected (forced, and under a producer in another process) by ``take`` and
+``take_each``, and a segment's
 lifetime across processes (Python 3.11's resource tracker must not unlink the owner's
 segment when the attaching process exits; nothing is left in /dev/shm)."""
 
@@ -98,6 +99,45 @@ def test_a_record_rewritten_during_the_copy_is_discarded_as_torn() -> None:
         ring.put((1, [1] * 3))
         peer._slots = _LappingSlots(peer._slots, ring)  # type: ignore[assignment]
         assert peer.take().size == 0
+        assert peer.torn == 1 and peer.lost == 1
+    finally:
+        peer._slots = peer._slots.slots  # type: ignore[attr-defined]
+        peer.close()
+        ring.close()
+
+
+def _k(r: Any) -> int:
+    return int(r['k'])
+
+
+def test_take_each_copies_what_it_is_given_in_order_with_a_limit_and_skips_lost_records(
+        ) -> None:
+    """``take_each`` hands each record's slot to the copy function: the same records in the
+    same order as ``take``, a limit, and records overwritten before their turn skipped and
+    counted."""
+    ring = ShmRing.create(RECORD, 4)
+    peer = ShmRing.attach(ring.name, RECORD, 4)
+    try:
+        for k in range(3):
+            ring.put((k, [k] * 3))
+        assert peer.take_each(_k, limit=2) == [0, 1]
+        assert peer.take_each(lambda r: r['x'].tolist()) == [[2.0, 2.0, 2.0]]
+        assert peer.take_each(_k) == [] and peer.pending == 0
+        for k in range(3, 10):
+            ring.put((k, [k] * 3))
+        assert peer.take_each(_k) == [6, 7, 8, 9] and peer.lost == 3 and peer.torn == 0
+    finally:
+        peer.close()
+        ring.close()
+
+
+def test_take_each_discards_a_record_rewritten_during_its_copy() -> None:
+    ring = ShmRing.create(RECORD, 4)
+    peer = ShmRing.attach(ring.name, RECORD, 4)
+    try:
+        ring.put((1, [1] * 3))
+        peer._slots = _LappingSlots(peer._slots, ring)  # type: ignore[assignment]
+        assert peer.take_each(_k) == []
         assert peer.torn == 1 and peer.lost == 1
     finally:
         peer._slots = peer._slots.slots  # type: ignore[attr-defined]
