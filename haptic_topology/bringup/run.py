@@ -50,6 +50,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
+from haptic_topology.bringup.options import (
+    CLOCKS,
+    FOXGLOVE_NODE,
+    LAYOUTS,
+    loop_cpu_overrides,
+    node_prefixes,
+    param_overrides,
+)
 from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import BringupError, ConfigError
 from haptic_topology.processes import RunUsage, terminate
@@ -58,17 +66,11 @@ from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario
 
-NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
-CLOCKS = ('wall', 'lockstep')
-#: Layout -> the processes it starts (node modules), in start order.
-LAYOUTS = {'hosted': ('recorder', 've_sim', 'device_driver'), 'separate': NODES,
-           'composed': ('composed',), 'thread': ('recorder', 've_sim', 'device_driver')}
 
 
 #: Default port of ``--foxglove`` (the Foxglove app's default for a WebSocket connection).
 FOXGLOVE_PORT = 8765
-#: The bridge's process name and its ``/diagnostics`` status.
-FOXGLOVE_NODE = 'foxglove_bridge'
+#: The bridge's ``/diagnostics`` status.
 FOXGLOVE_STATUS = 'foxglove_bridge: server'
 
 
@@ -108,21 +110,6 @@ class _Proc:
     popen: subprocess.Popen[bytes]
     log: Path
     handle: IO[bytes]
-
-
-def node_prefixes(items: list[str], layout: str) -> dict[str, list[str]]:
-    """``--node-prefix NODE=COMMAND`` values -> ``{NODE: argv}`` (NODE a process of
-    ``layout``; COMMAND split as a shell would, e.g. ``ip netns exec ht_ve``)."""
-    import shlex
-
-    out: dict[str, list[str]] = {}
-    for item in items:
-        node, sep, command = item.partition('=')
-        if not sep or node not in LAYOUTS.get(layout, ()) or not shlex.split(command):
-            raise ConfigError(f'--node-prefix: expected NODE=COMMAND with NODE one of '
-                              f'{", ".join(LAYOUTS.get(layout, ()))}, got {item!r}')
-        out[node] = shlex.split(command)
-    return out
 
 
 #: One lock file per ROS domain: held by the run that uses the domain (:func:`claim_domain`)
@@ -166,43 +153,6 @@ def environment_domain() -> int:
         return int(text)
     except ValueError:
         raise ConfigError(f'ROS_DOMAIN_ID: expected an integer 0-232, got {text!r}') from None
-
-
-def param_overrides(items: list[str]) -> list[str]:
-    """``-p NODE:NAME:=VALUE`` items as ROS arguments (each checked for its form here; the
-    node checks the name and the value when it starts)."""
-    out: list[str] = []
-    known = (*NODES, FOXGLOVE_NODE)
-    for item in items:
-        target, sep, value = item.partition(':=')
-        node, colon, name = target.partition(':')
-        if not sep or not colon or node not in known or not name or not value.strip():
-            raise ConfigError(f'-p: expected NODE:NAME:=VALUE with NODE one of '
-                              f'{", ".join(known)}, got {item!r}')
-        out += ['-p', item]
-    return out
-
-
-def loop_cpu_overrides(cpu: int | None, layout: str) -> list[str]:
-    """``--loop-cpu``: ``-p`` arguments that keep CPU ``cpu`` for the loop process (its
-    ``cpu_affinity``) and pin every other thread of the graph (``device_driver``'s own,
-    ``ve_sim``'s, the recorder's, ``foxglove_bridge``'s) to the other CPUs this command may
-    use; none for ``None``."""
-    if cpu is None:
-        return []
-    if layout != 'hosted':
-        raise ConfigError(f'--loop-cpu: needs --layout hosted (the loop process), got {layout}')
-    cpus = sorted(os.sched_getaffinity(0))
-    rest = [c for c in cpus if c != cpu]
-    if cpu not in cpus or not rest:
-        raise ConfigError(f'--loop-cpu: expected one of the CPUs {cpus} this command may use, '
-                          'with at least one other left for the nodes, got '
-                          f'{cpu}')
-    nodes = ','.join(map(str, rest))
-    return ['-p', f'device_driver:cpu_affinity:=[{cpu}]',
-            '-p', f'device_driver:node_cpu_affinity:=[{nodes}]',
-            *[x for node in ('ve_sim', 'recorder', FOXGLOVE_NODE)
-              for x in ('-p', f'{node}:cpu_affinity:=[{nodes}]')]]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

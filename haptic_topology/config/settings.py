@@ -1,5 +1,10 @@
 """Settings of each node: one frozen dataclass whose fields are the node's ROS parameters.
 
+(One module of ~510 lines on purpose: every node's parameters, with their descriptions,
+ranges and cross-checks, in one table that the nodes declare and that params files are
+checked against; split by node, the shared parameter definitions would be imported back and
+forth.)
+
 Each field carries its parameter's description, range (``lo``/``hi``, inclusive), ``choices``
 and ``read_only`` flag in ``field(metadata=...)`` (see :func:`param`); :func:`param_specs`
 generates the :class:`~haptic_topology.config.params.ParamSpec` table from the fields (as

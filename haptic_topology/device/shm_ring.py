@@ -47,7 +47,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from multiprocessing import resource_tracker
 from multiprocessing.shared_memory import SharedMemory
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
@@ -57,7 +57,6 @@ from haptic_topology.errors import ConfigError
 #: record size in bytes (both sides check they agree on the layout).
 _WRITTEN, _TAKEN, _CAPACITY, _ITEMSIZE = range(4)
 _HEADER_WORDS = 8
-T = TypeVar('T')
 #: Segments created (and not yet unlinked) by this process.
 _OWNED: set[str] = set()
 
@@ -201,13 +200,13 @@ class ShmRing:
                 got += self._intact(k, before=False)
         return out[:got]
 
-    def take_each(self, copy: Callable[[Any], T], limit: int | None = None) -> list[T]:
+    def take_each(self, copy: Callable[[Any], Any], limit: int | None = None) -> list[Any]:
         """What ``copy`` makes of each record written since the last take (it gets a view of
         the slot and must copy what it keeps), oldest first, at most ``limit``; a record
         overwritten before or during its copy is skipped as in :meth:`take`. For records of
         which only a part is used, e.g. the bytes a record of a size fixed for the largest
         payload holds: nothing else of the record is copied."""
-        out: list[T] = []
+        out: list[Any] = []
         for k in self._claim(limit):
             if self._intact(k, before=True):
                 item = copy(self._slots[k % self.capacity])

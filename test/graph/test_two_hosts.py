@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_topology.bringup.run import node_prefixes
+from haptic_topology.bringup.options import node_prefixes
 from haptic_topology.errors import ConfigError
 from haptic_topology.net import delay_bridge
 from haptic_topology.net.delay_bridge import DelayLine, DirectionStats, LinkSettings, figures

@@ -47,7 +47,7 @@ def test_console_script_runs() -> None:
 
 def test_run_param_overrides_pass_node_parameters_and_refuse_other_forms(
         capsys: pytest.CaptureFixture[str]) -> None:
-    from haptic_topology.bringup.run import param_overrides
+    from haptic_topology.bringup.options import param_overrides
     from haptic_topology.errors import ConfigError
 
     assert param_overrides(['ve_sim:nice:=0', 'device_driver:sched_priority:=50']) == [
@@ -67,7 +67,7 @@ def test_run_param_overrides_pass_node_parameters_and_refuse_other_forms(
 
 def test_loop_cpu_keeps_one_cpu_for_the_loop_and_pins_every_other_thread_off_it(
         capsys: pytest.CaptureFixture[str]) -> None:
-    from haptic_topology.bringup.run import loop_cpu_overrides
+    from haptic_topology.bringup.options import loop_cpu_overrides
     from haptic_topology.errors import ConfigError
 
     cpus = sorted(os.sched_getaffinity(0))
