@@ -162,8 +162,7 @@ class DeviceDriver(LifecycleNode):
         self.layout.start()
         self._active = True
         c = self.cfg
-        child = self.layout.process if isinstance(self.layout, HostedLoop) else None
-        where = f'loop process {child.pid}' if child is not None else 'loop thread'
+        where = self.layout.where() if isinstance(self.layout, HostedLoop) else ''
 
         self.get_logger().info(f'active: backend {c.backend}, {c.rate_hz:g} Hz {c.clock.value}'
                                + (f', lmi_controller hosted ({where})'

@@ -198,6 +198,15 @@ class HostedLoop:
         self.runner.start(on_start=on_start)
         self._timer = self.driver.create_timer(0.02, self.check)
 
+    def where(self) -> str:
+        """Where the loop runs, for the node's log: ``loop process <pid>`` or ``loop thread``,
+        with the CPUs it and (with the loop process) this node's threads are pinned to."""
+        s, child = self.driver.cfg.settings, self.process
+        pins = [('', s.cpu_affinity)] + ([(', this node', s.node_cpu_affinity)]
+                                         if child is not None else [])
+        return ((f'loop process {child.pid}' if child is not None else 'loop thread')
+                + ''.join(f'{who} on CPUs {list(cpus)}' for who, cpus in pins if cpus != (-1,)))
+
     def check(self) -> None:
         """Executor timer: engagement permission; the loop thread's (or the outbox's)
         failure is the driver's fault; at the end of the run (``run_duration`` reached and

@@ -166,7 +166,7 @@ def test_a_cpu_partition_keeps_the_loops_core_for_the_loop_process() -> None:
     """``cpu_affinity`` (the loop process's core) with ``node_cpu_affinity`` and ve_sim's
     ``cpu_affinity`` on the other CPUs (what ``run --loop-cpu`` sets): every thread of the
     nodes, DDS's and the publisher included, stays off the loop's core, and the loop process
-    runs its cycle there."""
+    runs its cycle there; the driver says so when it activates."""
     cpus = sorted(os.sched_getaffinity(0))
     loop, rest = cpus[-1], tuple(cpus[:-1])
     nodes = ','.join(map(str, rest))
@@ -185,6 +185,9 @@ def test_a_cpu_partition_keeps_the_loops_core_for_the_loop_process() -> None:
             assert any(name.startswith('dds.') for name in pinned), pinned
         assert 'device_publish' in thread_affinities(driver.pid)
         assert thread_affinities(child[0])['device_loop'] == {(loop,)}
+        _, out = stop_process(driver)
+        assert (f'lmi_controller hosted (loop process {child[0]} on CPUs [{loop}], this node '
+                f'on CPUs [{nodes.replace(",", ", ")}])') in out, out[-3000:]
     finally:
         watch.close()
         for p in procs:
