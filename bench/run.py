@@ -12,7 +12,8 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    scheduler slice, with the other nodes not under SCHED_BATCH, and with the VE and the
    recorder under SCHED_IDLE, alone and beside the busy process (:data:`RUN_PARAMS`), and
    with the loop process alone on a CPU (``run --loop-cpu``, :data:`RUN_LOOP_CPU`), alone
-   and beside the busy process on the nodes' CPU or on the loop's:
+   and beside the busy process on the nodes' CPU or on the loop's, and beside the busy
+   process without ``run``'s default ``--loop-cpu auto`` (``--loop-cpu off``):
    cycles answered in time, device period
    p50/p99/max, the longest
    run of consecutive missed cycles, round trip p50/p99 (separate layout), CPU per process
@@ -92,11 +93,11 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
                mode: str | None = None, busy: bool = False,
                startup_timeout: float = 30.0,
                nodes: dict[str, dict[str, Any]] | None = None,
-               loop_cpu: int | None = None) -> dict[str, Any]:
+               loop_cpu: str | None = None) -> dict[str, Any]:
     """One recorded run of ``scenario`` (a name or a file) on the graph in ``layout``
     (``busy``: beside :data:`BUSY`; ``nodes``: per node, parameters other than the config
-    file's; ``loop_cpu``: ``run --loop-cpu``); loop figures, the VE's update rate, CPU and
-    memory."""
+    file's; ``loop_cpu``: ``run --loop-cpu``, None: its default); loop figures, the VE's
+    update rate, CPU and memory, and when ``run`` pinned the loop (``loop_cpu_changes``)."""
     import yaml
 
     from haptic_topology.paths import config_dir
@@ -118,7 +119,7 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
         if mode:
             cmd += ['--mode', mode]
         if loop_cpu is not None:
-            cmd += ['--loop-cpu', str(loop_cpu)]
+            cmd += ['--loop-cpu', loop_cpu]
         hog = subprocess.Popen([sys.executable, '-c', BUSY]) if busy else None
         try:
             res = subprocess.run(cmd, env=_env(), capture_output=True, text=True,
@@ -149,6 +150,7 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
         've_update_rate_hz': s['ve_update_rate_hz'],
         'max_distance_m': s['max_distance_m'],
         'final_distance_mm': 1e3 * s['final_distance_m'],
+        'loop_cpu_changes': s.get('loop_cpu_changes'),
     }
     cpu = {k: v for k, v in s.items() if k.startswith('cpu_')}
     out.update(cpu)
@@ -223,7 +225,8 @@ LOOP_RUNS = (('hosted', 'hosted', False, False), ('separate', 'separate', False,
              ('hosted_busy_idle', 'hosted', False, True),
              ('hosted_partition', 'hosted', False, False),
              ('hosted_busy_partition', 'hosted', False, True),
-             ('hosted_busy_partition_shared', 'hosted', False, True))
+             ('hosted_busy_partition_shared', 'hosted', False, True),
+             ('hosted_busy_off', 'hosted', False, True))
 #: Node parameters of a run of :data:`LOOP_RUNS` other than the config file's: the loop
 #: process with the kernel's default scheduler slice instead of ``sched_slice_us`` 100; the
 #: other nodes under normal scheduling instead of SCHED_BATCH (``sched_policy`` other); the
@@ -238,14 +241,16 @@ RUN_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
 }
 
 
-#: ``run --loop-cpu`` of a run of :data:`LOOP_RUNS`: the loop process alone on the last CPU
-#: and every other thread of the graph on the others, the busy process (pinned to CPU 0)
-#: among them; ``_shared``: the loop on CPU 0, beside the busy process, the nodes on the
-#: others. Run where there are two CPUs or more.
+#: ``run --loop-cpu`` of a run of :data:`LOOP_RUNS` (the others: ``run``'s default, ``auto``,
+#: which pins as ``_partition`` while other software keeps the machine busy): the loop process
+#: alone on the last CPU and every other thread of the graph on the others, the busy process
+#: (pinned to CPU 0) among them; ``_shared``: the loop on CPU 0, beside the busy process, the
+#: nodes on the others; ``_off``: never pinned. Run where there are two CPUs or more.
 _CPUS = sorted(os.sched_getaffinity(0))
-RUN_LOOP_CPU: dict[str, int] = ({'hosted_partition': _CPUS[-1],
-                                 'hosted_busy_partition': _CPUS[-1],
-                                 'hosted_busy_partition_shared': 0}
+RUN_LOOP_CPU: dict[str, str] = ({'hosted_partition': str(_CPUS[-1]),
+                                 'hosted_busy_partition': str(_CPUS[-1]),
+                                 'hosted_busy_partition_shared': '0',
+                                 'hosted_busy_off': 'off'}
                                 if len(_CPUS) >= 2 and _CPUS[0] == 0 else {})
 
 
@@ -273,7 +278,7 @@ def run(loop_duration: float, recorder_duration: float,
         if with_fifo and not fifo:
             print(f'== graph, {key}: skipped, SCHED_FIFO not permitted here', flush=True)
             continue
-        if key.endswith(('_partition', '_partition_shared')) and key not in RUN_LOOP_CPU:
+        if key.endswith(('_partition', '_partition_shared', '_off')) and key not in RUN_LOOP_CPU:
             print(f'== graph, {key}: skipped, needs CPU 0 and one more', flush=True)
             continue
         if layout == 'separate':
@@ -371,7 +376,7 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
     for key in ('thread', 'hosted_busy', 'thread_busy', 'hosted_fifo', 'separate_fifo',
                 'thread_fifo', 'hosted_slice0', 'hosted_nobatch', 'hosted_idle',
                 'hosted_busy_idle', 'hosted_partition', 'hosted_busy_partition',
-                'hosted_busy_partition_shared'):
+                'hosted_busy_partition_shared', 'hosted_busy_off'):
         if key in res:
             out[f'answered_fraction_{key}'] = res[key]['answered_fraction']
             out[f'max_consecutive_missed_{key}'] = res[key]['max_consecutive_missed']
@@ -412,7 +417,10 @@ def goals(head: dict[str, Any]) -> str:
     no SCHED_FIFO but where a row says so, 30 s runs)."""
     h = head
     rows = [
-        _answered_row(h, 'hosted_busy', 'loop process, beside a busy process', 0.995),
+        _answered_row(h, 'hosted_busy', 'loop process, beside a busy process (the default, '
+                      'run --loop-cpu auto)', 0.995),
+        _answered_row(h, 'hosted_busy_off', 'loop process, beside a busy process, never '
+                      'pinned (run --loop-cpu off)', 0.995),
         _answered_row(h, 'hosted_fifo', 'loop process, SCHED_FIFO', 0.999),
         _answered_row(h, 'hosted_slice0', "loop process, the kernel's default slice", 0.999),
         _answered_row(h, 'hosted_nobatch', 'loop process, the other nodes not SCHED_BATCH',
@@ -497,6 +505,13 @@ def table(res: dict[str, Any]) -> str:
             f'{r["rtt_p50_us"]:6.0f}/{r["rtt_p99_us"]:6.0f}/{r["rtt_max_us"]:7.0f}   '
             f'{r["period_p50_us"]:6.0f}/{r["period_p99_us"]:6.0f}/{r["period_max_us"]:7.0f}   '
             f'{cpu}')
+    for key in (k for k, _, _, _ in LOOP_RUNS):
+        changes = res.get(key, {}).get('loop_cpu_changes')
+        if changes:     # run --loop-cpu auto pinned (or unpinned) the loop during the run
+            lines.append(f'{key:20s}  loop CPU (auto): ' + '; '.join(
+                f'at {c["t_s"]:g} s ' + ('unpinned' if c['loop_cpu'] is None
+                                         else f'CPU {c["loop_cpu"]}')
+                + f' ({c["other_load_cores"]:.2f} cores of other load)' for c in changes))
     for key in (k for k, _, fifo, _ in LOOP_RUNS if fifo):
         if f'{key}_failed' in res:
             lines.append(f'{key:20s}  failed: {res[f"{key}_failed"][:150]}')

@@ -85,24 +85,22 @@ def rss_bytes(pid: int) -> int | None:
 RSS_SETTLE = 60.0
 
 
-class RssSampler:
-    """Samples the resident set of named processes every ``period`` s in a thread of its own
-    (``pids()`` returns ``{name: pid}`` at each sample: a process may come and go).
+class Periodic:
+    """Calls :meth:`sample` at once and then every ``period`` s in a daemon thread of its own
+    (named ``name``), from :meth:`start` to :meth:`stop`; ``_t0`` is when it started
+    (monotonic s). :meth:`begin` runs first in that thread."""
 
-    :meth:`growth` is the least-squares slope of each process's resident set (bytes/s) over
-    its samples after :data:`RSS_SETTLE` s (or after half the run)."""
+    name = 'periodic'
 
-    def __init__(self, pids: Callable[[], dict[str, int]], period: float = 1.0) -> None:
-        self._pids = pids
+    def __init__(self, period: float) -> None:
         self.period = period
-        self.samples: dict[str, list[tuple[float, int]]] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._t0 = 0.0
+        self._t0 = time.monotonic()
 
     def start(self) -> None:
         self._t0 = time.monotonic()
-        self._thread = threading.Thread(target=self._body, name='rss_sampler', daemon=True)
+        self._thread = threading.Thread(target=self._body, name=self.name, daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
@@ -111,6 +109,33 @@ class RssSampler:
             self._thread.join()
             self._thread = None
 
+    def begin(self) -> None:
+        """The thread's set-up (nothing here)."""
+
+    def sample(self) -> None:
+        raise NotImplementedError
+
+    def _body(self) -> None:
+        self.begin()
+        self.sample()
+        while not self._stop.wait(self.period):
+            self.sample()
+
+
+class RssSampler(Periodic):
+    """Samples the resident set of named processes every ``period`` s in a thread of its own
+    (``pids()`` returns ``{name: pid}`` at each sample: a process may come and go).
+
+    :meth:`growth` is the least-squares slope of each process's resident set (bytes/s) over
+    its samples after :data:`RSS_SETTLE` s (or after half the run)."""
+
+    name = 'rss_sampler'
+
+    def __init__(self, pids: Callable[[], dict[str, int]], period: float = 1.0) -> None:
+        super().__init__(period)
+        self._pids = pids
+        self.samples: dict[str, list[tuple[float, int]]] = {}
+
     def sample(self) -> None:
         """Take one sample of every process now."""
         t = time.monotonic() - self._t0
@@ -118,11 +143,6 @@ class RssSampler:
             rss = rss_bytes(pid)
             if rss is not None:
                 self.samples.setdefault(name, []).append((t, rss))
-
-    def _body(self) -> None:
-        self.sample()
-        while not self._stop.wait(self.period):
-            self.sample()
 
     def growth(self, series_step: float = 10.0) -> dict[str, dict[str, Any]]:
         """Per process: ``rss_mb`` (the last sample, MiB), ``growth_kb_s`` (kB/s, 1 kB = 1000

@@ -1,14 +1,17 @@
 """The processes of each layout of ``haptic-topology run``, and its options that become ROS
 arguments or commands of those processes: ``-p NODE:NAME:=VALUE``, ``--node-prefix
-NODE=COMMAND`` and ``--loop-cpu CPU``. Each is checked for its form here, before anything
+NODE=COMMAND`` and ``--loop-cpu CPU|auto|off``. Each is checked for its form here, before anything
 starts; the nodes check names and values when they start."""
 
 from __future__ import annotations
 
 import os
 import shlex
+from pathlib import Path
+from typing import Any
 
 from haptic_topology.errors import ConfigError
+from haptic_topology.validate import load_yaml
 
 NODES = ('recorder', 've_sim', 'lmi_controller', 'device_driver')
 CLOCKS = ('wall', 'lockstep')
@@ -53,6 +56,40 @@ def loop_cpu_overrides(cpu: int | None, layout: str) -> list[str]:
             '-p', f'device_driver:node_cpu_affinity:=[{nodes}]',
             *[x for node in ('ve_sim', 'recorder', FOXGLOVE_NODE)
               for x in ('-p', f'{node}:cpu_affinity:=[{nodes}]')]]
+
+
+def _pins(doc: Any) -> bool:
+    """Whether a params document sets any ``*cpu_affinity`` other than ``[-1]``."""
+    if isinstance(doc, dict):
+        return any((str(k).endswith('cpu_affinity') and v != [-1]) or _pins(v)
+                   for k, v in doc.items())
+    return isinstance(doc, list) and any(_pins(v) for v in doc)
+
+
+def loop_cpu_choice(value: str | None, layout: str, clock: str, params: Path,
+                    items: list[str]) -> int | str | None:
+    """``--loop-cpu``: a CPU number (:func:`loop_cpu_overrides`), ``'auto'`` (pin only while
+    other software keeps the machine busy: :mod:`haptic_topology.bringup.partition`) or None
+    (``off``: no pinning but the nodes' own ``cpu_affinity``). Without the option: ``auto``
+    for the hosted layout on the wall clock unless the params file or a ``-p`` item pins a
+    node already, else ``off``."""
+    if value is None:
+        pinned = any('cpu_affinity:=' in item and not item.endswith(':=[-1]') for item in items)
+        if layout != 'hosted' or clock != 'wall' or pinned or _pins(load_yaml(params)):
+            return None
+        return 'auto'
+    if value == 'off':
+        return None
+    if value == 'auto':
+        if layout != 'hosted' or clock != 'wall':
+            raise ConfigError(f'--loop-cpu: auto needs --layout hosted and --clock wall, got '
+                              f'--layout {layout} --clock {clock}')
+        return 'auto'
+    try:
+        return int(value)
+    except ValueError:
+        raise ConfigError(f'--loop-cpu: expected a CPU number, auto or off, got {value!r}') \
+            from None
 
 
 def node_prefixes(items: list[str], layout: str) -> dict[str, list[str]]:

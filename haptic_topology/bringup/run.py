@@ -20,7 +20,10 @@ over when the driver's lifecycle state is ``inactive`` (it deactivates itself af
 the device, controller, VE and the recorder with SIGINT (SIGTERM, then SIGKILL, after a
 timeout each), reads the bag back into a trace and writes ``trace.csv``, ``plot.png`` and
 ``summary.json`` next to the bag's files, and prints the drift summary (as ``simulate``) and
-the loop figures. Several ``--mode`` options run one after the other.
+the loop figures. Several ``--mode`` options run one after the other. While the loop runs,
+``--loop-cpu auto`` (the default for the hosted layout on the wall clock) keeps a CPU for the
+loop process whenever other software keeps the machine busy
+(:mod:`haptic_topology.bringup.partition`).
 
 ``--foxglove [PORT]`` also starts ``foxglove_bridge`` (first; the device starts once it
 serves): the live topics on the Foxglove WebSocket protocol at ``ws://127.0.0.1:PORT``
@@ -54,6 +57,7 @@ from haptic_topology.bringup.options import (
     CLOCKS,
     FOXGLOVE_NODE,
     LAYOUTS,
+    loop_cpu_choice,
     loop_cpu_overrides,
     node_prefixes,
     param_overrides,
@@ -189,10 +193,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--foxglove-host', default='127.0.0.1', metavar='HOST',
                         help='address the Foxglove server listens on (default 127.0.0.1; '
                         '0.0.0.0 for an app on another machine)')
-    parser.add_argument('--loop-cpu', type=int, metavar='CPU',
+    parser.add_argument('--loop-cpu', metavar='CPU|auto|off',
                         help='keep CPU for the loop process: pin it there and every other '
                         'thread of the graph to the other CPUs (hosted layout; no privilege '
-                        'needed; docs/nodes.md, real-time options)')
+                        'needed); auto (the default with --layout hosted --clock wall): only '
+                        'while other software keeps the machine busy; off: never '
+                        '(docs/nodes.md, a core for the loop)')
     parser.add_argument('-p', '--param', action='append', default=[],
                         metavar='NODE:NAME:=VALUE',
                         help='a node parameter over the params file, e.g. '
@@ -240,7 +246,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
               foxglove: tuple[str, int] | None = None,
               node_prefix: dict[str, list[str]] | None = None,
               overrides: list[str] | None = None, claim: bool = True,
-              graph_id: str | None = None, min_subscribers: int = 2) -> dict[str, int]:
+              graph_id: str | None = None, min_subscribers: int = 2,
+              loop_cpu_auto: bool = False) -> dict[str, int]:
     """Run the graph once in ``layout`` (a key of :data:`LAYOUTS`), recording to ``bag``;
     return the processes' exit codes.
 
@@ -259,8 +266,11 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``min_subscribers``: the device's state readers it engages with and that bringup waits
     for (:func:`loop_readers`): 2, the controller and the recorder; one more for each other
     process that reads the states (a test's impostor), so they cannot stand in for the
-    recorder.
+    recorder. ``loop_cpu_auto``: a CPU for the loop process while other software keeps the
+    machine busy (:mod:`haptic_topology.bringup.partition`; its changes in
+    ``logs/loop_cpu.json``).
     """
+    from haptic_topology.bringup.partition import Partitioner
     from haptic_topology.bringup.watch import GraphWatcher
     from haptic_topology.errors import WaitTimeout
 
@@ -292,6 +302,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     codes: dict[str, int] = {}
     cpu: dict[str, float] = {}
     memory: dict[str, dict[str, Any]] = {}
+    partition: Partitioner | None = None
 
     def alive() -> None:
         for p in procs:
@@ -341,12 +352,18 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             usage = RunUsage({p.name: p.popen.pid for p in procs},
                              drivers[0] if drivers else None, CHILD_MODULE, 'loop_process')
             usage.start()
+            if loop_cpu_auto:
+                partition = Partitioner(lambda: [p.popen.pid for p in procs], usage.child,
+                                        lambda line: print(line, flush=True))
+                partition.start()
             limit = startup_timeout + (duration + 10.0 if clock == 'wall'
                                        else max(60.0, 30.0 * duration))
             try:
                 ended = watch.wait_lifecycle('device_driver', ('inactive',), limit)
             finally:
                 usage.stop()
+                if partition is not None:
+                    partition.stop()
             cpu, memory = usage.cpu(ended - started), usage.rss.growth()
             # The loop has stopped; the recorder must take everything it sent while every
             # writer is still there to resend (checked on the nodes' own counts).
@@ -364,6 +381,9 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             (bag / 'logs' / 'cpu.json').write_text(json.dumps(cpu) + '\n', encoding='utf-8')
             (bag / 'logs' / 'rss.json').write_text(json.dumps(memory) + '\n',
                                                    encoding='utf-8')
+            if partition is not None:
+                (bag / 'logs' / 'loop_cpu.json').write_text(
+                    json.dumps(partition.report()) + '\n', encoding='utf-8')
         shutil.rmtree(log_dir, ignore_errors=True)
         if domain_lock is not None:
             os.close(domain_lock)
@@ -397,18 +417,22 @@ def run(args: argparse.Namespace) -> int:
     scenario_ref = args.scenario if Path(args.scenario).suffix == '' else str(
         Path(args.scenario).resolve())
     layout = 'composed' if args.composed else args.layout
-    overrides = loop_cpu_overrides(args.loop_cpu, layout) + param_overrides(args.param)
-    if args.loop_cpu is not None:   # this command's own threads (its graph watcher's) too
-        os.sched_setaffinity(0, set(os.sched_getaffinity(0)) - {args.loop_cpu})
+    loop_cpu = loop_cpu_choice(args.loop_cpu, layout, args.clock, params, args.param)
+    fixed = loop_cpu if isinstance(loop_cpu, int) else None
+    overrides = loop_cpu_overrides(fixed, layout) + param_overrides(args.param)
+    if fixed is not None:   # this command's own threads (its graph watcher's) too
+        os.sched_setaffinity(0, set(os.sched_getaffinity(0)) - {fixed})
     domain_lock = claim_domain(environment_domain())    # before any output: one line
     try:
-        return _run_modes(args, sc, modes, duration, params, scenario_ref, layout, overrides)
+        return _run_modes(args, sc, modes, duration, params, scenario_ref, layout, overrides,
+                          loop_cpu == 'auto')
     finally:
         os.close(domain_lock)
 
 
 def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duration: float,
-               params: Path, scenario_ref: str, layout: str, overrides: list[str]) -> int:
+               params: Path, scenario_ref: str, layout: str, overrides: list[str],
+               loop_cpu_auto: bool) -> int:
     """:func:`run`'s runs, one per mode, on the domain it has claimed."""
     from haptic_topology.bag.graph_trace import format_loop, read_graph_bag
     from haptic_topology.sim.trace import format_summary
@@ -424,7 +448,7 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
                   foxglove=None if args.foxglove is None else (args.foxglove_host,
                                                                args.foxglove),
                   node_prefix=node_prefixes(args.node_prefix, layout),
-                  overrides=overrides, claim=False)
+                  overrides=overrides, claim=False, loop_cpu_auto=loop_cpu_auto)
         result = read_graph_bag(bag, sc.name, sc.lmi_dof, task_dim=sc.linkage.task.dim,
                                 linkage=sc.linkage)
         trace = result.trace
@@ -445,6 +469,9 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
         if cpu_file.is_file():
             summary.update({f'cpu_{name}': v for name, v in
                             json.loads(cpu_file.read_text(encoding='utf-8')).items()})
+        auto_file = bag / 'logs' / 'loop_cpu.json'
+        if auto_file.is_file():
+            summary['loop_cpu_changes'] = json.loads(auto_file.read_text(encoding='utf-8'))
         rss_file = bag / 'logs' / 'rss.json'
         if rss_file.is_file():
             for name, m in json.loads(rss_file.read_text(encoding='utf-8')).items():
