@@ -58,12 +58,19 @@ def loop_cpu_overrides(cpu: int | None, layout: str) -> list[str]:
               for x in ('-p', f'{node}:cpu_affinity:=[{nodes}]')]]
 
 
-def _pins(doc: Any) -> bool:
-    """Whether a params document sets any ``*cpu_affinity`` other than ``[-1]``."""
+def _settles(name: str, value: Any) -> bool:
+    """Whether parameter ``name`` = ``value`` rules out ``--loop-cpu auto``: a node pinned
+    already (``*cpu_affinity`` other than ``[-1]``), or one under SCHED_IDLE (``sched_policy:
+    idle``), which, kept off the loop's CPU beside a busy program, would get no CPU time."""
+    return ((name.endswith('cpu_affinity') and value not in ([-1], '[-1]'))
+            or (name == 'sched_policy' and value == 'idle'))
+
+
+def _settled(doc: Any) -> bool:
+    """Whether a params document sets a parameter that rules out ``auto`` (:func:`_settles`)."""
     if isinstance(doc, dict):
-        return any((str(k).endswith('cpu_affinity') and v != [-1]) or _pins(v)
-                   for k, v in doc.items())
-    return isinstance(doc, list) and any(_pins(v) for v in doc)
+        return any(_settles(str(k), v) or _settled(v) for k, v in doc.items())
+    return isinstance(doc, list) and any(_settled(v) for v in doc)
 
 
 def loop_cpu_choice(value: str | None, layout: str, clock: str, params: Path,
@@ -72,10 +79,11 @@ def loop_cpu_choice(value: str | None, layout: str, clock: str, params: Path,
     other software keeps the machine busy: :mod:`haptic_topology.bringup.partition`) or None
     (``off``: no pinning but the nodes' own ``cpu_affinity``). Without the option: ``auto``
     for the hosted layout on the wall clock unless the params file or a ``-p`` item pins a
-    node already, else ``off``."""
+    node already or puts one under SCHED_IDLE (:func:`_settles`), else ``off``."""
     if value is None:
-        pinned = any('cpu_affinity:=' in item and not item.endswith(':=[-1]') for item in items)
-        if layout != 'hosted' or clock != 'wall' or pinned or _pins(load_yaml(params)):
+        settled = any(_settles(target.rpartition(':')[2], v.strip())
+                      for target, _, v in (item.partition(':=') for item in items))
+        if layout != 'hosted' or clock != 'wall' or settled or _settled(load_yaml(params)):
             return None
         return 'auto'
     if value == 'off':

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from procs import thread_affinities
 
 from haptic_topology.bringup.options import loop_cpu_choice
@@ -190,10 +191,17 @@ def test_loop_cpu_is_auto_where_the_loop_process_runs_on_the_wall_clock_and_noth
                           ('hosted', 'lockstep')):
         assert loop_cpu_choice(None, layout, clock, params, []) is None
     assert loop_cpu_choice(None, 'hosted', 'wall', params, ['ve_sim:cpu_affinity:=[0]']) is None
-    pinned = tmp_path / 'pinned.yaml'
-    pinned.write_text(params.read_text().replace('cpu_affinity: [-1]', 'cpu_affinity: [1]', 1))
-    assert pinned.read_text() != params.read_text()
-    assert loop_cpu_choice(None, 'hosted', 'wall', pinned, []) is None
+    assert loop_cpu_choice(None, 'hosted', 'wall', params, ['recorder:sched_policy:=idle']) \
+        is None
+    assert loop_cpu_choice(None, 'hosted', 'wall', params,
+                           ['recorder:sched_policy:=other']) == 'auto'
+    for node, name, value in (('device_driver', 'cpu_affinity', [1]),
+                              ('ve_sim', 'sched_policy', 'idle')):
+        doc = yaml.safe_load(params.read_text())
+        doc[node]['ros__parameters'][name] = value
+        pinned = tmp_path / f'{name}.yaml'
+        pinned.write_text(yaml.safe_dump(doc))
+        assert loop_cpu_choice(None, 'hosted', 'wall', pinned, []) is None
     assert loop_cpu_choice('off', 'hosted', 'wall', params, []) is None
     assert loop_cpu_choice('auto', 'hosted', 'wall', pinned, []) == 'auto'
     assert loop_cpu_choice('1', 'hosted', 'wall', params, []) == 1
