@@ -95,7 +95,11 @@ def controller_step(mode: ControlMode, cycles: int = 20000) -> dict[str, float]:
     return result
 
 
-def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
+#: Cycles of the paced loop-cycle figure (:func:`loop_step` with ``paced``): 5 s at 1 kHz.
+PACED_CYCLES = 5000
+
+
+def loop_step(scenario: str, cycles: int = 20000, paced: bool = False) -> dict[str, float]:
     """Cost of one cycle of the loop process without ROS: :meth:`HostedCycle.step` (the
     device tick with the simulated maglev and user, the controller's answer: LMI step, eq. 14
     or the scenario's law, and at every ``update_period``-th cycle the LMI re-sync) plus the
@@ -104,7 +108,12 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
     update reaches the loop as in the loop process: prepared and encoded by the node, decoded
     (:func:`decode_update`) and applied while the loop sleeps between two cycles; that is
     timed on its own (``update_*``: decode and re-sync), not in the step. The VE's own steps
-    are not timed."""
+    are not timed.
+
+    ``paced``: one cycle per millisecond of the monotonic clock, sleeping until the next
+    (as the loop process does, whose core runs other threads or idles meanwhile) instead of
+    back to back: the CPU time of a cycle that starts after a sleep, with its code and data
+    no longer in the caches."""
     sc = load_scenario(scenario)
     ve = virtual_environment(sc)
     cycle = HostedCycle(build_device_loop(sc),
@@ -127,7 +136,10 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
     gc.collect()
     gc.freeze()
     gc.disable()
+    start = time.monotonic()
     for k in range(cycles + warm):
+        if paced:
+            time.sleep(max(0.0, start + k * 1e-3 - time.monotonic()))
         t = (k % restart) * dt
         if waiting is not None:
             t0 = CLOCK()
@@ -158,6 +170,7 @@ def loop_step(scenario: str, cycles: int = 20000) -> dict[str, float]:
             updates += 1
             cycle.offer_update(decode_update(record(0)))
             waiting = None
+            start = time.monotonic() - k * 1e-3   # paced: the next cycle in 1 ms, no catch-up
     gc.enable()
     gc.unfreeze()
     out = _pct(step_ns)
@@ -243,6 +256,15 @@ def ve_costs(chain_sizes: tuple[int, ...] = CHAIN_SIZES) -> dict[str, Any]:
     return out
 
 
+def loop_steps() -> dict[str, Any]:
+    """:func:`loop_step` of each of :data:`LOOP_STEP_SCENARIOS`, back to back and paced."""
+    out: dict[str, Any] = {}
+    for key, scenario in LOOP_STEP_SCENARIOS.items():
+        out[f'loop_step_{key}'] = loop_step(scenario)
+        out[f'loop_step_paced_{key}'] = loop_step(scenario, PACED_CYCLES, paced=True)
+    return out
+
+
 def run(chain_sizes: tuple[int, ...] = CHAIN_SIZES) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for mode, key in ((ControlMode.PENALTY, 'eq14'), (ControlMode.ACCELERATION_ONLY, 'eq10')):
@@ -251,8 +273,7 @@ def run(chain_sizes: tuple[int, ...] = CHAIN_SIZES) -> dict[str, Any]:
     out['controller_step_p50_us'] = out['controller_eq14']['p50_us']
     out['controller_step_p99_us'] = out['controller_eq14']['p99_us']
     out['controller_step_eq10_p99_us'] = out['controller_eq10']['p99_us']
-    for key, scenario in LOOP_STEP_SCENARIOS.items():
-        out[f'loop_step_{key}'] = loop_step(scenario)
+    out.update(loop_steps())
     out.update(ve_costs(chain_sizes))
     return out
 
@@ -287,6 +308,11 @@ def print_table(res: dict[str, Any]) -> None:
             print(f'  {key:8s} {scenario:14s} p50 {r["p50_us"]:7.1f}  p99 {r["p99_us"]:7.1f}  '
                   f'max {r["max_us"]:8.1f}  (update between cycles p50 '
                   f'{r["update_p50_us"]:.1f}, p99 {r["update_p99_us"]:.1f})')
+            paced = res.get(f'loop_step_paced_{key}')
+            if paced is not None:
+                print(f'  {key:8s} paced at 1 kHz   p50 {paced["p50_us"]:7.1f}  p99 '
+                      f'{paced["p99_us"]:7.1f}  max {paced["max_us"]:8.1f}  (one cycle per ms, '
+                      'sleeping between)')
     if 've_update' not in res:
         return
     step_ms = 1e3 * res['ve_update'][0]['internal_step_s']
@@ -312,8 +338,7 @@ if __name__ == '__main__':
     a = ap.parse_args()
     sizes = tuple(int(x) for x in a.sizes.split(','))
     results = (ve_costs(sizes) if a.ve_only else
-               {f'loop_step_{k}': loop_step(v) for k, v in LOOP_STEP_SCENARIOS.items()}
-               if a.loop_only else run(sizes))
+               loop_steps() if a.loop_only else run(sizes))
     print_table(results)
     print(json.dumps({k: v for k, v in results.items() if not isinstance(v, (dict, list))},
                      indent=2))

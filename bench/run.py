@@ -360,6 +360,9 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'controller_step_eq10_p99_us': core['controller_step_eq10_p99_us'],
         'loop_step_p99_us_planar': core['loop_step_planar']['p99_us'],
         'loop_step_p99_us_spatial': core['loop_step_spatial']['p99_us'],
+        **{f'loop_step_paced_{q}_us_{task}': core[f'loop_step_paced_{task}'][f'{q}_us']
+           for q in ('p50', 'p99') for task in ('planar', 'spatial')
+           if f'loop_step_paced_{task}' in core},
         've_update_p99_us_3_links': next(
             r['update_total_p99_us'] for r in core['ve_update']
             if r['links'] == 3 and r['task'] == 'planar'),
