@@ -67,7 +67,7 @@ pytest:
 demo: setup
 	@eval "$$DEMO_CMD"
 
-# Benchmarks (about 13 min): prints a table, writes bench/latest.json, appends bench/RESULTS.md.
+# Benchmarks (about 25 min): prints a table, writes bench/latest.json, appends bench/RESULTS.md.
 bench: setup
 	$(BIN)/python bench/run.py
 
