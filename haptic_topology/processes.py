@@ -13,23 +13,40 @@ from pathlib import Path
 from typing import Any
 
 
-def _stat_fields(path: str) -> list[str] | None:
+def stat_fields(path: str) -> list[str] | None:
+    """The fields of a ``/proc/<pid>[/task/<tid>]/stat`` file after the command name (the
+    state first, as ``proc(5)`` numbers them from 3); None once it is gone. One ``read``
+    (:mod:`haptic_topology.bringup.partition` reads every process's twice a second)."""
     try:
-        return Path(path).read_text().rsplit(')', 1)[1].split()
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        return os.read(fd, 4096).decode('ascii', 'replace').rsplit(')', 1)[1].split()
     except (OSError, IndexError):
         return None
+    finally:
+        os.close(fd)
+
+
+def thread_ids(pid: int) -> list[int]:
+    """The ids of process ``pid``'s threads (empty once it is gone)."""
+    try:
+        return [int(t) for t in os.listdir(f'/proc/{pid}/task')]
+    except OSError:
+        return []
 
 
 def running(pid: int) -> bool:
     """Whether process ``pid`` runs (a zombie waiting to be reaped does not)."""
-    fields = _stat_fields(f'/proc/{pid}/stat')
+    fields = stat_fields(f'/proc/{pid}/stat')
     return fields is not None and fields[0] != 'Z'
 
 
 def cpu_seconds(pid: int, tid: int | None = None) -> float | None:
     """User + system CPU time (s) of process ``pid`` (all its threads), or of its thread
     ``tid``, from ``/proc``; None once it is gone."""
-    fields = _stat_fields(f'/proc/{pid}/stat' if tid is None else f'/proc/{pid}/task/{tid}/stat')
+    fields = stat_fields(f'/proc/{pid}/stat' if tid is None else f'/proc/{pid}/task/{tid}/stat')
     if fields is None:
         return None
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
@@ -39,7 +56,7 @@ def reaped_children_cpu_seconds(pid: int) -> float | None:
     """User + system CPU time (s) of the children of ``pid`` that have ended and that it has
     waited for (e.g. ``device_driver``'s loop process after a run), from ``/proc``; None once
     ``pid`` is gone."""
-    fields = _stat_fields(f'/proc/{pid}/stat')
+    fields = stat_fields(f'/proc/{pid}/stat')
     if fields is None:
         return None
     return (int(fields[13]) + int(fields[14])) / os.sysconf('SC_CLK_TCK')
@@ -49,11 +66,7 @@ def children(pid: int) -> list[int]:
     """The running children of process ``pid`` (of any of its threads), from ``/proc``;
     empty once it is gone."""
     out: list[int] = []
-    try:
-        tids = os.listdir(f'/proc/{pid}/task')
-    except OSError:
-        return out
-    for tid in tids:
+    for tid in thread_ids(pid):
         try:
             out += [int(c) for c in Path(f'/proc/{pid}/task/{tid}/children').read_text().split()]
         except OSError:
@@ -174,7 +187,7 @@ class RssSampler(Periodic):
 def process_times(pid: int) -> dict[str, float] | None:
     """``cpu_s`` (user + system, s) and ``wall_s`` (age, s) of a running process; None once
     it is gone."""
-    fields = _stat_fields(f'/proc/{pid}/stat')
+    fields = stat_fields(f'/proc/{pid}/stat')
     try:
         uptime = float(Path('/proc/uptime').read_text().split()[0])
     except OSError:

@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from haptic_topology.processes import Periodic, children
+from haptic_topology.processes import Periodic, children, stat_fields, thread_ids
 
 #: Seconds between two samples.
 SAMPLE_PERIOD = 0.5
@@ -121,19 +121,6 @@ class PartitionPolicy:
         return Decision(sample.t, None, self.cpus, round(load, 3))
 
 
-def _stat(pid: int) -> list[bytes] | None:
-    try:
-        fd = os.open(f'/proc/{pid}/stat', os.O_RDONLY)
-    except OSError:
-        return None
-    try:
-        return os.read(fd, 1024).rsplit(b')', 1)[1].split()
-    except (OSError, IndexError):
-        return None
-    finally:
-        os.close(fd)
-
-
 def descendants(pid: int) -> set[int]:
     """Process ``pid`` and all its running descendants."""
     out, todo = set(), [pid]
@@ -153,24 +140,17 @@ def other_processes(graph: set[int]) -> dict[int, tuple[float, int]]:
     for name in os.listdir('/proc'):
         if not name.isdigit() or int(name) in graph:
             continue
-        f = _stat(int(name))
+        f = stat_fields(f'/proc/{name}/stat')
         if f is not None and len(f) > 36:
             out[int(name)] = (sum(int(x) for x in f[11:15]) / hz, int(f[36]))
     return out
-
-
-def _threads(pid: int) -> list[int]:
-    try:
-        return [int(t) for t in os.listdir(f'/proc/{pid}/task')]
-    except OSError:
-        return []
 
 
 def pin_threads(pid: int, cpus: Sequence[int], done: set[int]) -> str | None:
     """Pin every thread of process ``pid`` not in ``done`` to ``cpus`` and add it to ``done``
     (which keeps only threads that still run); threads that end meanwhile are skipped.
     Returns None, or why a thread could not be pinned (e.g. another user's process)."""
-    tids = _threads(pid)
+    tids = thread_ids(pid)
     done.intersection_update(tids)
     for tid in tids:
         if tid in done:
