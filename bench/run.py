@@ -245,13 +245,12 @@ RUN_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
 #: which pins as ``_partition`` while other software keeps the machine busy): the loop process
 #: alone on the last CPU and every other thread of the graph on the others, the busy process
 #: (pinned to CPU 0) among them; ``_shared``: the loop on CPU 0, beside the busy process, the
-#: nodes on the others; ``_off``: never pinned. Run where there are two CPUs or more.
+#: nodes on the others (those three run where there are CPU 0 and one more); ``_off``: never
+#: pinned.
 _CPUS = sorted(os.sched_getaffinity(0))
-RUN_LOOP_CPU: dict[str, str] = ({'hosted_partition': str(_CPUS[-1]),
-                                 'hosted_busy_partition': str(_CPUS[-1]),
-                                 'hosted_busy_partition_shared': '0',
-                                 'hosted_busy_off': 'off'}
-                                if len(_CPUS) >= 2 and _CPUS[0] == 0 else {})
+RUN_LOOP_CPU: dict[str, str] = {'hosted_busy_off': 'off', **(
+    {'hosted_partition': str(_CPUS[-1]), 'hosted_busy_partition': str(_CPUS[-1]),
+     'hosted_busy_partition_shared': '0'} if len(_CPUS) >= 2 and _CPUS[0] == 0 else {})}
 
 
 def _pingpong(duration: float, fifo: bool) -> dict[str, Any]:
@@ -278,7 +277,7 @@ def run(loop_duration: float, recorder_duration: float,
         if with_fifo and not fifo:
             print(f'== graph, {key}: skipped, SCHED_FIFO not permitted here', flush=True)
             continue
-        if key.endswith(('_partition', '_partition_shared', '_off')) and key not in RUN_LOOP_CPU:
+        if key.endswith(('_partition', '_partition_shared')) and key not in RUN_LOOP_CPU:
             print(f'== graph, {key}: skipped, needs CPU 0 and one more', flush=True)
             continue
         if layout == 'separate':
@@ -376,10 +375,7 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'max_links_within_30pct_planar': core['max_links_within_30pct_planar'],
         'max_links_within_30pct_spatial': core['max_links_within_30pct_spatial'],
     }
-    for key in ('thread', 'hosted_busy', 'thread_busy', 'hosted_fifo', 'separate_fifo',
-                'thread_fifo', 'hosted_slice0', 'hosted_nobatch', 'hosted_idle',
-                'hosted_busy_idle', 'hosted_partition', 'hosted_busy_partition',
-                'hosted_busy_partition_shared', 'hosted_busy_off'):
+    for key in (k for k, _, _, _ in LOOP_RUNS if k not in ('hosted', 'separate')):
         if key in res:
             out[f'answered_fraction_{key}'] = res[key]['answered_fraction']
             out[f'max_consecutive_missed_{key}'] = res[key]['max_consecutive_missed']
