@@ -118,7 +118,8 @@ class UpdateAdmission:
     3. ``continuity``: the hand input the update consumed is not older than the previous
        update's. A VE says -1 (none) after it dropped its held input for a new controller:
        then this controller is new too (no previous update), or its loop started over
-       (:meth:`forget`).
+       (:meth:`forget`: the next update's input is not compared; its numbering still is,
+       the VE did not restart).
 
     The update's joint motion is not bounded: a VT whirling under the hand (the circle
     scenario under fault injection reached ~80 rad/s, 37.8 rad in 0.54 s between two
@@ -134,6 +135,7 @@ class UpdateAdmission:
         self.dyn = dynamics
         self.gate = gate
         self._prev: Update | None = None
+        self._forgot = False        # the next update's input is not compared (forget)
 
     def admit(self, snap: Update) -> None:
         """Raise :class:`~haptic_topology.errors.MessageError` if ``snap`` may not be
@@ -150,11 +152,12 @@ class UpdateAdmission:
                 prev = None
         if self.dyn is not None:
             self._check_model(snap)
-        if prev is not None:
+        if prev is not None and not self._forgot:
             self._check_continuity(prev, snap)
         if gate is not None:
             gate.accepted()
         self._prev = snap
+        self._forgot = False
 
     def _check_model(self, snap: Update) -> None:
         dyn = self.dyn
@@ -178,10 +181,12 @@ class UpdateAdmission:
                                    'false update')
 
     def forget(self) -> None:
-        """Start without a previous update: this controller's loop starts over (a new loop
-        process numbers its hand inputs from 1 again, so the VE drops its held input and
-        says -1)."""
-        self._prev = None
+        """This controller's loop starts over (a new loop process numbers its hand inputs
+        from 1 again, so the VE drops its held input and says -1): the next update's input
+        is not compared with the previous update's. Its numbering still is: an update
+        numbered below the previous one is a restart of the VE only with a new endpoint
+        (an echo of an old update right after the loop started was taken for one)."""
+        self._forgot = True
 
     @staticmethod
     def _check_continuity(prev: Update, snap: Update) -> None:
