@@ -14,7 +14,11 @@ or eq. 10 with the LMI of eq. 17-20, sync guard, sessions) with what a node does
   and leaves a notice). The hosted layout's loop thread does this wait itself
   (:class:`~haptic_topology.device.runner.LoopRunner`);
 * **figures**: the period between answered engaged states, commands sent, the age of the
-  newest LMI update (s since it arrived), the model's health as a diagnostics level.
+  newest LMI update (s since it arrived), the model's health as a diagnostics level;
+* **updates between answers** (:class:`UpdateGap`, separate layout, wall clock): an LMI update
+  that arrives while device states come is taken right after the next answer is sent, in the
+  gap before the following state, not when it arrives: taking it (its checks and re-sync,
+  0.5-1 ms of one thread) would otherwise hold every state that arrives meanwhile.
 
 Times ``now`` are monotonic seconds; stamps are integer ns (loop time).
 """
@@ -60,6 +64,52 @@ def live_change(gains: ControlGains, mode: ControlMode,
         elif name == 'mode':
             mode = ControlMode.parse(str(value))
     return gains, mode
+
+
+#: :class:`UpdateGap`: device states count as coming while the newest is younger than this
+#: (s); an update that arrives later is taken at once.
+STATES_COMING = 0.005
+
+
+class UpdateGap:
+    """When a node takes its LMI updates: in the gap after an answer while device states come
+    (see module doc), at once otherwise. Each update waits for at most one answer, or, when
+    the states stop, for the node's next timer (:meth:`due`); updates are taken in the order
+    they arrived (an update: whatever the node takes, e.g. the message). Times are monotonic
+    seconds; ``state_time``: when the newest state arrived (None: none yet).
+
+    Example (states every ms; ``gap.deferred`` counts the updates that waited)::
+
+        gap.arrived(u1, now=0.0102, state_time=0.0100)  # [] (waits for the answer)
+        gap.answered()                                  # [u1] (after the next command)
+        gap.arrived(u2, now=0.0500, state_time=0.0300)  # [u2] (states stopped: at once)
+    """
+
+    def __init__(self, states_coming: float = STATES_COMING) -> None:
+        self.states_coming = states_coming
+        self.deferred = 0
+        self._waiting: list[Any] = []
+
+    def _coming(self, now: float, state_time: float | None) -> bool:
+        return state_time is not None and now - state_time < self.states_coming
+
+    def arrived(self, item: Any, now: float, state_time: float | None) -> list[Any]:
+        """An update arrived at ``now``: the updates to take now, oldest first (none while
+        states come: it waits for the next answer)."""
+        self._waiting.append(item)
+        if self._coming(now, state_time):
+            self.deferred += 1
+            return []
+        return self.answered()
+
+    def answered(self) -> list[Any]:
+        """An answer was sent: the waiting updates, oldest first (taken)."""
+        out, self._waiting = self._waiting, []
+        return out
+
+    def due(self, now: float, state_time: float | None) -> list[Any]:
+        """The node's timer: the waiting updates once states no longer come."""
+        return [] if self._coming(now, state_time) else self.answered()
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,6 +207,11 @@ class ControllerPort:
     def flush(self, now: float) -> HandBatch | None:
         """The pending hand samples once the oldest is two update periods old."""
         return self.batcher.due(now)
+
+    @property
+    def state_time(self) -> float | None:
+        """When the newest device state arrived (monotonic s; None: none yet)."""
+        return self._state_time or None
 
     def update_age(self, now: float) -> float:
         """Seconds since the newest LMI update arrived (inf before the first), >= 0.

@@ -10,7 +10,11 @@ law, sync guard, device/VE session tracking, re-sync force-jump check), run thro
   completes the period, the schedule of the VE's updates; a steady-clock timer (every update
   period, at least 10 ms) flushes samples whose oldest is two update periods old (the end of
   a run, a stalled device), which changes no result: the VE takes the samples one by one;
-* ``LmiUpdate`` -> ``on_update``;
+* ``LmiUpdate`` -> ``on_update``; with the wall clock, while device states come, in the gap
+  after the next command is sent rather than on arrival
+  (:class:`~haptic_topology.control.port.UpdateGap`: taking an update holds the executor for
+  0.5-1 ms), unless ``ack_updates`` is set (someone waits for each update to be taken);
+  ``updates_deferred`` in ``/diagnostics`` counts them;
 * lock-step (``clock: lockstep``): a state that comes before the LMI update the offline
   simulation applies at that step is held until the update has come (at most
   ``lockstep_wait`` wall seconds, then a warning and the answer from the local model).
@@ -49,7 +53,7 @@ from haptic_topology.config.settings import LmiControllerSettings, scenario_defa
 from haptic_topology.control.admission import UpdateAdmission
 from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.loop import StateSample
-from haptic_topology.control.port import ControllerPort, Outgoing, live_change
+from haptic_topology.control.port import ControllerPort, Outgoing, UpdateGap, live_change
 from haptic_topology.device.loop_process import LoopProcess
 from haptic_topology.device.runner import LoopRunner
 from haptic_topology.dynamics import LinkageDynamics
@@ -138,6 +142,10 @@ class LmiController(Node):
         # A closed chain's updates are reduced (q local): no model to check them against.
         self.admission = UpdateAdmission(None if sc.linkage.loops else LinkageDynamics(
             sc.linkage), self.input_publishers.gates[TOPIC_LMI])
+        # separate layout, wall clock, no one waiting for acks: updates in the gap after an
+        # answer (control.port.UpdateGap)
+        self.gap: UpdateGap | None = (None if hosted or lockstep or s.ack_updates
+                                                 else UpdateGap())
         if hosted:
             self.process_sched_priority = 0       # the driver's loop thread has its own
             return
@@ -176,7 +184,7 @@ class LmiController(Node):
             return self._reject('state', exc)
         self.send(self.port.on_state(StateSample(seq, stamp, pose, twist, f_h, status),
                                       stamp_ns(msg.header.stamp), monotonic()))
-        return None
+        return self._take_updates(self.gap.answered() if self.gap else [])
 
     def _check_wait(self) -> None:
         self.send(self.port.check_wait(monotonic()))
@@ -202,8 +210,17 @@ class LmiController(Node):
         batch = self.port.flush(monotonic())
         if batch is not None:
             self._publish_hand(batch)
+        self._take_updates(self.gap.due(monotonic(), self.port.state_time) if self.gap else [])
 
     def _on_update(self, msg: LmiUpdate) -> None:
+        self._take_updates(self.gap.arrived(msg, monotonic(), self.port.state_time)
+                           if self.gap else [msg])
+
+    def _take_updates(self, msgs: list[LmiUpdate]) -> None:
+        for msg in msgs:
+            self._take_update(msg)
+
+    def _take_update(self, msg: LmiUpdate) -> None:
         if not self.graph.own(msg, TOPIC_LMI):
             return
         try:
@@ -235,6 +252,7 @@ class LmiController(Node):
                        f'sent {TOPIC_COMMAND}': str(self.port.commands),
                        f'sent {TOPIC_HAND_INPUTS}': str(self.port.batcher.batches),
                        'controller_id': str(CONTROLLER_ID),
+                       'updates_deferred': str(self.gap.deferred if self.gap else 0),
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
                        **self.graph.values(), **matched(self._endpoints)})
         level, message = self.port.health(now)

@@ -8,7 +8,9 @@ hold and figures).
 * a held state waits at most ``lockstep_wait``, then is answered from the local model;
 * wall clock: the device integrates over the measured period, clipped; ``run_duration``
   marks the last state; a stalled lock-step answer is named; engagement and takeover lines;
-* live parameter changes apply all or none.
+* live parameter changes apply all or none;
+* ``UpdateGap``: while states come, an update waits for the next answer; once they stop, it
+  is taken at once or by the timer; always in arrival order.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_topology.control.port import ControllerPort, live_change
+from haptic_topology.control.port import STATES_COMING, ControllerPort, UpdateGap, live_change
 from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
 from haptic_topology.device.hosted import state_sample
 from haptic_topology.device.loop import CommandVerdict, ns_to_seconds, period_ns
@@ -203,3 +205,26 @@ def test_the_update_age_is_never_negative() -> None:
     port.on_update(virtual_environment(sc).snapshot(seq=0), 5.0, apply=False)
     assert port.update_age(4.9) == 0.0
     assert port.update_age(5.25) == 0.25
+
+
+def test_an_update_waits_for_the_next_answer_while_states_come() -> None:
+    gap = UpdateGap()
+    assert gap.arrived('u1', now=10.0002, state_time=10.0) == []
+    assert gap.arrived('u2', now=10.0008, state_time=10.0) == []
+    assert gap.due(10.0009, state_time=10.0) == []          # the timer: states still come
+    assert gap.answered() == ['u1', 'u2']                    # after the next command
+    assert gap.answered() == []
+    assert gap.deferred == 2
+
+
+def test_an_update_is_taken_at_once_when_no_state_comes() -> None:
+    gap = UpdateGap()
+    assert STATES_COMING == 0.005
+    assert gap.arrived('u0', now=1.0, state_time=None) == ['u0']    # before any state
+    assert gap.arrived('u1', now=2.0, state_time=1.998) == []
+    # the states stopped: the next update takes the waiting one first, in arrival order
+    assert gap.arrived('u2', now=2.01, state_time=1.998) == ['u1', 'u2']
+    assert gap.arrived('u3', now=3.0, state_time=2.999) == []
+    assert gap.due(3.002, state_time=2.999) == []
+    assert gap.due(3.006, state_time=2.999) == ['u3']
+    assert gap.deferred == 2
