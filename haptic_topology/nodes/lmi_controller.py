@@ -145,7 +145,7 @@ class LmiController(Node):
         # separate layout, wall clock, no one waiting for acks: updates in the gap after an
         # answer (control.port.UpdateGap)
         self.gap: UpdateGap | None = (None if hosted or lockstep or s.ack_updates
-                                                 else UpdateGap())
+                                      else UpdateGap())
         if hosted:
             self.process_sched_priority = 0       # the driver's loop thread has its own
             return
