@@ -135,6 +135,13 @@ class SyncGuard:
         When ``apply_held_update`` is True the caller applies the newest held update now (the
         scale is 0) and the force fades back in from the next cycle on.
         """
+        arrival = self.last_arrival
+        if (self.scale >= 1.0 and not self.pending and arrival is not None
+                and now - arrival <= self.config.degrade_after):
+            # FRESH or STALE at full scale, nothing held (the steady state): what the
+            # general path below returns then, without its lookups (it runs every cycle).
+            self._fading_out = False
+            return self.scale, False
         health = self.health(now)
         target_zero = health in (ModelHealth.DEGRADED, ModelHealth.PENDING)
         if target_zero and not self._fading_out and health is ModelHealth.DEGRADED:

@@ -224,8 +224,8 @@ class SimMaglevBackend(DeviceBackend):
             raise DeviceError(f'{self.name}: used before configure()')
         return self._model, self._user
 
-    def _reading(self, dt: float, status: DeviceStatus = DeviceStatus.OK) -> DeviceReading:
-        model, _ = self._require()
+    def _reading(self, model: MaglevModel, dt: float,
+                 status: DeviceStatus = DeviceStatus.OK) -> DeviceReading:
         assert self._sensor is not None
         pose, twist = self._sensor.measure(model.pose, model.twist, dt)
         return DeviceReading(pose, twist, self._f_h.copy(), status)
@@ -254,12 +254,12 @@ class SimMaglevBackend(DeviceBackend):
         self._applied = model.applied
         self._t += dt
         self._f_h = user.wrench(self._t, model.pose, model.twist)
-        return self._reading(dt, status)
+        return self._reading(model, dt, status)
 
     def idle(self, dt: float) -> DeviceReading:
         if self._applied.any():
             self._applied = np.zeros_like(self._applied)
-        return self._reading(dt)
+        return self._reading(self._require()[0], dt)
 
     @property
     def applied(self) -> np.ndarray:

@@ -239,12 +239,13 @@ class DeviceLoop:
         """One device cycle at ``now`` (s), ``dt`` (s) after the previous one; returns the
         state to publish (see module doc)."""
         status = 0                    # DeviceStatus bits as a plain int until the end
-        u = np.zeros(self.limit.size)
         env = None
         if not self.engaged:
+            u = np.zeros(self.limit.size)
             reading = self.backend.idle(dt)
             status = _WATCHDOG_BIT | _IDLE_BIT
         elif self.run_index < 0:
+            u = np.zeros(self.limit.size)
             self.run_index = 0
             reading = self.backend.idle(dt)
         else:
@@ -263,6 +264,7 @@ class DeviceLoop:
                 # output fades back in once a reading comes without it (module doc).
                 self.watchdog.cut()
                 self.fault_cycles += 1
+                u = np.zeros(self.limit.size)
                 saturated = saturated_out = False
             else:
                 cmd, saturated = saturate(self._cmd, self.limit)
