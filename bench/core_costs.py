@@ -25,7 +25,7 @@ from haptic_topology.device.records import CycleCodec
 from haptic_topology.device.runner import Published
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.model import serial_chain
-from haptic_topology.sim import VirtualEnvironment, load_scenario
+from haptic_topology.sim import Scenario, VirtualEnvironment, load_scenario
 from haptic_topology.sim.lockstep import (
     build_controller_loop,
     build_device_loop,
@@ -99,38 +99,72 @@ def controller_step(mode: ControlMode, cycles: int = 20000) -> dict[str, float]:
 PACED_CYCLES = 5000
 
 
+def _loop_updates(sc: Scenario, total: int, restart: int,
+                  commands: np.ndarray) -> tuple[bytes, dict[int, bytes]]:
+    """Pass 1 of :func:`loop_step`, untimed: ``total`` cycles of the loop with the VE, as
+    ``simulate`` runs them (a new run every ``restart`` cycles); the update the VE offers at
+    the start of each run, and by cycle index the update records that reach the loop before
+    that cycle, prepared and encoded as the node does. Each cycle's command goes into row k
+    of ``commands`` (NaN: no answer)."""
+    first = b''
+    offers: dict[int, bytes] = {}
+    waiting: bytes | None = None
+    for k in range(total):
+        if k % restart == 0:
+            ve = virtual_environment(sc)
+            cycle = HostedCycle(build_device_loop(sc), build_controller_loop(
+                sc, sc.mode, update_period=sc.update_period))
+            inputs = updates = 0
+            first = encode_update(cycle.controller.ctrl.prepare(ve.snapshot(seq=0)))
+            cycle.offer_update(decode_update(first))
+            waiting = None
+        if waiting is not None:
+            offers[k] = waiting
+            cycle.offer_update(decode_update(waiting))
+            cycle.apply_updates()
+            waiting = None
+        t = (k % restart) * sc.dt
+        done = cycle.step(t, sc.dt, t)
+        commands[k] = np.nan if done.answer is None else done.answer.out.wrench
+        hand = done.answer.hand if done.answer is not None else None
+        if hand is not None:
+            ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
+            inputs += 1
+            if inputs % sc.update_period == 0:
+                updates += 1
+                waiting = encode_update(cycle.controller.ctrl.prepare(ve.snapshot(seq=updates)))
+    return first, offers
+
+
 def loop_step(scenario: str, cycles: int = 20000, paced: bool = False) -> dict[str, float]:
     """Cost of one cycle of the loop process without ROS: :meth:`HostedCycle.step` (the
     device tick with the simulated maglev and user, the controller's answer: LMI step, eq. 14
     or the scenario's law, and at every ``update_period``-th cycle the LMI re-sync) plus the
     record it writes to the outbound ring (:meth:`CycleCodec.encode`), on ``scenario`` as
-    ``simulate`` runs it, with the garbage collector as the loop process runs it. An LMI
-    update reaches the loop as in the loop process: prepared and encoded by the node, decoded
-    (:func:`decode_update`) and applied while the loop sleeps between two cycles; that is
-    timed on its own (``update_*``: decode and re-sync), not in the step. The VE's own steps
-    are not timed.
+    ``simulate`` runs it, with the garbage collector as the loop process runs it.
+
+    Two passes, as the graph splits the work: the VE runs in a process of its own, and the
+    loop process receives its updates through a ring. Pass 1 (:func:`_loop_updates`, untimed)
+    runs the loop with the VE and keeps the update records the node would put in the ring;
+    pass 2 runs the loop alone on new objects and receives those records before the same
+    cycles, decoded (:func:`decode_update`) and applied between two cycles as the loop process
+    does; that is timed on its own (``update_*``: decode and re-sync), not in the step. Pass 2
+    is the same run as pass 1 (its commands are checked equal), so each step is one the loop
+    makes, and no VE computation runs in this thread between two steps.
 
     ``paced``: one cycle per millisecond of the monotonic clock, sleeping until the next
     (as the loop process does, whose core runs other threads or idles meanwhile) instead of
     back to back: the CPU time of a cycle that starts after a sleep, with its code and data
     no longer in the caches."""
     sc = load_scenario(scenario)
-    ve = virtual_environment(sc)
-    cycle = HostedCycle(build_device_loop(sc),
-                        build_controller_loop(sc, sc.mode, update_period=sc.update_period))
-    codec = CycleCodec(sc.linkage.task.dim)
-
-    def record(seq: int) -> bytes:      # the node's part: prepare and encode
-        return encode_update(cycle.controller.ctrl.prepare(ve.snapshot(seq=seq)))
-
-    cycle.offer_update(decode_update(record(0)))
-    waiting: bytes | None = None
-    step_ns: list[int] = []
-    update_ns: list[int] = []
     dt = sc.dt
-    inputs = updates = 0
     warm = 500
     restart = int(round(sc.duration / dt))      # keep the run within the scenario's time
+    expected = np.empty((cycles + warm, sc.linkage.task.dim))
+    commands = np.empty_like(expected)
+    first, offers = _loop_updates(sc, cycles + warm, restart, expected)
+    step_ns: list[int] = []
+    update_ns: list[int] = []
     # The garbage collector as the loop process runs it: frozen after start-up, automatic
     # collection off, a young-generation collection every GC_EVERY cycles (timed with them).
     gc.collect()
@@ -138,15 +172,22 @@ def loop_step(scenario: str, cycles: int = 20000, paced: bool = False) -> dict[s
     gc.disable()
     start = time.monotonic()
     for k in range(cycles + warm):
+        if k % restart == 0:
+            cycle = HostedCycle(build_device_loop(sc), build_controller_loop(
+                sc, sc.mode, update_period=sc.update_period))
+            codec = CycleCodec(sc.linkage.task.dim)
+            cycle.offer_update(decode_update(first))
+            if k:
+                start = time.monotonic() - k * 1e-3   # paced: the next cycle in 1 ms
         if paced:
             time.sleep(max(0.0, start + k * 1e-3 - time.monotonic()))
         t = (k % restart) * dt
+        waiting = offers.get(k)
         if waiting is not None:
             t0 = CLOCK()
             cycle.offer_update(decode_update(waiting))
             cycle.apply_updates()
             update_ns.append(CLOCK() - t0)
-            waiting = None
         t0 = CLOCK()
         done = cycle.step(t, dt, t)
         codec.encode(Published(done, k))
@@ -155,24 +196,12 @@ def loop_step(scenario: str, cycles: int = 20000, paced: bool = False) -> dict[s
         t1 = CLOCK()
         if k >= warm:
             step_ns.append(t1 - t0)
-        hand = done.answer.hand if done.answer is not None else None
-        if hand is not None:
-            ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
-            inputs += 1
-            if inputs % sc.update_period == 0:
-                updates += 1
-                waiting = record(updates)
-        if k % restart == restart - 1:
-            ve = virtual_environment(sc)
-            cycle = HostedCycle(build_device_loop(sc), build_controller_loop(
-                sc, sc.mode, update_period=sc.update_period))
-            inputs = 0
-            updates += 1
-            cycle.offer_update(decode_update(record(0)))
-            waiting = None
-            start = time.monotonic() - k * 1e-3   # paced: the next cycle in 1 ms, no catch-up
+        commands[k] = np.nan if done.answer is None else done.answer.out.wrench
     gc.enable()
     gc.unfreeze()
+    if not np.array_equal(commands, expected, equal_nan=True):
+        raise RuntimeError(f'loop_step({scenario!r}): the timed pass answered differently '
+                           'from the pass with the VE')
     out = _pct(step_ns)
     upd = _pct(update_ns)
     out.update(update_p50_us=upd['p50_us'], update_p99_us=upd['p99_us'])
