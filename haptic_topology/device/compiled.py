@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import boolean, float64, int64, njit
+from numba import boolean, float64, int64, njit, void
 
 from haptic_topology.dynamics.compiled import MAT, VEC, integrate_pose, pose_difference
 
@@ -60,6 +60,17 @@ def clamp(wrench: np.ndarray, limit: np.ndarray, out: np.ndarray) -> bool:
             saturated = True
         out[i] = w
     return saturated
+
+
+@njit(void(VEC, VEC), cache=True)
+def max_abs_into(u: np.ndarray, peak: np.ndarray) -> None:
+    """``peak = max(peak, |u|)`` per coordinate, in place (NaN propagates, as in
+    ``np.maximum``): :class:`~haptic_topology.device.loop.DeviceLoop`'s largest applied
+    wrench, once per engaged cycle."""
+    for i in range(u.size):
+        a = abs(u[i])
+        if a > peak[i] or math.isnan(a):
+            peak[i] = a
 
 
 @njit(int64(VEC, VEC, float64, VEC, MAT, VEC, MAT, VEC, VEC, VEC, VEC, boolean, boolean,

@@ -62,7 +62,7 @@ checked by a test)::
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -81,6 +81,8 @@ _IDLE_BIT = int(DeviceStatus.IDLE)
 _SATURATED_BIT = int(DeviceStatus.SATURATED)
 #: Round-trip samples kept for the run's percentiles (10 min at 1 kHz).
 RTT_KEEP = 600_000
+#: ``device.compiled.max_abs_into``, imported by the first DeviceLoop (see its __init__).
+_max_abs_into: Any = None
 #: Default silence (s) of the followed controller after which another controller's command
 #: may take the device over (see module doc): 100 watchdog timeouts, 10 fade ramps of the
 #: shipped parameters, and shorter than a controller process needs to restart (2-4 s).
@@ -165,6 +167,11 @@ class DeviceLoop:
         self.takeovers = 0            # times another controller took over after silence
         self.saturated_cycles = 0
         self.max_applied = np.zeros(m)
+        # Compiled (loaded with maglev.saturate's clamp at the first cycle anyway): numpy's
+        # maximum of the absolute values costs three times as much per cycle.
+        global _max_abs_into
+        if _max_abs_into is None:
+            from haptic_topology.device.compiled import max_abs_into as _max_abs_into
         self.fault_active = False     # the newest reading carries DeviceStatus.FAULT
         self.device_faults = 0        # onsets of such readings
         self.fault_cycles = 0         # engaged cycles written as zero because of a fault
@@ -281,7 +288,7 @@ class DeviceLoop:
             if saturated or saturated_out:
                 status |= _SATURATED_BIT
                 self.saturated_cycles += 1
-            np.maximum(self.max_applied, np.abs(u), out=self.max_applied)
+            _max_abs_into(u, self.max_applied)
             self.backend.write(u)
             reading = self.backend.read(dt)
         fault = int(reading.status) & _FAULT_BIT != 0

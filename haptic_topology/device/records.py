@@ -51,33 +51,41 @@ class CycleCodec:
         self.dtype = np.dtype([('i', '<i8', (len(_INTS),)),
                                ('f', '<f8', (2 + len(_VECS) * m,))])
         self._zero = np.zeros(m)
+        self._no_hand = (self._zero,) * 5            # the record's hand part, absent
+        self._no_answer = (self._zero,) * 11         # its answer and hand parts, absent
 
     def encode(self, e: Published) -> tuple[list[int], np.ndarray]:
-        tick, ans = e.step.tick, e.step.answer
-        r, z = tick.reading, self._zero
-        flags = _HAS_ENV if tick.env_wrench is not None else 0
-        ints = [e.stamp_ns, tick.seq, tick.run_index, int(tick.status), int(r.status), 0,
-                0, -1, 0, 0, 0, 0]
-        vecs = [r.pose, r.twist, r.hand_wrench, tick.applied,
-                z if tick.env_wrench is None else tick.env_wrench]
-        hand_stamp = 0.0
+        """The record of ``e`` (what :meth:`ShmRing.put` writes): the ints and the floats."""
+        step = e.step
+        tick, ans = step.tick, step.answer
+        r, env = tick.reading, tick.env_wrench
+        flags = 0 if env is None else _HAS_ENV
+        if env is None:
+            env = self._zero
         if ans is None:
-            vecs += [z] * 11
+            return ([e.stamp_ns, tick.seq, tick.run_index, int(tick.status), int(r.status), flags,
+                     0, -1, 0, 0, 0, 0],
+                    np.concatenate(((step.stamp, 0.0), r.pose, r.twist, r.hand_wrench,
+                                    tick.applied, env, *self._no_answer)))
+        o, h = ans.out, ans.hand
+        out_env = o.env_wrench
+        flags |= _HAS_ANSWER if out_env is None else _HAS_ANSWER | _HAS_OUT_ENV
+        if out_env is None:
+            out_env = self._zero
+        if h is None:
+            hand_seq = hand_state_seq = 0
+            hand_stamp = 0.0
+            hand = self._no_hand
         else:
-            o, h = ans.out, ans.hand
-            flags |= _HAS_ANSWER | (_HAS_OUT_ENV if o.env_wrench is not None else 0)
-            ints[6:10] = [ans.state_seq, ans.update_seq, int(o.mode), o.constraint_count]
-            vecs += [o.wrench, o.coupling, o.vt_wrench, o.vt_pose, o.vt_twist,
-                     z if o.env_wrench is None else o.env_wrench]
-            if h is None:
-                vecs += [z] * 5
-            else:
-                flags |= _HAS_HAND
-                ints[10:12] = [h.seq, h.state_seq]
-                hand_stamp = h.stamp
-                vecs += [h.pose, h.twist, h.hand_wrench, h.coupling, h.vt_wrench]
-        ints[5] = flags
-        return ints, np.concatenate(([e.step.stamp, hand_stamp], *vecs))
+            flags |= _HAS_HAND
+            hand_seq, hand_state_seq, hand_stamp = h.seq, h.state_seq, h.stamp
+            hand = (h.pose, h.twist, h.hand_wrench, h.coupling, h.vt_wrench)
+        return ([e.stamp_ns, tick.seq, tick.run_index, int(tick.status), int(r.status), flags,
+                 ans.state_seq, ans.update_seq, int(o.mode), o.constraint_count, hand_seq,
+                 hand_state_seq],
+                np.concatenate(((step.stamp, hand_stamp), r.pose, r.twist, r.hand_wrench,
+                                tick.applied, env, o.wrench, o.coupling, o.vt_wrench, o.vt_pose,
+                                o.vt_twist, out_env, *hand)))
 
     def decode(self, rec: np.void) -> Published:
         i = rec['i'].tolist()

@@ -261,7 +261,7 @@ class HostedLoop:
         for e in entries:
             ans = e.step.answer
             if ans is not None:
-                idle = e.step.tick.status & DeviceStatus.IDLE
+                idle = int(e.step.tick.status) & int(DeviceStatus.IDLE)
                 c.send(c.port.answered(ans, e.stamp_ns, now,
                                        None if idle else 1e-9 * e.stamp_ns),
                        e.stamp_ns)

@@ -98,3 +98,20 @@ def test_spring_damper_wrench_tracks_the_target_path(task: TaskSpace, kind: str)
             # Pinocchio's log3 (in the reference's pose_difference) loses up to 5e-11 rad
             # near pi; the compiled one does not (test_compiled_poses.py).
             np.testing.assert_allclose(got[3:], ref[3:], rtol=0, atol=1e-10 * k[3:].max())
+
+
+def test_max_abs_into_is_numpys_running_maximum_of_the_absolute_values() -> None:
+    rng = np.random.default_rng(7)
+    peak, expected = np.zeros(6), np.zeros(6)
+    for _ in range(50):
+        u = rng.normal(scale=3.0, size=6)
+        compiled.max_abs_into(u, peak)
+        np.maximum(expected, np.abs(u), out=expected)
+        np.testing.assert_array_equal(peak, expected)
+    # a NaN stays, as in np.maximum
+    compiled.max_abs_into(np.array([np.nan, 0.0, -1e9, 0.0, 0.0, 0.0]), peak)
+    np.maximum(expected, np.abs([np.nan, 0.0, -1e9, 0.0, 0.0, 0.0]), out=expected)
+    compiled.max_abs_into(np.full(6, 1e12), peak)
+    np.maximum(expected, np.full(6, 1e12), out=expected)
+    np.testing.assert_array_equal(peak, expected)
+    assert np.isnan(peak[0]) and peak[1] == 1e12
