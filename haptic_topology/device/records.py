@@ -55,7 +55,8 @@ class CycleCodec:
         self._no_answer = (self._zero,) * 11         # its answer and hand parts, absent
 
     def encode(self, e: Published) -> tuple[list[int], np.ndarray]:
-        """The record of ``e`` (what :meth:`ShmRing.put` writes): the ints and the floats."""
+        """The record of ``e`` (what
+        :meth:`~haptic_topology.device.shm_ring.ShmRing.put` writes): its ints and its floats."""
         step = e.step
         tick, ans = step.tick, step.answer
         r, env = tick.reading, tick.env_wrench
