@@ -99,6 +99,12 @@ def controller_step(mode: ControlMode, cycles: int = 20000) -> dict[str, float]:
 PACED_CYCLES = 5000
 
 
+def _new_cycle(sc: Scenario) -> HostedCycle:
+    """The loop's cycle for ``sc`` as ``simulate`` builds it."""
+    return HostedCycle(build_device_loop(sc),
+                       build_controller_loop(sc, sc.mode, update_period=sc.update_period))
+
+
 def _loop_updates(sc: Scenario, total: int, restart: int,
                   commands: np.ndarray) -> tuple[bytes, dict[int, bytes]]:
     """Pass 1 of :func:`loop_step`, untimed: ``total`` cycles of the loop with the VE, as
@@ -106,16 +112,18 @@ def _loop_updates(sc: Scenario, total: int, restart: int,
     the start of each run, and by cycle index the update records that reach the loop before
     that cycle, prepared and encoded as the node does. Each cycle's command goes into row k
     of ``commands`` (NaN: no answer)."""
+    def record(seq: int) -> bytes:      # the node's part: prepare and encode
+        return encode_update(cycle.controller.ctrl.prepare(ve.snapshot(seq=seq)))
+
     first = b''
     offers: dict[int, bytes] = {}
     waiting: bytes | None = None
     for k in range(total):
         if k % restart == 0:
             ve = virtual_environment(sc)
-            cycle = HostedCycle(build_device_loop(sc), build_controller_loop(
-                sc, sc.mode, update_period=sc.update_period))
+            cycle = _new_cycle(sc)
             inputs = updates = 0
-            first = encode_update(cycle.controller.ctrl.prepare(ve.snapshot(seq=0)))
+            first = record(0)
             cycle.offer_update(decode_update(first))
             waiting = None
         if waiting is not None:
@@ -132,7 +140,7 @@ def _loop_updates(sc: Scenario, total: int, restart: int,
             inputs += 1
             if inputs % sc.update_period == 0:
                 updates += 1
-                waiting = encode_update(cycle.controller.ctrl.prepare(ve.snapshot(seq=updates)))
+                waiting = record(updates)
     return first, offers
 
 
@@ -173,8 +181,7 @@ def loop_step(scenario: str, cycles: int = 20000, paced: bool = False) -> dict[s
     start = time.monotonic()
     for k in range(cycles + warm):
         if k % restart == 0:
-            cycle = HostedCycle(build_device_loop(sc), build_controller_loop(
-                sc, sc.mode, update_period=sc.update_period))
+            cycle = _new_cycle(sc)
             codec = CycleCodec(sc.linkage.task.dim)
             cycle.offer_update(decode_update(first))
             if k:
