@@ -96,18 +96,34 @@ class HandBatcher:
     def add(self, sample: HandSample, stamp_ns: int, now: float) -> HandBatch | None:
         """Append ``sample`` (its state's stamp ``stamp_ns``, steady time ``now``); return the
         batch to publish when ``sample.seq`` completes a period, else None."""
-        i = self._n
-        if i == 0:
-            self._since = now
-        self._ints[:, i] = (sample.seq, sample.state_seq, stamp_ns)
-        self.last_seq = sample.seq
+        i = self._begin(sample.seq, sample.state_seq, stamp_ns, now)
         rows = self._rows
         rows[0, i] = sample.pose
         rows[1, i] = sample.twist
         rows[2, i] = sample.hand_wrench
         rows[3, i] = sample.coupling
-        self._n = i + 1
-        if sample.seq % self.period == 0 or self._n == self.period:
+        return self._end(sample.seq)
+
+    def add_block(self, seq: int, state_seq: int, stamp_ns: int, block: np.ndarray,
+                  now: float) -> HandBatch | None:
+        """:meth:`add` of the sample ``seq`` of loop state ``state_seq`` whose ``pose``,
+        ``twist``, ``hand_wrench`` and ``coupling`` are the rows of the 4 x m ``block``."""
+        self._rows[:, self._begin(seq, state_seq, stamp_ns, now)] = block
+        return self._end(seq)
+
+    def _begin(self, seq: int, state_seq: int, stamp_ns: int, now: float) -> int:
+        """The row of a new sample, its integers written."""
+        i = self._n
+        if i == 0:
+            self._since = now
+        self._ints[:, i] = (seq, state_seq, stamp_ns)
+        self.last_seq = seq
+        return i
+
+    def _end(self, seq: int) -> HandBatch | None:
+        """The sample ``seq`` written: the batch it completes, or None."""
+        self._n += 1
+        if seq % self.period == 0 or self._n == self.period:
             return self._take(partial=False)
         return None
 

@@ -30,6 +30,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from haptic_topology.control.batch import HandBatch, HandBatcher
 from haptic_topology.control.laws import ControlGains, check_live
 from haptic_topology.control.lmi import LmiSnapshot
@@ -187,13 +189,27 @@ class ControllerPort:
         """Account for ``ans`` (computed elsewhere: the hosted loop thread): command count,
         hand batch; ``stats_time`` (s): the time of the period statistics' tick (None: no
         tick, an idle state)."""
-        if stats_time is not None:
-            self.stats.tick(stats_time)
         batch = (self.batcher.add(ans.hand, state_ns, now) if ans.hand is not None
                  else None)
+        return Outgoing(ans, state_ns, self._count(now, stats_time), batch)
+
+    def answered_block(self, hand: tuple[int, int, np.ndarray] | None, state_ns: int,
+                       now: float, stats_time: float | None) -> tuple[float, HandBatch | None]:
+        """:meth:`answered` of an answer known by its hand input alone: ``hand`` is the
+        input's ``seq``, ``state_seq`` and 4 x m rows (pose, twist, F_h, F_pc; None: the
+        answer has none). Returns the ``update_age`` and the hand batch of its
+        :class:`Outgoing`."""
+        batch = (None if hand is None
+                 else self.batcher.add_block(hand[0], hand[1], state_ns, hand[2], now))
+        return self._count(now, stats_time), batch
+
+    def _count(self, now: float, stats_time: float | None) -> float:
+        """An answer sent at ``now``: the statistics' tick, the count; its update age."""
+        if stats_time is not None:
+            self.stats.tick(stats_time)
         self.commands += 1
         self._state_time = now
-        return Outgoing(ans, state_ns, self.update_age(now), batch)
+        return self.update_age(now)
 
     def _answer(self, sample: StateSample, state_ns: int, now: float) -> Outgoing | None:
         engaged = not sample.status & DeviceStatus.IDLE

@@ -337,13 +337,17 @@ class LoopProcess:
 
     def drain(self) -> list[Published]:
         """The cycles the child has produced since the last call, oldest first."""
+        return [self.codec.decode(r) for r in self.drain_records()]
+
+    def drain_records(self) -> np.ndarray:
+        """:meth:`drain` as the records of ``codec`` (not decoded)."""
         ring = self._rings.get('cycles')
         if ring is None:
-            return []
+            return np.empty(0, self.codec.dtype)
         recs = ring.take()
         self.taken += len(recs)
         self._poll_status()
-        return [self.codec.decode(r) for r in recs]
+        return recs
 
     def _poll_status(self) -> None:
         with self._status_lock:

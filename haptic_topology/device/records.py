@@ -23,7 +23,7 @@ from haptic_topology.vocabulary import ControlMode, device_status
 # Integer fields of a cycle record, then flags of its optional parts.
 _INTS = ('stamp_ns', 'seq', 'run_index', 'status', 'reading_status', 'flags',
          'state_seq', 'update_seq', 'mode', 'constraint_count', 'hand_seq', 'hand_state_seq')
-_HAS_ENV, _HAS_ANSWER, _HAS_HAND, _HAS_OUT_ENV = 1, 2, 4, 8
+HAS_ENV, HAS_ANSWER, HAS_HAND, HAS_OUT_ENV = 1, 2, 4, 8
 # m-vectors of a cycle record: the state, the answer, the hand input.
 _VECS = ('pose', 'twist', 'hand_wrench', 'applied', 'env', 'wrench', 'coupling', 'vt_wrench',
          'vt_pose', 'vt_twist', 'out_env', 'h_pose', 'h_twist', 'h_wrench', 'h_coupling',
@@ -53,6 +53,23 @@ class CycleCodec:
         self._zero = np.zeros(m)
         self._no_hand = (self._zero,) * 5            # the record's hand part, absent
         self._no_answer = (self._zero,) * 11         # its answer and hand parts, absent
+        #: Entries of ``rec['i'].tolist() + rec['f'].tolist()`` (see :meth:`position`).
+        self.width = len(_INTS) + 2 + len(_VECS) * m
+
+    def position(self, name: str) -> int:
+        """Where ``name`` is in the list ``rec['i'].tolist() + rec['f'].tolist()`` of a record
+        ``rec``: an int (``stamp_ns``, ``seq``, ``status``, ``flags``, ``state_seq``, ...), a
+        float (``stamp``, ``hand_stamp``: s) or the first of the m entries of a vector
+        (``pose``, ``applied``, ``wrench``, ``h_pose``, ...; the hand input's vectors are
+        ``h_pose``, ``h_twist``, ``h_wrench``, ``h_coupling``, ``h_vt_wrench``, in this order)."""
+        if name in _INTS:
+            return _INTS.index(name)
+        floats = len(_INTS)
+        if name in ('stamp', 'hand_stamp'):
+            return floats + ('stamp', 'hand_stamp').index(name)
+        if name not in _VECS:
+            raise KeyError(f'cycle record: no field {name!r} (ints {_INTS}, vectors {_VECS})')
+        return floats + 2 + _VECS.index(name) * self.m
 
     def encode(self, e: Published) -> tuple[list[int], np.ndarray]:
         """The record of ``e`` (what
@@ -60,7 +77,7 @@ class CycleCodec:
         step = e.step
         tick, ans = step.tick, step.answer
         r, env = tick.reading, tick.env_wrench
-        flags = 0 if env is None else _HAS_ENV
+        flags = 0 if env is None else HAS_ENV
         if env is None:
             env = self._zero
         if ans is None:
@@ -70,7 +87,7 @@ class CycleCodec:
                                     tick.applied, env, *self._no_answer)))
         o, h = ans.out, ans.hand
         out_env = o.env_wrench
-        flags |= _HAS_ANSWER if out_env is None else _HAS_ANSWER | _HAS_OUT_ENV
+        flags |= HAS_ANSWER if out_env is None else HAS_ANSWER | HAS_OUT_ENV
         if out_env is None:
             out_env = self._zero
         if h is None:
@@ -78,7 +95,7 @@ class CycleCodec:
             hand_stamp = 0.0
             hand = self._no_hand
         else:
-            flags |= _HAS_HAND
+            flags |= HAS_HAND
             hand_seq, hand_state_seq, hand_stamp = h.seq, h.state_seq, h.stamp
             hand = (h.pose, h.twist, h.hand_wrench, h.coupling, h.vt_wrench)
         return ([e.stamp_ns, tick.seq, tick.run_index, int(tick.status), int(r.status), flags,
@@ -100,16 +117,24 @@ class CycleCodec:
         # device_status: the members looked up (an IntFlag built from an int costs ~1 us)
         reading = DeviceReading(pose, twist, hand_wrench, device_status(i[4]))
         tick = DeviceTick(i[1], i[2], reading, applied, device_status(i[3]),
-                          env if flags & _HAS_ENV else None)
+                          env if flags & HAS_ENV else None)
         ans = None
-        if flags & _HAS_ANSWER:
+        if flags & HAS_ANSWER:
             out = CycleOutput(wrench, coupling, vt_wrench, vt_pose, vt_twist, i[9],
-                              ControlMode(i[8]), out_env if flags & _HAS_OUT_ENV else None)
+                              ControlMode(i[8]), out_env if flags & HAS_OUT_ENV else None)
             hand = (HandSample(i[10], i[11], float(f[1]), h_pose, h_twist, h_wrench,
                                h_coupling, h_vt_wrench)
-                    if flags & _HAS_HAND else None)
+                    if flags & HAS_HAND else None)
             ans = Answer(i[6], out, hand, i[7])
         return Published(HostedStep(tick, float(f[0]), ans, None, ()), i[0])
+
+    def records(self, entries: list[Published]) -> np.ndarray:
+        """The records of ``entries`` as one array of ``dtype``, as
+        :meth:`~haptic_topology.device.shm_ring.ShmRing.take` returns them."""
+        out = np.empty(len(entries), self.dtype)
+        for n, e in enumerate(entries):
+            out[n] = self.encode(e)
+        return out
 
 
 def put_bytes(ring: ShmRing, data: bytes, what: str, overwrite: bool = True) -> bool:

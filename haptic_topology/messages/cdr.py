@@ -23,7 +23,8 @@ writer is made. No rclpy here: the message classes carry their own field list.
 from __future__ import annotations
 
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from operator import itemgetter
 from typing import Any
 
 #: CDR (XCDR1) little-endian encapsulation: representation id 0x0001, options 0.
@@ -184,6 +185,44 @@ class CdrWriter:
             if v.__class__ is not list:
                 given[n] = v.ravel().tolist() if hasattr(v, 'ravel') else list(v)
         return given
+
+    def gather(self, width: int, where: Mapping[str, int],
+               lengths: Mapping[str, int]) -> Callable[[list[Any]], bytes]:
+        """A packer of messages of one layout whose values all sit in one list: ``packer(src)``
+        (``src`` a list of ``width`` values) is :meth:`pack` of field ``path`` =
+        ``src[where[path]]`` for each primitive of the writer's ``fields``, and of the
+        ``lengths[path]`` values from ``src[where[path]]`` on for each sequence (``lengths``
+        gives every sequence field; one of length 0 needs no ``where``). No argument list is
+        built per message: one ``itemgetter`` picks the struct's values from ``src``, e.g. a
+        fixed-layout record's fields as ``tolist`` gives them."""
+        seqs = {self.fields[n] for n in self._sequences}
+        if set(lengths) != seqs:
+            raise ValueError(f'{self.msg_type.__name__}: lengths must give the sequences '
+                             f'{sorted(seqs)}, got {sorted(lengths)}')
+        need = [p for p in self.fields if p not in seqs or lengths[p]]
+        bad = [p for p in need if not 0 <= where.get(p, -1) <= width - lengths.get(p, 1)]
+        if bad:
+            raise ValueError(f'{self.msg_type.__name__}: fields {bad} need a position in '
+                             f'0..{width - 1} with their values within the {width} of src')
+        wheres, base, layout = self._layout([range(lengths[p]) if p in seqs else 0
+                                             for p in self.fields])
+        taken: dict[int, int] = {}      # struct value -> its position in src
+        for path, at in zip(self.fields, wheres, strict=True):
+            if isinstance(at, slice):
+                first = where.get(path, 0)
+                taken.update(zip(range(at.start, at.stop),
+                                 range(first, first + lengths[path]), strict=True))
+            else:
+                taken[at] = where[path]
+        consts = [base[s] for s in range(layout.size) if s not in taken]
+        picks = iter(range(width, width + len(consts)))
+        get = itemgetter(*[taken[s] if s in taken else next(picks)
+                           for s in range(layout.size)])
+        pack = layout.struct.pack
+
+        def packer(src: list[Any]) -> bytes:
+            return ENCAPSULATION + pack(*get(src + consts))
+        return packer
 
     def padding(self, *values: Any) -> list[int]:
         """Offsets of the alignment bytes in :meth:`pack`'s result for ``values``: zeros

@@ -99,7 +99,7 @@ class DeviceDriver(LifecycleNode):
         self._active = False          # between activate and deactivate
         self._clock_msg = ClockMsg()
         self.graph = GraphFilter(s.graph_id)
-        self._state_cdr = state_writer(DEVICE_BASE, self.graph.wire)
+        self.state_wire = state_writer(DEVICE_BASE, self.graph.wire)
         # Real-time settings go to the loop thread when hosting (run_main leaves the rest).
         self.process_sched_priority = 0 if s.host_controller else s.sched_priority
         qos = loop_qos(self.cfg.clock)
@@ -214,12 +214,14 @@ class DeviceDriver(LifecycleNode):
                 and self.input_publishers.admits(TOPIC_COMMAND, self.rejected)):
             self.layout.on_command(msg)
 
-    def publish_state(self, tick: DeviceTick, ns: int, clock: bool = False) -> None:
-        """Publish ``/clock`` at ``ns`` (when ``clock``), then the state stamped ``ns``."""
+    def publish_state(self, tick: DeviceTick | bytes, ns: int, clock: bool = False) -> None:
+        """Publish ``/clock`` at ``ns`` (when ``clock``), then the state stamped ``ns``
+        (``tick``, or its bytes packed by :attr:`state_wire`)."""
         if clock:
             self.publish_clock(ns)
-        self.state_pub.publish(state_cdr(self._state_cdr, tick.seq, ns, tick.reading,
-                                         tick.applied, int(tick.status), tick.env_wrench))
+        self.state_pub.publish(tick if isinstance(tick, bytes) else state_cdr(
+            self.state_wire, tick.seq, ns, tick.reading, tick.applied, int(tick.status),
+            tick.env_wrench))
         self.states_sent += 1
 
     def publish_clock(self, ns: int) -> None:

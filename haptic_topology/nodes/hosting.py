@@ -1,30 +1,20 @@
-"""The node side of the hosted layout: the loop thread's owner, and a thread that drains
-the loop's outbox.
+"""The node side of the hosted layout: the loop's owner, and what publishes its cycles.
 
-:class:`HostedLoop` is what a hosted ``device_driver`` runs instead of executor timers: a
-:class:`~haptic_topology.device.runner.LoopRunner` (the loop thread) stepping the driver's
-:class:`~haptic_topology.device.loop.DeviceLoop` with the hosted ``lmi_controller``'s
-:class:`~haptic_topology.control.loop.ControllerLoop`, an :class:`OutboxThread` publishing
-the cycles' states (the driver's publisher) and answers (the controller's), and
-:meth:`HostedLoop.check`, called by an executor timer: engagement permission, the loop
-thread's failures, the run's end.
-
-The hosted ``device_driver`` runs the 1 kHz cycle in a loop thread
-(:class:`~haptic_topology.device.runner.LoopRunner`) that never touches DDS. Everything the
-graph's observers get (``DeviceState``, ``DeviceCommand``, ``HandInputs`` batches, the
-lock-step ``/clock``) is published by :class:`OutboxThread`: every ``period`` seconds, or
-sooner when woken (lock-step: the loop thread wakes it after each cycle, a
-:class:`threading.Event`; no executor involved, as rclpy's ``EventsExecutor`` supports no
-guard conditions), it takes every entry of the outbox in order, hands them to the node's
-publish function, then calls ``idle`` (the controller's flush of a partial hand-input
-batch).
+:class:`HostedLoop` is what a hosted ``device_driver`` runs instead of executor timers: the
+loop process (:class:`~haptic_topology.device.loop_process.LoopProcess`) or, for a backend
+that needs rclpy itself, a loop thread (:class:`~haptic_topology.device.runner.LoopRunner`)
+stepping the driver's :class:`~haptic_topology.device.loop.DeviceLoop` with the hosted
+``lmi_controller``'s :class:`~haptic_topology.control.loop.ControllerLoop`; an
+:class:`~haptic_topology.nodes.outbox.OutboxThread` that publishes the cycles' states (the
+driver's publisher) and answers (the controller's) from their records, packed to CDR
+without decoding them (:class:`~haptic_topology.nodes.wire.CycleWire`); and
+:meth:`HostedLoop.check`, called by an executor timer: engagement permission, the loop's
+failures, the run's end.
 """
 
 from __future__ import annotations
 
 import sys
-import threading
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -35,18 +25,18 @@ from haptic_topology.device.loop_process import LoopProcess
 from haptic_topology.device.realtime import (
     loop_cpus,
     name_os_thread,
-    raise_session_nice,
-    renice_thread,
     set_process_affinity,
     set_process_policy,
     set_thread_realtime,
 )
-from haptic_topology.device.runner import LoopRunner, Published, RunnerConfig
+from haptic_topology.device.records import CycleCodec
+from haptic_topology.device.runner import LoopRunner, RunnerConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.nodes.convert import CONTROLLER_ID
 from haptic_topology.nodes.diagnostics import log_notices, monotonic
+from haptic_topology.nodes.outbox import OutboxThread
 from haptic_topology.nodes.separate import SeparateLoop
-from haptic_topology.vocabulary import DeviceStatus
+from haptic_topology.nodes.wire import CycleWire
 
 #: GIL switch interval (s) of a process that hosts the loop thread (CPython's default: 5 ms).
 SWITCH_INTERVAL = 2e-4
@@ -55,79 +45,6 @@ PUBLISH_PERIOD = 0.002
 #: Lock-step with a loop process: the publishing thread, woken by the child's eventfd after
 #: each cycle, also looks this often (s) without a wake-up (a stop, the end of the run).
 PROCESS_IDLE_WAKE = 0.05
-
-
-class OutboxThread:
-    """Publishes what a :class:`LoopRunner` puts in its outbox (see module doc)."""
-
-    def __init__(self, runner: LoopRunner | LoopProcess,
-                 publish: Callable[[list[Published]], None], idle: Callable[[], None],
-                 period: float, wait: Callable[[float], None] | None = None,
-                 nice: int = 0) -> None:
-        self.runner = runner
-        self._nice = nice
-        self.problem: str | None = None     # the nice increment was refused
-        self._wait = wait
-        self._publish = publish
-        self._idle = idle
-        self._period = period
-        self._event = threading.Event()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.error: BaseException | None = None
-        self.published = 0       # outbox entries published
-
-    def caught_up(self) -> bool:
-        """Everything the loop put in the outbox is published (or was dropped)."""
-        r = self.runner
-        return self.published + r.outbox_dropped >= r.appended
-
-    def wake(self) -> None:
-        """Called by the loop thread after each outbox append."""
-        self._event.set()
-
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
-    def start(self) -> None:
-        """Start the thread (no-op while it runs: it outlives a deactivation, see
-        ``device_driver``)."""
-        if self.running:
-            return
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._body, name='device_publish',
-                                        daemon=True)
-        self._thread.start()
-
-    def stop(self, timeout: float = 5.0) -> None:
-        """Stop after publishing what is in the outbox (call once the loop has stopped)."""
-        self._stop.set()
-        self._event.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
-
-    def _body(self) -> None:
-        name_os_thread('device_publish')
-        if self._nice:      # and this node's autogroup, when the node leads its session
-            self.problem = renice_thread(self._nice) or raise_session_nice(self._nice)
-        try:
-            while True:
-                if self._wait is not None:     # a loop process: its eventfd, or a poll
-                    self._wait(self._period)
-                else:
-                    self._event.wait(self._period)
-                    self._event.clear()
-                entries = self.runner.drain()
-                if entries:
-                    self._publish(entries)
-                    self.published += len(entries)
-                self._idle()
-                if self._stop.is_set() and not self.runner.outbox:
-                    return
-        except BaseException as exc:  # reported by the node's check timer
-            self.error = exc
 
 
 class HostedLoop:
@@ -156,10 +73,15 @@ class HostedLoop:
         else:
             self.runner = LoopRunner(HostedCycle(driver.loop, controller.loop), pacing,
                                      wall_ns=lambda: driver.get_clock().now().nanoseconds)
+        codec = self.process.codec if self.process is not None else CycleCodec(c.task_dim)
+        self.wire = CycleWire(codec, driver.state_wire, controller.command_wire)
+        runner = self.runner
         # Lock-step: woken by every cycle (the VE waits on the hand inputs); wall clock: the
         # outbox is drained every PUBLISH_PERIOD, so the loop pays no wake-up.
         self.outbox = OutboxThread(
-            self.runner, self._observe, controller.flush_hand,
+            runner, (self.process.drain_records if self.process is not None
+                     else lambda: codec.records(runner.drain())),
+            self._observe, controller.flush_hand,
             min(controller.flush_period, PUBLISH_PERIOD if not driver.lockstep else
                 PROCESS_IDLE_WAKE if self.process is not None else 1.0),
             self.process.wait if self.process is not None else None,
@@ -251,20 +173,25 @@ class HostedLoop:
         # The hosted controller's commands are published with this process's id.
         return {**self.runner.device_values(), 'controller_id': str(CONTROLLER_ID)}
 
-    def _observe(self, entries: list[Published]) -> None:
+    def _observe(self, recs: np.ndarray) -> None:
         """Outbox thread: the cycles' states (and ``/clock``), then the controller's
-        commands and hand inputs."""
-        d, c = self.driver, self.controller
-        for e in entries:
-            d.publish_state(e.step.tick, e.stamp_ns, clock=d.lockstep)
+        commands and hand inputs, from the records ``recs``."""
+        d, c, wire = self.driver, self.controller, self.wire
+        srcs = [i + f + wire.extras(i[0], 0.0)
+                for i, f in zip(recs['i'].tolist(), recs['f'].tolist(), strict=True)]
+        for src in srcs:
+            d.publish_state(wire.state(src), src[0], clock=d.lockstep)
         now = monotonic()
-        for e in entries:
-            ans = e.step.answer
-            if ans is not None:
-                idle = int(e.step.tick.status) & int(DeviceStatus.IDLE)
-                c.send(c.port.answered(ans, e.stamp_ns, now,
-                                       None if idle else 1e-9 * e.stamp_ns),
-                       e.stamp_ns)
+        floats = recs['f']
+        for n, src in enumerate(srcs):
+            if not wire.answered(src):
+                continue
+            ns = src[0]
+            age, batch = c.port.answered_block(wire.hand(src, floats[n]), ns, now,
+                                               None if wire.idle(src) else 1e-9 * ns)
+            c.cmd_pub.publish(wire.command(src, age))
+            if batch is not None:
+                c.publish_hand(batch)
         log_notices(c, c.loop.notices)
         log_notices(d, self.runner.notices)
 

@@ -132,7 +132,7 @@ class LmiController(Node):
         self._hand.header.frame_id = DEVICE_BASE
         self.graph = GraphFilter(s.graph_id)
         self._hand.graph_id = self.graph.wire
-        self._cmd_cdr = command_writer(DEVICE_BASE, self.graph.wire)
+        self.command_wire = command_writer(DEVICE_BASE, self.graph.wire)
         self.rejected = RejectCounter()
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
@@ -194,14 +194,14 @@ class LmiController(Node):
         batch."""
         if out is not None:
             ns = self.get_clock().now().nanoseconds if stamp_ns is None else stamp_ns
-            self.cmd_pub.publish(command_cdr(self._cmd_cdr, out.answer.state_seq, ns,
+            self.cmd_pub.publish(command_cdr(self.command_wire, out.answer.state_seq, ns,
                                              out.answer.out, out.update_age,
                                              update_seq=out.answer.update_seq))
             if out.batch is not None:
-                self._publish_hand(out.batch)
+                self.publish_hand(out.batch)
         log_notices(self, self.loop.notices)
 
-    def _publish_hand(self, batch: HandBatch) -> None:
+    def publish_hand(self, batch: HandBatch) -> None:
         self.hand_pub.publish(hand_inputs_msg(self._hand, batch))
 
     def flush_hand(self) -> None:
@@ -209,7 +209,7 @@ class LmiController(Node):
         oldest is two periods old."""
         batch = self.port.flush(monotonic())
         if batch is not None:
-            self._publish_hand(batch)
+            self.publish_hand(batch)
         self._take_updates(self.gap.due(monotonic(), self.port.state_time) if self.gap else [])
 
     def _on_update(self, msg: LmiUpdate) -> None:

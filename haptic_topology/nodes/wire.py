@@ -6,12 +6,16 @@ publishing the message object)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from haptic_topology.control.controller import CycleOutput
 from haptic_topology.device.backend import DeviceReading
+from haptic_topology.device.records import HAS_ANSWER, HAS_ENV, HAS_HAND, HAS_OUT_ENV, CycleCodec
 from haptic_topology.messages.cdr import CdrWriter
 from haptic_topology.nodes.convert import CONTROLLER_ID
+from haptic_topology.vocabulary import DeviceStatus
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState
 
 #: The fields :func:`state_cdr` writes, in its order; the rest are the writer's constants.
@@ -62,5 +66,81 @@ def command_cdr(writer: CdrWriter, state_seq: int, ns: int, out: CycleOutput,
                        int(update_seq))
 
 
-__all__ = ['COMMAND_FIELDS', 'STATE_FIELDS', 'command_cdr', 'command_writer', 'state_cdr',
-           'state_writer']
+class CycleWire:
+    """The ``DeviceState`` and ``DeviceCommand`` of cycle records (the layout of ``codec``,
+    :class:`~haptic_topology.device.records.CycleCodec`) as the bytes :func:`state_cdr` and
+    :func:`command_cdr` give for the decoded cycle, packed from the record's values without
+    decoding it (:meth:`~haptic_topology.messages.cdr.CdrWriter.gather`): the publishing
+    thread's work per cycle at 1 kHz.
+
+    ``src`` of :meth:`state` and :meth:`command` is ``rec['i'].tolist() +
+    rec['f'].tolist()`` of a record ``rec`` followed by :meth:`extras`."""
+
+    def __init__(self, codec: CycleCodec, state: CdrWriter, command: CdrWriter,
+                 controller_id: int = CONTROLLER_ID) -> None:
+        m, at = codec.m, codec.position
+        self._flags, self._status, self._hand_seq = at('flags'), at('status'), at('hand_seq')
+        # The hand input's pose, twist, F_h and F_pc: 4 x m in the record's floats.
+        self._block = slice(at('h_pose') - at('stamp'), at('h_vt_wrench') - at('stamp'))
+        self._cid = controller_id
+        # extras: the stamp's sec and nanosec, the task dimension, update_age, controller_id
+        sec = codec.width
+        self._age = sec + 3
+        width = sec + 5
+        stamp = {'header.stamp.sec': sec, 'header.stamp.nanosec': sec + 1}
+        where = {**stamp, 'seq': at('seq'), 'task_dim': sec + 2, 'pose': at('pose'),
+                 'twist': at('twist'), 'hand_wrench': at('hand_wrench'),
+                 'applied_wrench': at('applied'), 'status': at('status'),
+                 'env_wrench': at('env')}
+        self._state = [state.gather(width, where, {**{p: m for p in STATE_FIELDS[4:8]},
+                                                   'env_wrench': n}) for n in (0, m)]
+        where = {**stamp, 'state_seq': at('state_seq'), 'controller_id': sec + 4,
+                 'mode': at('mode'), 'task_dim': sec + 2, 'wrench': at('wrench'),
+                 'vt_pose': at('vt_pose'), 'vt_twist': at('vt_twist'),
+                 'constraint_count': at('constraint_count'), 'update_age': sec + 3,
+                 'env_wrench': at('out_env'), 'update_seq': at('update_seq')}
+        self._command = [command.gather(width, where, {'wrench': m, 'vt_pose': m,
+                                                       'vt_twist': m, 'env_wrench': n})
+                         for n in (0, m)]
+        self._m = m
+
+    def extras(self, stamp_ns: int, update_age: float) -> list[Any]:
+        """What follows a record's values in ``src``: its state's stamp (``stamp_ns``) as sec
+        and nanosec, the task dimension, ``update_age`` (s) and the controller id."""
+        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+        return [sec, nanosec, self._m, update_age, self._cid]
+
+    def state(self, src: list[Any]) -> bytes:
+        """The record's ``DeviceState``, as :func:`state_cdr` packs it."""
+        return self._state[src[self._flags] & HAS_ENV](src)
+
+    def answered(self, src: list[Any]) -> bool:
+        """The record holds an answer (a command)."""
+        return bool(src[self._flags] & HAS_ANSWER)
+
+    def idle(self, src: list[Any]) -> bool:
+        """The record's state is flagged IDLE (the device not engaged)."""
+        return bool(int(src[self._status]) & _IDLE)
+
+    def hand(self, src: list[Any], floats: np.ndarray
+             ) -> tuple[int, int, np.ndarray] | None:
+        """The answer's hand input (None: none): its ``seq``, ``state_seq`` and the 4 x m
+        rows pose, twist, F_h, F_pc, a view of ``floats`` (the record's ``'f'``), as
+        :meth:`~haptic_topology.control.port.ControllerPort.answered_block` takes it."""
+        if not src[self._flags] & HAS_HAND:
+            return None
+        at = self._hand_seq
+        return int(src[at]), int(src[at + 1]), floats[self._block].reshape(4, self._m)
+
+    def command(self, src: list[Any], update_age: float) -> bytes:
+        """The record's ``DeviceCommand`` (the record holds an answer) computed ``update_age``
+        s after the newest LMI update, as :func:`command_cdr` packs it."""
+        src[self._age] = update_age
+        return self._command[(src[self._flags] & HAS_OUT_ENV) // HAS_OUT_ENV](src)
+
+
+_IDLE = int(DeviceStatus.IDLE)
+
+
+__all__ = ['COMMAND_FIELDS', 'STATE_FIELDS', 'CycleWire', 'command_cdr', 'command_writer',
+           'state_cdr', 'state_writer']

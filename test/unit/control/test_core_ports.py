@@ -22,7 +22,7 @@ import pytest
 
 from haptic_topology.control.port import STATES_COMING, ControllerPort, UpdateGap, live_change
 from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
-from haptic_topology.device.hosted import state_sample
+from haptic_topology.device.hosted import HostedCycle, state_sample
 from haptic_topology.device.loop import CommandVerdict, ns_to_seconds, period_ns
 from haptic_topology.sim.lockstep import (
     build_controller_loop,
@@ -228,3 +228,38 @@ def test_an_update_is_taken_at_once_when_no_state_comes() -> None:
     assert gap.due(3.002, state_time=2.999) == []
     assert gap.due(3.006, state_time=2.999) == ['u3']
     assert gap.deferred == 2
+
+
+def test_an_answer_given_by_its_hand_block_is_accounted_as_the_answer_itself() -> None:
+    """The hosted publisher hands the port each answer's hand input as a 4 x m block
+    (``answered_block``, from the cycle record): the same batches, update ages, command
+    count and period statistics as ``answered`` of the answer object."""
+    sc = load_scenario('circle')
+    cycle = HostedCycle(build_device_loop(sc),
+                        build_controller_loop(sc, sc.mode, update_period=sc.update_period))
+    cycle.offer_update(virtual_environment(sc).snapshot(seq=0))
+    by_object, by_block = (ControllerPort(build_controller_loop(sc, sc.mode), sc.update_period,
+                                          sc.linkage.task.dim, sc.dt) for _ in range(2))
+    for port in (by_object, by_block):
+        port.on_update(virtual_environment(sc).snapshot(seq=0), 0.5, apply=False)
+    batches = 0
+    for k in range(25):
+        t = k * sc.dt
+        ans = cycle.step(t, sc.dt, t).answer
+        assert ans is not None
+        ns, now = k * 1_000_000, 1.0 + 0.001 * k
+        out = by_object.answered(ans, ns, now, t if k else None)
+        h = ans.hand
+        age, batch = by_block.answered_block(
+            None if h is None else (h.seq, h.state_seq,
+                                    np.stack([h.pose, h.twist, h.hand_wrench, h.coupling])),
+            ns, now, t if k else None)
+        assert age == out.update_age
+        assert (batch is None) == (out.batch is None)
+        if batch is not None and out.batch is not None:
+            batches += 1
+            for a, b in zip(vars(batch).values(), vars(out.batch).values(), strict=True):
+                np.testing.assert_array_equal(a, b)
+    assert batches == 2
+    assert by_block.commands == by_object.commands == 25
+    assert by_block.stats.values() == by_object.stats.values()

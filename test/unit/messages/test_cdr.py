@@ -9,11 +9,17 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 
 from haptic_topology.control.controller import CycleOutput
+from haptic_topology.control.loop import Answer, HandSample
 from haptic_topology.device.backend import DeviceReading
+from haptic_topology.device.hosted import HostedStep
+from haptic_topology.device.loop import DeviceTick
+from haptic_topology.device.records import CycleCodec
+from haptic_topology.device.runner import Published
 from haptic_topology.messages.cdr import CdrWriter
 from haptic_topology.nodes.convert import command_msg, ns_to_stamp, state_msg
 from haptic_topology.nodes.wire import (
     STATE_FIELDS,
+    CycleWire,
     command_cdr,
     command_writer,
     state_cdr,
@@ -108,3 +114,71 @@ def test_bad_fields_and_values_are_refused_naming_them() -> None:
     assert deserialize_message(writer.pack(*good), DeviceState).seq == 3
     with pytest.raises(ValueError, match='DeviceState: a value does not fit its field'):
         writer.pack(*good[:8], 256, ())               # status is a uint8
+
+
+def test_gather_packs_what_pack_packs_from_one_list() -> None:
+    """``CdrWriter.gather``: each field from its position in one list (a sequence from its
+    first), the same bytes as ``pack`` of those values, for both lengths of a sequence."""
+    writer = CdrWriter(DeviceState, STATE_FIELDS, {'header.frame_id': FRAME, 'graph_id': GRAPH})
+    # src: seq, sec, nanosec, status, then pose, twist, F_h, applied, env (3 each), junk
+    where = {'seq': 0, 'header.stamp.sec': 1, 'header.stamp.nanosec': 2, 'status': 3,
+             'task_dim': 4, 'pose': 5, 'twist': 8, 'hand_wrench': 11, 'applied_wrench': 14,
+             'env_wrench': 17}
+    src = [2**40, 1_764_000_000, 999_999_999, 5, 3, *np.linspace(-1, 1, 15).tolist(),
+           0.5, 0.25, 0.125, 'junk']
+    for env in (0, 3):
+        lengths = {'pose': 3, 'twist': 3, 'hand_wrench': 3, 'applied_wrench': 3,
+                   'env_wrench': env}
+        packer = writer.gather(len(src), where, lengths)
+        expect = writer.pack(*src[1:3], src[0], 3, src[5:8], src[8:11], src[11:14],
+                             src[14:17], 5, src[17:17 + env])
+        assert packer(src) == expect
+    with pytest.raises(ValueError, match=r"lengths must give the sequences \['applied_wrench'"):
+        writer.gather(len(src), where, {'pose': 3})
+    with pytest.raises(ValueError, match=r"fields \['env_wrench'\] need a position in 0..23"):
+        writer.gather(len(src), {**where, 'env_wrench': 22}, {**lengths, 'env_wrench': 3})
+
+
+@pytest.mark.parametrize('dim, env, answer, hand, out_env', [
+    (3, False, False, False, False), (3, True, True, True, False),
+    (6, False, True, False, True), (6, True, True, True, True)])
+def test_cycle_wire_packs_the_records_cycle_as_state_cdr_and_command_cdr(
+        dim: int, env: bool, answer: bool, hand: bool, out_env: bool) -> None:
+    """The hosted publisher packs a cycle's state and command straight from its record
+    (``CycleWire``): the bytes ``state_cdr`` and ``command_cdr`` give for the decoded cycle,
+    and the hand input the port takes, with every optional part present or absent."""
+    rng = np.random.default_rng(dim + 2 * env + 4 * answer + 8 * hand + 16 * out_env)
+
+    def v() -> np.ndarray:
+        return rng.normal(size=dim)
+
+    status = DeviceStatus.SATURATED | (DeviceStatus.IDLE if not answer else DeviceStatus(0))
+    tick = DeviceTick(2**33 + 1, 5, DeviceReading(v(), v(), v(), DeviceStatus.SATURATED), v(),
+                      status, v() if env else None)
+    ans = None
+    if answer:
+        out = CycleOutput(v(), v(), v(), v(), v(), 2, ControlMode.PENALTY,
+                          v() if out_env else None)
+        sample = HandSample(7, tick.seq, 0.25, v(), v(), v(), v(), v()) if hand else None
+        ans = Answer(tick.seq, out, sample, 2**40)
+    e = Published(HostedStep(tick, 0.25, ans, None, ()), 1_764_000_000_123_456_789)
+    codec = CycleCodec(dim)
+    rec = codec.records([e])
+    wire = CycleWire(codec, state_writer(FRAME, GRAPH), command_writer(FRAME, GRAPH))
+    src = rec['i'][0].tolist() + rec['f'][0].tolist() + wire.extras(e.stamp_ns, 0.0)
+    assert wire.state(src) == state_cdr(state_writer(FRAME, GRAPH), tick.seq, e.stamp_ns,
+                                        tick.reading, tick.applied, int(status), tick.env_wrench)
+    assert wire.answered(src) == answer and wire.idle(src) == (not answer)
+    if ans is None:
+        return
+    assert wire.command(src, 0.0375) == command_cdr(
+        command_writer(FRAME, GRAPH), tick.seq, e.stamp_ns, ans.out, 0.0375,
+        update_seq=ans.update_seq)
+    got = wire.hand(src, rec['f'][0])
+    if ans.hand is None:
+        assert got is None
+        return
+    assert got is not None and got[:2] == (7, tick.seq)
+    h = ans.hand
+    np.testing.assert_array_equal(got[2], np.stack([h.pose, h.twist, h.hand_wrench,
+                                                    h.coupling]))
