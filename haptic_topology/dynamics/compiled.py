@@ -188,3 +188,24 @@ def rk4_finish(k: np.ndarray, sixth: float, x: np.ndarray) -> None:
         s = s + k[2, i] * 2.0
         s = s + k[3, i] * 1.0
         x[i] = x[i] + s * sixth
+
+
+@njit(MAT(MAT, MAT), cache=True)
+def cho_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``X`` (n x k, new) with ``L L^T X = rhs`` for the lower Cholesky factor ``L`` =
+    ``factor`` (n x n) and ``rhs`` (n x k): forward substitution with ``L``, then back
+    substitution with ``L^T``, column by column (``spd.spd_solve``)."""
+    n, k = rhs.shape
+    x = np.empty((n, k))
+    for c in range(k):
+        for i in range(n):
+            s = rhs[i, c]
+            for j in range(i):
+                s -= factor[i, j] * x[j, c]
+            x[i, c] = s / factor[i, i]
+        for i in range(n - 1, -1, -1):
+            s = x[i, c]
+            for j in range(i + 1, n):
+                s -= factor[j, i] * x[j, c]
+            x[i, c] = s / factor[i, i]
+    return x
