@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pinocchio as pin
@@ -67,20 +68,28 @@ def _perpendiculars(axis: np.ndarray) -> np.ndarray:
 class ClosureBasis:
     """The rank decision on ``J_c`` at one ``q``: ``rows`` (r x d) are ``r`` independent
     combinations of the closure rows (``A = Sigma_r^-1 U_r^T W_c J_c``, so ``A = V_r^T
-    S^-1``), ``null`` (d x f) an orthonormal basis of ``N(J_c)``, ``singular_values`` of
+    S^-1``), :attr:`null` (d x f) an orthonormal basis of ``N(J_c)``, ``singular_values`` of
     ``J_w`` (m, descending) and ``mobility`` f = d - r."""
 
     rows: np.ndarray
-    null: np.ndarray
     singular_values: np.ndarray
     row_map: np.ndarray
-    #: ``N_w`` (d x f): an orthonormal basis of ``N(J_c S)`` (``null`` is ``S N_w``
+    #: ``N_w`` (d x f): an orthonormal basis of ``N(J_c S)`` (:attr:`null` is ``S N_w``
     #: orthonormalised).
     scaled_null: np.ndarray
+    #: ``S`` (d): the column scale of ``J_w``.
+    column_scale: np.ndarray
+
+    @cached_property
+    def null(self) -> np.ndarray:
+        """An orthonormal basis (d x f) of ``N(J_c)``: ``S N_w`` orthonormalised (QR), made
+        when first asked for (the RK4 stages of a closed chain use only ``rows`` and
+        ``row_map``)."""
+        return np.linalg.qr(self.column_scale[:, None] * self.scaled_null)[0]
 
     @property
     def mobility(self) -> int:
-        return int(self.null.shape[1])
+        return int(self.scaled_null.shape[1])
 
 
 class LoopClosures:
@@ -193,12 +202,11 @@ class LoopClosures:
         if r > counted:
             vt = np.vstack([vt[:counted], self._free_last(vt[counted:], velocity)])
         rows = vt[:r] / self.column_scale[None, :]                   # V_r^T S^-1
-        null, _ = np.linalg.qr(self.column_scale[:, None] * vt[r:].T)  # S V_null
         k = min(r, counted)
         row_map = (u[:, :k] / s[:k]).T * self.row_scale[None, :]       # Sigma^-1 U^T W_c
         if k < r:       # no acceleration condition along the rows that do not count
             row_map = np.vstack([row_map, np.zeros((r - k, j.shape[0]))])
-        return ClosureBasis(rows, null, s, row_map, vt[r:].T)
+        return ClosureBasis(rows, s, row_map, vt[r:].T, self.column_scale)
 
     def _free_last(self, near: np.ndarray, velocity: np.ndarray | None) -> np.ndarray:
         """Another orthonormal basis (rows) of the span of the rows ``near`` (weighted joint
