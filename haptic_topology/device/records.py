@@ -143,10 +143,10 @@ def put_bytes(ring: ShmRing, data: bytes, what: str, overwrite: bool = True) -> 
     if len(data) > size:
         raise DeviceError(f'loop process: {what} of {len(data)} bytes exceeds its record '
                           f'({size} bytes)')
-    rec = np.zeros((), ring.dtype)
-    rec['n'] = len(data)
-    rec['b'][:len(data)] = np.frombuffer(data, np.uint8)
-    return ring.put(rec, overwrite)
+    def fill(slot: Any) -> None:     # the payload only: a record is sized for the largest
+        slot['n'] = len(data)
+        slot['b'][:len(data)] = np.frombuffer(data, np.uint8)
+    return ring.put_with(fill, overwrite)
 
 
 def payloads(ring: ShmRing) -> list[bytes]:

@@ -139,6 +139,16 @@ class ShmRing:
         tuple, a ``np.void``) as the next record. A full ring: overwrite the oldest unread
         record (counted in :attr:`overwritten`) or, with ``overwrite=False``, write nothing
         and return False (counted in ``refused``)."""
+        return self._write(record, None, overwrite)
+
+    def put_with(self, fill: Callable[[Any], None], overwrite: bool = True) -> bool:
+        """:meth:`put` of the record that ``fill`` writes into the slot in place (it gets a
+        view of the slot; what it does not write keeps the slot's earlier contents): for
+        records of which only a part is used, e.g. the bytes a record sized for the largest
+        payload holds, so that the rest is neither built nor copied."""
+        return self._write(None, fill, overwrite)
+
+    def _write(self, record: Any, fill: Callable[[Any], None] | None, overwrite: bool) -> bool:
         header = self._header
         k = int(header[_WRITTEN])
         if k - int(header[_TAKEN]) >= self.capacity:
@@ -148,7 +158,10 @@ class ShmRing:
             self.overwritten += 1
         slot = k % self.capacity
         self._seq[slot] = 2 * k + 1
-        self._slots[slot] = record
+        if fill is None:
+            self._slots[slot] = record
+        else:
+            fill(self._slots[slot])
         self._seq[slot] = 2 * k + 2
         header[_WRITTEN] = k + 1
         return True

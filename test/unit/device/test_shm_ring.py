@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 from haptic_topology.device import shm_ring
+from haptic_topology.device.records import bytes_dtype, payloads, put_bytes
 from haptic_topology.device.shm_ring import ShmRing
-from haptic_topology.errors import ConfigError
+from haptic_topology.errors import ConfigError, DeviceError
 
 RECORD = np.dtype([('k', '<i8'), ('x', '<f8', 3)])
 
@@ -71,6 +72,48 @@ def test_a_full_ring_refuses_without_overwrite_and_loses_nothing() -> None:
         assert peer.take(limit=1)['k'].tolist() == [0]
         assert ring.put((3, [3] * 3), overwrite=False)
         assert peer.take()['k'].tolist() == [1, 2, 3] and peer.lost == 0
+    finally:
+        peer.close()
+        ring.close()
+
+
+def test_put_with_writes_in_place_what_it_is_given_and_the_rest_stays() -> None:
+    """``put_with``: the fill writes part of the slot in place (as ``put_bytes`` writes a
+    payload into a record sized for the largest); the seqlock and a full ring as ``put``."""
+    ring = ShmRing.create(RECORD, 2)
+    peer = ShmRing.attach(ring.name, RECORD, 2)
+    try:
+        assert ring.put((1, [1.0, 2.0, 3.0]))
+        assert ring.put((2, [4.0, 5.0, 6.0]))
+        assert peer.take()['k'].tolist() == [1, 2]
+
+        def fill(slot: Any) -> None:
+            slot['k'] = 7
+            slot['x'][0] = -1.0
+
+        assert ring.put_with(fill) and ring.put_with(fill)
+        got = peer.take()
+        assert got['k'].tolist() == [7, 7]
+        assert got['x'].tolist() == [[-1.0, 2.0, 3.0], [-1.0, 5.0, 6.0]]
+        assert ring.put_with(fill, overwrite=False) and ring.put_with(fill, overwrite=False)
+        assert not ring.put_with(fill, overwrite=False) and ring.refused == 1
+        assert ring.put_with(fill) and ring.overwritten == 1
+        assert peer.take()['k'].size == 2 and peer.lost == 1
+    finally:
+        peer.close()
+        ring.close()
+
+
+def test_put_bytes_keeps_each_payload_whole_and_refuses_one_too_long() -> None:
+    ring = ShmRing.create(bytes_dtype(16), 4)
+    peer = ShmRing.attach(ring.name, bytes_dtype(16), 4)
+    try:
+        for data in (b'0123456789abcdef', b'xy', b''):
+            assert put_bytes(ring, data, 'test payload')
+        assert payloads(peer) == [b'0123456789abcdef', b'xy', b'']
+        with pytest.raises(DeviceError, match='test payload of 17 bytes exceeds its record '
+                                              r'\(16 bytes\)'):
+            put_bytes(ring, b'x' * 17, 'test payload')
     finally:
         peer.close()
         ring.close()
