@@ -252,17 +252,18 @@ def lmi_from_msg(msg: LmiUpdate, task: TaskSpace, dof: int,
         raise MessageError('range', 'LmiUpdate.mass_matrix must be positive definite, got '
                            f'{mass.tolist()}') from None
     sv = array(msg, 'singular_values', min(m, dof))
-    check_range(bool((sv >= 0.0).all()), msg,
-                f'singular_values must be >= 0, got {sv.tolist()}')
+    if not (sv >= 0.0).all():
+        check_range(False, msg, f'singular_values must be >= 0, got {sv.tolist()}')
     u = array(msg, 'left_singular_vectors', m * m).reshape(m, m)
     eye = np.eye(m)
     check_range(bool((np.abs(u.T @ u - eye) <= 1e-6 + 1e-5 * eye).all()), msg,
                 'left_singular_vectors must be orthonormal')
     weights = array(msg, 'constraint_weights', m)
-    check_range(bool(((weights >= 0.0) & (weights <= 1.0)).all()), msg,
-                f'constraint_weights must be in [0, 1], got {weights.tolist()}')
+    if not ((weights >= 0.0) & (weights <= 1.0)).all():
+        check_range(False, msg, f'constraint_weights must be in [0, 1], got {weights.tolist()}')
     length = finite_scalar(msg, 'characteristic_length')
-    check_range(length > 0.0, msg, f'characteristic_length must be > 0, got {length}')
+    if not length > 0.0:
+        check_range(False, msg, f'characteristic_length must be > 0, got {length}')
     contacts = None
     fields = check_update_contacts(msg, dof)
     if fields is not None:

@@ -210,6 +210,10 @@ CASES: list[tuple[str, Callable[[], Any], str, str]] = [
      'LmiUpdate.contact_count must be in [0, 4096]'),
     ('lmi', lambda: _update(contact_count=2), 'range',
      'contact_count must be 0 when contact_stiffness is 0, got 2'),
+    ('lmi', lambda: _update(contact_normals=[0.0, 0.0, 1.0]), 'size',
+     'LmiUpdate.contact_normals must have 0 entries, got 3'),
+    ('lmi', lambda: _update(contact_energy=math.nan), 'non_finite',
+     'LmiUpdate.contact_energy is not finite'),
     ('lmi', lambda: _contact_update(
         contact_jacobians=[math.inf] * len(_contact_update().contact_jacobians)),
      'non_finite', 'LmiUpdate.contact_jacobians has non-finite'),
@@ -255,6 +259,15 @@ def test_bad_message_rejected_with_reason(kind: str, make: Callable[[], Any], re
     counter = RejectCounter()
     counter.add(err.value)
     assert counter.values()[f'rejected_{reason}'] == '1' and counter.total == 1
+
+
+def test_huge_finite_values_are_finite_and_every_non_finite_kind_is_not() -> None:
+    """Entries of any finite size pass the finiteness check; inf, -inf and NaN never do."""
+    state = state_from_msg(_state(pose=[1e200, -1e300, 0.0]), TASK)
+    assert state[2].tolist() == [1e200, -1e300, 0.0]
+    for bad in (math.inf, -math.inf, math.nan):
+        with pytest.raises(MessageError, match='DeviceState.twist has non-finite'):
+            state_from_msg(_state(twist=[1e200, bad, 0.0]), TASK)
 
 
 def test_finite_command_beyond_the_limit_is_clamped_not_rejected() -> None:
