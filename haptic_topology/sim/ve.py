@@ -248,7 +248,7 @@ class VirtualEnvironment:
 
         q, dq = np.array(self.q), np.array(self.dq)
         for _ in range(n):
-            q, dq, work = loops.step(q, dq, h, stage)
+            q, dq, work = loops.step(q, dq, h, stage, dyn.mass_matrix)
             self.contact_work += work
         q.flags.writeable = False
         dq.flags.writeable = False
