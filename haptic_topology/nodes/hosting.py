@@ -177,7 +177,7 @@ class HostedLoop:
         """Outbox thread: the cycles' states (and ``/clock``), then the controller's
         commands and hand inputs, from the records ``recs``."""
         d, c, wire = self.driver, self.controller, self.wire
-        srcs = [i + f + wire.extras(i[0], 0.0)
+        srcs = [i + f + wire.extras(i[0])
                 for i, f in zip(recs['i'].tolist(), recs['f'].tolist(), strict=True)]
         for src in srcs:
             d.publish_state(wire.state(src), src[0], clock=d.lockstep)

@@ -104,11 +104,12 @@ class CycleWire:
                          for n in (0, m)]
         self._m = m
 
-    def extras(self, stamp_ns: int, update_age: float) -> list[Any]:
+    def extras(self, stamp_ns: int) -> list[Any]:
         """What follows a record's values in ``src``: its state's stamp (``stamp_ns``) as sec
-        and nanosec, the task dimension, ``update_age`` (s) and the controller id."""
+        and nanosec, the task dimension, a slot for ``update_age`` (written by
+        :meth:`command`) and the controller id."""
         sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-        return [sec, nanosec, self._m, update_age, self._cid]
+        return [sec, nanosec, self._m, 0.0, self._cid]
 
     def state(self, src: list[Any]) -> bytes:
         """The record's ``DeviceState``, as :func:`state_cdr` packs it."""

@@ -165,7 +165,7 @@ def test_cycle_wire_packs_the_records_cycle_as_state_cdr_and_command_cdr(
     codec = CycleCodec(dim)
     rec = codec.records([e])
     wire = CycleWire(codec, state_writer(FRAME, GRAPH), command_writer(FRAME, GRAPH))
-    src = rec['i'][0].tolist() + rec['f'][0].tolist() + wire.extras(e.stamp_ns, 0.0)
+    src = rec['i'][0].tolist() + rec['f'][0].tolist() + wire.extras(e.stamp_ns)
     assert wire.state(src) == state_cdr(state_writer(FRAME, GRAPH), tick.seq, e.stamp_ns,
                                         tick.reading, tick.applied, int(status), tick.env_wrench)
     assert wire.answered(src) == answer and wire.idle(src) == (not answer)
