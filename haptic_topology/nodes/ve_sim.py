@@ -47,7 +47,6 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
@@ -63,7 +62,6 @@ from haptic_topology.nodes.convert import (
     GraphFilter,
     MessageError,
     RejectCounter,
-    lmi_msg,
     vt_wrenches_from_hand_inputs,
 )
 from haptic_topology.nodes.diagnostics import PublisherWatch, diagnostics, matched, monotonic
@@ -75,6 +73,7 @@ from haptic_topology.nodes.qos import (
 )
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.ve_viz import VeViz
+from haptic_topology.nodes.wire import lmi_cdr, lmi_writer, path_cdr, path_writer
 from haptic_topology.sim.lockstep import virtual_environment
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed
@@ -118,10 +117,10 @@ class VeSim(Node):
                                             self._on_hand, hand_inputs_qos(c.clock))
         self._endpoints = {TOPIC_HAND_INPUTS: hand_sub, TOPIC_LMI: self.lmi_pub,
                            TOPIC_VT_PATH: self.path_pub}
-        self._lmi = LmiUpdate()
-        self._path = VtPath()
-        self._lmi.header.frame_id = self._path.header.frame_id = c.frame_id
-        self._lmi.graph_id = self._path.graph_id = self.graph.wire
+        # Both published as serialized bytes (nodes.wire): the message objects' conversion
+        # cost ~3x the packing here.
+        self._lmi = lmi_writer(c.frame_id, self.graph.wire)
+        self._path = path_writer(c.frame_id, self.graph.wire)
         self._update_seq = 0
         self.feed = HandFeed(self.ve, self.update_period)
         self.batches = 0
@@ -151,8 +150,8 @@ class VeSim(Node):
         now = monotonic()
         self._last_publish = now
         self.update_stats.tick(now)
-        self.lmi_pub.publish(lmi_msg(self._lmi, self._last_snap,
-                                     self.get_clock().now().to_msg()))
+        self.lmi_pub.publish(lmi_cdr(self._lmi, self._last_snap,
+                                     self.get_clock().now().nanoseconds))
 
     def _publish_idle(self) -> None:
         """Keep-alive: the current state when no hand input (and no update) came for an idle
@@ -197,13 +196,8 @@ class VeSim(Node):
         path = self.ve.take_path()
         if not path:
             return
-        msg = self._path
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.update_seq = self._update_seq - 1
-        msg.task_dim = self.task.dim
-        msg.hand_input_seqs = [int(s) for s, _ in path]
-        msg.hand_pose = np.concatenate([x for _, x in path]).tolist()
-        self.path_pub.publish(msg)
+        self.path_pub.publish(path_cdr(self._path, self._update_seq - 1, self.task.dim, path,
+                                       self.get_clock().now().nanoseconds))
         self.paths_sent += 1
 
     def _publish_diagnostics(self) -> None:

@@ -1,6 +1,8 @@
-"""``DeviceState`` and ``DeviceCommand`` as serialized bytes, for ``Publisher.publish(bytes)``
-at 1 kHz: the same messages :func:`~haptic_topology.nodes.convert.state_msg` and
-:func:`~haptic_topology.nodes.convert.command_msg` fill, packed in one step by a
+"""The graph's own messages as serialized bytes, for ``Publisher.publish(bytes)``: the same
+messages :func:`~haptic_topology.nodes.convert.state_msg`,
+:func:`~haptic_topology.nodes.convert.command_msg` and
+:func:`~haptic_topology.nodes.convert.lmi_msg` fill (``DeviceState`` and ``DeviceCommand`` at
+1 kHz, ``LmiUpdate`` and ``VtPath`` at 100 Hz), packed in one step by a
 :class:`~haptic_topology.messages.cdr.CdrWriter` (about half the cost of filling and
 publishing the message object)."""
 
@@ -11,12 +13,13 @@ from typing import Any
 import numpy as np
 
 from haptic_topology.control.controller import CycleOutput
+from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
 from haptic_topology.device.records import HAS_ANSWER, HAS_ENV, HAS_HAND, HAS_OUT_ENV, CycleCodec
 from haptic_topology.messages.cdr import CdrWriter
 from haptic_topology.nodes.convert import CONTROLLER_ID
 from haptic_topology.vocabulary import DeviceStatus
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, LmiUpdate, VtPath
 
 #: The fields :func:`state_cdr` writes, in its order; the rest are the writer's constants.
 STATE_FIELDS = ('header.stamp.sec', 'header.stamp.nanosec', 'seq', 'task_dim', 'pose', 'twist',
@@ -64,6 +67,61 @@ def command_cdr(writer: CdrWriter, state_seq: int, ns: int, out: CycleOutput,
                        out.wrench, out.vt_pose, out.vt_twist, int(out.constraint_count),
                        float(update_age), () if out.env_wrench is None else out.env_wrench,
                        int(update_seq))
+
+
+#: The fields :func:`lmi_cdr` writes, in its order; the rest are the writer's constants.
+LMI_FIELDS = ('header.stamp.sec', 'header.stamp.nanosec', 'seq', 'hand_input_seq', 'dof',
+              'task_dim', 'q', 'dq', 'mass_matrix', 'gravity', 'hand_jacobian',
+              'singular_values', 'left_singular_vectors', 'constraint_count',
+              'constraint_weights', 'characteristic_length', 'hand_pose', 'hand_twist',
+              'contact_count', 'contact_points', 'contact_normals', 'contact_gaps',
+              'contact_jacobians', 'contact_stiffness', 'contact_damping', 'contact_friction',
+              'contact_slip_velocity', 'contact_local', 'contact_energy')
+
+
+def lmi_writer(frame_id: str, graph_id: int) -> CdrWriter:
+    """The writer of :func:`lmi_cdr` in ``frame_id`` for the graph ``graph_id`` (its wire
+    value)."""
+    return CdrWriter(LmiUpdate, LMI_FIELDS, {'header.frame_id': frame_id, 'graph_id': graph_id})
+
+
+def lmi_cdr(writer: CdrWriter, snap: LmiSnapshot, ns: int) -> bytes:
+    """The serialized ``LmiUpdate`` that :func:`~haptic_topology.nodes.convert.lmi_msg` fills
+    with ``snap`` (stamped ``ns``; matrices row-major), for ``Publisher.publish(bytes)``."""
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    c = snap.contacts
+    if c is None:
+        contacts: tuple[Any, ...] = (0, (), (), (), (), 0.0, 0.0, 0.0, 0.0, False, 0.0)
+    else:
+        p = c.params
+        contacts = (len(c), c.points, c.normals, c.gaps, c.jacobians, float(p.stiffness),
+                    float(p.damping), float(p.friction), float(p.slip_velocity), bool(c.local),
+                    float(snap.contact_energy))
+    return writer.pack(sec, nanosec, int(snap.seq), max(int(snap.hand_input_seq), 0),
+                       snap.q.size, snap.task.dim, snap.q, snap.dq, snap.mass_matrix,
+                       snap.gravity, snap.hand_jacobian, snap.singular_values, snap.left_vectors,
+                       int(snap.constraint_count), snap.weights,
+                       float(snap.characteristic_length), snap.hand_pose, snap.hand_twist,
+                       *contacts)
+
+
+#: The fields :func:`path_cdr` writes, in its order; the rest are the writer's constants.
+PATH_FIELDS = ('header.stamp.sec', 'header.stamp.nanosec', 'update_seq', 'task_dim',
+               'hand_input_seqs', 'hand_pose')
+
+
+def path_writer(frame_id: str, graph_id: int) -> CdrWriter:
+    """The writer of :func:`path_cdr` in ``frame_id`` for the graph ``graph_id``."""
+    return CdrWriter(VtPath, PATH_FIELDS, {'header.frame_id': frame_id, 'graph_id': graph_id})
+
+
+def path_cdr(writer: CdrWriter, update_seq: int, task_dim: int,
+             path: list[tuple[int, np.ndarray]], ns: int) -> bytes:
+    """The serialized ``VtPath`` of the VT hand poses ``path`` (``(hand input seq, pose)``
+    each, oldest first) after update ``update_seq``, stamped ``ns``."""
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return writer.pack(sec, nanosec, update_seq, task_dim, [int(s) for s, _ in path],
+                       np.concatenate([x for _, x in path]))
 
 
 class CycleWire:
@@ -143,5 +201,6 @@ class CycleWire:
 _IDLE = int(DeviceStatus.IDLE)
 
 
-__all__ = ['COMMAND_FIELDS', 'STATE_FIELDS', 'CycleWire', 'command_cdr', 'command_writer',
+__all__ = ['COMMAND_FIELDS', 'LMI_FIELDS', 'PATH_FIELDS', 'STATE_FIELDS', 'CycleWire',
+           'command_cdr', 'command_writer', 'lmi_cdr', 'lmi_writer', 'path_cdr', 'path_writer',
            'state_cdr', 'state_writer']

@@ -16,17 +16,25 @@ from haptic_topology.device.loop import DeviceTick
 from haptic_topology.device.records import CycleCodec
 from haptic_topology.device.runner import Published
 from haptic_topology.messages.cdr import CdrWriter
-from haptic_topology.nodes.convert import command_msg, ns_to_stamp, state_msg
+from haptic_topology.nodes.convert import command_msg, lmi_msg, ns_to_stamp, state_msg
 from haptic_topology.nodes.wire import (
+    LMI_FIELDS,
+    PATH_FIELDS,
     STATE_FIELDS,
     CycleWire,
     command_cdr,
     command_writer,
+    lmi_cdr,
+    lmi_writer,
+    path_cdr,
+    path_writer,
     state_cdr,
     state_writer,
 )
+from haptic_topology.sim import load_scenario
+from haptic_topology.sim.lockstep import virtual_environment
 from haptic_topology.vocabulary import ControlMode, DeviceStatus
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate, VtPath
 
 GRAPH = 0x9E3779B97F4A7C15          # a graph id's wire value (uint64, high bit set)
 FRAME = 'device_base'
@@ -84,6 +92,48 @@ def test_device_command_bytes_are_rclpys_serialization(dim: int, env: int | None
         values = (sec, nanosec, 77, cid, int(mode), dim, out.wrench, out.vt_pose, out.vt_twist,
                   2, age, () if out.env_wrench is None else out.env_wrench, update_seq)
         _same_bytes_but_padding(ours, serialize_message(msg), writer.padding(*values))
+
+
+@pytest.mark.parametrize('scenario, push', [('circle', 0), ('wall', 0), ('wall', 400),
+                                             ('spatial_arm4', 0)])
+def test_lmi_update_bytes_are_rclpys_serialization(scenario: str, push: int) -> None:
+    """``lmi_cdr`` (what ``ve_sim`` publishes) is the message ``lmi_msg`` fills, without
+    obstacles, with obstacles but no contact near, and pressed into a wall (two contacts)."""
+    ve = virtual_environment(load_scenario(scenario))
+    wrench = np.zeros(ve.dyn.task.dim)
+    wrench[0] = 0.4
+    for _ in range(push):
+        ve.integrate(wrench, 1e-3)
+    writer = lmi_writer('world', GRAPH)
+    for seq in (0, 2**40):
+        snap = ve.snapshot(seq)
+        assert (snap.contacts is None) == (scenario != 'wall')
+        assert push == 0 or len(snap.contacts or ()) >= 1
+        ns = 1_764_000_000_123_456_789 + seq
+        msg = lmi_msg(LmiUpdate(), snap, ns_to_stamp(ns))
+        msg.header.frame_id, msg.graph_id = 'world', GRAPH
+        ours = lmi_cdr(writer, snap, ns)
+        assert deserialize_message(ours, LmiUpdate) == msg
+        values = [getattr(msg, f) for f in LMI_FIELDS[2:]]
+        _same_bytes_but_padding(ours, serialize_message(msg),
+                                writer.padding(*divmod(ns, 10**9), *values))
+        ve.integrate(wrench, 1e-3)
+
+
+def test_vt_path_bytes_are_rclpys_serialization() -> None:
+    writer = path_writer('world', GRAPH)
+    for n in (1, 10, 3):
+        path = [(2**35 + k, np.array([0.1 * k, -0.2, 3.0 + k])) for k in range(n)]
+        ns = 1_764_000_000_000_000_007 + n
+        msg = VtPath(update_seq=41 + n, task_dim=3, graph_id=GRAPH,
+                     hand_input_seqs=[s for s, _ in path],
+                     hand_pose=np.concatenate([x for _, x in path]).tolist())
+        msg.header.frame_id, msg.header.stamp = 'world', ns_to_stamp(ns)
+        ours = path_cdr(writer, 41 + n, 3, path, ns)
+        assert deserialize_message(ours, VtPath) == msg
+        values = [getattr(msg, f) for f in PATH_FIELDS[2:]]
+        _same_bytes_but_padding(ours, serialize_message(msg),
+                                writer.padding(*divmod(ns, 10**9), *values))
 
 
 def test_sequence_lengths_may_change_between_messages() -> None:
