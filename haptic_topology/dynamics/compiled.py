@@ -209,3 +209,48 @@ def cho_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
                 s -= factor[j, i] * x[j, c]
             x[i, c] = s / factor[i, i]
     return x
+
+
+@njit(MAT(MAT, VEC, VEC, VEC), cache=True)
+def nullspace_projector(u: np.ndarray, weights: np.ndarray, scale: np.ndarray,
+                        r: np.ndarray) -> np.ndarray:
+    """The penalty projector ``P`` (m x m, new) of eq. 13 for a diagonal device inertia
+    ``M_d = diag(r)^2``, as
+    :meth:`~haptic_topology.dynamics.constraints.ConstraintDirections.projector` defines it:
+    with ``C`` the columns ``W u_i`` of ``U_w`` (``u``) whose ``weights`` are > 0, the most
+    constrained (last) first, ``W = diag(scale)``, and ``Q`` an orthonormal basis of
+    ``diag(r)^-1 C`` column by column (Gram-Schmidt, each column orthogonalised twice: the
+    ``Q`` of a QR factorisation up to the columns' signs, which ``P`` does not see),
+    ``P[a, b] = sum_j Q[a, j] w_j Q[b, j] r[b] / r[a]``; zero if no weight is > 0."""
+    m = u.shape[0]
+    q = np.empty((m, m))
+    w = np.empty(m)
+    t = 0
+    for i in range(m - 1, -1, -1):
+        if weights[i] <= 0.0:
+            continue
+        for k in range(m):
+            q[k, t] = scale[k] * u[k, i] / r[k]
+        for _ in range(2):
+            for j in range(t):
+                d = 0.0
+                for k in range(m):
+                    d += q[k, j] * q[k, t]
+                for k in range(m):
+                    q[k, t] -= d * q[k, j]
+        n = 0.0
+        for k in range(m):
+            n += q[k, t] * q[k, t]
+        n = math.sqrt(n)
+        for k in range(m):
+            q[k, t] /= n
+        w[t] = weights[i]
+        t += 1
+    p = np.zeros((m, m))
+    for a in range(m):
+        for b in range(m):
+            s = 0.0
+            for j in range(t):
+                s += q[a, j] * w[j] * q[b, j]
+            p[a, b] = s * r[b] / r[a]
+    return p

@@ -44,6 +44,7 @@ With ``blend > 0`` the weight falls smoothly (C1 smoothstep) from 1 at ``tol*L_c
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,25 +88,43 @@ class ConstraintDirections:
         if self.direction is PenaltyDirection.WEIGHTED:
             pw = (u * self.weights) @ u.T
             return (pw * self.task_scale[None, :]) / self.task_scale[:, None]
-        # Columns of U_w are in descending singular value: the most constrained is last.
-        order = [i for i in range(u.shape[1] - 1, -1, -1) if self.weights[i] > 0.0]
+        # M_d = R R^T: with C the columns W u_i (a basis of N(J_h^T); those of U_w are in
+        # descending singular value, the most constrained is last), Q = qr(R^-1 C) is
+        # orthonormal, n = R Q has n^T M_d^-1 n = I, and P = M_d^-1 n diag(w) n^T =
+        # R^-T Q diag(w) Q^T R^T. A diagonal M_d (the usual case; I without one) is one
+        # compiled call: numpy's QR alone costs ~15 us a call on these 3 x 3 to 6 x 6.
+        m = u.shape[0]
+        if inertia is None or not np.any(inertia - np.diag(np.diag(inertia))):
+            r = np.ones(m) if inertia is None else np.sqrt(np.diag(inertia))
+            return _projector()(_own(u), _own(self.weights), _own(self.task_scale), r)
+        order = [i for i in range(m - 1, -1, -1) if self.weights[i] > 0.0]
         if not order:
-            return np.zeros((u.shape[0], u.shape[0]))
-        c = self.task_scale[:, None] * u[:, order]          # W u_i: a basis of N(J_h^T)
+            return np.zeros((m, m))
+        c = self.task_scale[:, None] * u[:, order]
         w = self.weights[order]
-        if inertia is None:
-            basis, _ = np.linalg.qr(c)
-            return (basis * w) @ basis.T
-        # M_d = R R^T: Q = qr(R^-1 C) is orthonormal, n = R Q has n^T M_d^-1 n = I, and
-        # P = M_d^-1 n diag(w) n^T = R^-T Q diag(w) Q^T R^T. A diagonal M_d (the usual
-        # case) takes the element-wise path, exact for M_d = I.
-        if not np.any(inertia - np.diag(np.diag(inertia))):
-            r = np.sqrt(np.diag(inertia))
-            basis, _ = np.linalg.qr(c / r[:, None])
-            return ((basis * w) @ basis.T) * r[None, :] / r[:, None]
         r_low = np.linalg.cholesky(inertia)
         basis, _ = np.linalg.qr(np.linalg.solve(r_low, c))
         return np.linalg.solve(r_low.T, (basis * w) @ basis.T) @ r_low.T
+
+
+_nullspace_projector: Callable[..., np.ndarray] | None = None
+
+
+def _projector() -> Callable[..., np.ndarray]:
+    """The compiled projector (:func:`~haptic_topology.dynamics.compiled.nullspace_projector`),
+    loaded with its first use (importing numba's cache costs a process that never renders a
+    constraint, e.g. a bag reader, about half a second)."""
+    global _nullspace_projector
+    if _nullspace_projector is None:
+        from haptic_topology.dynamics.compiled import nullspace_projector
+        _nullspace_projector = nullspace_projector
+    return _nullspace_projector
+
+
+def _own(a: np.ndarray) -> np.ndarray:
+    """``a`` as compiled code takes it: float64 and writeable (a read-only view, e.g. of a
+    message's buffer, is copied)."""
+    return a if a.dtype == np.float64 and a.flags.writeable else np.array(a, dtype=float)
 
 
 def task_scale(task: TaskSpace, characteristic_length: float) -> np.ndarray:

@@ -143,3 +143,40 @@ def test_lmi_builds_the_projector_of_the_setting(direction: PenaltyDirection) ->
     settings = lk.constraints
     direct = constraint_directions(dyn.hand_jacobian(q), dyn.task, settings)
     np.testing.assert_allclose(lmi.projector, direct.projector(), atol=1e-15)
+
+
+def _qr_projector(u: np.ndarray, weights: np.ndarray, scale: np.ndarray,
+                  inertia: np.ndarray | None) -> np.ndarray:
+    """The projector by numpy's QR, written out: ``R^-T Q diag(w) Q^T R^T`` with
+    ``Q = qr(R^-1 C)``, ``C`` the weighted columns ``W u_i``, the most constrained first."""
+    m = u.shape[0]
+    order = [i for i in range(m - 1, -1, -1) if weights[i] > 0.0]
+    if not order:
+        return np.zeros((m, m))
+    r = np.ones(m) if inertia is None else np.sqrt(np.diag(inertia))
+    basis, _ = np.linalg.qr(scale[:, None] * u[:, order] / r[:, None])
+    return ((basis * weights[order]) @ basis.T) * r[None, :] / r[:, None]
+
+
+@pytest.mark.parametrize('m', [3, 6])
+def test_the_compiled_projector_is_the_qr_formulas(m: int) -> None:
+    """The diagonal-inertia projector (one compiled call, Gram-Schmidt) against the QR
+    formula, for every pattern of weights (0, 1 and blended), weighted rows, inertias of
+    kg and kg m^2, and read-only arrays (e.g. a message's buffer)."""
+    rng = np.random.default_rng(m)
+    for trial in range(200):
+        u = np.linalg.qr(rng.normal(size=(m, m)))[0]
+        weights = rng.choice([0.0, 1.0, 0.25, 0.7], size=m)
+        scale = np.where(np.arange(m) < m // 2, 1.0, rng.uniform(0.01, 2.0))
+        inertia = None if trial % 3 == 0 else np.diag(rng.uniform(0.05, 3.0, size=m))
+        for a in (u, weights, scale):
+            a.flags.writeable = trial % 2 == 0
+        cons = replace(constraint_directions(np.eye(m), TaskSpace.PLANAR if m == 3
+                                             else TaskSpace.SPATIAL,
+                                             ConstraintSettings(characteristic_length=1.0)),
+                       left_vectors=u, weights=weights, task_scale=scale)
+        np.testing.assert_allclose(cons.projector(inertia),
+                                   _qr_projector(u, weights, scale, inertia), atol=1e-14,
+                                   rtol=0, err_msg=f'trial {trial}')
+    # M_d = I is the paper's sum of w_i n_i n_i^T, the same bits as no inertia.
+    np.testing.assert_array_equal(cons.projector(np.eye(m)), cons.projector())
