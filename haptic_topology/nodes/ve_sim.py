@@ -117,8 +117,8 @@ class VeSim(Node):
                                             self._on_hand, hand_inputs_qos(c.clock))
         self._endpoints = {TOPIC_HAND_INPUTS: hand_sub, TOPIC_LMI: self.lmi_pub,
                            TOPIC_VT_PATH: self.path_pub}
-        # Both published as serialized bytes (nodes.wire): the message objects' conversion
-        # cost ~3x the packing here.
+        # Both published as serialized bytes (nodes.wire): rclpy then converts no message
+        # object (~40 us of the update's publish, live).
         self._lmi = lmi_writer(c.frame_id, self.graph.wire)
         self._path = path_writer(c.frame_id, self.graph.wire)
         self._update_seq = 0
