@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-import yaml
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import ChunkIndex, MessageIndex
@@ -54,6 +53,7 @@ from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.typesys.store import Typestore
 
 from haptic_topology import __version__
+from haptic_topology.bag.metadata_text import MetadataText, dump_yaml
 from haptic_topology.errors import BagError
 
 METADATA = 'metadata.yaml'
@@ -98,11 +98,6 @@ def schema_text(typestore: Typestore, msgtype: str,
     return generated
 
 
-#: libyaml's emitter where PyYAML has it (its wheels do): the same text as the pure-Python
-#: ``yaml.safe_dump``, about 5x faster; the recorder rewrites ``metadata.yaml`` at every flush.
-_DUMPER = getattr(yaml, 'CSafeDumper', yaml.SafeDumper)
-
-
 class SpilledChunkIndexes:
     """Stands in for the list of chunk indexes that mcap's ``Writer`` keeps until
     ``finish()`` writes them into the summary: each index is serialized as it comes (the
@@ -140,11 +135,6 @@ class _RawRecords:
         stream.write(self.data)
 
 
-def dump_yaml(data: Any) -> str:
-    """``yaml.safe_dump(data, sort_keys=False)``, with libyaml's emitter when available."""
-    return yaml.dump(data, Dumper=_DUMPER, sort_keys=False)
-
-
 def qos_yaml(qos: Sequence[Qos]) -> str:
     """``offered_qos_profiles`` as rosbag2 (metadata version 9) stores it in MCAP channels."""
     if not qos:
@@ -152,10 +142,11 @@ def qos_yaml(qos: Sequence[Qos]) -> str:
     return dump_yaml(dump_qos_v9(list(qos))).strip()
 
 
-def write_metadata(path: Path, info: dict[str, Any]) -> None:
-    """Write ``path/metadata.yaml`` atomically (temporary file, then rename)."""
+def write_metadata(path: Path, info: dict[str, Any], text: str | None = None) -> None:
+    """Write ``path/metadata.yaml`` atomically (temporary file, then rename); ``text``: the
+    document already emitted (default: ``dump_yaml`` of ``info``)."""
     tmp = path / f'.{METADATA}.tmp'
-    text = dump_yaml({'rosbag2_bagfile_information': info})
+    text = text or dump_yaml({'rosbag2_bagfile_information': info})
     with tmp.open('w', encoding='utf-8') as f:
         f.write(text)
         f.flush()
@@ -245,6 +236,7 @@ class BagWriter:
         self.max_bag_duration_ns = round(max_bag_duration * 1e9)
         self._chunk_size, self._compression = chunk_size, COMPRESSIONS[compression]
         self.hashes: dict[str, str] = {}
+        self._metadata_text = MetadataText()
         self._schemas: dict[str, bytes] = {}
         for spec in self.topics:
             if spec.msgtype not in self._schemas:
@@ -427,8 +419,9 @@ class BagWriter:
     def _write_metadata(self, counts: Sequence[int]) -> None:
         c = self._counts
         files = self._files + ([self._current()] if self._open else [])
-        write_metadata(self.path, metadata_info(files, self.topics, self.hashes, counts,
-                                                c.start_ns, c.end_ns, self.custom))
+        info = metadata_info(files, self.topics, self.hashes, counts, c.start_ns, c.end_ns,
+                             self.custom)
+        write_metadata(self.path, info, self._metadata_text(info))
 
     def close(self) -> None:
         """Write the summary and footer and the final ``metadata.yaml``; idempotent."""
