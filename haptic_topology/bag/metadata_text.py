@@ -40,29 +40,30 @@ _MARK = 4_000_000_000_000_000_000
 
 class MetadataText:
     """``dump_yaml`` of a bag's ``metadata.yaml`` document for each flush, emitted once per
-    shape (the storage files there are) with a placeholder for each number, which each flush
+    shape (the storage files it lists) with a placeholder for each number, which each flush
     fills in: the numbers (counts, times) are all that changes, and emitting the YAML again
     cost ~2 ms a flush for the graph's 17 topics (their QoS text is most of its 11 kB)."""
 
     def __init__(self) -> None:
-        self._shape = -1
+        self._shape: tuple[str, ...] | None = None
         self._pieces: list[str] | None = None
 
     def __call__(self, info: dict[str, Any]) -> str:
         doc = {'rosbag2_bagfile_information': info}
         values: list[int] = []
-        if len(info['files']) != self._shape:
-            self._shape = len(info['files'])
+        shape = tuple(f['path'] for f in info['files'])
+        if shape != self._shape:
+            self._shape = shape
             text = dump_yaml(_numbers(doc, values, mark=True))
-            marks = [str(_MARK + i) for i in range(len(values))]
-            pieces = text.split(marks[0]) if marks else [text]
-            ok = len(pieces) == 2 and all(text.count(m) == 1 for m in marks)
-            for m in marks[1:]:
-                if not ok:
+            pieces: list[str] = []
+            rest = text
+            for i in range(len(values)):
+                mark = str(_MARK + i)
+                head, found, rest = rest.partition(mark)
+                if not found or text.count(mark) != 1:
                     break
-                head, _, tail = pieces[-1].partition(m)
-                pieces[-1:] = [head, tail]
-            self._pieces = pieces if ok else None
+                pieces.append(head)
+            self._pieces = [*pieces, rest] if len(pieces) == len(values) else None
             values.clear()
         if self._pieces is None:
             return dump_yaml(doc)
