@@ -426,6 +426,17 @@ def _run_faults(out: Path) -> FaultRun:
                 inj.status.pop(dev, None)
                 wait(lambda t=t, s=seq_killed: engaged_since(t, s), 'restarted device engaged')
             run.recovered[f'kill_{name}'] = wait(back, f'loop back after restarting {name}') - t0
+            if name == 'device_driver':
+                # The fault is over once the bag holds the new driver's states too: the
+                # recorder matches its publisher when DDS's discovery gets there, which on a
+                # loaded machine can come after the loop is back (traced: 0.5 s after). The
+                # first report after the restart counts every state of the killed driver.
+                received = f'received {vocab.TOPIC_STATE}'
+                inj.status.pop(rec, None)
+                wait(lambda: rec in inj.status, 'recorder reporting')
+                seen = int(inj.value(rec, received, '0'))
+                wait(lambda k=received, n=seen: int(inj.value(rec, k, '0')) > n,
+                     "recorder receiving the restarted driver's states")
             run.events[f'kill_{name}'] = (t0, time.time())
             injector.spin(1.0)
 
