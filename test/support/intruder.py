@@ -22,14 +22,17 @@ before); and every hand-input batch 2 cm away, numbered and stamped as the origi
 from __future__ import annotations
 
 import copy
+import faulthandler
 import json
+import os
 import signal
 import sys
 from pathlib import Path
 from typing import Any
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 
 from haptic_topology.messages.check import graph_wire
 from haptic_topology.nodes.qos import QOS_LMI, hand_inputs_qos, loop_qos
@@ -47,10 +50,13 @@ OTHER_GRAPH = graph_wire('another-lab')
 MARK = 'intruder'       # own-id: the frame_id of what it sent, so it does not echo its echoes
 
 
-def main() -> int:
+def main() -> None:
+    faulthandler.enable()     # a crash leaves its Python stack in the log the test shows
     clock, out = Clock.parse(sys.argv[1]), Path(sys.argv[2])
     own_id = sys.argv[3:] == ['own-id']
-    rclpy.init()
+    # The stop signals are its own (a flag, as the nodes' spin): rclpy's handlers would shut
+    # the context down under the executor.
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('intruder')
     loop = loop_qos(clock)
     pubs = {TOPIC_LMI: node.create_publisher(LmiUpdate, TOPIC_LMI, QOS_LMI),
@@ -124,24 +130,28 @@ def main() -> int:
     node.create_subscription(LmiUpdate, TOPIC_LMI, on_update, QOS_LMI)
     node.create_subscription(HandInputs, TOPIC_HAND_INPUTS, on_hand, hand_inputs_qos(clock))
     node.create_subscription(DeviceState, TOPIC_STATE, on_state, loop)
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    stop: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _: stop.append(signum))
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     print('intruder ready', flush=True)
     take_errors = 0
-    while rclpy.ok():
+    while not stop:
         try:
             executor.spin_once(timeout_sec=0.1)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            break
         except RuntimeError as exc:
             # rclpy failed to take a sample (seen once in a full suite run: "Unable to
             # convert call argument '0' to Python object"): an intruder keeps going
             take_errors += 1
             print(f'take error: {exc}', flush=True)
     out.write_text(json.dumps({**counts, 'take_errors': take_errors}), encoding='utf-8')
-    return 0
+    # Ends here, as the node processes do (nodes.runtime): no rclpy teardown and no
+    # interpreter finalization destroying rclpy's and Fast DDS's objects in whatever order
+    # (a CI run had all three of test_foreign_graph's intruders exit with SIGSEGV, -11).
+    sys.stdout.flush()
+    os._exit(0)
 
 
 if __name__ == '__main__':
-    raise SystemExit(main())
+    main()
