@@ -65,7 +65,7 @@ from haptic_topology.bringup.options import (
 from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import BringupError, ConfigError
 from haptic_topology.processes import RunUsage, terminate
-from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE
+from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE, Clock
 
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario
@@ -341,8 +341,10 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             watch.wait(lambda: watch.recorder_sees(TOPIC_STATE), startup_timeout,
                        'recorder matched to the device state publisher')
             readers = loop_readers(layout, min_subscribers)
-            watch.wait(lambda: watch.writers_matched(readers), startup_timeout,
-                       f'publishers matched to their readers ({readers})')
+            loop_clock = Clock.parse(clock)
+            watch.wait(lambda: watch.writers_matched(readers, loop_clock), startup_timeout,
+                       lambda: 'publishers matched to their readers: '
+                       + '; '.join(watch.unmatched(readers, loop_clock)))
             for transition in ('configure', 'activate'):
                 watch.change_state('device_driver', transition, startup_timeout)
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),

@@ -15,8 +15,18 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from haptic_topology.bringup.options import FOXGLOVE_NODE, NODES
 from haptic_topology.errors import WaitTimeout
-from haptic_topology.vocabulary import TOPIC_COMMAND, TOPIC_HAND_INPUTS, TOPIC_STATE, TOPIC_VT_PATH
+from haptic_topology.vocabulary import (
+    TOPIC_COMMAND,
+    TOPIC_HAND_INPUTS,
+    TOPIC_STATE,
+    TOPIC_TYPES,
+    TOPIC_VT_PATH,
+    Clock,
+    QosRole,
+    publisher_role,
+)
 
 #: ``/diagnostics`` status names of the graph's nodes.
 RECORDER_STATUS = 'recorder: bag'
@@ -24,6 +34,18 @@ DEVICE_STATUS = 'device_driver: loop'
 VE_STATUS = 've_sim: loop'
 CONTROLLER_STATUS = 'lmi_controller: loop'
 
+
+#: Node names of a graph's processes (in the root namespace): a reader of a loop topic under
+#: another name is another program's (see :meth:`GraphWatcher.unmatched`).
+GRAPH_NODES = frozenset((*NODES, FOXGLOVE_NODE))
+
+
+def graph_node(name: str, namespace: str) -> bool:
+    """Whether the node ``namespace``/``name`` is one of a graph's: one of
+    :data:`GRAPH_NODES` or a hidden reader node of one (``_<node>_<suffix>``,
+    :mod:`haptic_topology.nodes.take`), in the root namespace."""
+    return namespace == '/' and (name in GRAPH_NODES
+                                 or any(name.startswith(f'_{n}_') for n in GRAPH_NODES))
 
 #: Consecutive equal recorder reports that count as settled (0.25 s apart).
 SETTLE_REPORTS = 5
@@ -150,13 +172,16 @@ class GraphWatcher:
     def spin(self, seconds: float) -> None:
         self.executor.spin_once(timeout_sec=seconds)
 
-    def wait(self, cond: Callable[[], bool], timeout: float, what: str) -> float:
-        """Spin until ``cond()``; return the monotonic time it held."""
+    def wait(self, cond: Callable[[], bool], timeout: float,
+             what: str | Callable[[], str]) -> float:
+        """Spin until ``cond()``; return the monotonic time it held. ``what`` (or what it
+        returns then) names the condition in the :class:`WaitTimeout`."""
         deadline = time.monotonic() + timeout
         while not cond():
             self.alive()
             if time.monotonic() > deadline:
-                raise WaitTimeout(f'{what}: not within {timeout:g} s')
+                raise WaitTimeout(f'{what if isinstance(what, str) else what()}: not within '
+                                  f'{timeout:g} s')
             self.spin(0.02)
         return time.monotonic()
 
@@ -164,16 +189,60 @@ class GraphWatcher:
     def recorder_connected(self) -> bool:
         return self.status.get(RECORDER_STATUS, {}).get('connected') == 'true'
 
-    def writers_matched(self, readers: Mapping[tuple[str, str], int]) -> bool:
-        """Every publisher ``(status name, topic)`` of ``readers`` reports (``matched <topic>``
-        in its node's ``/diagnostics``) at least that many DDS readers matched to it.
+    def writers_matched(self, readers: Mapping[tuple[str, str], int],
+                        clock: Clock = Clock.WALL) -> bool:
+        """Every publisher ``(status name, topic)`` of ``readers`` is matched to its readers
+        (:meth:`unmatched` is empty).
 
         The recorder's ``connected`` says its readers matched the writers; DDS matches the two
         sides separately (each on the other's announcement), and a reliable writer sends only
         to the readers it has matched, so a loop started on the recorder's side alone could
         lose the run's first messages of a topic in the bag."""
-        return all(int(self.status.get(name, {}).get(f'matched {topic}', '0')) >= n
-                   for (name, topic), n in readers.items())
+        return not self.unmatched(readers, clock)
+
+    def unmatched(self, readers: Mapping[tuple[str, str], int],
+                  clock: Clock = Clock.WALL) -> list[str]:
+        """The publishers ``(status name, topic)`` of ``readers`` not yet matched to their
+        readers, each as one line. A publisher is matched when its node reports (``matched
+        <topic>`` in its ``/diagnostics``) at least as many DDS readers as this watcher sees
+        readers of the topic that it matches (the topic's type; a QoS the graph's publisher
+        under ``clock`` offers), and at least the number in ``readers``, which this watcher
+        sees under the graph's node names (:func:`graph_node`).
+
+        A writer's count says how many readers it matched, not which: another program's
+        reader (a second graph's, ``ros2 topic echo``) counts as much as the graph's own, and a
+        count alone would let it stand in for one that is not matched yet (in lock-step, the
+        VE's hand inputs lost before it matched, and the run waiting for an update forever).
+        A reader that appears while the publisher matches is seen later here than there, at
+        worst: the watcher, started before the graph's nodes, has seen those before them."""
+        out = []
+        for (name, topic), n in readers.items():
+            got = int(self.status.get(name, {}).get(f'matched {topic}', '0'))
+            own, others = self._readers(topic, publisher_role(topic, clock))
+            need = max(n, own + len(others))
+            if own < n or got < need:
+                out.append(f'{name}: {topic} matched to {got} readers of {need} (seen: {own} '
+                           f'of the graph, expected {n}; others: {", ".join(others) or "none"})')
+        return out
+
+    def _readers(self, topic: str, offered: QosRole) -> tuple[int, list[str]]:
+        """The readers of ``topic`` this watcher sees that a publisher offering ``offered``
+        matches: how many the graph's nodes have, and the others' node names."""
+        from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+        own, others = 0, []
+        for info in self.node.get_subscriptions_info_by_topic(f'/{topic.lstrip("/")}'):
+            q = info.qos_profile
+            if (info.topic_type != TOPIC_TYPES.get(topic, info.topic_type)
+                    or (q.reliability == ReliabilityPolicy.RELIABLE and not offered.reliable)
+                    or (q.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                        and not offered.transient_local)):
+                continue            # never matched: another type or a QoS not offered
+            if graph_node(info.node_name, info.node_namespace):
+                own += 1
+            else:
+                others.append(f'{info.node_namespace.rstrip("/")}/{info.node_name}')
+        return own, others
 
     def recorder_settled(self) -> bool:
         """The recorder reported the same counts of the run's topics ``SETTLE_REPORTS`` times
