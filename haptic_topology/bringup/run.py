@@ -78,17 +78,16 @@ FOXGLOVE_PORT = 8765
 FOXGLOVE_STATUS = 'foxglove_bridge: server'
 
 
-def loop_readers(layout: str, min_subscribers: int = 2) -> dict[tuple[str, str], int]:
-    """``(status name, topic) -> readers``: the DDS readers each publisher of the run's
-    recorded topics has in ``layout`` (``hosted`` or ``separate``), the recorder's included.
+def loop_readers(layout: str) -> dict[tuple[str, str], int]:
+    """``(status name, topic) -> readers``: the graph's DDS readers of each publisher of the
+    run's recorded topics in ``layout`` (``hosted`` or ``separate``), the recorder's included.
 
     The LMI updates go to the controller (hosted: in the device driver's process) and the
     recorder, the VE's path to the recorder, the hand inputs to the VE and the recorder, the
     commands to the recorder and, in the separate layout, to the device driver (hosted, it
-    takes none from DDS). The device's states go to the ``min_subscribers`` readers it
-    engages with (a hosted controller counts as one of them, without a reader): matched
-    before the driver is activated, since its first states, published before it engages,
-    are in the bag too.
+    takes none from DDS), the device's states to the recorder and, in the separate layout,
+    the controller: matched before the driver is activated, since its first states,
+    published before it engages, are in the bag too.
     """
     from haptic_topology.bringup.watch import CONTROLLER_STATUS as ctl
     from haptic_topology.bringup.watch import DEVICE_STATUS as dev
@@ -105,7 +104,7 @@ def loop_readers(layout: str, min_subscribers: int = 2) -> dict[tuple[str, str],
     return {(ve, TOPIC_LMI): 2, (ve, TOPIC_VT_PATH): 1,
             (ctl, TOPIC_HAND_INPUTS): 2,
             (ctl, TOPIC_COMMAND): 1 if hosted else 2,
-            (dev, TOPIC_STATE): min_subscribers - (1 if hosted else 0)}
+            (dev, TOPIC_STATE): 1 if hosted else 2}
 
 
 @dataclass
@@ -263,15 +262,16 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``claim``: claim the domain for the run (:func:`claim_domain`); False: the caller has.
     ``graph_id``: the nodes' ``graph_id`` (default: a new one, :func:`new_graph_id`), so a
     message of another graph on the domain (another run, a replayed bag) is never applied.
-    ``min_subscribers``: the device's state readers it engages with and that bringup waits
-    for (:func:`loop_readers`): 2, the controller and the recorder; one more for each other
-    process that reads the states (a test's impostor), so they cannot stand in for the
-    recorder. ``loop_cpu_auto``: a CPU for the loop process while other software keeps the
-    machine busy (:mod:`haptic_topology.bringup.partition`; its changes in
+    ``min_subscribers``: the device's state readers it engages with (2: the controller and
+    the recorder; a hosted controller counts as one); the bringup also waits for every
+    reader of the states it sees, the graph's own among them
+    (:meth:`~haptic_topology.bringup.watch.GraphWatcher.unmatched`), so another program's
+    cannot stand in for the recorder. ``loop_cpu_auto``: a CPU for the loop process while
+    other software keeps the machine busy (:mod:`haptic_topology.bringup.partition`; its changes in
     ``logs/loop_cpu.json``).
     """
     from haptic_topology.bringup.partition import Partitioner
-    from haptic_topology.bringup.watch import GraphWatcher
+    from haptic_topology.bringup.watch import DEVICE_STATUS, GraphWatcher
     from haptic_topology.errors import WaitTimeout
 
     if layout not in LAYOUTS:
@@ -340,11 +340,14 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
                        'recorder connected to the loop topics')
             watch.wait(lambda: watch.recorder_sees(TOPIC_STATE), startup_timeout,
                        'recorder matched to the device state publisher')
-            readers = loop_readers(layout, min_subscribers)
+            # The driver engages once its state publisher has min_subscribers readers (a
+            # hosted controller counting as one): at least those, whoever they are.
+            readers = loop_readers(layout)
+            at_least = {(DEVICE_STATUS, TOPIC_STATE): min_subscribers - (host == 'true')}
             loop_clock = Clock.parse(clock)
-            watch.wait(lambda: watch.writers_matched(readers, loop_clock), startup_timeout,
-                       lambda: 'publishers matched to their readers: '
-                       + '; '.join(watch.unmatched(readers, loop_clock)))
+            watch.wait(lambda: watch.writers_matched(readers, loop_clock, at_least),
+                       startup_timeout, lambda: 'publishers matched to their readers: '
+                       + '; '.join(watch.unmatched(readers, loop_clock, at_least)))
             for transition in ('configure', 'activate'):
                 watch.change_state('device_driver', transition, startup_timeout)
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),

@@ -190,7 +190,8 @@ class GraphWatcher:
         return self.status.get(RECORDER_STATUS, {}).get('connected') == 'true'
 
     def writers_matched(self, readers: Mapping[tuple[str, str], int],
-                        clock: Clock = Clock.WALL) -> bool:
+                        clock: Clock = Clock.WALL,
+                        at_least: Mapping[tuple[str, str], int] | None = None) -> bool:
         """Every publisher ``(status name, topic)`` of ``readers`` is matched to its readers
         (:meth:`unmatched` is empty).
 
@@ -198,16 +199,18 @@ class GraphWatcher:
         sides separately (each on the other's announcement), and a reliable writer sends only
         to the readers it has matched, so a loop started on the recorder's side alone could
         lose the run's first messages of a topic in the bag."""
-        return not self.unmatched(readers, clock)
+        return not self.unmatched(readers, clock, at_least)
 
     def unmatched(self, readers: Mapping[tuple[str, str], int],
-                  clock: Clock = Clock.WALL) -> list[str]:
+                  clock: Clock = Clock.WALL,
+                  at_least: Mapping[tuple[str, str], int] | None = None) -> list[str]:
         """The publishers ``(status name, topic)`` of ``readers`` not yet matched to their
         readers, each as one line. A publisher is matched when its node reports (``matched
         <topic>`` in its ``/diagnostics``) at least as many DDS readers as this watcher sees
         readers of the topic that it matches (the topic's type; a QoS the graph's publisher
-        under ``clock`` offers), and at least the number in ``readers``, which this watcher
-        sees under the graph's node names (:func:`graph_node`).
+        under ``clock`` offers) and at least ``at_least`` of it (any readers), and when this
+        watcher sees the number in ``readers`` under the graph's node names
+        (:func:`graph_node`).
 
         A writer's count says how many readers it matched, not which: another program's
         reader (a second graph's, ``ros2 topic echo``) counts as much as the graph's own, and a
@@ -219,7 +222,7 @@ class GraphWatcher:
         for (name, topic), n in readers.items():
             got = int(self.status.get(name, {}).get(f'matched {topic}', '0'))
             own, others = self._readers(topic, publisher_role(topic, clock))
-            need = max(n, own + len(others))
+            need = max(n, (at_least or {}).get((name, topic), 0), own + len(others))
             if own < n or got < need:
                 out.append(f'{name}: {topic} matched to {got} readers of {need} (seen: {own} '
                            f'of the graph, expected {n}; others: {", ".join(others) or "none"})')
