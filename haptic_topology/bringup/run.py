@@ -14,9 +14,10 @@ engages, so the bag holds the whole run) and ``device_driver.run_duration``. It 
 ROS tools see (:mod:`haptic_topology.bringup.watch`), never on log lines: the device driver
 is started once the recorder's ``/diagnostics`` status says it is matched to the
 controller's and the VE's publishers, and each publisher of a recorded topic (the device's
-state publisher included) reports its readers matched (:func:`loop_readers`); the run is
-over when the driver's lifecycle state is ``inactive`` (it deactivates itself after
-``run_duration`` from engagement). Then it stops
+state publisher included) reports its readers matched
+(:func:`~haptic_topology.bringup.watch.loop_readers`); the run is over when the driver's
+lifecycle state is ``inactive`` (it deactivates itself after ``run_duration`` from
+engagement). Then it stops
 the device, controller, VE and the recorder with SIGINT (SIGTERM, then SIGKILL, after a
 timeout each), reads the bag back into a trace and writes ``trace.csv``, ``plot.png`` and
 ``summary.json`` next to the bag's files, and prints the drift summary (as ``simulate``) and
@@ -76,35 +77,6 @@ if TYPE_CHECKING:
 FOXGLOVE_PORT = 8765
 #: The bridge's ``/diagnostics`` status.
 FOXGLOVE_STATUS = 'foxglove_bridge: server'
-
-
-def loop_readers(layout: str) -> dict[tuple[str, str], int]:
-    """``(status name, topic) -> readers``: the graph's DDS readers of each publisher of the
-    run's recorded topics in ``layout`` (``hosted`` or ``separate``), the recorder's included.
-
-    The LMI updates go to the controller (hosted: in the device driver's process) and the
-    recorder, the VE's path to the recorder, the hand inputs to the VE and the recorder, the
-    commands to the recorder and, in the separate layout, to the device driver (hosted, it
-    takes none from DDS), the device's states to the recorder and, in the separate layout,
-    the controller: matched before the driver is activated, since its first states,
-    published before it engages, are in the bag too.
-    """
-    from haptic_topology.bringup.watch import CONTROLLER_STATUS as ctl
-    from haptic_topology.bringup.watch import DEVICE_STATUS as dev
-    from haptic_topology.bringup.watch import VE_STATUS as ve
-    from haptic_topology.vocabulary import (
-        TOPIC_COMMAND,
-        TOPIC_HAND_INPUTS,
-        TOPIC_LMI,
-        TOPIC_STATE,
-        TOPIC_VT_PATH,
-    )
-
-    hosted = layout != 'separate'
-    return {(ve, TOPIC_LMI): 2, (ve, TOPIC_VT_PATH): 1,
-            (ctl, TOPIC_HAND_INPUTS): 2,
-            (ctl, TOPIC_COMMAND): 1 if hosted else 2,
-            (dev, TOPIC_STATE): 1 if hosted else 2}
 
 
 @dataclass
@@ -271,7 +243,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``logs/loop_cpu.json``).
     """
     from haptic_topology.bringup.partition import Partitioner
-    from haptic_topology.bringup.watch import DEVICE_STATUS, GraphWatcher
+    from haptic_topology.bringup.watch import DEVICE_STATUS, GraphWatcher, loop_readers
     from haptic_topology.errors import WaitTimeout
 
     if layout not in LAYOUTS:

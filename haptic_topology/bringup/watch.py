@@ -20,6 +20,7 @@ from haptic_topology.errors import WaitTimeout
 from haptic_topology.vocabulary import (
     TOPIC_COMMAND,
     TOPIC_HAND_INPUTS,
+    TOPIC_LMI,
     TOPIC_STATE,
     TOPIC_TYPES,
     TOPIC_VT_PATH,
@@ -46,6 +47,25 @@ def graph_node(name: str, namespace: str) -> bool:
     :mod:`haptic_topology.nodes.take`), in the root namespace."""
     return namespace == '/' and (name in GRAPH_NODES
                                  or any(name.startswith(f'_{n}_') for n in GRAPH_NODES))
+
+def loop_readers(layout: str) -> dict[tuple[str, str], int]:
+    """``(status name, topic) -> readers``: the graph's DDS readers of each publisher of the
+    run's recorded topics in ``layout`` (``hosted`` or ``separate``), the recorder's included
+    (what :meth:`GraphWatcher.unmatched` expects to see).
+
+    The LMI updates go to the controller (hosted: in the device driver's process) and the
+    recorder, the VE's path to the recorder, the hand inputs to the VE and the recorder, the
+    commands to the recorder and, in the separate layout, to the device driver (hosted, it
+    takes none from DDS), the device's states to the recorder and, in the separate layout,
+    the controller: matched before the driver is activated, since its first states,
+    published before it engages, are in the bag too.
+    """
+    hosted = layout != 'separate'
+    return {(VE_STATUS, TOPIC_LMI): 2, (VE_STATUS, TOPIC_VT_PATH): 1,
+            (CONTROLLER_STATUS, TOPIC_HAND_INPUTS): 2,
+            (CONTROLLER_STATUS, TOPIC_COMMAND): 1 if hosted else 2,
+            (DEVICE_STATUS, TOPIC_STATE): 1 if hosted else 2}
+
 
 #: Consecutive equal recorder reports that count as settled (0.25 s apart).
 SETTLE_REPORTS = 5

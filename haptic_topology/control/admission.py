@@ -217,11 +217,20 @@ class HandAdmission:
        anywhere its hand took it: not checked (measured: a device behind a lossy link,
        states 42 ms apart, turned 0.138 rad where this bound allowed 0.082).
        Within a batch the samples are consecutive cycles of one controller.
+    3. ``complete`` (lock-step): every input arrives, in its controller's order, so a batch
+       that skips inputs after the previous one is refused (``continuity``) instead of taken
+       unchecked: the controller's own batch after it continues the previous one. (A sender
+       with the graph's id whose copy of a batch overtook the controller's delayed one was
+       taken that way, and the controller's own batches were refused from then on: the
+       lock-step run waited for ever.) The wall clock can lose inputs (a starved VE): there
+       a gap is taken, as above.
     """
 
-    def __init__(self, task: TaskSpace, gate: SourceGate | None = None) -> None:
+    def __init__(self, task: TaskSpace, gate: SourceGate | None = None,
+                 complete: bool = False) -> None:
         self.task = task
         self.gate = gate
+        self.complete = complete
         slack = np.full(task.dim, POSE_SLACK_RAD)
         slack[task.translation_rows] = POSE_SLACK_M
         self.slack = slack
@@ -246,6 +255,10 @@ class HandAdmission:
                                    'stamped no later and from no new controller endpoint: '
                                    'not a restart, refused')
             last = None
+        if self.complete and last is not None and seqs[0] > last[0] + 1:
+            raise MessageError('continuity', f'HandInputs seq {seqs[0]} after {last[0]}: '
+                               f'inputs {last[0] + 1}-{seqs[0] - 1} missing, and in lock-step '
+                               'every input arrives, in order')
         if (last is not None and seqs[0] == last[0] + 1
                 and state_seqs[0] == last[1] + 1):           # the next device cycle's input
             _, _, t_prev, x_prev, v_prev = last

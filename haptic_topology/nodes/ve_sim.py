@@ -142,7 +142,8 @@ class VeSim(Node):
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
         self.input_publishers = PublisherWatch(self, {TOPIC_HAND_INPUTS: ('lmi_controller',)},
                                          self._publish_diagnostics)
-        self.admission = HandAdmission(self.task, self.input_publishers.gates[TOPIC_HAND_INPUTS])
+        self.admission = HandAdmission(self.task, self.input_publishers.gates[TOPIC_HAND_INPUTS],
+                                       complete=self.lockstep)
 
     def _publish_update(self) -> None:
         self._last_snap = self.ve.snapshot(seq=self._update_seq)

@@ -224,6 +224,29 @@ def test_hand_inputs_copied_shifted_or_back_in_time_are_refused() -> None:
     hands.admit([1, 2], [9000, 9001], [1.0, 1.001], nxt[3][:2] + shift, nxt[4][:2])
 
 
+def test_in_lockstep_a_batch_that_skips_inputs_is_refused_and_the_own_one_goes_on() -> None:
+    """Lock-step delivers every input in order: a copy 2 cm off of the batch after next,
+    arriving before the controller's next one (delayed on the wire), is refused instead of
+    taken unchecked after a gap; the controller's two batches then go on. (A CI run took such
+    a copy and then refused every batch of the controller's: the run waited for ever.)"""
+    sc = load_scenario('fig8')
+    _, batches = _run(dataclasses.replace(sc, duration=0.1))
+    b = [(list(q), list(s), list(t), np.array(p), np.array(v)) for q, s, t, p, v in batches]
+    hands = HandAdmission(sc.linkage.task, complete=True)
+    hands.admit(*b[0])
+    seqs, states, stamps, pose, twist = b[2]
+    reason, text = _reason(hands.admit, seqs, states, stamps, pose + [0.02, 0.0, 0.0], twist)
+    assert reason == 'continuity' and text == (
+        f'HandInputs seq {seqs[0]} after {b[0][0][-1]}: inputs {b[1][0][0]}-{b[1][0][-1]} '
+        'missing, and in lock-step every input arrives, in order')
+    hands.admit(*b[1])
+    hands.admit(*b[2])
+    # the wall clock can lose inputs: there the same batch after a gap is taken (see above)
+    wall = HandAdmission(sc.linkage.task)
+    wall.admit(*b[0])
+    wall.admit(seqs, states, stamps, pose + [0.02, 0.0, 0.0], twist)
+
+
 def test_a_recorded_message_is_checked_as_its_snapshot() -> None:
     """``UpdateFields.from_msg`` (what ``read_graph_bag`` checks): the wire's fields, with
     ``hand_input_seq`` 0 read as -1 (none consumed), as the node reads them."""
