@@ -315,7 +315,8 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             # The driver engages once its state publisher has min_subscribers readers (a
             # hosted controller counting as one): at least those, whoever they are.
             readers = loop_readers(layout)
-            at_least = {(DEVICE_STATUS, TOPIC_STATE): min_subscribers - (host == 'true')}
+            hosted_controller = 1 if host == 'true' else 0
+            at_least = {(DEVICE_STATUS, TOPIC_STATE): min_subscribers - hosted_controller}
             loop_clock = Clock.parse(clock)
             watch.wait(lambda: watch.writers_matched(readers, loop_clock, at_least),
                        startup_timeout, lambda: 'publishers matched to their readers: '

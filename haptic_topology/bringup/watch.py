@@ -48,6 +48,7 @@ def graph_node(name: str, namespace: str) -> bool:
     return namespace == '/' and (name in GRAPH_NODES
                                  or any(name.startswith(f'_{n}_') for n in GRAPH_NODES))
 
+
 def loop_readers(layout: str) -> dict[tuple[str, str], int]:
     """``(status name, topic) -> readers``: the graph's DDS readers of each publisher of the
     run's recorded topics in ``layout`` (``hosted`` or ``separate``), the recorder's included
@@ -236,8 +237,9 @@ class GraphWatcher:
         reader (a second graph's, ``ros2 topic echo``) counts as much as the graph's own, and a
         count alone would let it stand in for one that is not matched yet (in lock-step, the
         VE's hand inputs lost before it matched, and the run waiting for an update forever).
-        A reader that appears while the publisher matches is seen later here than there, at
-        worst: the watcher, started before the graph's nodes, has seen those before them."""
+        What this leaves open: a reader that the publisher matches before this watcher sees
+        it, i.e. one that appears during the start-up (the watcher starts before the graph's
+        nodes, so it sees the readers that were there before them first)."""
         out = []
         for (name, topic), n in readers.items():
             got = int(self.status.get(name, {}).get(f'matched {topic}', '0'))

@@ -77,7 +77,12 @@ def runs(tmp_path_factory: pytest.TempPathFactory,
     with ThreadPoolExecutor(len(names)) as pool:
         futures = {name: pool.submit(_run, tmp, name, domain)
                    for name, domain in zip(names, spare_domains, strict=False)}
-        done = {name: f.result() for name, f in futures.items()}
+        done = {}
+        for name, f in futures.items():
+            try:
+                done[name] = f.result()
+            except Exception as exc:        # name the run: the three share this fixture
+                raise AssertionError(f'the {name} run: {exc}') from exc
     dof = load_scenario(SCENARIO).linkage.dof      # the bags read one after the other
     return {name: (read_graph_bag(bag, SCENARIO, dof), sent)
             for name, (bag, sent) in done.items()}
