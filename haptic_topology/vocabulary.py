@@ -109,6 +109,10 @@ STATUS_BITS: int = int(functools.reduce(operator.or_, DeviceStatus))
 
 # -- topics ------------------------------------------------------------------------------------
 TOPIC_STATE = 'haptic/device/state'
+#: Every state whose stamp starts a new period of ``device_driver``'s ``sampled_state_rate_hz``
+#: (the same messages): for readers that want the newest state now and then (``ve_sim``'s
+#: picture), so that they are not sent every state of the 1 kHz loop.
+TOPIC_STATE_SAMPLED = 'haptic/device/state_sampled'
 TOPIC_COMMAND = 'haptic/device/command'
 TOPIC_LMI = 'haptic/lmi/update'
 TOPIC_HAND_INPUTS = 'haptic/hand_inputs'
@@ -142,6 +146,7 @@ TOPIC_HAND_LEGACY = 'haptic/hand'
 #: :data:`TOPIC_ROLES` has one (test/graph/test_foxglove.py checks it).
 TOPIC_TYPES: dict[str, str] = {
     TOPIC_STATE: 'haptic_topology_msgs/msg/DeviceState',
+    TOPIC_STATE_SAMPLED: 'haptic_topology_msgs/msg/DeviceState',
     TOPIC_COMMAND: 'haptic_topology_msgs/msg/DeviceCommand',
     TOPIC_HAND_INPUTS: 'haptic_topology_msgs/msg/HandInputs',
     TOPIC_LMI: 'haptic_topology_msgs/msg/LmiUpdate',
@@ -177,6 +182,8 @@ LOOP = QosRole(False, 1)                   # state, command
 #: a deep history so that a recorder that falls behind a fast lock-step run loses nothing.
 LOOP_LOCKSTEP = QosRole(True, 10000)
 CLOCK = QosRole(False, 1)
+#: The sampled states: the newest counts, under either clock (nothing steps on them).
+SAMPLED = QosRole(False, 1)
 #: Reliable topics keep 5 s of messages: a reader (the recorder) that falls behind by less
 #: than that loses nothing (a keep-last writer overwrites what is not acknowledged).
 HAND_INPUTS = QosRole(True, 500)           # 100 Hz batches
@@ -198,7 +205,8 @@ RECORD_RELIABLE = QosRole(True, 10000)
 
 #: Topic -> role of its publisher under the wall clock (the recorder mirrors the reliability).
 TOPIC_ROLES: dict[str, QosRole] = {
-    TOPIC_STATE: LOOP, TOPIC_COMMAND: LOOP, TOPIC_HAND_INPUTS: HAND_INPUTS,
+    TOPIC_STATE: LOOP, TOPIC_STATE_SAMPLED: SAMPLED, TOPIC_COMMAND: LOOP,
+    TOPIC_HAND_INPUTS: HAND_INPUTS,
     TOPIC_LMI: LMI, TOPIC_VT_PATH: LMI,
     TOPIC_JOINTS: VIZ, TOPIC_MARKERS: VIZ, TOPIC_DIAGNOSTICS: DIAGNOSTICS,
     TOPIC_ROBOT_DESCRIPTION: LATCHED, TOPIC_TF: TF,

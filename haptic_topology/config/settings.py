@@ -270,6 +270,11 @@ class DeviceDriverSettings(NodeSettings):
     min_subscribers: int = param(1, 'ignore commands (device idle) until this many '
                                  'subscribers see the state topic (e.g. 2 with a recorder)',
                                  lo=0, hi=100)
+    sampled_state_rate_hz: float = param(
+        30.0, 'states a second (wall time, under either clock) also published on '
+        'haptic/device/state_sampled (the same messages), for readers that want the newest '
+        "state now and then (ve_sim's picture) without being sent all 1,000 (Hz); 0.0 = none",
+        lo=0.0, hi=1000.0)
     wrench_limit: tuple[float, ...] = param(
         [0.0], "per-axis |u| limit (N, N m); [0.0] = the scenario's device.wrench_limit")
     clock: str = param('wall', 'wall: a 1 kHz wall timer paces the device; lockstep: '

@@ -11,6 +11,10 @@ activates itself; a failing transition ends the process with one line naming the
 After ``run_duration`` seconds of engaged loop (simulated seconds in lock-step) the node
 deactivates itself (measured on the states' stamps: wall time since the first engaged state,
 or simulated time in lock-step): tools see the run end as the lifecycle state ``inactive``.
+Every state goes to ``haptic/device/state``; at most ``sampled_state_rate_hz`` of them a
+second (of the node's monotonic clock, under either clock) also go to
+``haptic/device/state_sampled``, for readers that want the newest state now and then
+(``ve_sim``'s picture) without being sent every one.
 
 Clocks (parameter ``clock``):
 
@@ -63,10 +67,10 @@ from haptic_topology.nodes.convert import GraphFilter, RejectCounter, ns_to_stam
 from haptic_topology.nodes.diagnostics import PublisherWatch, diagnostics, matched, monotonic
 from haptic_topology.nodes.hosting import HostedLoop, driver_layout, in_child
 from haptic_topology.nodes.parameters import declare_settings
-from haptic_topology.nodes.qos import QOS_CLOCK, QOS_DIAGNOSTICS, loop_qos
+from haptic_topology.nodes.qos import QOS_CLOCK, QOS_DIAGNOSTICS, QOS_SAMPLED, loop_qos
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.separate import SeparateLoop
-from haptic_topology.nodes.wire import state_cdr, state_writer
+from haptic_topology.nodes.wire import StateOut
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (
     TOPIC_CLOCK,
@@ -75,7 +79,7 @@ from haptic_topology.vocabulary import (
     TOPIC_STATE,
     Clock,
 )
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState
+from haptic_topology_msgs.msg import DeviceCommand
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
@@ -95,19 +99,18 @@ class DeviceDriver(LifecycleNode):
         self.hosted: Any = None       # the hosted LmiController node (host_controller)
         self.fault = ''
         self.rejected = RejectCounter()
-        self.states_sent = 0
         self._active = False          # between activate and deactivate
         self._clock_msg = ClockMsg()
         self.graph = GraphFilter(s.graph_id)
-        self.state_wire = state_writer(DEVICE_BASE, self.graph.wire)
         # Real-time settings go to the loop thread when hosting (run_main leaves the rest).
         self.process_sched_priority = 0 if s.host_controller else s.sched_priority
         qos = loop_qos(self.cfg.clock)
-        self.state_pub = self.create_publisher(DeviceState, TOPIC_STATE, qos)
+        self.states = StateOut(self.create_publisher, qos, QOS_SAMPLED, DEVICE_BASE,
+                               self.graph.wire, s.sampled_state_rate_hz)
         self.clock_pub = self.create_publisher(ClockMsg, TOPIC_CLOCK, QOS_CLOCK)
         self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
                                               QOS_DIAGNOSTICS)
-        self._endpoints: dict[str, Any] = {TOPIC_STATE: self.state_pub}
+        self._endpoints: dict[str, Any] = {TOPIC_STATE: self.states.pub}
         if not s.host_controller:
             self._endpoints[TOPIC_COMMAND] = self.create_subscription(
                 DeviceCommand, TOPIC_COMMAND, self._on_command, qos)
@@ -207,7 +210,7 @@ class DeviceDriver(LifecycleNode):
     def may_engage(self) -> bool:
         """Enough subscribers see the state (a hosted controller counts as one)."""
         hosted = 1 if self.hosted is not None else 0
-        return self.state_pub.get_subscription_count() + hosted >= self.cfg.min_subscribers
+        return self.states.pub.get_subscription_count() + hosted >= self.cfg.min_subscribers
 
     def _on_command(self, msg: DeviceCommand) -> None:
         if (isinstance(self.layout, SeparateLoop) and self.graph.own(msg, TOPIC_COMMAND)
@@ -216,13 +219,11 @@ class DeviceDriver(LifecycleNode):
 
     def publish_state(self, tick: DeviceTick | bytes, ns: int, clock: bool = False) -> None:
         """Publish ``/clock`` at ``ns`` (when ``clock``), then the state stamped ``ns``
-        (``tick``, or its bytes packed by :attr:`state_wire`)."""
+        (``tick``, or its bytes packed by ``states.writer``), sampled
+        (:class:`~haptic_topology.nodes.wire.StateOut`)."""
         if clock:
             self.publish_clock(ns)
-        self.state_pub.publish(tick if isinstance(tick, bytes) else state_cdr(
-            self.state_wire, tick.seq, ns, tick.reading, tick.applied, int(tick.status),
-            tick.env_wrench))
-        self.states_sent += 1
+        self.states.publish(tick, ns)
 
     def publish_clock(self, ns: int) -> None:
         self._clock_msg.clock = ns_to_stamp(ns)
@@ -241,7 +242,7 @@ class DeviceDriver(LifecycleNode):
                 layout.values() if layout is not None else {})
         values = {'backend': self.cfg.backend, 'clock': self.cfg.clock.value,
                   'loop_running': str(layout is not None and layout.running).lower(),
-                  f'sent {TOPIC_STATE}': str(self.states_sent),
+                  **self.states.values(),
                   **self.rejected.values(), **self.graph.values(), **matched(self._endpoints),
                   **loop_values}
         level, message = self.input_publishers.merge(values, level, message)

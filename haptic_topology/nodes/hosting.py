@@ -74,7 +74,7 @@ class HostedLoop:
             self.runner = LoopRunner(HostedCycle(driver.loop, controller.loop), pacing,
                                      wall_ns=lambda: driver.get_clock().now().nanoseconds)
         codec = self.process.codec if self.process is not None else CycleCodec(c.task_dim)
-        self.wire = CycleWire(codec, driver.state_wire, controller.command_wire)
+        self.wire = CycleWire(codec, driver.states.writer, controller.command_wire)
         runner = self.runner
         # Lock-step: woken by every cycle (the VE waits on the hand inputs); wall clock: the
         # outbox is drained every PUBLISH_PERIOD, so the loop pays no wake-up.

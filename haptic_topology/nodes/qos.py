@@ -9,6 +9,8 @@ topic                         QoS                               why
 ``haptic/device/state``       best effort, keep last 1          1 kHz; the newest state counts
 ``haptic/device/command``     best effort, keep last 1          1 kHz; a late command is useless,
                                                                 the device applies the newest
+``haptic/device/              best effort, keep last 1          ~30 Hz (either clock): a reader
+state_sampled``                                                 takes the newest now and then
 ``haptic/hand_inputs``        reliable, keep last 500           ~100 Hz: one ``HandInputs`` per
                                                                 VE update period with the 1 kHz
                                                                 samples; the VE integrates every
@@ -68,6 +70,7 @@ def profile(role: QosRole) -> QoSProfile:
 QOS_LOOP = profile(vocab.LOOP)
 QOS_LOOP_LOCKSTEP = profile(vocab.LOOP_LOCKSTEP)
 QOS_CLOCK = profile(vocab.CLOCK)
+QOS_SAMPLED = profile(vocab.SAMPLED)
 QOS_HAND_INPUTS = profile(vocab.HAND_INPUTS)
 QOS_HAND_INPUTS_LOCKSTEP = profile(vocab.HAND_INPUTS_LOCKSTEP)
 QOS_LMI = profile(vocab.LMI)

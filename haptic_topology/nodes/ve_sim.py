@@ -37,7 +37,8 @@ A thin adapter over :class:`~haptic_topology.sim.ve.VirtualEnvironment` and its 
 
 Diagnostics: ``hand_inputs`` (samples taken), ``hand_batches`` (messages),
 ``lost_hand_inputs``, ``batch_*`` (arrival periods of the batches), ``update_*``,
-``viz_device_states`` (device states taken for the viz), ``viz_rejected_states`` (malformed
+``viz_device_states`` (device states taken for the viz, from
+``haptic/device/state_sampled``), ``viz_rejected_states`` (malformed
 ones skipped).
 """
 

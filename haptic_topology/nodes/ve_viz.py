@@ -2,11 +2,12 @@
 ``/tf``, the joint state, the markers and the standard mirrors (see :mod:`.ve_sim` and
 :mod:`.viz`), from the VE's state and the newest device and coupling samples.
 
-The device's applied wrench and ``F_env`` come from the newest ``DeviceState``, taken at the
-viz rate from a keep-last-1 reader that no executor spins
-(:class:`~haptic_topology.nodes.take.LatestTaker`, no callback per state); it is created with
-the first hand input batch, once the loop runs, so that it does not count among the readers
-``device_driver`` waits for (``min_subscribers``).
+The device's applied wrench and ``F_env`` come from the newest ``DeviceState`` of
+``haptic/device/state_sampled`` (the states ``device_driver`` samples at
+``sampled_state_rate_hz``, 30 a second by default; not every one of the 1 kHz loop's), taken
+at the viz rate from a keep-last-1 reader that no executor spins
+(:class:`~haptic_topology.nodes.take.LatestTaker`, no callback per state). Until one comes
+(or with sampling off) the device is drawn from the hand input batches, without them.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
 from haptic_topology.model.urdf import robot_description
 from haptic_topology.nodes import markers, viz
 from haptic_topology.nodes.convert import GraphFilter, MessageError, stamp_ns
-from haptic_topology.nodes.qos import QOS_LATCHED, QOS_LOOP, QOS_TF, QOS_VIZ
+from haptic_topology.nodes.qos import QOS_LATCHED, QOS_SAMPLED, QOS_TF, QOS_VIZ
 from haptic_topology.nodes.take import LatestTaker
 from haptic_topology.sim.scenario import Scenario
 from haptic_topology.vocabulary import (
@@ -33,7 +34,7 @@ from haptic_topology.vocabulary import (
     TOPIC_JOINTS,
     TOPIC_MARKERS,
     TOPIC_ROBOT_DESCRIPTION,
-    TOPIC_STATE,
+    TOPIC_STATE_SAMPLED,
     TOPIC_TF,
     TOPIC_VT_POSE,
     TOPIC_VT_TWIST,
@@ -71,8 +72,10 @@ class VeViz:
                 (TOPIC_WRENCH_COUPLING, WrenchStamped))}
         #: The newest device sample (a DeviceState, or a HandInputs sample before the
         #: state reader has one) and F_pc sample; stamps (ns) last sent.
-        self._state_taker: LatestTaker | None = None
+        self._state_taker: LatestTaker | None = LatestTaker(
+            node, TOPIC_STATE_SAMPLED, DeviceState, QOS_SAMPLED, suffix='viz_reader')
         self._device: markers.DeviceSample | None = None
+        self._from_states = False       # _device is (was) a sampled state
         self._coupling: markers.CouplingSample | None = None
         self._sent_device_ns = self._sent_coupling_ns = self._sent_ve_ns = -1
         self.rejected_states = 0
@@ -87,34 +90,34 @@ class VeViz:
     def keep_samples(self, msg: HandInputs, pose: np.ndarray, twist: np.ndarray,
                      q: np.ndarray) -> None:
         """The batch's newest sample for the viz (the VE now holds the state after it,
-        ``q``), and the device-state reader, from the first batch on (the loop is running)."""
+        ``q``); for the device too until a sampled state has come."""
         m = self.task.dim
         stamp = msg.stamp[-1]
-        if self._device is None or self._device.ns < stamp_ns(stamp):
+        if not self._from_states and (self._device is None
+                                      or self._device.ns < stamp_ns(stamp)):
             self._device = markers.DeviceSample(stamp, pose, twist,
                                             np.array(msg.hand_wrench[-m:], dtype=float))
         self._coupling = markers.CouplingSample(stamp, np.array(msg.coupling_wrench[-m:],
                                                             dtype=float), q)
-        if self._state_taker is None:
-            self._state_taker = LatestTaker(self.node, TOPIC_STATE, DeviceState,
-                                            QOS_LOOP, suffix='viz_reader')
 
     def _take_device_state(self) -> None:
-        """The newest DeviceState, if one came since the last viz tick (checked; a bad one
-        is skipped and counted in ``rejected_states``, apart from the messages the VE
-        takes: it changes nothing but the picture)."""
+        """The newest sampled DeviceState, if one came since the last viz tick: from then on
+        the device is drawn from these only (a hand input sample, often newer, has no
+        applied wrench and ``F_env``). Checked; a bad one is skipped and counted in
+        ``rejected_states``, apart from the messages the VE takes: it changes nothing but
+        the picture."""
         if self._state_taker is None:
             return
         msg = self._state_taker.take()
-        if msg is None or not self.graph.own(msg, TOPIC_STATE):
+        if msg is None or not self.graph.own(msg, TOPIC_STATE_SAMPLED):
             return
         try:
             sample = markers.device_sample(msg, self.task)
         except MessageError:
             self.rejected_states += 1
             return
-        if self._device is None or sample.ns >= self._device.ns:
-            self._device = sample
+        self._device = sample
+        self._from_states = True
 
     def publish(self, q: np.ndarray, dq: np.ndarray, snapshot: LmiSnapshot) -> None:
         """Joint state, markers, /tf and the mirrors (module doc). The VE's (stamped now)

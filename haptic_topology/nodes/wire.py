@@ -9,6 +9,7 @@ publishing one)."""
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
@@ -16,10 +17,11 @@ import numpy as np
 from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
+from haptic_topology.device.loop import DeviceTick
 from haptic_topology.device.records import HAS_ANSWER, HAS_ENV, HAS_HAND, HAS_OUT_ENV, CycleCodec
 from haptic_topology.messages.cdr import CdrWriter
 from haptic_topology.nodes.convert import CONTROLLER_ID
-from haptic_topology.vocabulary import DeviceStatus
+from haptic_topology.vocabulary import TOPIC_STATE, TOPIC_STATE_SAMPLED, DeviceStatus
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, LmiUpdate, VtPath
 
 #: The fields :func:`state_cdr` writes, in its order; the rest are the writer's constants.
@@ -202,6 +204,77 @@ class CycleWire:
 _IDLE = int(DeviceStatus.IDLE)
 
 
+class StateSampler:
+    """Which states ``device_driver`` also publishes on ``haptic/device/state_sampled``: at
+    most ``rate_hz`` of them a second, by the times (ns) the caller gives (``device_driver``:
+    its monotonic clock when it publishes, so that a viewer gets them at that rate in its own
+    time, also while a lock-step run is slower or faster than real time).
+
+    A state is taken when its time lies at or after the end of the period the last one taken
+    began (periods of ``1/rate_hz`` s laid end to end from the first state taken, so that
+    1 kHz states sampled at 30 Hz come 30 a second, not one every 34 ms) or before that
+    period's start (the clock went back); after a gap longer than a period the grid starts
+    again at the state after it. ``rate_hz`` 0: none is taken.
+
+    Example (30 Hz: periods of 33,333,333 ns)::
+
+        >>> s = StateSampler(30.0)
+        >>> [ns for ns in range(0, 100_000_000, 1_000_000) if s.due(ns)]
+        [0, 34000000, 67000000]
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        if not (rate_hz >= 0.0 and np.isfinite(rate_hz)):
+            raise ValueError(f'rate_hz must be a finite number >= 0, got {rate_hz}')
+        self.period_ns = round(1e9 / rate_hz) if rate_hz > 0.0 else 0
+        self._start: int | None = None      # the period of the last state taken
+        self.taken = 0
+
+    def due(self, ns: int) -> bool:
+        """Whether the state at time ``ns`` is taken (see class doc)."""
+        period, start = self.period_ns, self._start
+        if not period or (start is not None and start <= ns < start + period):
+            return False
+        if start is not None and start + period <= ns < start + 2 * period:
+            self._start = start + period        # the next period of the grid
+        else:
+            self._start = ns                    # the first state, a gap, or a restart
+        self.taken += 1
+        return True
+
+
+class StateOut:
+    """``device_driver``'s state publishers, made with ``create_publisher`` (the node's): every
+    state on ``haptic/device/state`` (QoS ``qos``), and those its :class:`StateSampler` takes
+    (``rate_hz``, by the monotonic clock when published) on ``haptic/device/state_sampled`` as
+    well (``sampled_qos``), the same bytes; a state given as a tick is packed by
+    :attr:`writer` (``frame_id``, the graph's wire id ``graph_id``)."""
+
+    def __init__(self, create_publisher: Any, qos: Any, sampled_qos: Any, frame_id: str,
+                 graph_id: int, rate_hz: float) -> None:
+        self.writer = state_writer(frame_id, graph_id)
+        self.pub = create_publisher(DeviceState, TOPIC_STATE, qos)
+        self.sampled_pub = create_publisher(DeviceState, TOPIC_STATE_SAMPLED, sampled_qos)
+        self.sampler = StateSampler(rate_hz)
+        self.sent = 0
+
+    def publish(self, tick: DeviceTick | bytes, ns: int) -> None:
+        """Publish the state ``tick`` (or its bytes packed by :attr:`writer`) stamped ``ns``."""
+        data = tick if isinstance(tick, bytes) else state_cdr(
+            self.writer, tick.seq, ns, tick.reading, tick.applied, int(tick.status),
+            tick.env_wrench)
+        self.pub.publish(data)
+        if self.sampler.due(time.monotonic_ns()):
+            self.sampled_pub.publish(data)
+        self.sent += 1
+
+    def values(self) -> dict[str, str]:
+        """States sent on either topic, as diagnostics key/values."""
+        return {f'sent {TOPIC_STATE}': str(self.sent),
+                f'sent {TOPIC_STATE_SAMPLED}': str(self.sampler.taken)}
+
+
 __all__ = ['COMMAND_FIELDS', 'LMI_FIELDS', 'PATH_FIELDS', 'STATE_FIELDS', 'CycleWire',
-           'command_cdr', 'command_writer', 'lmi_cdr', 'lmi_writer', 'path_cdr', 'path_writer',
-           'state_cdr', 'state_writer']
+           'StateOut', 'StateSampler',
+           'command_cdr', 'command_writer', 'lmi_cdr', 'lmi_writer', 'path_cdr',
+           'path_writer', 'state_cdr', 'state_writer']

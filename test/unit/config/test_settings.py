@@ -60,6 +60,7 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
         ('watchdog_damping', [0.0], None, None, None, True),
         ('takeover_after', 0.5, 0.01, 3600.0, None, True),
         ('min_subscribers', 1, 0, 100, None, True),
+        ('sampled_state_rate_hz', 30.0, 0.0, 1000.0, None, True),
         ('wrench_limit', [0.0], None, None, None, True),
         ('clock', 'wall', None, None, ('wall', 'lockstep'), True),
         ('lockstep_warn_after', 2.0, 0.1, 600.0, None, True),
