@@ -127,6 +127,11 @@ class Outgoing:
     batch: HandBatch | None
 
 
+#: LMI updates whose arrival times a port remembers (:meth:`ControllerPort.age_of`): 0.6 s of
+#: them at 100 Hz, far more than a cycle record waits to be published.
+ARRIVALS_KEPT = 64
+
+
 class ControllerPort:
     """``loop`` with hand batches, the lock-step hold and figures (see module doc);
     ``update_period``: device cycles per VE update; ``dim``: task dimension; ``dt``: device
@@ -146,6 +151,8 @@ class ControllerPort:
         self.lockstep_timeouts = 0
         self._held: tuple[StateSample, int, float] | None = None
         self._update_time: float | None = None   # when the newest update arrived (s)
+        #: When each of the newest updates arrived (s), by seq (at most ARRIVALS_KEPT).
+        self._arrived: dict[int, float] = {}
         self._state_time = 0.0                   # when the newest state arrived (s)
 
     def on_state(self, sample: StateSample, state_ns: int, now: float) -> Outgoing | None:
@@ -164,6 +171,11 @@ class ControllerPort:
         if apply:
             self.loop.on_update(snap)
         self._update_time = now
+        arrived = self._arrived
+        arrived.pop(snap.seq, None)             # a restarted VE numbers from 0 again
+        arrived[snap.seq] = now
+        if len(arrived) > ARRIVALS_KEPT:
+            del arrived[next(iter(arrived))]
         if self._held is None or self.loop.waiting_for_update():
             return None
         sample, state_ns, _ = self._held
@@ -194,14 +206,20 @@ class ControllerPort:
         return Outgoing(ans, state_ns, self._count(now, stats_time), batch)
 
     def answered_block(self, hand: tuple[int, int, np.ndarray] | None, state_ns: int,
-                       now: float, stats_time: float | None) -> tuple[float, HandBatch | None]:
+                       now: float, stats_time: float | None,
+                       used: tuple[int, float] | None = None
+                       ) -> tuple[float, HandBatch | None]:
         """:meth:`answered` of an answer known by its hand input alone: ``hand`` is the
         input's ``seq``, ``state_seq`` and 4 x m rows (pose, twist, F_h, F_pc; None: the
         answer has none). Returns the ``update_age`` and the hand batch of its
-        :class:`Outgoing`."""
+        :class:`Outgoing`: the age at ``now`` of the newest update, or with ``used`` =
+        ``(update_seq, t)`` (:meth:`age_of`) that of the update the answer was computed with
+        at the time ``t`` of its state (the hosted publisher takes cycles some milliseconds
+        after they ran)."""
         batch = (None if hand is None
                  else self.batcher.add_block(hand[0], hand[1], state_ns, hand[2], now))
-        return self._count(now, stats_time), batch
+        age = self._count(now, stats_time)
+        return (age if used is None else self.age_of(*used)), batch
 
     def _count(self, now: float, stats_time: float | None) -> float:
         """An answer sent at ``now``: the statistics' tick, the count; its update age."""
@@ -228,6 +246,13 @@ class ControllerPort:
     def state_time(self) -> float | None:
         """When the newest device state arrived (monotonic s; None: none yet)."""
         return self._state_time or None
+
+    def age_of(self, update_seq: int, at: float) -> float:
+        """Seconds from the arrival of update ``update_seq`` to ``at`` (this port's clock),
+        >= 0; :meth:`update_age` at ``at`` for an update it does not remember (none taken
+        yet: -1, or one of more than :data:`ARRIVALS_KEPT` ago)."""
+        arrived = self._arrived.get(update_seq)
+        return self.update_age(at) if arrived is None else max(0.0, at - arrived)
 
     def update_age(self, now: float) -> float:
         """Seconds since the newest LMI update arrived (inf before the first), >= 0.

@@ -15,6 +15,7 @@ failures, the run's end.
 from __future__ import annotations
 
 import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -34,14 +35,18 @@ from haptic_topology.device.runner import LoopRunner, RunnerConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.nodes.convert import CONTROLLER_ID
 from haptic_topology.nodes.diagnostics import log_notices, monotonic
-from haptic_topology.nodes.outbox import OutboxThread
+from haptic_topology.nodes.outbox import OutboxThread, until_batch
 from haptic_topology.nodes.separate import SeparateLoop
 from haptic_topology.nodes.wire import CycleWire
 
 #: GIL switch interval (s) of a process that hosts the loop thread (CPython's default: 5 ms).
 SWITCH_INTERVAL = 2e-4
-#: Wall clock: the outbox thread publishes what the loop produced every this many s.
-PUBLISH_PERIOD = 0.002
+#: Wall clock: the outbox thread publishes what the loop produced at least this often (s),
+#: and, while hand inputs flow, just after each cycle that completes a batch of them
+#: (:func:`~haptic_topology.nodes.outbox.until_batch`) ...
+PUBLISH_PERIOD = 0.01
+#: ... this long (s) after that cycle's deadline (its record is written some 0.1 ms later).
+BATCH_MARGIN = 5e-4
 #: Lock-step with a loop process: the publishing thread, woken by the child's eventfd after
 #: each cycle, also looks this often (s) without a wake-up (a stop, the end of the run).
 PROCESS_IDLE_WAKE = 0.05
@@ -75,9 +80,12 @@ class HostedLoop:
                                      wall_ns=lambda: driver.get_clock().now().nanoseconds)
         codec = self.process.codec if self.process is not None else CycleCodec(c.task_dim)
         self.wire = CycleWire(codec, driver.states.writer, controller.command_wire)
+        self._hand_at = codec.position('hand_seq')
+        self._update_at = codec.position('update_seq')
         runner = self.runner
         # Lock-step: woken by every cycle (the VE waits on the hand inputs); wall clock: the
-        # outbox is drained every PUBLISH_PERIOD, so the loop pays no wake-up.
+        # outbox is drained after each batch of hand inputs, so the loop pays no wake-up.
+        self._newest = (0, 0)       # (stamp_ns, hand seq) of the newest record published
         self.outbox = OutboxThread(
             runner, (self.process.drain_records if self.process is not None
                      else lambda: codec.records(runner.drain())),
@@ -85,7 +93,8 @@ class HostedLoop:
             min(controller.flush_period, PUBLISH_PERIOD if not driver.lockstep else
                 PROCESS_IDLE_WAKE if self.process is not None else 1.0),
             self.process.wait if self.process is not None else None,
-            c.settings.publisher_nice if self.process is not None else 0)
+            c.settings.publisher_nice if self.process is not None else 0,
+            None if driver.lockstep else self._until_batch)
         if driver.lockstep and isinstance(self.runner, LoopRunner):
             self.runner.wake = self.outbox.wake
         controller.attach(self.runner)
@@ -173,22 +182,34 @@ class HostedLoop:
         # The hosted controller's commands are published with this process's id.
         return {**self.runner.device_values(), 'controller_id': str(CONTROLLER_ID)}
 
+    def _until_batch(self) -> float:
+        """Outbox thread, wall clock: how long to wait for the next batch of hand inputs."""
+        stamp, hand = self._newest
+        return until_batch(time.time_ns(), stamp, hand, self.controller.port.batcher.period,
+                           self.driver.cfg.period_ns, round(BATCH_MARGIN * 1e9),
+                           PUBLISH_PERIOD)
+
     def _observe(self, recs: np.ndarray) -> None:
         """Outbox thread: the cycles' states (and ``/clock``), then the controller's
         commands and hand inputs, from the records ``recs``."""
         d, c, wire = self.driver, self.controller, self.wire
         srcs = [i + f + wire.extras(i[0])
                 for i, f in zip(recs['i'].tolist(), recs['f'].tolist(), strict=True)]
+        self._newest = (srcs[-1][0], srcs[-1][self._hand_at])
         for src in srcs:
             d.publish_state(wire.state(src), src[0], clock=d.lockstep)
         now = monotonic()
+        # Wall clock: a state's stamp (ns) on this clock, for the age of the update its
+        # answer used at the state's time (lock-step: published as soon as it ran).
+        to_now = now - 1e-9 * time.time_ns()
         floats = recs['f']
         for n, src in enumerate(srcs):
             if not wire.answered(src):
                 continue
             ns = src[0]
+            used = None if d.lockstep else (src[self._update_at], min(now, 1e-9 * ns + to_now))
             age, batch = c.port.answered_block(wire.hand(src, floats[n]), ns, now,
-                                               None if wire.idle(src) else 1e-9 * ns)
+                                               None if wire.idle(src) else 1e-9 * ns, used)
             c.cmd_pub.publish(wire.command(src, age))
             if batch is not None:
                 c.publish_hand(batch)

@@ -15,12 +15,19 @@ hold and figures).
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from haptic_topology.control.port import STATES_COMING, ControllerPort, UpdateGap, live_change
+from haptic_topology.control.port import (
+    ARRIVALS_KEPT,
+    STATES_COMING,
+    ControllerPort,
+    UpdateGap,
+    live_change,
+)
 from haptic_topology.device.executor_loop import Emitted, ExecutorLoop
 from haptic_topology.device.hosted import HostedCycle, state_sample
 from haptic_topology.device.loop import CommandVerdict, ns_to_seconds, period_ns
@@ -263,3 +270,33 @@ def test_an_answer_given_by_its_hand_block_is_accounted_as_the_answer_itself() -
     assert batches == 2
     assert by_block.commands == by_object.commands == 25
     assert by_block.stats.values() == by_object.stats.values()
+
+
+def test_the_age_of_the_update_an_answer_used_at_its_states_time() -> None:
+    """The hosted publisher takes several cycles at once, milliseconds after they ran: each
+    command's update age is that of the update its answer names (``update_seq``), at the
+    time of its state, not the newest update's when it is published."""
+    sc = load_scenario('circle')
+    port = ControllerPort(build_controller_loop(sc, sc.mode), sc.update_period,
+                          sc.linkage.task.dim, sc.dt)
+    ve = virtual_environment(sc)
+    assert port.age_of(-1, 1.0) == math.inf          # no update yet
+    port.on_update(ve.snapshot(seq=0), 0.500, apply=False)
+    port.on_update(ve.snapshot(seq=1), 0.510, apply=False)
+    assert port.age_of(0, 0.5075) == pytest.approx(0.0075, abs=1e-15)
+    assert port.age_of(1, 0.5125) == pytest.approx(0.0025, abs=1e-15)
+    assert port.age_of(1, 0.509) == 0.0               # never negative
+    assert port.age_of(7, 0.52) == port.update_age(0.52)   # not one it took: the newest's
+    # the block form: published at 0.515, the cycles ran at 0.5075 with update 0
+    age, _ = port.answered_block(None, 507_500_000, 0.515, 0.5075, used=(0, 0.5075))
+    assert age == port.age_of(0, 0.5075)
+    age, _ = port.answered_block(None, 507_500_000, 0.515, 0.5075)
+    assert age == port.update_age(0.515)
+    # a restarted VE numbers from 0 again: the newest arrival counts
+    port.on_update(ve.snapshot(seq=0), 0.600, apply=False)
+    assert port.age_of(0, 0.601) == pytest.approx(0.001, abs=1e-15)
+    # only the newest ARRIVALS_KEPT are remembered
+    for k in range(2, 2 + ARRIVALS_KEPT):
+        port.on_update(ve.snapshot(seq=k), 0.7 + 0.01 * k, apply=False)
+    assert port.age_of(1, 2.0) == port.update_age(2.0)
+    assert port.age_of(2, 0.73) == pytest.approx(0.01, abs=1e-15)
