@@ -109,9 +109,9 @@ STATUS_BITS: int = int(functools.reduce(operator.or_, DeviceStatus))
 
 # -- topics ------------------------------------------------------------------------------------
 TOPIC_STATE = 'haptic/device/state'
-#: Every state whose stamp starts a new period of ``device_driver``'s ``sampled_state_rate_hz``
-#: (the same messages): for readers that want the newest state now and then (``ve_sim``'s
-#: picture), so that they are not sent every state of the 1 kHz loop.
+#: ``sampled_state_rate_hz`` of the states a second, by ``device_driver``'s monotonic clock
+#: when it publishes them (the same messages): for readers that want the newest state now and
+#: then (``ve_sim``'s picture), so that they are not sent every state of the 1 kHz loop.
 TOPIC_STATE_SAMPLED = 'haptic/device/state_sampled'
 TOPIC_COMMAND = 'haptic/device/command'
 TOPIC_LMI = 'haptic/lmi/update'
