@@ -15,9 +15,10 @@ ROS tools see (:mod:`haptic_topology.bringup.watch`), never on log lines: the de
 is started once the recorder's ``/diagnostics`` status says it is matched to the
 controller's and the VE's publishers, and each publisher of a recorded topic (the device's
 state publisher included) reports its readers matched
-(:func:`~haptic_topology.bringup.watch.loop_readers`); the run is over when the driver's
-lifecycle state is ``inactive`` (it deactivates itself after ``run_duration`` from
-engagement). Then it stops
+(:func:`~haptic_topology.bringup.watch.loop_readers`), and each subscription of the loop's
+inputs its writers (:func:`~haptic_topology.bringup.watch.loop_writers`); the run is over
+when the driver's lifecycle state is ``inactive`` (it deactivates itself after
+``run_duration`` from engagement). Then it stops
 the device, controller, VE and the recorder with SIGINT (SIGTERM, then SIGKILL, after a
 timeout each), reads the bag back into a trace and writes ``trace.csv``, ``plot.png`` and
 ``summary.json`` next to the bag's files, and prints the drift summary (as ``simulate``) and
@@ -243,7 +244,12 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``logs/loop_cpu.json``).
     """
     from haptic_topology.bringup.partition import Partitioner
-    from haptic_topology.bringup.watch import DEVICE_STATUS, GraphWatcher, loop_readers
+    from haptic_topology.bringup.watch import (
+        DEVICE_STATUS,
+        GraphWatcher,
+        loop_readers,
+        loop_writers,
+    )
     from haptic_topology.errors import WaitTimeout
 
     if layout not in LAYOUTS:
@@ -321,6 +327,11 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             watch.wait(lambda: watch.writers_matched(readers, loop_clock, at_least),
                        startup_timeout, lambda: 'publishers matched to their readers: '
                        + '; '.join(watch.unmatched(readers, loop_clock, at_least)))
+            # ... and the loop's input subscriptions to their writers, on their own side
+            writers = loop_writers(layout)
+            watch.wait(lambda: watch.readers_matched(writers, loop_clock), startup_timeout,
+                       lambda: 'subscriptions matched to their writers: '
+                       + '; '.join(watch.unmatched_readers(writers, loop_clock)))
             for transition in ('configure', 'activate'):
                 watch.change_state('device_driver', transition, startup_timeout)
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),

@@ -68,6 +68,21 @@ def loop_readers(layout: str) -> dict[tuple[str, str], int]:
             (DEVICE_STATUS, TOPIC_STATE): 1 if hosted else 2}
 
 
+def loop_writers(layout: str) -> dict[tuple[str, str], int]:
+    """``(status name, topic) -> writers``: the graph's DDS writers that each subscription
+    of the loop's inputs takes in ``layout`` (``hosted`` or ``separate``), matched on the
+    subscription's side before the driver is activated (what
+    :meth:`GraphWatcher.unmatched_readers` expects to see).
+
+    The VE takes the controller's hand inputs, the controller the VE's LMI updates and, in
+    the separate layout, the device's states, and the device driver the controller's
+    commands."""
+    hosted = layout != 'separate'
+    return {(VE_STATUS, TOPIC_HAND_INPUTS): 1, (CONTROLLER_STATUS, TOPIC_LMI): 1,
+            **({} if hosted else {(CONTROLLER_STATUS, TOPIC_STATE): 1,
+                                  (DEVICE_STATUS, TOPIC_COMMAND): 1})}
+
+
 #: Consecutive equal recorder reports that count as settled (0.25 s apart).
 SETTLE_REPORTS = 5
 
@@ -222,6 +237,20 @@ class GraphWatcher:
         lose the run's first messages of a topic in the bag."""
         return not self.unmatched(readers, clock, at_least)
 
+    def readers_matched(self, writers: Mapping[tuple[str, str], int],
+                        clock: Clock = Clock.WALL) -> bool:
+        """Every subscription ``(status name, topic)`` of ``writers`` is matched to its
+        writers (:meth:`unmatched_readers` is empty).
+
+        The other side of :meth:`writers_matched`: a reliable writer that has matched a reader
+        sends to it, but a reader that has not matched the writer yet drops what comes and
+        gets it only later, when the writer repairs it. Meanwhile a message of another
+        writer that the reader did match (another program that copies the graph's id and
+        echoes its messages) is taken first, and the graph's own then counts as a copy of it:
+        in lock-step the VE refused the controller's first hand inputs that way, and the run
+        waited for ever."""
+        return not self.unmatched_readers(writers, clock)
+
     def unmatched(self, readers: Mapping[tuple[str, str], int],
                   clock: Clock = Clock.WALL,
                   at_least: Mapping[tuple[str, str], int] | None = None) -> list[str]:
@@ -240,28 +269,51 @@ class GraphWatcher:
         What this leaves open: a reader that the publisher matches before this watcher sees
         it, i.e. one that appears during the start-up (the watcher starts before the graph's
         nodes, so it sees the readers that were there before them first)."""
+        return self._unmatched(readers, clock, at_least or {}, 'readers')
+
+    def unmatched_readers(self, writers: Mapping[tuple[str, str], int],
+                          clock: Clock = Clock.WALL) -> list[str]:
+        """The subscriptions ``(status name, topic)`` of ``writers`` not yet matched to
+        their writers, each as one line: as :meth:`unmatched`, with the writers of the topic
+        that the subscription matches (the QoS it requests: the graph's publisher's under
+        ``clock``) and ``writers`` of them under the graph's node names."""
+        return self._unmatched(writers, clock, {}, 'writers')
+
+    def _unmatched(self, expected: Mapping[tuple[str, str], int], clock: Clock,
+                   at_least: Mapping[tuple[str, str], int], peers: str) -> list[str]:
         out = []
-        for (name, topic), n in readers.items():
+        for (name, topic), n in expected.items():
             got = int(self.status.get(name, {}).get(f'matched {topic}', '0'))
-            own, others = self._readers(topic, publisher_role(topic, clock))
-            need = max(n, (at_least or {}).get((name, topic), 0), own + len(others))
+            own, others = self._peers(topic, publisher_role(topic, clock), peers)
+            need = max(n, at_least.get((name, topic), 0), own + len(others))
             if own < n or got < need:
-                out.append(f'{name}: {topic} matched to {got} readers of {need} (seen: {own} '
+                out.append(f'{name}: {topic} matched to {got} {peers} of {need} (seen: {own} '
                            f'of the graph, expected {n}; others: {", ".join(others) or "none"})')
         return out
 
-    def _readers(self, topic: str, offered: QosRole) -> tuple[int, list[str]]:
-        """The readers of ``topic`` this watcher sees that a publisher offering ``offered``
-        matches: how many the graph's nodes have, and the others' node names."""
+    def _peers(self, topic: str, role: QosRole, peers: str) -> tuple[int, list[str]]:
+        """The DDS ``peers`` (``readers`` or ``writers``) of ``topic`` this watcher sees that
+        an endpoint of the graph's with QoS ``role`` matches: how many the graph's nodes have,
+        and the others' node names. A reader matches a writer unless it asks for more than
+        the writer offers: reliable of a best-effort writer, transient local of a volatile
+        one."""
         from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 
+        name = f'/{topic.lstrip("/")}'
+        infos = (self.node.get_subscriptions_info_by_topic(name) if peers == 'readers'
+                 else self.node.get_publishers_info_by_topic(name))
         own, others = 0, []
-        for info in self.node.get_subscriptions_info_by_topic(f'/{topic.lstrip("/")}'):
+        for info in infos:
             q = info.qos_profile
-            if (info.topic_type != TOPIC_TYPES.get(topic, info.topic_type)
-                    or (q.reliability == ReliabilityPolicy.RELIABLE and not offered.reliable)
-                    or (q.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                        and not offered.transient_local)):
+            reliable = q.reliability == ReliabilityPolicy.RELIABLE
+            latched = q.durability == DurabilityPolicy.TRANSIENT_LOCAL
+            if peers == 'readers':          # the peer asks, the graph's publisher offers
+                matches = (not reliable or role.reliable) and (not latched
+                                                               or role.transient_local)
+            else:                           # the graph's subscription asks, the peer offers
+                matches = (reliable or not role.reliable) and (latched
+                                                               or not role.transient_local)
+            if info.topic_type != TOPIC_TYPES.get(topic, info.topic_type) or not matches:
                 continue            # never matched: another type or a QoS not offered
             if graph_node(info.node_name, info.node_namespace):
                 own += 1

@@ -1,8 +1,8 @@
-"""The bringup's "publishers matched to their readers" (``GraphWatcher.unmatched``) with another
-program's reader on the topic, over DDS: a writer's matched count says how many readers it
-matched, not which, so the watcher asks for as many as it sees readers the writer matches
-(not those of another type or asking for a QoS it does not offer), and for the graph's own
-readers to be there."""
+"""The bringup's "publishers matched to their readers" (``GraphWatcher.unmatched``) and
+"subscriptions matched to their writers" (``unmatched_readers``) with another program's reader
+or writer on the topic, over DDS: a matched count says how many peers an endpoint matched, not
+which, so the watcher asks for as many as it sees peers the endpoint matches (not those of
+another type or with a QoS that does not match), and for the graph's own to be there."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from haptic_topology.bringup.watch import CONTROLLER_STATUS, GraphWatcher
+from haptic_topology.bringup.watch import CONTROLLER_STATUS, VE_STATUS, GraphWatcher
 from haptic_topology.nodes.qos import hand_inputs_qos
 from haptic_topology.vocabulary import TOPIC_HAND_INPUTS, Clock
 from haptic_topology_msgs.msg import HandInputs
@@ -88,3 +88,66 @@ def test_a_foreign_reader_cannot_stand_in_for_one_of_the_graph(
     # Expecting a reader of the graph that the watcher does not see (a third node): not
     # matched, whatever the count.
     assert not ready(matched + 2, own=3)
+
+
+@pytest.fixture()
+def inputs(spare_domains: list[int]) -> Iterator[tuple[GraphWatcher, Any]]:
+    """A watcher and, in a context of their own: the VE's hand-input subscription; the
+    controller's publisher and an ``intruder``'s, which it matches; a ``best_effort`` one
+    (the subscription asks for reliable: never matched) and an ``other_type``'s (in a second
+    context)."""
+    domain = spare_domains[0]
+    watch = GraphWatcher('haptic_bringup', domain_id=domain)
+    ctx, ctx_other = rclpy.Context(), rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    rclpy.init(context=ctx_other, domain_id=domain)
+    nodes = []
+    try:
+        qos = hand_inputs_qos(Clock.WALL)
+        for name in ('lmi_controller', 'intruder'):
+            node = rclpy.create_node(name, context=ctx)
+            node.create_publisher(HandInputs, TOPIC_HAND_INPUTS, qos)
+            nodes.append(node)
+        loose = rclpy.create_node('best_effort', context=ctx)
+        loose.create_publisher(HandInputs, TOPIC_HAND_INPUTS,
+                               QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        other = rclpy.create_node('other_type', context=ctx_other)
+        other.create_publisher(String, TOPIC_HAND_INPUTS, 10)
+        ve = rclpy.create_node('ve_sim', context=ctx)
+        sub = ve.create_subscription(HandInputs, TOPIC_HAND_INPUTS, lambda _: None, qos)
+        nodes += [loose, other, ve]
+        yield watch, sub
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        rclpy.try_shutdown(context=ctx_other)
+        watch.close()
+
+
+def test_a_foreign_writer_cannot_stand_in_for_the_graphs_on_the_readers_side(
+        inputs: tuple[GraphWatcher, Any]) -> None:
+    watch, sub = inputs
+    key = (VE_STATUS, TOPIC_HAND_INPUTS)
+    deadline = time.monotonic() + 30.0
+    # Discovery: the watcher sees the four writers, the subscription matches its two.
+    while (len(watch.node.get_publishers_info_by_topic(f'/{TOPIC_HAND_INPUTS}')) < 4
+           or sub.get_publisher_count() < 2):
+        assert time.monotonic() < deadline, sub.get_publisher_count()
+        watch.spin(0.05)
+    time.sleep(0.5)
+    matched = sub.get_publisher_count()
+    assert matched == 2         # lmi_controller, intruder; never best_effort, other_type
+
+    def ready(count: int, own: int = 1) -> bool:
+        watch.status[VE_STATUS] = {f'matched {TOPIC_HAND_INPUTS}': str(count)}
+        return watch.readers_matched({key: own}, Clock.WALL)
+
+    assert ready(matched)
+    # One matched of the two: it may be the intruder's, with the controller's first inputs
+    # still to come (and then taken as copies of the intruder's).
+    assert not ready(1)
+    (line,) = watch.unmatched_readers({key: 1}, Clock.WALL)
+    assert 'matched to 1 writers of 2' in line and '/intruder' in line, line
+    # A writer of the graph that the watcher does not see: not matched, whatever the count.
+    assert not ready(matched + 2, own=2)
