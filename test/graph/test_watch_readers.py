@@ -7,7 +7,8 @@ another type or with a QoS that does not match), and for the graph's own to be t
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import pytest
@@ -25,19 +26,46 @@ pytestmark = pytest.mark.graph
 KEY = (CONTROLLER_STATUS, TOPIC_HAND_INPUTS)
 
 
+@contextmanager
+def _on_domain(domain: int, build: Callable[[Any, Any, list[Any]], Any]
+               ) -> Iterator[tuple[GraphWatcher, Any]]:
+    """A watcher on ``domain`` and what ``build(ctx, ctx_other, nodes)`` returns (the
+    endpoint under test), its nodes created in two contexts of their own (one type per topic
+    name in one) and appended to ``nodes``; all destroyed afterwards."""
+    watch = GraphWatcher('haptic_bringup', domain_id=domain)
+    ctx, ctx_other = rclpy.Context(), rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    rclpy.init(context=ctx_other, domain_id=domain)
+    nodes: list[Any] = []
+    try:
+        yield watch, build(ctx, ctx_other, nodes)
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        rclpy.try_shutdown(context=ctx_other)
+        watch.close()
+
+
+def _discover(watch: GraphWatcher, seen: Callable[[], int], want_seen: int,
+              matched: Callable[[], int], want_matched: int) -> int:
+    """Spin until the watcher sees ``want_seen`` peers and the endpoint has matched
+    ``want_matched``; then, half a second later, the endpoint's matched count."""
+    deadline = time.monotonic() + 30.0
+    while seen() < want_seen or matched() < want_matched:
+        assert time.monotonic() < deadline, (seen(), matched())
+        watch.spin(0.05)
+    time.sleep(0.5)
+    return matched()
+
+
 @pytest.fixture()
 def graph(spare_domains: list[int]) -> Iterator[tuple[GraphWatcher, Any]]:
     """A watcher and, in a context of their own: the controller's hand-input publisher; the
     VE's and the recorder's readers; an ``intruder``'s reader the publisher matches; a
     ``late_joiner``'s (transient local: not offered) and an ``other_type``'s, which it never
-    matches (in a second context: one type per topic name in one)."""
-    domain = spare_domains[0]
-    watch = GraphWatcher('haptic_bringup', domain_id=domain)
-    ctx, ctx_other = rclpy.Context(), rclpy.Context()   # one type per topic in a process
-    rclpy.init(context=ctx, domain_id=domain)
-    rclpy.init(context=ctx_other, domain_id=domain)
-    nodes = []
-    try:
+    matches (in a second context)."""
+    def build(ctx: Any, ctx_other: Any, nodes: list[Any]) -> Any:
         qos = hand_inputs_qos(Clock.WALL)
         for name in ('ve_sim', 'recorder', 'intruder'):
             node = rclpy.create_node(name, context=ctx)
@@ -50,28 +78,20 @@ def graph(spare_domains: list[int]) -> Iterator[tuple[GraphWatcher, Any]]:
         other = rclpy.create_node('other_type', context=ctx_other)
         other.create_subscription(String, TOPIC_HAND_INPUTS, lambda _: None, 10)
         ctl = rclpy.create_node('lmi_controller', context=ctx)
-        pub = ctl.create_publisher(HandInputs, TOPIC_HAND_INPUTS, qos)
         nodes += [late, other, ctl]
-        yield watch, pub
-    finally:
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-        rclpy.try_shutdown(context=ctx_other)
-        watch.close()
+        return ctl.create_publisher(HandInputs, TOPIC_HAND_INPUTS, qos)
+
+    with _on_domain(spare_domains[0], build) as out:
+        yield out
 
 
 def test_a_foreign_reader_cannot_stand_in_for_one_of_the_graph(
         graph: tuple[GraphWatcher, Any]) -> None:
     watch, pub = graph
-    deadline = time.monotonic() + 30.0
     # Discovery: the watcher sees the five readers, the publisher matches its three.
-    while (len(watch.node.get_subscriptions_info_by_topic(f'/{TOPIC_HAND_INPUTS}')) < 5
-           or pub.get_subscription_count() < 3):
-        assert time.monotonic() < deadline, pub.get_subscription_count()
-        watch.spin(0.05)
-    time.sleep(0.5)
-    matched = pub.get_subscription_count()
+    matched = _discover(
+        watch, lambda: len(watch.node.get_subscriptions_info_by_topic(f'/{TOPIC_HAND_INPUTS}')),
+        5, pub.get_subscription_count, 3)
     assert matched == 3         # ve_sim, recorder, intruder; never late_joiner, other_type
 
     def ready(count: int, own: int = 2) -> bool:
@@ -96,13 +116,7 @@ def inputs(spare_domains: list[int]) -> Iterator[tuple[GraphWatcher, Any]]:
     controller's publisher and an ``intruder``'s, which it matches; a ``best_effort`` one
     (the subscription asks for reliable: never matched) and an ``other_type``'s (in a second
     context)."""
-    domain = spare_domains[0]
-    watch = GraphWatcher('haptic_bringup', domain_id=domain)
-    ctx, ctx_other = rclpy.Context(), rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    rclpy.init(context=ctx_other, domain_id=domain)
-    nodes = []
-    try:
+    def build(ctx: Any, ctx_other: Any, nodes: list[Any]) -> Any:
         qos = hand_inputs_qos(Clock.WALL)
         for name in ('lmi_controller', 'intruder'):
             node = rclpy.create_node(name, context=ctx)
@@ -114,29 +128,21 @@ def inputs(spare_domains: list[int]) -> Iterator[tuple[GraphWatcher, Any]]:
         other = rclpy.create_node('other_type', context=ctx_other)
         other.create_publisher(String, TOPIC_HAND_INPUTS, 10)
         ve = rclpy.create_node('ve_sim', context=ctx)
-        sub = ve.create_subscription(HandInputs, TOPIC_HAND_INPUTS, lambda _: None, qos)
         nodes += [loose, other, ve]
-        yield watch, sub
-    finally:
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-        rclpy.try_shutdown(context=ctx_other)
-        watch.close()
+        return ve.create_subscription(HandInputs, TOPIC_HAND_INPUTS, lambda _: None, qos)
+
+    with _on_domain(spare_domains[0], build) as out:
+        yield out
 
 
 def test_a_foreign_writer_cannot_stand_in_for_the_graphs_on_the_readers_side(
         inputs: tuple[GraphWatcher, Any]) -> None:
     watch, sub = inputs
     key = (VE_STATUS, TOPIC_HAND_INPUTS)
-    deadline = time.monotonic() + 30.0
     # Discovery: the watcher sees the four writers, the subscription matches its two.
-    while (len(watch.node.get_publishers_info_by_topic(f'/{TOPIC_HAND_INPUTS}')) < 4
-           or sub.get_publisher_count() < 2):
-        assert time.monotonic() < deadline, sub.get_publisher_count()
-        watch.spin(0.05)
-    time.sleep(0.5)
-    matched = sub.get_publisher_count()
+    matched = _discover(
+        watch, lambda: len(watch.node.get_publishers_info_by_topic(f'/{TOPIC_HAND_INPUTS}')),
+        4, sub.get_publisher_count, 2)
     assert matched == 2         # lmi_controller, intruder; never best_effort, other_type
 
     def ready(count: int, own: int = 1) -> bool:
