@@ -314,7 +314,7 @@ class GraphWatcher:
                 matches = (reliable or not role.reliable) and (latched
                                                                or not role.transient_local)
             if info.topic_type != TOPIC_TYPES.get(topic, info.topic_type) or not matches:
-                continue            # never matched: another type or a QoS not offered
+                continue            # never matched: another type, or QoS that do not match
             if graph_node(info.node_name, info.node_namespace):
                 own += 1
             else:

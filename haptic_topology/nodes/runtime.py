@@ -54,9 +54,10 @@ def freeze_startup_objects() -> None:
     """Collect once, then move every object the process holds so far (the imported modules,
     the nodes, their models: about 136,000 in ``ve_sim``) out of the collector's reach
     (:func:`gc.freeze`). They live as long as the process; a full collection would otherwise
-    walk them all, which stops the node for 60 ms (``ve_sim``, measured), longer than the
-    LMI updates may be late (``stale_after``). Afterwards a collection walks only objects
-    made since; the node's memory is unchanged."""
+    walk them all, which stops the node for about 60 ms (``ve_sim``, ``device_driver``:
+    ``bench/gc_pause.py``), longer than the LMI updates may be late (``stale_after``).
+    Afterwards a collection walks only objects made since; the node's memory is
+    unchanged. :func:`spin` calls it before it spins."""
     gc.collect()
     gc.freeze()
 
