@@ -224,13 +224,21 @@ class HandAdmission:
        taken that way, and the controller's own batches were refused from then on: the
        lock-step run waited for ever.) The wall clock can lose inputs (a starved VE): there
        a gap is taken, as above.
+    4. ``origin`` (lock-step): the device's pose at the run's start (the scenario's, as
+       ``simulate`` starts it). The run's first input, stamped 0, is where the device starts:
+       a batch whose first sample is stamped 0 is refused (``continuity``) unless that
+       sample is within the slack of ``origin``. Without it the session's first batch has no
+       predecessor to continue, and a copy of it from a sender with the graph's id, arriving
+       first, was taken and the controller's own refused as its copy (``session``): the
+       lock-step run waited for ever.
     """
 
     def __init__(self, task: TaskSpace, gate: SourceGate | None = None,
-                 complete: bool = False) -> None:
+                 complete: bool = False, origin: np.ndarray | None = None) -> None:
         self.task = task
         self.gate = gate
         self.complete = complete
+        self.origin = None if origin is None else np.array(origin, dtype=float)
         slack = np.full(task.dim, POSE_SLACK_RAD)
         slack[task.translation_rows] = POSE_SLACK_M
         self.slack = slack
@@ -247,6 +255,14 @@ class HandAdmission:
             refusal = gate.refuse()
             if refusal is not None:
                 raise refusal
+        if self.origin is not None and float(stamps[0]) == 0.0:
+            moved = np.abs(pose_difference(pose[0], self.origin, self.task))
+            over = moved - self.slack
+            i = int(np.argmax(over))
+            if over[i] > 0.0:
+                raise MessageError('continuity', f'HandInputs seq {seqs[0]}: device pose row '
+                                   f'{i} is {moved[i]:.4g} from where the run starts, '
+                                   f'expected at most {self.slack[i]:.4g}')
         if last is not None and seqs[0] <= last[0]:
             # A new controller, or one whose loop was started again (a reactivated driver:
             # same endpoint, new numbering, later stamps); not a copy of inputs already taken.

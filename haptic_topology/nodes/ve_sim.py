@@ -75,7 +75,7 @@ from haptic_topology.nodes.qos import (
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.ve_viz import VeViz
 from haptic_topology.nodes.wire import lmi_cdr, lmi_writer, path_cdr, path_writer
-from haptic_topology.sim.lockstep import virtual_environment
+from haptic_topology.sim.lockstep import initial_device_pose, virtual_environment
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed
 from haptic_topology.vocabulary import (
@@ -143,8 +143,10 @@ class VeSim(Node):
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
         self.input_publishers = PublisherWatch(self, {TOPIC_HAND_INPUTS: ('lmi_controller',)},
                                          self._publish_diagnostics)
+        # lock-step: every input comes, the first where the device starts (as in simulate)
         self.admission = HandAdmission(self.task, self.input_publishers.gates[TOPIC_HAND_INPUTS],
-                                       complete=self.lockstep)
+                                       complete=self.lockstep,
+                                       origin=initial_device_pose(sc) if self.lockstep else None)
 
     def _publish_update(self) -> None:
         self._last_snap = self.ve.snapshot(seq=self._update_seq)

@@ -19,6 +19,7 @@ from haptic_topology.sim import load_scenario
 from haptic_topology.sim.lockstep import (
     build_controller_loop,
     build_device_loop,
+    initial_device_pose,
     virtual_environment,
 )
 from haptic_topology.sim.scenario import Scenario
@@ -41,6 +42,7 @@ def _run(sc: Scenario) -> tuple[list[tuple[object, float]], list[tuple]]:
     batches: list[tuple] = []
     batch: list[tuple] = []
     inputs = 0
+    cycle.step(0.0, sc.dt, 0.0)     # engagement: one idle state, as simulate's
     for k in range(int(round(sc.duration / sc.dt))):
         t = k * sc.dt
         done = cycle.step(t, sc.dt, t)
@@ -68,10 +70,14 @@ def test_every_update_and_batch_of_a_run_is_admitted(name: str) -> None:
     admit = UpdateAdmission(LinkageDynamics(sc.linkage), gate)
     for snap, _ in updates:
         admit.admit(snap)                                  # raises on a refusal
-    hands = HandAdmission(sc.linkage.task)
-    for seqs, state_seqs, stamps, pose, twist in batches:
-        hands.admit(list(seqs), list(state_seqs), list(stamps), np.array(pose),
-                    np.array(twist))
+    # as the wall clock's VE checks them, and as the lock-step one (every input, in order,
+    # the first where simulate starts the device)
+    for hands in (HandAdmission(sc.linkage.task),
+                  HandAdmission(sc.linkage.task, complete=True,
+                                origin=initial_device_pose(sc))):
+        for seqs, state_seqs, stamps, pose, twist in batches:
+            hands.admit(list(seqs), list(state_seqs), list(stamps), np.array(pose),
+                        np.array(twist))
     assert len(updates) > 100 and len(batches) == len(updates) - 1
 
 
@@ -245,6 +251,32 @@ def test_in_lockstep_a_batch_that_skips_inputs_is_refused_and_the_own_one_goes_o
     wall = HandAdmission(sc.linkage.task)
     wall.admit(*b[0])
     wall.admit(seqs, states, stamps, pose + [0.02, 0.0, 0.0], twist)
+
+
+def test_in_lockstep_a_copy_of_the_first_batch_is_refused_and_the_own_one_goes_on() -> None:
+    """The session's first batch continues no earlier one: in lock-step it starts where the
+    run starts (``origin``, the device's pose at t = 0). A copy 2 cm off, arriving before the
+    controller's first batch, is refused; the controller's batches are then taken. (A CI run
+    took such a copy first and refused the controller's as its copy: the run waited for
+    ever.) The controller's own copy moved by less than the slack is taken."""
+    sc = load_scenario('fig8')
+    _, batches = _run(dataclasses.replace(sc, duration=0.1))
+    b = [(list(q), list(s), list(t), np.array(p), np.array(v)) for q, s, t, p, v in batches]
+    origin = initial_device_pose(sc)
+    hands = HandAdmission(sc.linkage.task, complete=True, origin=origin)
+    seqs, states, stamps, pose, twist = b[0]
+    assert stamps[0] == 0.0 and np.array_equal(pose[0], origin)
+    reason, text = _reason(hands.admit, seqs, states, stamps, pose + [0.02, 0.0, 0.0], twist)
+    assert reason == 'continuity' and text == (
+        f'HandInputs seq {seqs[0]}: device pose row 0 is 0.02 from where the run starts, '
+        'expected at most 0.005')
+    hands.admit(*b[0])
+    hands.admit(*b[1])
+    # within the slack (5 mm): taken
+    near = HandAdmission(sc.linkage.task, complete=True, origin=origin)
+    near.admit(seqs, states, stamps, pose + [0.004, 0.0, 0.0], twist)
+    # without an origin (the wall clock) the first batch has nothing to continue: taken
+    HandAdmission(sc.linkage.task).admit(seqs, states, stamps, pose + [0.02, 0.0, 0.0], twist)
 
 
 def test_a_recorded_message_is_checked_as_its_snapshot() -> None:
