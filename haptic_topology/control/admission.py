@@ -256,12 +256,11 @@ class HandAdmission:
             if refusal is not None:
                 raise refusal
         if self.origin is not None and float(stamps[0]) == 0.0:
-            moved = np.abs(pose_difference(pose[0], self.origin, self.task))
-            over = moved - self.slack
-            i = int(np.argmax(over))
-            if over[i] > 0.0:
+            beyond = self._beyond(pose[0], self.origin, self.slack)
+            if beyond is not None:
+                i, moved = beyond
                 raise MessageError('continuity', f'HandInputs seq {seqs[0]}: device pose row '
-                                   f'{i} is {moved[i]:.4g} from where the run starts, '
+                                   f'{i} is {moved:.4g} from where the run starts, '
                                    f'expected at most {self.slack[i]:.4g}')
         if last is not None and seqs[0] <= last[0]:
             # A new controller, or one whose loop was started again (a reactivated driver:
@@ -282,15 +281,22 @@ class HandAdmission:
             if dt < 0.0:
                 raise MessageError('continuity', f'HandInputs seq {seqs[0]}: stamped '
                                    f'{-dt * 1e3:.3f} ms before the previous sample')
-            moved = np.abs(pose_difference(pose[0], x_prev, self.task))
             reach = np.maximum(np.abs(v_prev), np.abs(twist[0])) * dt + self.slack
-            over = moved - reach
-            i = int(np.argmax(over))
-            if over[i] > 0.0:
+            beyond = self._beyond(pose[0], x_prev, reach)
+            if beyond is not None:
+                i, moved = beyond
                 raise MessageError('continuity', f'HandInputs seq {seqs[0]}: device pose row '
-                                   f'{i} moved {moved[i]:.4g} in {dt * 1e3:.1f} ms, expected '
+                                   f'{i} moved {moved:.4g} in {dt * 1e3:.1f} ms, expected '
                                    f'at most {reach[i]:.4g} at its twist')
         if gate is not None:
             gate.accepted()
         self._last = (int(seqs[-1]), int(state_seqs[-1]), float(stamps[-1]), np.array(pose[-1]),
                       np.array(twist[-1]))
+
+    def _beyond(self, x: np.ndarray, x_prev: np.ndarray, reach: np.ndarray
+                ) -> tuple[int, float] | None:
+        """The pose row in which ``x`` is farthest beyond ``reach`` of ``x_prev`` and how far
+        it is from it there (m or rad, per row); None when every row is within reach."""
+        moved = np.abs(pose_difference(x, x_prev, self.task))
+        i = int(np.argmax(moved - reach))
+        return (i, float(moved[i])) if moved[i] > reach[i] else None
