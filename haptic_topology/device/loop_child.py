@@ -41,14 +41,15 @@ from haptic_topology.device.loop_process import (
     wait_eventfd,
 )
 from haptic_topology.device.pacing import PERIOD_WINDOW
-from haptic_topology.device.realtime import name_os_thread, set_thread_realtime
+from haptic_topology.device.realtime import (
+    name_os_thread,
+    set_parent_death_signal,
+    set_thread_realtime,
+)
 from haptic_topology.device.records import CycleCodec, bytes_dtype, payloads, put_bytes
 from haptic_topology.device.runner import LoopRunner
 from haptic_topology.device.shm_ring import SharedArray, ShmRing
 from haptic_topology.device.watchdog import CommandWatchdog
-
-_PR_SET_PDEATHSIG = 1
-
 
 #: Wall clock: an LMI update is applied between two cycles only while at least this long (s)
 #: is left before the next deadline; its decoding and re-sync take 0.1-0.2 ms here, and one
@@ -268,13 +269,6 @@ class _Child:
         return 0
 
 
-def _set_parent_death_signal() -> None:
-    import ctypes
-    import ctypes.util
-    libc = ctypes.CDLL(ctypes.util.find_library('c'), use_errno=True)
-    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-
-
 def child_main() -> int:
     """Entry point of the child (``python -m haptic_topology.device.loop_child``)."""
     spec: LoopSpec = pickle.loads(sys.stdin.buffer.read())
@@ -289,7 +283,7 @@ def child_main() -> int:
 
     signal.signal(signal.SIGTERM, on_term)            # before the signal can come
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the node's Ctrl-C stops us by request
-    _set_parent_death_signal()
+    set_parent_death_signal(signal.SIGTERM)
     if os.getppid() != spec.parent:         # the parent died before the signal was set
         print(f'loop process {os.getpid()}: parent gone before the start: device not opened',
               file=sys.stderr, flush=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import os
 import platform
 import struct
@@ -344,8 +345,17 @@ def timer_slack_ns() -> int:
     return int(_libc().prctl(_PR_GET_TIMERSLACK, 0, 0, 0, 0))
 
 
+@functools.cache
 def _libc() -> ctypes.CDLL:
+    # Once per process: ``find_library`` runs ``ldconfig -p`` in a child process each time.
     return ctypes.CDLL(ctypes.util.find_library('c'), use_errno=True)
+
+
+def set_parent_death_signal(signum: int) -> None:
+    """``prctl(PR_SET_PDEATHSIG)``: the kernel sends the calling process ``signum`` when the
+    thread that started it ends (its parent dying, killed or not)."""
+    pr_set_pdeathsig = 1
+    _libc().prctl(pr_set_pdeathsig, signum, 0, 0, 0)
 
 
 def name_os_thread(name: str) -> None:

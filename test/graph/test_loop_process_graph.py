@@ -48,9 +48,17 @@ def _children(pid: int) -> list[int]:
             kids = [int(c) for c in (task / 'children').read_text().split()]
         except OSError:
             continue
-        out += [k for k in kids if b'haptic_topology.device.loop_child'
-                in Path(f'/proc/{k}/cmdline').read_bytes()]
+        out += [k for k in kids if b'haptic_topology.device.loop_child' in _cmdline(k)]
     return out
+
+
+def _cmdline(pid: int) -> bytes:
+    """``pid``'s command line; empty once it has exited (a short-lived child of the driver
+    can end between the listing of its parent's children and this read)."""
+    try:
+        return Path(f'/proc/{pid}/cmdline').read_bytes()
+    except OSError:
+        return b''
 
 
 class _Watch:

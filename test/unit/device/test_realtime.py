@@ -411,3 +411,18 @@ def test_a_loop_started_under_batch_gets_its_slice() -> None:
     else:
         assert res.stdout.strip().startswith("['sched_slice_us 250: this kernel keeps no "
                                              "slice per task"), res.stdout
+
+
+def test_parent_death_signal_is_set_for_the_calling_process() -> None:
+    """``set_parent_death_signal`` sets what ``prctl(PR_GET_PDEATHSIG)`` reads back (in a
+    child interpreter: the pytest worker must not die with its parent's end)."""
+    code = ('import ctypes, signal\n'
+            'from haptic_topology.device import realtime\n'
+            'got = ctypes.c_int(-1)\n'
+            'before = realtime._libc().prctl(2, ctypes.byref(got), 0, 0, 0), got.value\n'
+            'realtime.set_parent_death_signal(signal.SIGTERM)\n'
+            'after = realtime._libc().prctl(2, ctypes.byref(got), 0, 0, 0), got.value\n'
+            'print(before, after, realtime._libc() is realtime._libc())\n')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         check=True, timeout=60).stdout.split('\n')[0]
+    assert out == '(0, 0) (0, 15) True'
