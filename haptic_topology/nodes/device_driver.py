@@ -60,6 +60,7 @@ from haptic_topology.config.resolve import resolve_device_driver
 from haptic_topology.config.settings import DeviceDriverSettings
 from haptic_topology.device.backend import DeviceBackend, create_backend, zero_and_release
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, hardware_id
+from haptic_topology.device.runner import LOCKSTEP_RUNS_ONCE
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.errors import DeviceError, HapticTopologyError
 from haptic_topology.model.frames import DEVICE_BASE
@@ -99,7 +100,7 @@ class DeviceDriver(LifecycleNode):
         self.hosted: Any = None       # the hosted LmiController node (host_controller)
         self.fault = ''
         self.rejected = RejectCounter()
-        self._active = False          # between activate and deactivate
+        self._active = self._ran = False  # between activate and deactivate; activated once
         self._clock_msg = ClockMsg()
         self.graph = GraphFilter(s.graph_id)
         # Real-time settings go to the loop thread when hosting (run_main leaves the rest).
@@ -156,6 +157,8 @@ class DeviceDriver(LifecycleNode):
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         assert self.backend is not None and self.layout is not None
+        if self.lockstep and self._ran:
+            return self.fail(LOCKSTEP_RUNS_ONCE)
         try:
             if not self.in_child:
                 self.backend.activate()
@@ -163,7 +166,7 @@ class DeviceDriver(LifecycleNode):
             self.backend.deactivate()
             return self.fail(str(exc))
         self.layout.start()
-        self._active = True
+        self._active = self._ran = True
         c = self.cfg
         where = self.layout.where() if isinstance(self.layout, HostedLoop) else ''
 
