@@ -119,7 +119,9 @@ class UpdateAdmission:
        update's. A VE says -1 (none) after it dropped its held input for a new controller:
        then this controller is new too (no previous update), or its loop started over
        (:meth:`forget`: the next update's input is not compared; its numbering still is,
-       the VE did not restart).
+       the VE did not restart). Nor are the updates after it that consumed an input
+       numbered beyond the newest this loop has sent (:meth:`sent`): until the VE has the
+       new loop's first batch, its updates consume the input it held from the loop before.
 
     The update's joint motion is not bounded: a VT whirling under the hand (the circle
     scenario under fault injection reached ~80 rad/s, 37.8 rad in 0.54 s between two
@@ -136,6 +138,7 @@ class UpdateAdmission:
         self.gate = gate
         self._prev: Update | None = None
         self._forgot = False        # the next update's input is not compared (forget)
+        self._sent = 0              # newest hand input sent since forget (sent)
 
     def admit(self, snap: Update) -> None:
         """Raise :class:`~haptic_topology.errors.MessageError` if ``snap`` may not be
@@ -157,7 +160,7 @@ class UpdateAdmission:
         if gate is not None:
             gate.accepted()
         self._prev = snap
-        self._forgot = False
+        self._forgot = self._forgot and snap.hand_input_seq > self._sent
 
     def _check_model(self, snap: Update) -> None:
         dyn = self.dyn
@@ -187,6 +190,12 @@ class UpdateAdmission:
         numbered below the previous one is a restart of the VE only with a new endpoint
         (an echo of an old update right after the loop started was taken for one)."""
         self._forgot = True
+        self._sent = 0
+
+    def sent(self, seq: int) -> None:
+        """This controller has published its hand inputs up to ``seq`` (after
+        :meth:`forget`, an update that consumed a later one consumed the loop before's)."""
+        self._sent = max(self._sent, seq)
 
     @staticmethod
     def _check_continuity(prev: Update, snap: Update) -> None:

@@ -119,8 +119,7 @@ class LmiController(Node):
                                               hand_inputs_qos(c.clock))
         self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
                                               QOS_DIAGNOSTICS)
-        lmi_sub = self.create_subscription(LmiUpdate, TOPIC_LMI, self._on_update,
-                                           QOS_LMI)
+        lmi_sub = self.create_subscription(LmiUpdate, TOPIC_LMI, self._on_update, QOS_LMI)
         self._endpoints = {TOPIC_LMI: lmi_sub, TOPIC_COMMAND: self.cmd_pub,
                            TOPIC_HAND_INPUTS: self.hand_pub}
         self.hosted = hosted
@@ -202,6 +201,7 @@ class LmiController(Node):
         log_notices(self, self.loop.notices)
 
     def publish_hand(self, batch: HandBatch) -> None:
+        self.admission.sent(int(batch.seq[-1]))     # before the VE can answer it
         self.hand_pub.publish(hand_inputs_msg(self._hand, batch))
 
     def flush_hand(self) -> None:

@@ -118,6 +118,35 @@ def test_an_update_of_another_model_or_an_older_input_is_refused_and_the_own_one
     admit.admit(idle)
 
 
+def test_after_the_loop_starts_over_updates_on_the_old_loops_input_set_no_reference(
+        ) -> None:
+    """Until the VE has the new loop's first batch, its updates consume the input it held
+    from the loop before, numbered beyond anything the new loop has sent: taken, and not
+    what the new loop's inputs are compared with. Those then are, as always."""
+    sc = load_scenario('fig8')
+    updates = [u for u, _ in _run(dataclasses.replace(sc, duration=0.2))[0]]
+    admit = UpdateAdmission(LinkageDynamics(sc.linkage))
+    for snap in updates[:10]:
+        admit.admit(snap)
+    held = updates[9].hand_input_seq
+    assert held > 20
+
+    def consumed(k: int, seq: int) -> object:
+        return dataclasses.replace(updates[k], hand_input_seq=seq)
+
+    admit.forget()
+    admit.admit(consumed(10, held))         # the VE's updates before the new loop's batch
+    admit.admit(consumed(11, held))
+    admit.sent(10)                          # the new loop's first batch: inputs 1-10
+    admit.admit(consumed(12, held))         # sent before the VE had it
+    admit.admit(consumed(13, 3))            # the VE dropped its held input, took 1-3
+    admit.admit(consumed(14, 10))
+    reason, text = _reason(admit.admit, consumed(15, 5))
+    assert (reason, text) == ('continuity', 'LmiUpdate 15: consumed hand input 5 after '
+                              'update 14 had consumed 10: a VE never goes back (it drops its '
+                              'inputs only for a new controller)')
+
+
 def test_after_the_loop_starts_over_an_old_update_is_still_no_restart() -> None:
     """A new loop process (``forget``) drops the comparison of consumed inputs, not the
     numbering: an exact copy of an earlier update that comes then is refused (one CI run
