@@ -1,0 +1,112 @@
+"""``device_driver`` deactivated and activated again. On the wall clock the loop engages
+again and the controller refuses none of the VE's updates. A lock-step run is one activation:
+activated again it would start its device over at the scenario's initial pose and its
+simulated time at 0 while the VE keeps the run's linkage, and wait for ever for an update;
+the driver refuses the second activation with a fault that says why, and simulated time
+stays where the run ended. Real processes; every wait is on messages, with a deadline."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from typing import Any
+
+import pytest
+
+from haptic_topology.bringup.watch import GraphWatcher
+from haptic_topology.device.runner import LOCKSTEP_RUNS_ONCE
+from haptic_topology.errors import WaitTimeout
+from haptic_topology.paths import config_dir
+
+pytestmark = pytest.mark.graph
+
+PARAMS = config_dir() / 'haptic_topology.yaml'
+WAIT = 120.0          # s: generous, a loaded machine is only slower
+
+
+def _start(name: str, clock: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, '-m', f'haptic_topology.nodes.{name}', '--ros-args', '--params-file',
+         str(PARAMS), '-p', 'scenario:=circle', '-p', f'clock:={clock}'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+@pytest.fixture(params=['wall', 'lockstep'])
+def graph(request: pytest.FixtureRequest) -> Any:
+    """``ve_sim`` and ``device_driver`` (hosted controller, loop process) on ``clock``."""
+    procs = [_start('ve_sim', request.param), _start('device_driver', request.param)]
+
+    def alive() -> None:
+        for p in procs:
+            if p.poll() is not None:
+                out = p.stdout.read().decode(errors='replace') if p.stdout else ''
+                raise AssertionError(f'{p.args[2]} exited with {p.returncode}: {out[-3000:]}')
+
+    try:
+        with GraphWatcher(alive=alive) as w:
+            yield request.param, w
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def test_activated_again(graph: Any) -> None:
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rosgraph_msgs.msg import Clock as ClockMsg
+
+    from haptic_topology.nodes.qos import QOS_CLOCK, QOS_DIAGNOSTICS, loop_qos
+    from haptic_topology.vocabulary import TOPIC_CLOCK, TOPIC_DIAGNOSTICS, TOPIC_STATE, Clock
+    from haptic_topology_msgs.msg import DeviceState
+
+    clock, w = graph
+
+    now = [0.0]
+    diag: dict[str, Any] = {}
+    engaged = [0]
+
+    def on_clock(msg: Any) -> None:
+        now[0] = msg.clock.sec + msg.clock.nanosec * 1e-9
+
+    def on_diag(msg: Any) -> None:
+        for st in msg.status:
+            diag[st.name] = st
+
+    def on_state(msg: Any) -> None:
+        if not msg.status & DeviceState.STATUS_IDLE:
+            engaged[0] += 1
+
+    def value(name: str, key: str) -> str:
+        return {kv.key: kv.value for kv in diag[name].values}[key]
+
+    w.node.create_subscription(ClockMsg, TOPIC_CLOCK, on_clock, QOS_CLOCK)
+    w.node.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, on_diag, QOS_DIAGNOSTICS)
+    w.node.create_subscription(DeviceState, TOPIC_STATE, on_state, loop_qos(Clock(clock)))
+    w.wait(lambda: engaged[0] >= 200, WAIT, 'the loop engaged')
+    w.change_state('device_driver', 'deactivate', WAIT)
+    w.wait(lambda: w.lifecycle_state('device_driver') == 'inactive', WAIT, 'inactive')
+    ended = now[0]
+    if clock == 'wall':
+        w.change_state('device_driver', 'activate', WAIT)
+        engaged[0] = 0
+        w.wait(lambda: engaged[0] >= 1000, WAIT, 'the loop engaged again')
+        diag.clear()
+        w.wait(lambda: 'lmi_controller: loop' in diag, WAIT, "the controller's diagnostics")
+        assert value('lmi_controller: loop', 'rejected_messages') == '0'
+        return
+    assert ended > 0.0
+    with pytest.raises(WaitTimeout, match='transition activate failed'):
+        w.change_state('device_driver', 'activate', WAIT)
+    assert w.lifecycle_state('device_driver') == 'inactive'
+    w.wait(lambda: 'device_driver: loop' in diag and diag['device_driver: loop'].level
+           == b'\x02', WAIT, "the driver's fault in /diagnostics")
+    assert diag['device_driver: loop'].message == f'fault: {LOCKSTEP_RUNS_ONCE}'
+    w.spin(0.5)
+    assert now[0] == ended          # no second run from 0: time stays where it ended
