@@ -16,12 +16,15 @@ the last field: ``serialize_message`` may add slack after it (its size estimate 
 alignment for each empty sequence: 8 bytes for a ``DeviceCommand`` with its ``env_wrench``
 empty), which no reader looks at. The tests check this byte for byte, and that rclpy
 deserializes the bytes to the message. Supported: the primitive types, strings, unbounded
-sequences of primitives and nested messages of these; anything else is refused when the
-writer is made. No rclpy here: the message classes carry their own field list.
+sequences of primitives or of messages of primitives (e.g. ``builtin_interfaces/Time[]``,
+given as their fields' values one element after the other) and nested messages of these;
+anything else is refused when the writer is made. No rclpy here: the message classes carry
+their own field list.
 """
 
 from __future__ import annotations
 
+import importlib
 import struct
 from collections.abc import Callable, Mapping, Sequence
 from operator import itemgetter
@@ -41,22 +44,38 @@ PRIMITIVES: dict[str, tuple[str, int]] = {
 
 def _leaves(msg_type: type, prefix: str = '') -> list[tuple[str, str]]:
     """``(dotted path, kind)`` of every leaf field in wire order; kind is a primitive type
-    name, ``'string'`` or ``'sequence<primitive>'``."""
+    name, ``'string'`` or ``'sequence<primitive,...>'``: the primitives of one element (one
+    for a sequence of primitives; those of a message of primitives, e.g. ``int32,uint32`` for
+    ``builtin_interfaces/Time``)."""
     out: list[tuple[str, str]] = []
     probe = msg_type()
     fields: dict[str, str] = msg_type.get_fields_and_field_types()  # type: ignore[attr-defined]
     for name, kind in fields.items():
         path = prefix + name
         inner = kind[len('sequence<'):-1] if kind.startswith('sequence<') else None
+        element = _element(inner) if inner is not None and '/' in inner else None
         if kind in PRIMITIVES or kind == 'string' or inner in PRIMITIVES:
             out.append((path, kind))
+        elif element is not None:
+            out.append((path, f'sequence<{element}>'))
         elif '/' in kind and '<' not in kind and '[' not in kind:
             out.extend(_leaves(type(getattr(probe, name)), path + '.'))
         else:
             raise ValueError(f'{msg_type.__name__}.{path}: type {kind!r} is not supported '
-                             '(primitives, strings, unbounded sequences of primitives and '
-                             'nested messages of these)')
+                             '(primitives, strings, unbounded sequences of primitives or of '
+                             'messages of primitives, and nested messages of these)')
     return out
+
+
+def _element(name: str) -> str | None:
+    """The primitives of message type ``name`` (``pkg/Msg``) in wire order, comma-separated;
+    None if it has any other field (or cannot be imported)."""
+    pkg, _, msg = name.partition('/')
+    try:
+        kinds = [k for _, k in _leaves(getattr(importlib.import_module(f'{pkg}.msg'), msg))]
+    except (ImportError, AttributeError, ValueError):
+        return None
+    return ','.join(kinds) if kinds and all(k in PRIMITIVES for k in kinds) else None
 
 
 class _Layout:
@@ -99,12 +118,21 @@ class _Layout:
                 self.slots[path] = slice(slot + 1, slot + 2)
                 slot += 2
                 continue
-            self.counts.append((slot, n))
-            code, size = PRIMITIVES[kind[len('sequence<'):-1]]
-            if n:                       # an empty sequence is its length alone
+            element = [PRIMITIVES[k] for k in kind[len('sequence<'):-1].split(',')]
+            if n % len(element):
+                raise ValueError(f'{path}: {n} values are not whole elements of '
+                                 f'{len(element)} ({kind})')
+            self.counts.append((slot, n // len(element)))
+            if len(element) == 1 and n:     # an empty sequence is its length alone
+                code, size = element[0]
                 align(size)
                 fmt.append(f'{n}{code}')
                 offset += n * size
+            for _ in range(n // len(element) if len(element) > 1 else 0):
+                for code, size in element:
+                    align(size)
+                    fmt.append(code)
+                    offset += size
             self.slots[path] = slice(slot + 1, slot + 1 + n)
             slot += 1 + n
         self.struct = struct.Struct(''.join(fmt))

@@ -58,12 +58,12 @@ from haptic_topology.device.loop_process import LoopProcess
 from haptic_topology.device.runner import LoopRunner
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.model.frames import DEVICE_BASE
+from haptic_topology.nodes import wire
 from haptic_topology.nodes.convert import (
     CONTROLLER_ID,
     GraphFilter,
     MessageError,
     RejectCounter,
-    hand_inputs_msg,
     lmi_from_msg,
     stamp_ns,
     state_from_msg,
@@ -78,7 +78,6 @@ from haptic_topology.nodes.diagnostics import (
 from haptic_topology.nodes.parameters import declare_settings, declare_spec
 from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, QOS_LMI, hand_inputs_qos, loop_qos
 from haptic_topology.nodes.runtime import run_main
-from haptic_topology.nodes.wire import command_cdr, command_writer
 from haptic_topology.sim.lockstep import build_controller_loop
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (
@@ -126,12 +125,10 @@ class LmiController(Node):
         self.host: LoopRunner | LoopProcess | None = None   # the driver's loop, once attached
         self.ack_pub = (self.create_publisher(UInt64, TOPIC_LMI_ACK, QOS_LMI)
                         if s.ack_updates else None)
-        self._hand = HandInputs()
-        # set once (the message is reused): device-side quantities
-        self._hand.header.frame_id = DEVICE_BASE
         self.graph = GraphFilter(s.graph_id)
-        self._hand.graph_id = self.graph.wire
-        self.command_wire = command_writer(DEVICE_BASE, self.graph.wire)
+        # device-side quantities, published as serialized bytes (nodes.wire)
+        self._hand = wire.hand_inputs_writer(DEVICE_BASE, self.graph.wire)
+        self.command_wire = wire.command_writer(DEVICE_BASE, self.graph.wire)
         self.rejected = RejectCounter()
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
@@ -193,7 +190,7 @@ class LmiController(Node):
         batch."""
         if out is not None:
             ns = self.get_clock().now().nanoseconds if stamp_ns is None else stamp_ns
-            self.cmd_pub.publish(command_cdr(self.command_wire, out.answer.state_seq, ns,
+            self.cmd_pub.publish(wire.command_cdr(self.command_wire, out.answer.state_seq, ns,
                                              out.answer.out, out.update_age,
                                              update_seq=out.answer.update_seq))
             if out.batch is not None:
@@ -202,7 +199,7 @@ class LmiController(Node):
 
     def publish_hand(self, batch: HandBatch) -> None:
         self.admission.sent(int(batch.seq[-1]))     # before the VE can answer it
-        self.hand_pub.publish(hand_inputs_msg(self._hand, batch))
+        self.hand_pub.publish(wire.hand_inputs_cdr(self._hand, batch))
 
     def flush_hand(self) -> None:
         """Steady timer (hosted: the outbox thread): the pending hand samples once the

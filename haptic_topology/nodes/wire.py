@@ -1,11 +1,12 @@
 """The graph's own messages as serialized bytes, for ``Publisher.publish(bytes)``: the same
 messages :func:`~haptic_topology.nodes.convert.state_msg`,
-:func:`~haptic_topology.nodes.convert.command_msg` and
-:func:`~haptic_topology.nodes.convert.lmi_msg` fill (``DeviceState`` and ``DeviceCommand`` at
-1 kHz, ``LmiUpdate`` and ``VtPath`` at 100 Hz), packed in one step by a
-:class:`~haptic_topology.messages.cdr.CdrWriter`: rclpy publishes the bytes as they are,
-without converting a message object (for a ``DeviceState`` about half the cost of filling and
-publishing one)."""
+:func:`~haptic_topology.nodes.convert.command_msg`,
+:func:`~haptic_topology.nodes.convert.lmi_msg` and
+:func:`~haptic_topology.nodes.convert.hand_inputs_msg` fill (``DeviceState`` and
+``DeviceCommand`` at 1 kHz, ``LmiUpdate``, ``VtPath`` and ``HandInputs`` at 100 Hz), packed in
+one step by a :class:`~haptic_topology.messages.cdr.CdrWriter`: rclpy publishes the bytes as
+they are, without converting a message object (for a ``DeviceState`` about half the cost of
+filling and publishing one)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.backend import DeviceReading
@@ -22,7 +24,7 @@ from haptic_topology.device.records import HAS_ANSWER, HAS_ENV, HAS_HAND, HAS_OU
 from haptic_topology.messages.cdr import CdrWriter
 from haptic_topology.nodes.convert import CONTROLLER_ID
 from haptic_topology.vocabulary import TOPIC_STATE, TOPIC_STATE_SAMPLED, DeviceStatus
-from haptic_topology_msgs.msg import DeviceCommand, DeviceState, LmiUpdate, VtPath
+from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate, VtPath
 
 #: The fields :func:`state_cdr` writes, in its order; the rest are the writer's constants.
 STATE_FIELDS = ('header.stamp.sec', 'header.stamp.nanosec', 'seq', 'task_dim', 'pose', 'twist',
@@ -125,6 +127,27 @@ def path_cdr(writer: CdrWriter, update_seq: int, task_dim: int,
     sec, nanosec = divmod(int(ns), 1_000_000_000)
     return writer.pack(sec, nanosec, update_seq, task_dim, [int(s) for s, _ in path],
                        np.concatenate([x for _, x in path]))
+
+
+#: The fields :func:`hand_inputs_cdr` writes, in its order; the rest are the writer's constants.
+HAND_FIELDS = ('header.stamp.sec', 'header.stamp.nanosec', 'task_dim', 'seq', 'state_seq',
+               'stamp', 'pose', 'twist', 'hand_wrench', 'coupling_wrench')
+
+
+def hand_inputs_writer(frame_id: str, graph_id: int) -> CdrWriter:
+    """The writer of :func:`hand_inputs_cdr` in ``frame_id`` for the graph ``graph_id``."""
+    return CdrWriter(HandInputs, HAND_FIELDS, {'header.frame_id': frame_id,
+                                               'graph_id': graph_id})
+
+
+def hand_inputs_cdr(writer: CdrWriter, batch: HandBatch) -> bytes:
+    """The serialized ``HandInputs`` that
+    :func:`~haptic_topology.nodes.convert.hand_inputs_msg` fills with ``batch`` (header
+    stamp: the newest sample's state stamp)."""
+    sec, nanosec = np.divmod(batch.stamp_ns, 1_000_000_000)
+    return writer.pack(int(sec[-1]), int(nanosec[-1]), batch.pose.shape[1], batch.seq,
+                       batch.state_seq, np.stack((sec, nanosec), axis=1), batch.pose,
+                       batch.twist, batch.hand_wrench, batch.coupling)
 
 
 class CycleWire:

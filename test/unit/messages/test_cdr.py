@@ -7,7 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
+from visualization_msgs.msg import MarkerArray
 
+from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.controller import CycleOutput
 from haptic_topology.control.loop import Answer, HandSample
 from haptic_topology.device.backend import DeviceReading
@@ -16,7 +18,13 @@ from haptic_topology.device.loop import DeviceTick
 from haptic_topology.device.records import CycleCodec
 from haptic_topology.device.runner import Published
 from haptic_topology.messages.cdr import CdrWriter
-from haptic_topology.nodes.convert import command_msg, lmi_msg, ns_to_stamp, state_msg
+from haptic_topology.nodes.convert import (
+    command_msg,
+    hand_inputs_msg,
+    lmi_msg,
+    ns_to_stamp,
+    state_msg,
+)
 from haptic_topology.nodes.wire import (
     LMI_FIELDS,
     PATH_FIELDS,
@@ -24,6 +32,8 @@ from haptic_topology.nodes.wire import (
     CycleWire,
     command_cdr,
     command_writer,
+    hand_inputs_cdr,
+    hand_inputs_writer,
     lmi_cdr,
     lmi_writer,
     path_cdr,
@@ -136,6 +146,31 @@ def test_vt_path_bytes_are_rclpys_serialization() -> None:
                                 writer.padding(*divmod(ns, 10**9), *values))
 
 
+@pytest.mark.parametrize('dim', [3, 6])
+def test_hand_inputs_bytes_are_rclpys_serialization(dim: int) -> None:
+    """``hand_inputs_cdr`` (what the controller publishes) is the message
+    ``hand_inputs_msg`` fills: its ``builtin_interfaces/Time[]`` stamps included, for a full
+    batch and for partial ones."""
+    rng = np.random.default_rng(dim)
+    writer = hand_inputs_writer(FRAME, GRAPH)
+    for n in (10, 1, 4, 10):
+        first = int(rng.integers(1, 10**6))
+        batch = HandBatch(np.arange(first, first + n), np.arange(first + 1, first + 1 + n),
+                          np.sort(rng.integers(0, 4 * 10**9, size=n)),
+                          *(rng.normal(size=(n, dim)) for _ in range(4)))
+        msg = HandInputs()
+        msg.header.frame_id, msg.graph_id = FRAME, GRAPH
+        hand_inputs_msg(msg, batch)
+        ours = hand_inputs_cdr(writer, batch)
+        assert deserialize_message(ours, HandInputs) == msg
+        assert [s.nanosec for s in msg.stamp] == (batch.stamp_ns % 10**9).tolist()
+        sec, nanosec = np.divmod(batch.stamp_ns, 10**9)
+        _same_bytes_but_padding(ours, serialize_message(msg), writer.padding(
+            sec[-1], nanosec[-1], dim, batch.seq, batch.state_seq,
+            np.stack((sec, nanosec), axis=1), batch.pose, batch.twist, batch.hand_wrench,
+            batch.coupling))
+
+
 def test_sequence_lengths_may_change_between_messages() -> None:
     """A layout per combination of lengths, empty sequences included (no alignment after
     an empty sequence's length); a matrix goes in row-major, whatever its memory order."""
@@ -155,8 +190,10 @@ def test_bad_fields_and_values_are_refused_naming_them() -> None:
         CdrWriter(DeviceState, ('header.frame_id',))
     with pytest.raises(ValueError, match='both given per message and constant'):
         CdrWriter(DeviceState, ('graph_id',), {'graph_id': 1})
-    with pytest.raises(ValueError, match=r"HandInputs.stamp: type 'sequence<builtin_interfaces/"):
-        CdrWriter(HandInputs, ())
+    with pytest.raises(ValueError, match=r"MarkerArray.markers: type 'sequence<visualization_"):
+        CdrWriter(MarkerArray, ())                  # a message with strings, sequences
+    with pytest.raises(ValueError, match=r'stamp: 3 values are not whole elements of 2'):
+        CdrWriter(HandInputs, ('stamp',)).pack([1, 2, 3])
     writer = CdrWriter(DeviceState, STATE_FIELDS)
     with pytest.raises(ValueError, match='9 values for the 10 fields'):
         writer.pack(*range(9))
