@@ -123,16 +123,17 @@ class _Layout:
                 raise ValueError(f'{path}: {n} values are not whole elements of '
                                  f'{len(element)} ({kind})')
             self.counts.append((slot, n // len(element)))
-            if len(element) == 1 and n:     # an empty sequence is its length alone
+            if len(element) > 1:            # field after field, element after element
+                for _ in range(n // len(element)):
+                    for code, size in element:
+                        align(size)
+                        fmt.append(code)
+                        offset += size
+            elif n:                         # an empty sequence is its length alone
                 code, size = element[0]
                 align(size)
                 fmt.append(f'{n}{code}')
                 offset += n * size
-            for _ in range(n // len(element) if len(element) > 1 else 0):
-                for code, size in element:
-                    align(size)
-                    fmt.append(code)
-                    offset += size
             self.slots[path] = slice(slot + 1, slot + 1 + n)
             slot += 1 + n
         self.struct = struct.Struct(''.join(fmt))
