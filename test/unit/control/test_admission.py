@@ -33,7 +33,8 @@ def _reason(call: object, *args: object) -> tuple[str, str]:
 
 def _run(sc: Scenario) -> tuple[list[tuple[object, float]], list[tuple]]:
     """The LMI updates (with their time, s) and the hand-input batches of ``sc`` run as
-    ``simulate`` runs it (the VE takes every input; an update every update period)."""
+    ``simulate`` runs it (the VE takes every input; an update every update period); each
+    batch as ``HandAdmission.admit``'s arguments (seqs, state seqs, stamps, pose, twist)."""
     ve = virtual_environment(sc)
     cycle = HostedCycle(build_device_loop(sc),
                         build_controller_loop(sc, sc.mode, update_period=sc.update_period))
@@ -54,7 +55,9 @@ def _run(sc: Scenario) -> tuple[list[tuple[object, float]], list[tuple]]:
         batch.append((hand.seq, hand.state_seq, t, done.tick.reading.pose.copy(),
                       done.tick.reading.twist.copy()))
         if inputs % sc.update_period == 0:
-            batches.append(tuple(zip(*batch, strict=True)))
+            seqs, state_seqs, stamps, pose, twist = zip(*batch, strict=True)
+            batches.append((list(seqs), list(state_seqs), list(stamps), np.array(pose),
+                            np.array(twist)))
             batch = []
             updates.append((ve.snapshot(seq=len(updates)), t))
             cycle.offer_update(updates[-1][0])
@@ -75,9 +78,8 @@ def test_every_update_and_batch_of_a_run_is_admitted(name: str) -> None:
     for hands in (HandAdmission(sc.linkage.task),
                   HandAdmission(sc.linkage.task, complete=True,
                                 origin=initial_device_pose(sc))):
-        for seqs, state_seqs, stamps, pose, twist in batches:
-            hands.admit(list(seqs), list(state_seqs), list(stamps), np.array(pose),
-                        np.array(twist))
+        for batch in batches:
+            hands.admit(*batch)
     assert len(updates) > 100 and len(batches) == len(updates) - 1
 
 
@@ -230,17 +232,13 @@ def test_hand_inputs_copied_shifted_or_back_in_time_are_refused() -> None:
     sc = load_scenario('fig8')
     _, batches = _run(dataclasses.replace(sc, duration=0.1))
     hands = HandAdmission(sc.linkage.task, SourceGate('hand_inputs', 'lmi_controller'))
-    (seqs, states, stamps, pose, twist), second = batches[0], batches[1]
-    seqs, states, stamps = list(seqs), list(states), list(stamps)
-    pose, twist = np.array(pose), np.array(twist)
+    (seqs, states, stamps, pose, twist), nxt = batches[0], batches[1]
     hands.admit(seqs, states, stamps, pose, twist)
     shift = np.array([0.02, 0.0, 0.0])
     # a copy 2 cm off, numbered and stamped as the batch taken: not a new controller
     reason, _ = _reason(hands.admit, seqs, states, stamps, pose + shift, twist)
     assert reason == 'session'
     # the next batch 2 cm off: the device cannot get there in one cycle at its twist
-    nxt = (list(second[0]), list(second[1]), list(second[2]), np.array(second[3]),
-           np.array(second[4]))
     reason, text = _reason(hands.admit, *nxt[:3], nxt[3] + shift, nxt[4])
     assert reason == 'continuity' and 'device pose row 0 moved 0.02' in text, text
     reason, text = _reason(hands.admit, nxt[0], nxt[1], [s - 0.5 for s in nxt[2]], *nxt[3:])
@@ -248,13 +246,11 @@ def test_hand_inputs_copied_shifted_or_back_in_time_are_refused() -> None:
     hands.admit(*nxt)
     # after lost inputs (a gap in the seqs) the device may be anywhere: not checked
     third = batches[3]
-    hands.admit(list(third[0]), list(third[1]), list(third[2]), np.array(third[3]) + shift,
-                np.array(third[4]))
+    hands.admit(*third[:3], third[3] + shift, third[4])
     # ... and after a device state it did not answer (the state seqs jump): not checked
     fourth = batches[4]
     skipped = [s + 1 for s in fourth[1]]
-    hands.admit(list(fourth[0]), skipped, list(fourth[2]), np.array(fourth[3]) - shift,
-                np.array(fourth[4]))
+    hands.admit(fourth[0], skipped, fourth[2], fourth[3] - shift, fourth[4])
     # a controller that numbers from 1 again, later (a reactivated driver): a new session
     hands.admit([1, 2], [9000, 9001], [1.0, 1.001], nxt[3][:2] + shift, nxt[4][:2])
 
@@ -265,8 +261,7 @@ def test_in_lockstep_a_batch_that_skips_inputs_is_refused_and_the_own_one_goes_o
     taken unchecked after a gap; the controller's two batches then go on. (A CI run took such
     a copy and then refused every batch of the controller's: the run waited for ever.)"""
     sc = load_scenario('fig8')
-    _, batches = _run(dataclasses.replace(sc, duration=0.1))
-    b = [(list(q), list(s), list(t), np.array(p), np.array(v)) for q, s, t, p, v in batches]
+    _, b = _run(dataclasses.replace(sc, duration=0.1))
     hands = HandAdmission(sc.linkage.task, complete=True)
     hands.admit(*b[0])
     seqs, states, stamps, pose, twist = b[2]
@@ -289,8 +284,7 @@ def test_in_lockstep_a_copy_of_the_first_batch_is_refused_and_the_own_one_goes_o
     took such a copy first and refused the controller's as its copy: the run waited for
     ever.) The controller's own copy moved by less than the slack is taken."""
     sc = load_scenario('fig8')
-    _, batches = _run(dataclasses.replace(sc, duration=0.1))
-    b = [(list(q), list(s), list(t), np.array(p), np.array(v)) for q, s, t, p, v in batches]
+    _, b = _run(dataclasses.replace(sc, duration=0.1))
     origin = initial_device_pose(sc)
     hands = HandAdmission(sc.linkage.task, complete=True, origin=origin)
     seqs, states, stamps, pose, twist = b[0]
