@@ -30,7 +30,9 @@ Example::
 
 from __future__ import annotations
 
+import array as _array
 import hashlib
+import math
 import secrets
 from collections import Counter
 from collections.abc import Callable
@@ -218,22 +220,42 @@ def _name(msg: Any) -> str:
 
 def array(msg: Any, field: str, size: int, finite: bool = True) -> np.ndarray:
     """``msg.field`` as a float array of ``size`` entries (finite unless ``finite=False``)."""
+    values = getattr(msg, field)
     try:
-        a = np.asarray(getattr(msg, field), dtype=float)
+        a = np.asarray(values, dtype=float)
     except (TypeError, ValueError):
         raise MessageError('size', f'{_name(msg)}.{field} must be {size} numbers') from None
     if a.shape != (size,):
         raise MessageError('size', f'{_name(msg)}.{field} must have {size} entries, '
                            f'got {a.size}')
-    if finite and not np.isfinite(a).all():
+    if finite and not _all_finite(values, a):
         raise MessageError('non_finite', f'{_name(msg)}.{field} has non-finite '
                            f'entries: {a.tolist()}')
     return a
 
 
+#: Up to this many entries a field's finiteness is tested on its Python floats: a few us less
+#: per field than numpy's element-wise test, which costs more than the test itself.
+_SUM_TEST_MAX = 64
+
+
+def _all_finite(values: Any, a: np.ndarray) -> bool:
+    """Whether every entry of ``a`` (the float array of the field's ``values``) is finite.
+    A short ``array.array`` or list (how rclpy hands a message's float arrays over) is tested
+    by its sum, which is finite when every entry is unless it overflows; only a sum that is
+    not finite goes on to the element-wise test."""
+    if (type(values) is _array.array or type(values) is list) and len(values) <= _SUM_TEST_MAX:
+        try:
+            if math.isfinite(sum(values)):
+                return True
+        except OverflowError:       # a list of ints whose sum no float holds
+            pass
+    return bool(np.isfinite(a).all())
+
+
 def finite_scalar(msg: Any, field: str) -> float:
     v = float(getattr(msg, field))
-    if not np.isfinite(v):
+    if not math.isfinite(v):
         raise MessageError('non_finite', f'{_name(msg)}.{field} is not finite: {v}')
     return v
 

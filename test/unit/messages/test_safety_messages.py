@@ -14,6 +14,7 @@ from builtin_interfaces.msg import Time
 
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
+from haptic_topology.messages import check
 from haptic_topology.messages.check import MAX_SEQ, check_vt_path
 from haptic_topology.nodes.convert import (
     MessageError,
@@ -268,6 +269,21 @@ def test_huge_finite_values_are_finite_and_every_non_finite_kind_is_not() -> Non
     for bad in (math.inf, -math.inf, math.nan):
         with pytest.raises(MessageError, match='DeviceState.twist has non-finite'):
             state_from_msg(_state(twist=[1e200, bad, 0.0]), TASK)
+
+
+@pytest.mark.parametrize('kind', [list, np.array, lambda v: DeviceState(pose=v).pose])
+@pytest.mark.parametrize('size', [3, 64, 65, 400])
+def test_finiteness_holds_for_each_form_and_size_of_a_field(kind: Any, size: int) -> None:
+    """A float field as a list (a message built in Python), an rclpy ``array.array`` or a
+    numpy array (``rosbags``), short or long: finite entries whose sum overflows pass; one
+    inf, -inf or NaN among them, or a pair that cancels to NaN, never does."""
+    big = [1e308] * size
+    assert check.array(SimpleNamespace(pose=kind(big)), 'pose', size).tolist() == big
+    for bad in ([math.inf], [-math.inf], [math.nan], [math.inf, -math.inf]):
+        values = kind(bad + [1.0] * (size - len(bad)))
+        with pytest.raises(MessageError, match='SimpleNamespace.pose has non-finite') as err:
+            check.array(SimpleNamespace(pose=values), 'pose', size)
+        assert err.value.reason == 'non_finite'
 
 
 def test_finite_command_beyond_the_limit_is_clamped_not_rejected() -> None:
