@@ -226,11 +226,15 @@ LOOP_RUNS = (('hosted', 'hosted', False, False), ('separate', 'separate', False,
              ('hosted_partition', 'hosted', False, False),
              ('hosted_busy_partition', 'hosted', False, True),
              ('hosted_busy_partition_shared', 'hosted', False, True),
-             ('hosted_busy_off', 'hosted', False, True))
+             ('hosted_busy_off', 'hosted', False, True),
+             ('hosted_slack', 'hosted', False, False), ('hosted_mlock', 'hosted', False, False))
 #: Node parameters of a run of :data:`LOOP_RUNS` other than the config file's: the loop
 #: process with the kernel's default scheduler slice instead of ``sched_slice_us`` 100; the
 #: other nodes under normal scheduling instead of SCHED_BATCH (``sched_policy`` other); the
-#: VE and the recorder under SCHED_IDLE (``sched_policy`` idle; the driver keeps SCHED_BATCH).
+#: VE and the recorder under SCHED_IDLE (``sched_policy`` idle; the driver keeps SCHED_BATCH);
+#: the two real-time options that need no privilege and are off by default: a timer slack of
+#: 1 us instead of the kernel's 50 us (``timer_slack_ns``), and the loop's memory locked
+#: (``lock_memory``; where the OS refuses it the node warns and the run is without it).
 _IDLE = {node: {'sched_policy': 'idle'} for node in ('ve_sim', 'recorder')}
 RUN_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
     'hosted_slice0': {'device_driver': {'sched_slice_us': 0.0}},
@@ -238,6 +242,8 @@ RUN_PARAMS: dict[str, dict[str, dict[str, Any]]] = {
                        for node in ('device_driver', 've_sim', 'recorder')},
     'hosted_idle': _IDLE,
     'hosted_busy_idle': _IDLE,
+    'hosted_slack': {'device_driver': {'timer_slack_ns': 1000}},
+    'hosted_mlock': {'device_driver': {'lock_memory': True}},
 }
 
 
@@ -422,6 +428,8 @@ def goals(head: dict[str, Any]) -> str:
                       'pinned (run --loop-cpu off)', 0.995),
         _answered_row(h, 'hosted_fifo', 'loop process, SCHED_FIFO', 0.999),
         _answered_row(h, 'hosted_slice0', "loop process, the kernel's default slice", 0.999),
+        _answered_row(h, 'hosted_slack', 'loop process, timer slack 1 us', 0.999),
+        _answered_row(h, 'hosted_mlock', 'loop process, memory locked', 0.999),
         _answered_row(h, 'hosted_nobatch', 'loop process, the other nodes not SCHED_BATCH',
                       0.999),
         _answered_row(h, 'hosted_idle', 'loop process, VE and recorder SCHED_IDLE', 0.999),
