@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import importlib.metadata as md
 import json
+import math
 import os
 import platform
 import random
@@ -151,6 +152,9 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
         'max_distance_m': s['max_distance_m'],
         'final_distance_mm': 1e3 * s['final_distance_m'],
         'loop_cpu_changes': s.get('loop_cpu_changes'),
+        # how late the loop woke after its deadlines (NaN: the separate layout's timers)
+        'wake_late_p50_us': 1e3 * s.get('device_wake_late_p50_ms', float('nan')),
+        'wake_late_p99_us': 1e3 * s.get('device_wake_late_p99_ms', float('nan')),
     }
     cpu = {k: v for k, v in s.items() if k.startswith('cpu_')}
     out.update(cpu)
@@ -497,7 +501,7 @@ def goals(head: dict[str, Any]) -> str:
 
 def table(res: dict[str, Any]) -> str:
     lines = ['loop (1 kHz)          answered  ans.|prev  max miss  rtt p50/p99/max [us]      '
-             'period p50/p99/max [us]   CPU']
+             'period p50/p99/max [us]   wake late p50/p99 [us]  CPU']
     for key in ('baseline', 'baseline_fifo', *(k for k, _, _, _ in LOOP_RUNS)):
         if key not in res:
             continue
@@ -511,7 +515,8 @@ def table(res: dict[str, Any]) -> str:
             f'{(miss if miss is not None else float("nan")):8.0f}  '
             f'{r["rtt_p50_us"]:6.0f}/{r["rtt_p99_us"]:6.0f}/{r["rtt_max_us"]:7.0f}   '
             f'{r["period_p50_us"]:6.0f}/{r["period_p99_us"]:6.0f}/{r["period_max_us"]:7.0f}   '
-            f'{cpu}')
+            f'{r.get("wake_late_p50_us", math.nan):6.0f}/'
+            f'{r.get("wake_late_p99_us", math.nan):6.0f}           {cpu}')
     for key in (k for k, _, _, _ in LOOP_RUNS):
         changes = res.get(key, {}).get('loop_cpu_changes')
         if changes:     # run --loop-cpu auto pinned (or unpinned) the loop during the run

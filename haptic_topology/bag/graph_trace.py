@@ -376,6 +376,11 @@ def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndar
                 'overruns', 'max_consecutive_missed'):
         out[f'device_{key}'] = _float(dev, key)
     out['max_consecutive_missed'] = out.pop('device_max_consecutive_missed')
+    # How late the loop woke after its deadlines: a loop paced by deadlines (the hosted
+    # layouts) reports it; the separate layout's executor timers do not.
+    for key in ('wake_late_p50_ms', 'wake_late_p99_ms', 'wake_late_max_ms'):
+        if key in dev:
+            out[f'device_{key}'] = _float(dev, key)
     in_time = 0
     total = 0
     for a, b in zip(seqs[:-1], seqs[1:], strict=True):

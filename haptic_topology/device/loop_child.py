@@ -142,8 +142,9 @@ class _Child:
         self.runner = LoopRunner(self.cycle, spec.runner, sleep=self.sleep, wake=self.flush)
         # The statistics the node sorts for the percentiles, in memory it reads.
         self.arrays = [SharedArray.attach(spec.periods, PERIOD_WINDOW),
-                       SharedArray.attach(spec.round_trips, RTT_KEEP)]
-        self.runner.pacer.use_period_buffer(self.arrays[0].array)
+                       SharedArray.attach(spec.round_trips, RTT_KEEP),
+                       SharedArray.attach(spec.lateness, PERIOD_WINDOW)]
+        self.runner.pacer.use_period_buffer(self.arrays[0].array, self.arrays[2].array)
         self.device.use_round_trip_buffer(self.arrays[1].array)
         self.notices: list[str] = []
         self.stop = False

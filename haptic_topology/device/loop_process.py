@@ -143,6 +143,7 @@ class LoopSpec:
     generation: int           # the child's number: requests for an earlier one are ignored
     periods: str              # shared arrays the child's statistics live in (the node sorts
     round_trips: str          # them for the percentiles, never the loop)
+    lateness: str
 
 
 class LoopProcess:
@@ -192,13 +193,15 @@ class LoopProcess:
             }
             self._fds = (os.eventfd(0, os.EFD_NONBLOCK), os.eventfd(0, os.EFD_NONBLOCK))
             self._arrays = {'periods': SharedArray.create(PERIOD_WINDOW),
-                            'round_trips': SharedArray.create(RTT_KEEP)}
+                            'round_trips': SharedArray.create(RTT_KEEP),
+                            'lateness': SharedArray.create(PERIOD_WINDOW)}
         assert self._fds is not None
         spec = LoopSpec(**self._spec, rings={k: r.name for k, r in self._rings.items()},
                         update_bytes=self._update_bytes, wake_node=self._fds[0],
                         wake_child=self._fds[1], parent=os.getpid(),
                         generation=self.generation, periods=self._arrays['periods'].name,
-                        round_trips=self._arrays['round_trips'].name)
+                        round_trips=self._arrays['round_trips'].name,
+                        lateness=self._arrays['lateness'].name)
         # This node's session (as haptic-topology run starts every node), a process group of
         # its own: under the kernel's autogroup the scheduler weighs the loop thread against
         # the nodes' threads directly, by nice, SCHED_BATCH and its slice (docs/nodes.md).
@@ -384,11 +387,13 @@ class LoopProcess:
         return int(self.status.get('lockstep_timeouts', 0))
 
     def _percentiles(self, values: dict[str, str]) -> dict[str, str]:
-        """``values`` with the period and round-trip percentiles (ms) of the child's shared
-        statistics (the child reports them as NaN: sorting is this process's job)."""
+        """``values`` with the period, wake-up lateness and round-trip percentiles (ms) of the
+        child's shared statistics (the child reports them as NaN: sorting is this process's
+        job)."""
         out = dict(values)
         for name, n_key, keys in (
                 ('periods', 'n_periods', ('period', 'loop_period')),
+                ('lateness', 'n_periods', ('wake_late', 'loop_wake_late')),
                 ('round_trips', 'n_round_trips', ('round_trip',))):
             arr = self._arrays.get(name)
             n = min(int(self.status.get(n_key, 0)), 0 if arr is None else arr.array.size)

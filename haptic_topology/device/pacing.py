@@ -32,8 +32,10 @@ released at 0 and its work takes 3.5 ms; ``wait()`` at 3.5 ms returns at once wi
 ``wait()`` sleeps until 4 ms.
 
 Statistics (:meth:`DeadlinePacer.figures`): cycles, missed deadlines, the longest miss run,
-and the measured period (time between releases): p50/p99 over the last ``window`` periods (a
-ring buffer allocated once), max over the pacer's life.
+the measured period (time between releases) and the wake-up lateness (how long after its
+deadline a cycle was released, as cyclictest measures a timer's latency): p50/p99 over the
+last ``window`` releases (ring buffers allocated once; the first release after
+:meth:`~DeadlinePacer.start` has no period and is not counted), max over the pacer's life.
 """
 
 from __future__ import annotations
@@ -70,7 +72,9 @@ class PacerFigures:
     """Pacing figures: ``cycles`` released, ``missed`` deadlines skipped in all,
     ``max_missed_run`` (consecutive skipped deadlines), measured period (s): ``period_p50``
     and ``period_p99`` over the last ``window`` periods, ``period_max`` over the run,
-    ``period_mean`` over the window (NaN before two cycles)."""
+    ``period_mean`` over the window (NaN before two cycles); the wake-up lateness (s, a
+    :class:`PacerTick`'s ``late``) ``late_p50`` and ``late_p99`` over the same releases,
+    ``late_max`` over the run."""
 
     cycles: int
     missed: int
@@ -79,9 +83,12 @@ class PacerFigures:
     period_p99: float
     period_max: float
     period_mean: float = math.nan
+    late_p50: float = math.nan
+    late_p99: float = math.nan
+    late_max: float = math.nan
 
     def values(self, prefix: str = '') -> dict[str, str]:
-        """As diagnostics key/values (periods in ms)."""
+        """As diagnostics key/values (periods and lateness in ms)."""
         return {
             f'{prefix}cycles': str(self.cycles),
             f'{prefix}missed_deadlines': str(self.missed),
@@ -89,6 +96,9 @@ class PacerFigures:
             f'{prefix}period_p50_ms': f'{1e3 * self.period_p50:.3f}',
             f'{prefix}period_p99_ms': f'{1e3 * self.period_p99:.3f}',
             f'{prefix}period_max_ms': f'{1e3 * self.period_max:.3f}',
+            f'{prefix}wake_late_p50_ms': f'{1e3 * self.late_p50:.3f}',
+            f'{prefix}wake_late_p99_ms': f'{1e3 * self.late_p99:.3f}',
+            f'{prefix}wake_late_max_ms': f'{1e3 * self.late_max:.3f}',
         }
 
 
@@ -122,8 +132,10 @@ class DeadlinePacer:
         self._index = -1
         self._last_now: float | None = None
         self._periods = np.zeros(window)
+        self._late = np.zeros(window)       # the wake-up lateness, slot for slot
         self._n_periods = 0
         self.period_max = math.nan
+        self.late_max = math.nan
         self.cycles = 0
         self.missed = 0
         self.max_missed_run = 0
@@ -176,42 +188,59 @@ class DeadlinePacer:
             while j > k and self.deadline(j) > now:
                 j -= 1
         missed = j - k
+        late = now - self.deadline(j)
         if self._last_now is None:
             dt = self.period
         else:
             dt = now - self._last_now
-            self._periods[self._n_periods % self._periods.size] = dt
+            slot = self._n_periods % self._periods.size
+            self._periods[slot] = dt
+            self._late[slot] = late
             self._n_periods += 1
             self.period_max = dt if math.isnan(self.period_max) else max(self.period_max, dt)
+            self.late_max = late if math.isnan(self.late_max) else max(self.late_max, late)
         self._index = j
         self._last_now = now
         self.cycles += 1
         self.missed += missed
         self.max_missed_run = max(self.max_missed_run, missed)
-        return PacerTick(j, now, dt, missed, now - self.deadline(j))
+        return PacerTick(j, now, dt, missed, late)
 
     @property
     def periods(self) -> tuple[np.ndarray, int]:
         """The measured-period buffer (s, a ring of the newest) and how many it has held."""
         return self._periods, self._n_periods
 
-    def use_period_buffer(self, buf: np.ndarray) -> None:
-        """Keep the measured periods in ``buf`` (float64, the window's size; e.g. shared
-        memory that another process reads, so the loop never sorts them itself)."""
-        if buf.shape != self._periods.shape or buf.dtype != np.float64:
-            raise ConfigError(f'period buffer must be {self._periods.size} float64, got '
-                              f'{buf.shape} {buf.dtype}')
+    @property
+    def lateness(self) -> np.ndarray:
+        """The wake-up lateness buffer (s), slot for slot with the period buffer of
+        :attr:`periods` (and counted by it)."""
+        return self._late
+
+    def use_period_buffer(self, buf: np.ndarray, late: np.ndarray | None = None) -> None:
+        """Keep the measured periods in ``buf`` and the wake-up lateness in ``late`` (None:
+        a buffer of this pacer's own), both float64 of the window's size; e.g. shared memory
+        that another process reads, so the loop never sorts them itself."""
+        late = np.zeros_like(self._late) if late is None else late
+        for name, b in (('period', buf), ('lateness', late)):
+            if b.shape != self._periods.shape or b.dtype != np.float64:
+                raise ConfigError(f'{name} buffer must be {self._periods.size} float64, got '
+                                  f'{b.shape} {b.dtype}')
         buf[:] = 0.0
-        self._periods, self._n_periods = buf, 0
+        late[:] = 0.0
+        self._periods, self._late, self._n_periods = buf, late, 0
 
     def figures(self, percentiles: bool = True) -> PacerFigures:
         """The pacing figures so far (see :class:`PacerFigures`; ``percentiles=False``: NaN
         for p50 and p99, which sort the window: milliseconds for a minute of periods)."""
         n = min(self._n_periods, self._periods.size)
         p = self._periods[:n]
-        p50, p99 = ((float(v) for v in np.percentile(p, [50, 99])) if n and percentiles
-                    else (math.nan, math.nan))
+        p50 = p99 = l50 = l99 = math.nan
+        if n and percentiles:
+            p50, p99 = (float(v) for v in np.percentile(p, [50, 99]))
+            l50, l99 = (float(v) for v in np.percentile(self._late[:n], [50, 99]))
         return PacerFigures(self.cycles, self.missed, self.max_missed_run, p50, p99,
-                            self.period_max, float(p.mean()) if n else math.nan)
+                            self.period_max, float(p.mean()) if n else math.nan, l50, l99,
+                            self.late_max)
 
 

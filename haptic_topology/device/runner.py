@@ -319,8 +319,8 @@ class LoopRunner:
     def device_values(self, percentiles: bool = True) -> dict[str, str]:
         """The device's period and answer figures as the separate layout's ``device_driver``
         reports them, from the loop thread's pacing: the measured period as ``period_*``,
-        skipped deadlines as ``overruns`` and as cycles not answered in time; with
-        :meth:`values`."""
+        skipped deadlines as ``overruns`` and as cycles not answered in time, and how late
+        the loop woke after its deadlines as ``wake_late_*``; with :meth:`values`."""
         f = self.pacer.figures(percentiles)
         out = self.values(f)
         answered, expected = self.answered_in_time()
@@ -328,6 +328,9 @@ class LoopRunner:
                     'period_p50_ms': f'{1e3 * f.period_p50:.3f}',
                     'period_p99_ms': f'{1e3 * f.period_p99:.3f}',
                     'period_max_ms': f'{1e3 * f.period_max:.3f}',
+                    'wake_late_p50_ms': f'{1e3 * f.late_p50:.3f}',
+                    'wake_late_p99_ms': f'{1e3 * f.late_p99:.3f}',
+                    'wake_late_max_ms': f'{1e3 * f.late_max:.3f}',
                     'overruns': str(self.missed_deadlines), 'cycles': str(f.cycles),
                     'answered_fraction': f'{answered / expected:.5f}' if expected else 'nan',
                     'answer_expected': str(expected),

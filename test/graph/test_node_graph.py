@@ -292,7 +292,7 @@ def test_run_command_composed(tmp_path: Path) -> None:
 def test_run_command_with_a_scenario_file(tmp_path: Path) -> None:
     """``haptic-topology run FILE``: a scenario file of a name no built-in scenario has runs
     and is analysed against its own linkage; the summary has every process's CPU and
-    resident set."""
+    resident set, and the loop's wake-up lateness."""
     doc = yaml.safe_load((config_dir() / 'scenarios' / 'fig8.yaml').read_text())
     doc['scenario']['name'] = 'my_fig8'
     scenario = tmp_path / 'mine.yaml'
@@ -307,3 +307,6 @@ def test_run_command_with_a_scenario_file(tmp_path: Path) -> None:
     summary = json.loads((bag / 'summary.json').read_text())
     assert summary['scenario'] == 'my_fig8'
     assert summary['rss_mb_composed'] > 0.0 and summary['cpu_composed'] > 0.0
+    # The loop sleeps to absolute deadlines: how late it woke, never before a deadline.
+    late = [summary[f'device_wake_late_{q}_ms'] for q in ('p50', 'p99', 'max')]
+    assert 0.0 <= late[0] <= late[1] <= late[2], late

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 import pytest
 
 from haptic_topology.device.pacing import DeadlinePacer, PacerFigures, PacerTick
@@ -61,7 +62,8 @@ def test_on_time_cycles_sleep_to_each_deadline() -> None:
     assert ft.sleeps == [3 * P / 4] * 4
     f = p.figures()
     assert f == PacerFigures(cycles=5, missed=0, max_missed_run=0, period_p50=P,
-                             period_p99=P, period_max=P, period_mean=P)
+                             period_p99=P, period_max=P, period_mean=P, late_p50=0.0,
+                             late_p99=0.0, late_max=0.0)
 
 
 def test_module_doc_example_at_1ms() -> None:
@@ -131,6 +133,9 @@ def test_drift_free_at_1ms() -> None:
     # Each release one overshoot after its own deadline, the last one included.
     assert max(abs(v - 3e-5) for v in lateness[1:]) < 1e-12
     assert tick.now == pytest.approx(9.999 + 3e-5, abs=1e-12)
+    f = p.figures()           # the releases after the first: each one overshoot late
+    for late in (f.late_p50, f.late_p99, f.late_max):
+        assert late == pytest.approx(3e-5, abs=1e-12)
 
 
 def test_consecutive_miss_runs() -> None:
@@ -190,11 +195,37 @@ def test_period_figures_use_a_bounded_window_and_the_run_max() -> None:
         p.wait()                        # dt 0.5 P, then P x 4
     f = p.figures()
     assert (f.period_p50, f.period_p99, f.period_max) == (P, P, 2.5 * P)
+    # The release 0.5 P after its deadline has left the window of lateness too; its max stays.
+    assert (f.late_p50, f.late_p99, f.late_max) == (0.0, 0.0, 0.5 * P)
     assert f.values('pacer_') == {
         'pacer_cycles': '7', 'pacer_missed_deadlines': '1',
         'pacer_max_consecutive_missed_deadlines': '1',
         'pacer_period_p50_ms': f'{1e3 * P:.3f}', 'pacer_period_p99_ms': f'{1e3 * P:.3f}',
-        'pacer_period_max_ms': f'{2.5e3 * P:.3f}'}
+        'pacer_period_max_ms': f'{2.5e3 * P:.3f}', 'pacer_wake_late_p50_ms': '0.000',
+        'pacer_wake_late_p99_ms': '0.000', 'pacer_wake_late_max_ms': f'{0.5e3 * P:.3f}'}
+
+
+def test_lateness_figures_are_the_releases_after_their_deadlines() -> None:
+    """Each release's lateness is kept slot for slot with its period, in the buffers a
+    caller hands over (e.g. shared memory); the first release after start has neither."""
+    ft = FakeTime()
+    p = pacer(ft, window=8)
+    periods, late = np.full(8, 9.0), np.full(8, 9.0)
+    p.use_period_buffer(periods, late)
+    assert not periods.any() and not late.any()
+    p.wait()
+    for k in range(1, 7):               # released 0, S, ..., 5 S after deadlines 1..6
+        ft.work(P + (k - 1) * S - (ft.t - (k - 1) * P))
+        tick = p.wait()
+        assert (tick.index, tick.late) == (k, (k - 1) * S)
+    assert late[:6].tolist() == [k * S for k in range(6)] and not late[6:].any()
+    assert p.lateness is late and p.periods == (periods, 6)
+    f = p.figures()
+    assert (f.late_p50, f.late_max) == (2.5 * S, 5 * S)
+    assert f.late_p99 == pytest.approx(4.95 * S, abs=1e-15)
+    assert math.isnan(p.figures(percentiles=False).late_p50)
+    with pytest.raises(ConfigError, match=r'lateness buffer must be 8 float64, got \(4,\)'):
+        p.use_period_buffer(np.zeros(8), np.zeros(4))
 
 
 @pytest.mark.parametrize(('kwargs', 'message'), [

@@ -133,12 +133,18 @@ def test_a_killed_child_is_a_fault_and_close_leaves_no_segment() -> None:
     proc.start()
     names = proc.ring_names()
     try:
-        assert len(_segments(names)) == 6     # 4 rings, 2 statistics arrays
+        assert len(_segments(names)) == 7     # 4 rings, 3 statistics arrays
         deadline = time.monotonic() + 30.0
         while not proc.status and time.monotonic() < deadline:     # running: reports
             proc.wait(0.05)
             proc.drain()
         assert proc.status and proc.error is None
+        while int(proc.status.get('n_periods', 0)) < 10 and time.monotonic() < deadline:
+            proc.wait(0.05)
+            proc.drain()
+        # How late the child woke after its deadlines, sorted here from the shared array.
+        late = [float(proc.device_values()[f'wake_late_{q}_ms']) for q in ('p50', 'p99', 'max')]
+        assert 0.0 <= late[0] <= late[1] <= late[2], late
         # This process's session (one autogroup with the node's threads), a process group of
         # its own (the terminal's Ctrl-C is not for it).
         assert os.getsid(proc.pid or 0) == os.getsid(0)
@@ -187,7 +193,7 @@ def test_a_killed_parent_stops_the_child_with_zero_output_and_no_segment_left() 
         first = parent.stdout.readline().split()
         child, names = int(first[0]), first[1:]
         fd = pidfd(child)               # that process, whatever later takes its number
-        assert len(_segments(names)) == 6     # 4 rings, 2 statistics arrays
+        assert len(_segments(names)) == 7     # 4 rings, 3 statistics arrays
     finally:
         parent.kill()                   # also when a check above failed: never leak it
         parent.wait()
