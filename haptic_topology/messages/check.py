@@ -225,6 +225,9 @@ def array(msg: Any, field: str, size: int, finite: bool = True) -> np.ndarray:
         a = np.asarray(values, dtype=float)
     except (TypeError, ValueError):
         raise MessageError('size', f'{_name(msg)}.{field} must be {size} numbers') from None
+    except OverflowError:
+        raise MessageError('non_finite', f'{_name(msg)}.{field} has entries beyond the '
+                           'float range') from None
     if a.shape != (size,):
         raise MessageError('size', f'{_name(msg)}.{field} must have {size} entries, '
                            f'got {a.size}')
@@ -248,7 +251,7 @@ def _all_finite(values: Any, a: np.ndarray) -> bool:
         try:
             if math.isfinite(sum(values)):
                 return True
-        except OverflowError:       # a list of ints whose sum no float holds
+        except (TypeError, OverflowError):  # text, or ints whose sum no float holds
             pass
     return bool(np.isfinite(a).all())
 

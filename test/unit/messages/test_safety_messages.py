@@ -286,6 +286,21 @@ def test_finiteness_holds_for_each_form_and_size_of_a_field(kind: Any, size: int
         assert err.value.reason == 'non_finite'
 
 
+def test_numbers_given_as_text_or_huge_ints_get_a_verdict_not_an_exception() -> None:
+    """A list whose Python sum fails (text that numpy reads as a number) gets numpy's
+    verdict; an int beyond any float is refused as non-finite, not raised as an
+    OverflowError."""
+    ok = SimpleNamespace(pose=['1.5', 2, 3.0])
+    assert check.array(ok, 'pose', 3).tolist() == [1.5, 2.0, 3.0]
+    ints = SimpleNamespace(pose=[10 ** 308, 10 ** 308])    # each a float, their sum none
+    assert check.array(ints, 'pose', 2).tolist() == [1e308, 1e308]
+    with pytest.raises(MessageError, match='pose has non-finite entries: \\[inf, 2.0, 3.0\\]'):
+        check.array(SimpleNamespace(pose=['inf', 2, 3.0]), 'pose', 3)
+    with pytest.raises(MessageError, match='pose has entries beyond the float range') as err:
+        check.array(SimpleNamespace(pose=[10 ** 400, 0]), 'pose', 2)
+    assert err.value.reason == 'non_finite'
+
+
 def test_finite_command_beyond_the_limit_is_clamped_not_rejected() -> None:
     """A large finite wrench is the device's job (saturate, status SATURATED)."""
     assert command_from_msg(_command(wrench=[1e9, -1e9, 0.0]), TASK)[2][0] == 1e9
