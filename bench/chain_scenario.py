@@ -6,7 +6,9 @@ The chain is :func:`~haptic_topology.model.linkage.serial_chain` (the chain of
 scenario's device, user and gains, the user's circle centred on the chain's hand at ``q0``
 (the device starts there). Spatial: the ``spatial_arm4`` scenario's device, user, gains and
 LMI (eq. 20, no gravity), without its workspace stops (they are placed for that arm), with
-the coordination spring on the VT (as ``circle``: the VT follows the device).
+the coordination spring on the VT (as ``circle``: the VT follows the device) and ``circle``'s
+user (a 15 mm circle in x-y, 4 s per turn) about the device's initial pose, so that the
+motion stays bounded for any duration.
 ``python bench/chain_scenario.py N planar|spatial DIR`` writes one and prints its path.
 """
 
@@ -46,6 +48,11 @@ def write_chain_scenario(n: int, task: TaskSpace, folder: Path, duration: float 
     else:
         sc['device'].pop('workspace', None)
         sc['ve']['vt_coupling'] = True      # the VT follows the device, as in circle
+        # circle's hand, about the device's initial pose (the chain's hand): spatial_arm4's
+        # constant push, without that arm's stops, would drive the device off for ever
+        sc['user'] = {'type': 'spring_damper', 'path': 'circle', 'radius': 0.015,
+                      'period': 4.0, 'stiffness': [300.0] * 3 + [0.0] * 3,
+                      'damping': [30.0] * 3 + [0.0] * 3}
     path = folder / f'{name}_scenario.yaml'
     path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding='utf-8')
     return path
