@@ -59,3 +59,8 @@ class WaitTimeout(HapticTopologyError):
 
 class BringupError(HapticTopologyError):
     """A node of the graph failed to start, or the loop never closed."""
+
+
+class SimulationError(HapticTopologyError):
+    """The virtual environment's state left what it can model (e.g. it is no longer finite:
+    the integration diverged)."""

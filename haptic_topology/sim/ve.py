@@ -28,6 +28,7 @@ from haptic_topology.dynamics.linkage_dynamics import (
 )
 from haptic_topology.dynamics.rk4 import rk4_step
 from haptic_topology.dynamics.taskspace import pose_difference
+from haptic_topology.errors import SimulationError
 from haptic_topology.validate import as_bool, as_float, check_keys
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
@@ -318,7 +319,16 @@ class VirtualEnvironment:
         self.hand_input_seq = -1
 
     def snapshot(self, seq: int) -> LmiSnapshot:
-        """The LMI update for the current state (eqs. 17-19)."""
+        """The LMI update for the current state (eqs. 17-19); a state that is no longer
+        finite (the integration diverged) is a :class:`~haptic_topology.errors.SimulationError`
+        naming when, never an update."""
+        if not (np.isfinite(self.q).all() and np.isfinite(self.dq).all()):
+            raise SimulationError(
+                f'VE state not finite at t = {self.time:.6g} s (hand input '
+                f'{self.hand_input_seq}): the integration of eq. 2 diverged (q = '
+                f'{self.q.tolist()[:6]}{" ..." if self.q.size > 6 else ""}); the inputs drove '
+                'the linkage beyond what it can model (an unbounded hand wrench, or an '
+                'internal_step too long for its inertias)')
         j6, pose = self._hand_now()
         snap = self.dyn.snapshot(self.q, self.dq, (j6, pose.copy()))
         local = None if self.contacts is None else self.contacts.local(self.q)

@@ -15,6 +15,7 @@ import pinocchio as pin
 import pytest
 
 from haptic_topology.dynamics import LinkageDynamics
+from haptic_topology.errors import SimulationError
 from haptic_topology.model import load_linkage, serial_chain
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.ve import VirtualEnvironment
@@ -144,3 +145,21 @@ def test_world_aba_equals_local_aba(name: str) -> None:
         local = dyn.forward_dynamics(q, dq, tau)
         world = pin.aba(dyn.model, dyn.data, q, dq, tau, pin.Convention.WORLD)
         np.testing.assert_allclose(world, local, rtol=0, atol=1e-9 * np.abs(local).max())
+
+
+def test_a_diverged_state_is_refused_with_when_never_sent_as_an_update() -> None:
+    """Once the integration has left the finite numbers, snapshot names the time and the
+    input instead of failing inside an SVD of NaN (or sending NaN to the controller)."""
+    dyn = _linkage('table1_planar3')
+    ve = VirtualEnvironment(dyn, np.array([0.0, math.pi / 2, -math.pi / 2]), np.zeros(3),
+                            internal_step=1e-3)
+    ve.snapshot(seq=0)
+    ve.push_input(1, 0.0, np.zeros(3))
+    ve.push_input(2, 0.001, np.array([math.inf, 0.0, 0.0]))
+    with np.errstate(invalid='ignore'):        # inf * 0 in J^T F: NaN, as a blow-up gives
+        ve.push_input(3, 0.002, np.zeros(3))   # integrates the infinite wrench for 1 ms
+    assert not np.isfinite(ve.q).all()
+    with pytest.raises(SimulationError,
+                       match=r'VE state not finite at t = 0\.002 s \(hand input 2\): the '
+                       r'integration of eq\. 2 diverged'):
+        ve.snapshot(seq=1)
