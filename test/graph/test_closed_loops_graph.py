@@ -73,15 +73,18 @@ def test_a_wall_clock_run_renders_the_closed_loop(
         key: tuple[str, str, str, str, float]) -> None:
     """What holds on any machine: the loop ran, the controller took the reduced LMI updates
     (constraint counts among those simulate's run of the whole scenario has: 2 for the
-    four-bar, 1-2 for the five-bar at its distal joint, 5 for the Bennett linkage) and its
-    forces stayed finite and within the device's limits."""
+    four-bar, 1-2 for the five-bar at its distal joint, 5 for the Bennett linkage), its
+    commands stayed finite and what the device applied stayed within its limits (a command
+    may ask for more: the device clamps it, status SATURATED; how often depends on the
+    machine's timing)."""
     scenario, mode, _, _, _ = key
     sc = load_scenario(scenario)
     trace = runs[key].trace
     assert len(trace) > 100
-    command = trace.columns['command']
-    assert np.all(np.isfinite(command))
-    assert np.all(np.abs(command) <= sc.device.wrench_limit + 1e-12)
+    assert np.all(np.isfinite(trace.columns['command']))
+    applied = trace.columns['applied']
+    assert np.all(np.isfinite(applied))
+    assert np.all(np.abs(applied) <= sc.device.wrench_limit + 1e-12)
     counts = trace.columns['lmi_constraint_count']
     offline = simulate(sc, ControlMode.parse(mode)).columns['lmi_constraint_count']
     assert set(counts[~np.isnan(counts)]) <= set(offline[~np.isnan(offline)])
