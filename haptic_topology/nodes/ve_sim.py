@@ -231,8 +231,7 @@ class VeSim(Node):
             'viz_rejected_states': str(self.viz.rejected_states),
             **matched(self._endpoints),
         })
-        ok = all(math.isfinite(v) for v in self.ve.q)
-        problem = None if ok else 'VE state not finite'
+        problem = None if self.ve.state_finite else 'VE state not finite'
         problem = problem or self.input_publishers.problem()
         self.diag_pub.publish(diagnostics(self, 've_sim: loop', values, 2 if problem else 0,
                                           problem or 'ok'))

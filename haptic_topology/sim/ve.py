@@ -318,11 +318,16 @@ class VirtualEnvironment:
         self._held = None
         self.hand_input_seq = -1
 
+    @property
+    def state_finite(self) -> bool:
+        """Whether ``q`` and ``dq`` are finite (False: the integration diverged)."""
+        return bool(np.isfinite(self.q).all() and np.isfinite(self.dq).all())
+
     def snapshot(self, seq: int) -> LmiSnapshot:
         """The LMI update for the current state (eqs. 17-19); a state that is no longer
         finite (the integration diverged) is a :class:`~haptic_topology.errors.SimulationError`
         naming when, never an update."""
-        if not (np.isfinite(self.q).all() and np.isfinite(self.dq).all()):
+        if not self.state_finite:
             raise SimulationError(
                 f'VE state not finite at t = {self.time:.6g} s (hand input '
                 f'{self.hand_input_seq}): the integration of eq. 2 diverged (q = '
