@@ -1,9 +1,9 @@
 """``haptic-topology``: the project's command line.
 
 Subcommands are registered in :data:`COMMANDS`; each is a :class:`Command` with a function that
-adds its arguments and a function that runs it and returns the exit status. Later work adds
-``simulate``, ``run``, ``replay`` and ``analyze`` the same way. Only implemented subcommands are
-listed.
+adds its arguments and a function that runs it and returns the exit status. ``kill -USR1`` of
+a running command writes every thread's Python stack to its stderr
+(:func:`haptic_topology.processes.stacks_on_signal`), as it does for the node processes.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from haptic_topology.bag import repair as bag_command
 from haptic_topology.bag import replay as replay_plan
 from haptic_topology.bringup import run as run_command
 from haptic_topology.errors import HapticTopologyError
+from haptic_topology.processes import stacks_on_signal
 from haptic_topology.remote import server_command as device_server_command
 from haptic_topology.sim import command as simulate_command
 
@@ -134,6 +135,7 @@ def build_parser(commands: Sequence[Command] = COMMANDS) -> argparse.ArgumentPar
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``haptic-topology`` console script; returns the exit status."""
     args = build_parser().parse_args(argv)
+    stacks_on_signal()
     run: Callable[[argparse.Namespace], int] = args._run
     try:
         return run(args)

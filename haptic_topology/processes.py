@@ -3,6 +3,7 @@ the benchmarks and the tests share."""
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 import subprocess
@@ -11,6 +12,17 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+#: The signal on which a process of this package writes every thread's Python stack to its
+#: stderr (a node's: its log) and goes on: ``kill -USR1 PID`` shows where a run hangs.
+STACKS_SIGNAL = signal.SIGUSR1
+
+
+def stacks_on_signal() -> None:
+    """Have :data:`STACKS_SIGNAL` write every thread's Python stack to stderr
+    (:func:`faulthandler.register`: written from the signal handler, no GIL needed, so a
+    thread stuck holding it shows too)."""
+    faulthandler.register(STACKS_SIGNAL, all_threads=True)
 
 
 def stat_fields(path: str) -> list[str] | None:

@@ -50,6 +50,7 @@ from haptic_topology.device.records import CycleCodec, bytes_dtype, payloads, pu
 from haptic_topology.device.runner import LoopRunner
 from haptic_topology.device.shm_ring import SharedArray, ShmRing
 from haptic_topology.device.watchdog import CommandWatchdog
+from haptic_topology.processes import stacks_on_signal
 
 #: Wall clock: an LMI update is applied between two cycles only while at least this long (s)
 #: is left before the next deadline; its decoding and re-sync take 0.1-0.2 ms here, and one
@@ -282,6 +283,7 @@ def child_main() -> int:
             child.parent_gone = child.stop = True
             child.runner.request_stop()
 
+    stacks_on_signal()
     signal.signal(signal.SIGTERM, on_term)            # before the signal can come
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the node's Ctrl-C stops us by request
     set_parent_death_signal(signal.SIGTERM)

@@ -35,6 +35,7 @@ from haptic_topology.device.realtime import (
 from haptic_topology.errors import ConfigError, HapticTopologyError
 from haptic_topology.nodes.dds_env import localhost_discovery_default
 from haptic_topology.nodes.parameters import check_config_args
+from haptic_topology.processes import stacks_on_signal
 from haptic_topology.sampling import dump_now, start_from_env
 
 
@@ -121,6 +122,7 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
     """
     argv = list(sys.argv if args is None else args)
     localhost_discovery_default(os.environ)
+    stacks_on_signal()
     start_from_env()
     fix_mmap_threshold()        # before rclpy.init and the nodes: RSS stays flat over hours
     if params is not None:

@@ -17,9 +17,11 @@ import json
 import os
 import secrets
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -27,12 +29,16 @@ import numpy as np
 import pytest
 
 from haptic_topology.bringup.options import node_prefixes
+from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import ConfigError
 from haptic_topology.net import delay_bridge
 from haptic_topology.net.delay_bridge import DelayLine, DirectionStats, LinkSettings, figures
+from haptic_topology.processes import STACKS_SIGNAL, cmdline
 
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / 'scripts' / 'two_hosts.sh'
+#: The processes that write their stacks on STACKS_SIGNAL once started (others die of it).
+STACK_DUMPERS = ('bin/haptic-topology', 'haptic_topology.nodes.', CHILD_MODULE)
 
 
 # -- the delay line (no privileges) ---------------------------------------------------------
@@ -117,6 +123,64 @@ def _namespaces() -> set[str]:
     return {line.split()[0] for line in out.splitlines() if line.strip()}
 
 
+def _script(args: list[str], env: dict[str, str], bag: Path,
+            timeout: float = 200.0) -> subprocess.CompletedProcess[str]:
+    """``two_hosts.sh ARGS`` in a session of its own, its output kept in ``bag``'s
+    directory. Past ``timeout`` s the test fails with what there is to know of where it
+    hung: every thread's stack of its ``haptic-topology`` commands, nodes and loop process
+    (SIGUSR1), then, after a Ctrl-C to the whole session (the script takes its namespaces
+    down, ``run`` stops the nodes and copies their logs into the bag), its output and the
+    end of each node's log."""
+    out_path = bag.parent / f'{bag.name}.out'
+    env = dict(env, PYTHONUNBUFFERED='1')
+    with out_path.open('wb') as out:
+        p = subprocess.Popen(['bash', str(SCRIPT), *args], env=env, cwd=REPO, stdout=out,
+                             stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        code = p.wait(timeout)
+    except subprocess.TimeoutExpired:
+        for pid in _session(p.pid):
+            if (any(m in ' '.join(cmdline(pid)) for m in STACK_DUMPERS)
+                    and _catches(pid, STACKS_SIGNAL)):      # not one still starting up
+                os.kill(pid, STACKS_SIGNAL)
+        time.sleep(2.0)
+        os.killpg(p.pid, signal.SIGINT)
+        try:
+            p.wait(60.0)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+        logs = ''.join(f'\n--- {f.name} (end) ---\n' + f.read_text(errors='replace')[-4000:]
+                       for f in sorted((bag / 'logs').glob('*.log')))
+        pytest.fail(f'two_hosts.sh {" ".join(args)}: not done within {timeout:g} s; its '
+                    f'output:\n{out_path.read_text(errors="replace")[-6000:]}{logs}')
+    return subprocess.CompletedProcess(p.args, code, out_path.read_text(errors='replace'), '')
+
+
+def _catches(pid: int, sig: int) -> bool:
+    """Whether process ``pid`` has a handler for ``sig`` (``SigCgt`` of its status)."""
+    try:
+        status = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return False
+    mask = next((int(line.split()[1], 16) for line in status.splitlines()
+                 if line.startswith('SigCgt:')), 0)
+    return bool(mask >> (sig - 1) & 1)
+
+
+def _session(sid: int) -> list[int]:
+    """The processes of session ``sid``."""
+    pids = []
+    for entry in os.listdir('/proc'):
+        if entry.isdigit():
+            try:
+                if os.getsid(int(entry)) == sid:
+                    pids.append(int(entry))
+            except OSError:
+                pass
+    return pids
+
+
 @pytest.fixture
 def prefix(tmp_path: Path) -> Iterator[str]:
     """Namespace prefix unique to this test; whatever it leaves is torn down afterwards."""
@@ -138,11 +202,9 @@ def test_ve_in_another_namespace_behind_a_delayed_link(prefix: str, tmp_path: Pa
 
     bag = tmp_path / 'bag'
     env = dict(os.environ, HT_PREFIX=prefix, HT_STATE=str(tmp_path / 'state'), OUT=str(bag))
-    done = subprocess.run(['bash', str(SCRIPT), 'run', 'fig8', '5', '--duration', '2',
-                           '--no-plot'], env=env, cwd=REPO, capture_output=True, text=True,
-                          timeout=200)
+    done = _script(['run', 'fig8', '5', '--duration', '2', '--no-plot'], env, bag)
     assert not {ns for ns in _namespaces() if ns.startswith(prefix)}, 'namespaces left'
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert done.returncode == 0, done.stdout[-6000:]
 
     # The graph ran, and the VE's updates crossed the link into the recorder's bag.
     summary = json.loads((bag / 'summary.json').read_text())
@@ -184,11 +246,9 @@ def test_device_server_in_another_namespace_behind_a_lossy_link(prefix: str,
     bag = tmp_path / 'bag'
     env = dict(os.environ, HT_PREFIX=prefix, HT_STATE=str(tmp_path / 'state'), OUT=str(bag),
                HT_LOSS='0.01')
-    done = subprocess.run(['bash', str(SCRIPT), 'run-device', 'fig8', '1', '--duration', '2',
-                           '--no-plot'], env=env, cwd=REPO, capture_output=True, text=True,
-                          timeout=200)
+    done = _script(['run-device', 'fig8', '1', '--duration', '2', '--no-plot'], env, bag)
     assert not {ns for ns in _namespaces() if ns.startswith(prefix)}, 'namespaces left'
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert done.returncode == 0, done.stdout[-6000:]
 
     # The loop ran through the remote device; what it applied is finite and within limits.
     assert json.loads((bag / 'summary.json').read_text())['samples'] > 0
