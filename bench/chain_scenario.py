@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -29,6 +30,13 @@ from haptic_topology.vocabulary import TaskSpace
 TEMPLATE = {TaskSpace.PLANAR: 'circle', TaskSpace.SPATIAL: 'spatial_arm4'}
 
 
+def _scenario_doc(name: str) -> dict[str, Any]:
+    """The scenario file ``name`` of the package, as YAML data."""
+    doc: dict[str, Any] = yaml.safe_load((config_dir() / 'scenarios' / f'{name}.yaml')
+                                         .read_text(encoding='utf-8'))
+    return doc
+
+
 def write_chain_scenario(n: int, task: TaskSpace, folder: Path, duration: float = 30.0,
                          seed: int = 1) -> Path:
     """Write ``chain<n>_<task>.yaml`` (linkage) and ``chain<n>_<task>_scenario.yaml`` into
@@ -37,8 +45,7 @@ def write_chain_scenario(n: int, task: TaskSpace, folder: Path, duration: float 
     link_path = folder / f'{name}.yaml'
     link_path.write_text(yaml.safe_dump(serial_chain_dict(n, task)), encoding='utf-8')
     q0 = np.random.default_rng(seed).uniform(-0.5, 0.5, n)
-    doc = yaml.safe_load((config_dir() / 'scenarios' / f'{TEMPLATE[task]}.yaml')
-                         .read_text(encoding='utf-8'))
+    doc = _scenario_doc(TEMPLATE[task])
     sc = doc['scenario']
     sc.update(name=name, linkage=link_path.name, q0=[float(v) for v in q0],
               dq0=[0.0] * n, duration=float(duration))
@@ -50,9 +57,10 @@ def write_chain_scenario(n: int, task: TaskSpace, folder: Path, duration: float 
         sc['ve']['vt_coupling'] = True      # the VT follows the device, as in circle
         # circle's hand, about the device's initial pose (the chain's hand): spatial_arm4's
         # constant push, without that arm's stops, would drive the device off for ever
-        sc['user'] = {'type': 'spring_damper', 'path': 'circle', 'radius': 0.015,
-                      'period': 4.0, 'stiffness': [300.0] * 3 + [0.0] * 3,
-                      'damping': [30.0] * 3 + [0.0] * 3}
+        user = _scenario_doc('circle')['scenario']['user']
+        k, b = user['stiffness'][0], user['damping'][0]     # its x row, on x, y and z
+        sc['user'] = {**{key: user[key] for key in ('type', 'path', 'radius', 'period')},
+                      'stiffness': [k] * 3 + [0.0] * 3, 'damping': [b] * 3 + [0.0] * 3}
     path = folder / f'{name}_scenario.yaml'
     path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding='utf-8')
     return path

@@ -98,6 +98,11 @@ class RunnerConfig:
         if self.outbox < 1:
             raise ConfigError(f'outbox must be >= 1 entry, got {self.outbox}')
 
+#: The pacer's figures the device reports under their own names (the separate layout's):
+#: the measured period and the wake-up lateness, p50 / p99 / max (ms).
+DEVICE_PACING_KEYS = tuple(f'{what}_{q}_ms' for what in ('period', 'wake_late')
+                           for q in ('p50', 'p99', 'max'))
+
 
 class Published(NamedTuple):
     """One outbox entry: the cycle ``step`` and its state's stamp ``stamp_ns`` (integer ns,
@@ -324,13 +329,9 @@ class LoopRunner:
         f = self.pacer.figures(percentiles)
         out = self.values(f)
         answered, expected = self.answered_in_time()
+        pacing = f.values()
+        out.update({key: pacing[key] for key in DEVICE_PACING_KEYS})
         out.update({'rate_hz': f'{1.0 / f.period_mean:.1f}' if f.period_mean > 0 else '0',
-                    'period_p50_ms': f'{1e3 * f.period_p50:.3f}',
-                    'period_p99_ms': f'{1e3 * f.period_p99:.3f}',
-                    'period_max_ms': f'{1e3 * f.period_max:.3f}',
-                    'wake_late_p50_ms': f'{1e3 * f.late_p50:.3f}',
-                    'wake_late_p99_ms': f'{1e3 * f.late_p99:.3f}',
-                    'wake_late_max_ms': f'{1e3 * f.late_max:.3f}',
                     'overruns': str(self.missed_deadlines), 'cycles': str(f.cycles),
                     'answered_fraction': f'{answered / expected:.5f}' if expected else 'nan',
                     'answer_expected': str(expected),
