@@ -240,6 +240,11 @@ class HandAdmission:
        predecessor to continue, and a copy of it from a sender with the graph's id, arriving
        first, was taken and the controller's own refused as its copy (``session``): the
        lock-step run waited for ever.
+    5. With ``complete`` also: a session's first batch starts at input 1 (every controller
+       numbers its inputs from 1, and every input arrives). Without it a copy of the
+       controller's *second* batch, arriving before its first (delayed on the wire), had no
+       predecessor to continue and was taken, the copies after it continued it, and the
+       controller's own batches were refused as copies: the VE integrated the copies.
     """
 
     def __init__(self, task: TaskSpace, gate: SourceGate | None = None,
@@ -279,6 +284,10 @@ class HandAdmission:
                                    'stamped no later and from no new controller endpoint: '
                                    'not a restart, refused')
             last = None
+        if self.complete and last is None and seqs[0] != 1:
+            raise MessageError('continuity', f'HandInputs seq {seqs[0]}: a session\'s first '
+                               'batch, expected to start at input 1: in lock-step every input '
+                               'arrives, in order')
         if self.complete and last is not None and seqs[0] > last[0] + 1:
             raise MessageError('continuity', f'HandInputs seq {seqs[0]} after {last[0]}: '
                                f'inputs {last[0] + 1}-{seqs[0] - 1} missing, and in lock-step '

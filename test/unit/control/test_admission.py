@@ -302,6 +302,61 @@ def test_in_lockstep_a_copy_of_the_first_batch_is_refused_and_the_own_one_goes_o
     HandAdmission(sc.linkage.task).admit(seqs, states, stamps, pose + [0.02, 0.0, 0.0], twist)
 
 
+def test_in_lockstep_a_copy_of_a_later_batch_before_the_first_is_refused() -> None:
+    """A session's first batch starts at input 1: a copy 2 cm off of the controller's
+    *second* batch, arriving before its first (delayed on the wire), is refused; the
+    controller's batches are then taken. (A CI run took such a copy, then the copies after
+    it, which continue it, and refused the controller's own: the run waited for ever.)"""
+    sc = load_scenario('fig8')
+    _, b = _run(dataclasses.replace(sc, duration=0.1))
+    hands = HandAdmission(sc.linkage.task, complete=True, origin=initial_device_pose(sc))
+    seqs, states, stamps, pose, twist = b[1]
+    reason, text = _reason(hands.admit, seqs, states, stamps, pose + [0.02, 0.0, 0.0], twist)
+    assert reason == 'continuity' and text == (
+        f"HandInputs seq {seqs[0]}: a session's first batch, expected to start at input 1: "
+        'in lock-step every input arrives, in order')
+    for batch in b:
+        hands.admit(*batch)
+
+
+@pytest.mark.parametrize('lag', [0.0, 1.0, 5.0, 20.0])
+def test_in_lockstep_the_controllers_batches_are_taken_in_any_arrival_order(
+        lag: float) -> None:
+    """Every order in which a copy 2 cm off of each batch (published once the batch is)
+    and the controller's batches (in their order, each up to ``lag`` publication intervals
+    late) can arrive: the VE takes exactly the controller's batches, each once. 200 seeded
+    orders per lag, batches cut at random as the controller cuts partial ones."""
+    sc = load_scenario('fig8')
+    _, b = _run(dataclasses.replace(sc, duration=0.3))
+    inputs = [tuple(np.asarray(f)[i] for f in batch) for batch in b
+              for i in range(len(batch[0]))]
+    for seed in range(200):
+        rng = np.random.default_rng([seed, int(lag)])
+        cuts, start = [], 0
+        while start < len(inputs):      # at most up to the next multiple of the period
+            end = min(start + int(rng.integers(1, sc.update_period + 1)),
+                      (start // sc.update_period + 1) * sc.update_period, len(inputs))
+            cuts.append(inputs[start:end])
+            start = end
+        own = [tuple(np.array([x[f] for x in cut]) for f in range(5)) for cut in cuts]
+        published = np.cumsum(rng.random(len(own)))
+        arrive_own = np.maximum.accumulate(published + lag * rng.random(len(own)))
+        arrive_copy = published + 0.3 * rng.random(len(own))
+        order = sorted([(t, 0, i) for i, t in enumerate(arrive_own)]
+                       + [(t, 1, i) for i, t in enumerate(arrive_copy)])
+        hands = HandAdmission(sc.linkage.task, complete=True, origin=initial_device_pose(sc))
+        taken = []
+        for _, copy, i in order:
+            seqs, states, stamps, pose, twist = own[i]
+            try:
+                hands.admit(list(seqs), list(states), stamps,
+                            pose + [0.02, 0.0, 0.0] if copy else pose, twist)
+            except MessageError:
+                continue
+            taken.append((copy, i))
+        assert taken == [(0, i) for i in range(len(own))], (seed, order[:8], taken[:8])
+
+
 def test_a_recorded_message_is_checked_as_its_snapshot() -> None:
     """``UpdateFields.from_msg`` (what ``read_graph_bag`` checks): the wire's fields, with
     ``hand_input_seq`` 0 read as -1 (none consumed), as the node reads them."""
