@@ -7,6 +7,7 @@ import faulthandler
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -18,11 +19,17 @@ from typing import Any
 STACKS_SIGNAL = signal.SIGUSR1
 
 
-def stacks_on_signal() -> None:
+def stacks_on_signal() -> bool:
     """Have :data:`STACKS_SIGNAL` write every thread's Python stack to stderr
     (:func:`faulthandler.register`: written from the signal handler, no GIL needed, so a
-    thread stuck holding it shows too)."""
-    faulthandler.register(STACKS_SIGNAL, all_threads=True)
+    thread stuck holding it shows too). Returns False, registering nothing, when stderr is
+    no file (a caller that captures it, as pytest does): there is nowhere to write to."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):   # io.UnsupportedOperation among them
+        return False
+    faulthandler.register(STACKS_SIGNAL, file=fd, all_threads=True)
+    return True
 
 
 def stat_fields(path: str) -> list[str] | None:

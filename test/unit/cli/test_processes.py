@@ -14,11 +14,13 @@ import pytest
 
 from haptic_topology.processes import (
     RSS_SETTLE,
+    STACKS_SIGNAL,
     RssSampler,
     RunUsage,
     children,
     cmdline,
     rss_bytes,
+    stacks_on_signal,
 )
 
 
@@ -180,3 +182,14 @@ def test_the_command_line_writes_its_stacks_on_sigusr1(tmp_path: Path) -> None:
             'circle', '--host', '127.0.0.1', '--port', '0']
     text = _stacks_after_sigusr1(argv, 'device-server: serving', tmp_path / 'err')
     assert 'Current thread 0x' in text and 'haptic_topology/cli.py' in text, text
+
+
+def test_without_a_stderr_file_no_handler_is_registered(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A caller that captured stderr (pytest, an IDE): the command still runs.
+    import faulthandler
+    import io
+
+    faulthandler.unregister(STACKS_SIGNAL)      # whatever this process registered before
+    monkeypatch.setattr(sys, 'stderr', io.StringIO())
+    assert stacks_on_signal() is False
+    assert faulthandler.unregister(STACKS_SIGNAL) is False      # nothing was registered
