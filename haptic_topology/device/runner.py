@@ -98,6 +98,7 @@ class RunnerConfig:
         if self.outbox < 1:
             raise ConfigError(f'outbox must be >= 1 entry, got {self.outbox}')
 
+
 #: The pacer's figures the device reports under their own names (the separate layout's):
 #: the measured period and the wake-up lateness, p50 / p99 / max (ms).
 DEVICE_PACING_KEYS = tuple(f'{what}_{q}_ms' for what in ('period', 'wake_late')

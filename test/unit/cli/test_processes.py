@@ -139,10 +139,11 @@ def test_run_starts_a_node_in_its_session_and_a_process_group_of_its_own(
 
 
 
-def _stacks_after_sigusr1(argv: list[str], ready: str, err: Path) -> str:
+def _stacks_after_sigusr1(argv: list[str], ready: str, err: Path,
+                          expect: tuple[str, ...]) -> str:
     """Start ``argv`` (stderr to ``err``), wait for a stdout line starting with ``ready``,
-    send SIGUSR1: what it wrote to stderr once its stack dump ended (3 s at most); the
-    process must still run then."""
+    send SIGUSR1 and wait until its stderr holds every string of ``expect`` (60 s at most:
+    no timing is asserted); the process must still run then. Returns its stderr."""
     with err.open('wb') as out:
         p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=out, text=True)
     try:
@@ -150,10 +151,10 @@ def _stacks_after_sigusr1(argv: list[str], ready: str, err: Path) -> str:
         line = p.stdout.readline()
         assert line.startswith(ready), line + err.read_text()
         p.send_signal(signal.SIGUSR1)
-        deadline = time.monotonic() + 3.0
-        while 'File ' not in err.read_text() and time.monotonic() < deadline:
+        deadline = time.monotonic() + 60.0
+        while (not all(e in err.read_text() for e in expect)
+               and time.monotonic() < deadline):
             time.sleep(0.05)
-        time.sleep(0.2)                         # the rest of the dump
         assert p.poll() is None, err.read_text()    # it goes on
     finally:
         p.kill()
@@ -166,22 +167,24 @@ def test_sigusr1_writes_every_threads_stack_and_the_process_goes_on(tmp_path: Pa
             'from haptic_topology.processes import stacks_on_signal\n'
             'stacks_on_signal()\n'
             'def worker():\n'
-            '    time.sleep(30)\n'
+            '    time.sleep(600)\n'
             'def main():\n'
             '    threading.Thread(target=worker, daemon=True).start()\n'
             '    print("up", flush=True)\n'
-            '    time.sleep(30)\n'
+            '    time.sleep(600)\n'
             'main()\n')
-    text = _stacks_after_sigusr1([sys.executable, '-c', code], 'up', tmp_path / 'err')
-    assert 'Thread 0x' in text and 'in worker' in text and 'in main' in text, text
+    expect = ('Thread 0x', 'in worker', 'in main')
+    text = _stacks_after_sigusr1([sys.executable, '-c', code], 'up', tmp_path / 'err', expect)
+    assert all(e in text for e in expect), text
 
 
 def test_the_command_line_writes_its_stacks_on_sigusr1(tmp_path: Path) -> None:
     # A command that runs until stopped: the device server.
     argv = [sys.executable, '-m', 'haptic_topology.cli', 'device-server', '--scenario',
             'circle', '--host', '127.0.0.1', '--port', '0']
-    text = _stacks_after_sigusr1(argv, 'device-server: serving', tmp_path / 'err')
-    assert 'Current thread 0x' in text and 'haptic_topology/cli.py' in text, text
+    expect = ('Current thread 0x', 'haptic_topology/cli.py')
+    text = _stacks_after_sigusr1(argv, 'device-server: serving', tmp_path / 'err', expect)
+    assert all(e in text for e in expect), text
 
 
 def test_without_a_stderr_file_no_handler_is_registered(monkeypatch: pytest.MonkeyPatch) -> None:
