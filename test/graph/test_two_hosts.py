@@ -194,7 +194,7 @@ def prefix(tmp_path: Path) -> Iterator[str]:
 
 
 @pytest.mark.graph
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(300)      # 200 s for the script, then its stacks and logs
 def test_ve_in_another_namespace_behind_a_delayed_link(prefix: str, tmp_path: Path) -> None:
     from haptic_topology.bag.reader import iter_messages, open_bag
     from haptic_topology.sim.scenario import load_scenario
@@ -235,7 +235,7 @@ def test_ve_in_another_namespace_behind_a_delayed_link(prefix: str, tmp_path: Pa
 
 
 @pytest.mark.graph
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(300)      # 200 s for the script, then its stacks and logs
 def test_device_server_in_another_namespace_behind_a_lossy_link(prefix: str,
                                                                 tmp_path: Path) -> None:
     """The network backend across the namespace pair (issue 15, item 2): the device server in
