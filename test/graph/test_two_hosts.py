@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 
 from haptic_topology.bringup.options import node_prefixes
+from haptic_topology.bringup.partition import descendants
 from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import ConfigError
 from haptic_topology.net import delay_bridge
@@ -127,10 +128,10 @@ def _script(args: list[str], env: dict[str, str], bag: Path,
             timeout: float = 200.0) -> subprocess.CompletedProcess[str]:
     """``two_hosts.sh ARGS`` in a session of its own, its output kept in ``bag``'s
     directory. Past ``timeout`` s the test fails with what there is to know of where it
-    hung: every thread's stack of its ``haptic-topology`` commands, nodes and loop process
-    (SIGUSR1), then, after a Ctrl-C to the whole session (the script takes its namespaces
-    down, ``run`` stops the nodes and copies their logs into the bag), its output and the
-    end of each node's log."""
+    hung: every thread's stack of the ``haptic-topology`` commands, nodes and loop process
+    it started (SIGUSR1; the device server in its own session too), then, after a Ctrl-C to
+    the script's process group (the script takes its namespaces down, ``run`` stops the
+    nodes and copies their logs into the bag), its output and the end of each node's log."""
     out_path = bag.parent / f'{bag.name}.out'
     env = dict(env, PYTHONUNBUFFERED='1')
     with out_path.open('wb') as out:
@@ -139,7 +140,7 @@ def _script(args: list[str], env: dict[str, str], bag: Path,
     try:
         code = p.wait(timeout)
     except subprocess.TimeoutExpired:
-        for pid in _session(p.pid):
+        for pid in descendants(p.pid):
             if (any(m in ' '.join(cmdline(pid)) for m in STACK_DUMPERS)
                     and _catches(pid, STACKS_SIGNAL)):      # not one still starting up
                 os.kill(pid, STACKS_SIGNAL)
@@ -166,19 +167,6 @@ def _catches(pid: int, sig: int) -> bool:
     mask = next((int(line.split()[1], 16) for line in status.splitlines()
                  if line.startswith('SigCgt:')), 0)
     return bool(mask >> (sig - 1) & 1)
-
-
-def _session(sid: int) -> list[int]:
-    """The processes of session ``sid``."""
-    pids = []
-    for entry in os.listdir('/proc'):
-        if entry.isdigit():
-            try:
-                if os.getsid(int(entry)) == sid:
-                    pids.append(int(entry))
-            except OSError:
-                pass
-    return pids
 
 
 @pytest.fixture
