@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata as md
+import pickle
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
@@ -136,6 +137,20 @@ class DeviceBackend(ABC):
         ``deactivate``. Default: nothing to release. Safe to call more than once; a
         ``configure`` may follow."""
         return None
+
+    def carry_over(self) -> bytes | None:
+        """After ``deactivate``: what the next activation must start from when it runs on a
+        new instance in a new process (``device_driver``'s loop process opens the device anew
+        on each activation), for :meth:`resume`. A simulated device returns its state (pose,
+        twist, its clock), since a device that jumped back to its initial pose would not be
+        the device the VE and the controller left; a real device keeps its state itself.
+        Default: None (nothing to carry)."""
+        return None
+
+    def resume(self, carried: bytes) -> None:
+        """Take what :meth:`carry_over` of the same backend, configured the same, returned
+        (called after ``configure``, before ``activate``). Default: refuse."""
+        raise DeviceError(f'{self.name}: resume(): this backend carries no state over')
 
     def idle(self, dt: float) -> DeviceReading:
         """A cycle before any controller engaged: zero wrench. Simulations may park instead."""
@@ -260,6 +275,21 @@ class SimMaglevBackend(DeviceBackend):
         if self._applied.any():
             self._applied = np.zeros_like(self._applied)
         return self._reading(self._require()[0], dt)
+
+    def carry_over(self) -> bytes:
+        """The device's true state, its sensor's (the noise generator, the velocity filter)
+        and the user's clock: a new instance resumed from it continues bit for bit as this
+        one would after ``activate``."""
+        model, _ = self._require()
+        return pickle.dumps((model.params.task.dim, model, self._sensor, self._t, self._f_h))
+
+    def resume(self, carried: bytes) -> None:
+        model, _ = self._require()
+        dim, carried_model, sensor, t, f_h = pickle.loads(carried)
+        if dim != model.params.task.dim:
+            raise DeviceError(f'{self.name}: resume(): a carried state of task dimension {dim},'
+                              f' configured for {model.params.task.dim}')
+        self._model, self._sensor, self._t, self._f_h = carried_model, sensor, t, f_h
 
     @property
     def applied(self) -> np.ndarray:

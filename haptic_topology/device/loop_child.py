@@ -13,6 +13,7 @@ writes zero wrench and releases the device.
 
 from __future__ import annotations
 
+import base64
 import gc
 import json
 import os
@@ -135,6 +136,8 @@ class _Child:
         self.rings = [self.cycles, self.control, self.status_ring, updates]
         self.backend = create_backend(spec.backend)
         self.backend.configure(spec.backend_config)
+        if spec.carry is not None:          # where the previous activation's child left it
+            self.backend.resume(spec.carry)
         dim = spec.limit.size
         self.device = DeviceLoop(self.backend, spec.limit, CommandWatchdog(spec.watchdog, dim),
                                  spec.period, spec.takeover_after)
@@ -207,6 +210,12 @@ class _Child:
         r.notices.clear()
         self.notices.extend(c.notices)
         c.notices.clear()
+        carry = None
+        if final:               # after zero_and_release: for the next activation's child
+            try:
+                carry = self.backend.carry_over()
+            except Exception as exc:    # a backend's own code: the rings are closed all the same
+                self.notices.append(f'{self.backend.name}: carry_over() failed: {exc}')
         device = r.device_values(percentiles=False)
         level, message, values = device_report(self.device, now, '', 0, device,
                                                percentiles=False)
@@ -216,9 +225,13 @@ class _Child:
                   'controller': c.values(loop_now),
                   'health': list(HEALTH_MESSAGES[c.guard.health(loop_now)]),
                   'finished': r.finished, 'lockstep_timeouts': r.lockstep_timeouts,
-                  'generation': self.spec.generation,
+                  'generation': self.spec.generation, 'final': final,
+                  'carry': None if carry is None else base64.b64encode(carry).decode(),
                   'notices': self.notices[-50:]}
         data = json.dumps(status).encode()
+        if final and len(data) > STATUS_BYTES:      # the last record: without the notices
+            print('\n'.join(self.notices), file=sys.stderr, flush=True)
+            data = json.dumps(dict(status, notices=[])).encode()
         if len(data) <= STATUS_BYTES:       # else the notices wait for the next record
             put_bytes(self.status_ring, data, 'status')
             self.notices = []

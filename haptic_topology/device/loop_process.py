@@ -22,7 +22,10 @@ torn reads detected), never a lock:
   its re-sync takes, computed by the node; applied at the start of the next cycle as
   in-process) and control requests (engagement permission, live law and gains, stop);
 * child -> node, a status record every :data:`STATUS_PERIOD` s: the loop's, the device's and
-  the controller's diagnostics values, and notices for the node's log.
+  the controller's diagnostics values, and notices for the node's log. The last one, written
+  after the device is released, carries what the backend hands over to the next activation's
+  child (:meth:`~haptic_topology.device.backend.DeviceBackend.carry_over`: the simulated
+  maglev's state, so that it resumes where it stopped, as an in-process backend does).
 
 In lock-step each side wakes the other with an ``eventfd`` after writing (the child after a
 cycle's record, the node after an update); with the wall clock the node takes the records
@@ -48,6 +51,7 @@ collector's view and automatic collection is off; a young-generation collection 
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import pickle
@@ -144,6 +148,10 @@ class LoopSpec:
     periods: str              # shared arrays the child's statistics live in (the node sorts
     round_trips: str          # them for the percentiles, never the loop)
     lateness: str
+    #: What the previous child's backend carried over
+    #: (:meth:`~haptic_topology.device.backend.DeviceBackend.carry_over`): resumed after
+    #: ``configure``. None: the first activation, or a backend that carries nothing.
+    carry: bytes | None = None
 
 
 class LoopProcess:
@@ -174,6 +182,8 @@ class LoopProcess:
         self._pending: deque[bytes] = deque(maxlen=MAX_PENDING)    # update records
         self.updates_dropped = 0
         self._status_lock = threading.Lock()    # the status ring's one consumer at a time
+        #: The newest child's hand-over (its final status), for the next child.
+        self._carry: bytes | None = None
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self, name: str = 'device_loop', on_start: Any = None) -> None:
@@ -196,7 +206,11 @@ class LoopProcess:
                             'round_trips': SharedArray.create(RTT_KEEP),
                             'lateness': SharedArray.create(PERIOD_WINDOW)}
         assert self._fds is not None
-        spec = LoopSpec(**self._spec, rings={k: r.name for k, r in self._rings.items()},
+        if self.generation > 1 and self.status.get('final') is not True:
+            self.notices.append('the previous loop process ended without handing its device '
+                                'state over: the device starts as configured')
+        spec = LoopSpec(**self._spec, carry=self._carry,
+                        rings={k: r.name for k, r in self._rings.items()},
                         update_bytes=self._update_bytes, wake_node=self._fds[0],
                         wake_child=self._fds[1], parent=os.getpid(),
                         generation=self.generation, periods=self._arrays['periods'].name,
@@ -360,6 +374,9 @@ class LoopProcess:
             for data in payloads(ring):
                 status = json.loads(data)
                 self.notices.extend(status.pop('notices', []))
+                carry = status.pop('carry', None)
+                if status.get('final') and status.get('generation') == self.generation:
+                    self._carry = None if carry is None else base64.b64decode(carry)
                 self.status = status
 
     @property

@@ -67,9 +67,8 @@ LOCKSTEP_NOTICE_AFTER = 5.0
 #: Why a lock-step driver refuses to be activated a second time.
 LOCKSTEP_RUNS_ONCE = (
     'clock: lockstep: this driver has run once; a lock-step run cannot resume or start over in '
-    "the same graph (the VE keeps the run's linkage state, the device would start again at the "
-    "scenario's initial pose, and the run would no longer equal simulate): start ve_sim and "
-    'device_driver again')
+    "the same graph (the VE keeps the run's linkage state, simulated time would start again at "
+    '0, and the run would no longer equal simulate): start ve_sim and device_driver again')
 #: Longest single wait of the loop thread for an update or for room in the outbox (s), so
 #: that submitted calls and a stop request are served meanwhile.
 _POLL = 0.01

@@ -1,9 +1,9 @@
-"""``device_driver`` deactivated and activated again. On the wall clock the loop engages
-again and the controller refuses none of the VE's updates. A lock-step run is one activation:
-activated again it would start its device over at the scenario's initial pose and its
-simulated time at 0 while the VE keeps the run's linkage, and wait for ever for an update;
-the driver refuses the second activation with a fault that says why, and simulated time
-stays where the run ended. Real processes; every wait is on messages, with a deadline."""
+"""``device_driver`` deactivated and activated again. On the wall clock the simulated device
+resumes where it stopped, the loop engages again and the controller refuses none of the VE's
+updates. A lock-step run is one activation: activated again it would start its simulated
+time over at 0 while the VE keeps the run's linkage, and wait for ever for an update; the
+driver refuses the second activation with a fault that says why, and simulated time stays
+where the run ended. Real processes; every wait is on messages, with a deadline."""
 
 from __future__ import annotations
 
@@ -13,12 +13,15 @@ import sys
 import time
 from typing import Any
 
+import numpy as np
 import pytest
 
 from haptic_topology.bringup.watch import GraphWatcher
 from haptic_topology.device.runner import LOCKSTEP_RUNS_ONCE
 from haptic_topology.errors import WaitTimeout
 from haptic_topology.paths import config_dir
+from haptic_topology.sim.lockstep import initial_device_pose
+from haptic_topology.sim.scenario import load_scenario
 
 pytestmark = pytest.mark.graph
 
@@ -89,7 +92,10 @@ def test_activated_again(graph: Any) -> None:
         for st in msg.status:
             diag[st.name] = st
 
+    poses: list[tuple[float, ...]] = []
+
     def on_state(msg: Any) -> None:
+        poses.append(tuple(msg.pose))
         if not msg.status & DeviceState.STATUS_IDLE:
             engaged[0] += 1
 
@@ -108,7 +114,18 @@ def test_activated_again(graph: Any) -> None:
         _spin_for(w, 0.5)
     ended = now[0]
     if clock == 'wall':
+        left = np.array(poses[-1])
+        before = len(poses)
         w.change_state('device_driver', 'activate', WAIT)
+        w.wait(lambda: len(poses) > before, WAIT, 'a state after the activation')
+        # The simulated maglev resumes where the loop left it (the loop process that opens
+        # it again is handed its state), not at the scenario's initial pose: a device
+        # jumping back would not be the device the controller and the VE left. Within one
+        # cycle's motion (~24 um) of the newest state seen, in case that was not the last.
+        again = np.array(poses[before])
+        start = np.array(initial_device_pose(load_scenario('circle')))
+        assert np.linalg.norm(left[:2] - start[:2]) > 1e-3, (left, start)
+        assert np.linalg.norm(again[:2] - left[:2]) < 1e-4, (again, left, start)
         engaged[0] = 0
         w.wait(lambda: engaged[0] >= 1000, WAIT, 'the loop engaged again')
         diag.clear()

@@ -220,3 +220,53 @@ def test_refused_real_time_options_are_one_warning_each_and_the_loop_runs() -> N
     assert lines[0] == 'cycling', res.stdout
     assert sum('sched_priority 50: not permitted' in ln for ln in lines) == 1, res.stdout
     assert sum(ln.startswith('lock_memory') for ln in lines) == 1, res.stdout
+
+
+def test_an_activation_again_resumes_the_simulated_device_where_the_last_child_left_it() -> None:
+    """Each activation starts a new child, which opens the device anew: the simulated maglev
+    the last child moved resumes where it stopped (its final status carries the state), not
+    at the scenario's initial pose, as the same backend in the node's own process would."""
+    duration = 0.1
+    sc = replace(load_scenario('fig8'), duration=duration)
+    spec, dim, dof = spec_for('fig8', lockstep=True, duration=duration)
+    ve = virtual_environment(sc)
+    proc = LoopProcess(spec, dim, dof)
+    proc.may_engage = True
+    poses: list[list[np.ndarray]] = [[], []]
+    inputs, update_seq = 0, 1
+    try:
+        proc.start()
+        proc.offer_update(ve.snapshot(seq=0))
+        deadline = time.monotonic() + 120.0
+        while not proc.finished and time.monotonic() < deadline:
+            proc.check()
+            assert proc.error is None, proc.error
+            proc.wait(0.05)
+            for e in proc.drain():
+                poses[0].append(e.step.tick.reading.pose)
+                ans = e.step.answer
+                if ans is not None and ans.hand is not None:
+                    ve.push_input(ans.hand.state_seq, ans.hand.stamp, ans.hand.vt_wrench)
+                    inputs += 1
+                    if inputs % sc.update_period == 0:
+                        proc.offer_update(ve.snapshot(seq=update_seq))
+                        update_seq += 1
+        proc.stop()
+        poses[0].extend(e.step.tick.reading.pose for e in proc.drain())
+        proc.may_engage = False           # the second child idles: the device stays parked
+        proc.start()
+        while len(poses[1]) < 5 and time.monotonic() < deadline:
+            proc.check()
+            assert proc.error is None, proc.error
+            proc.wait(0.05)
+            poses[1].extend(e.step.tick.reading.pose for e in proc.drain())
+        proc.stop()
+    finally:
+        proc.close()
+    assert proc.finished or len(poses[0]) >= round(duration / sc.dt), len(poses[0])
+    start = spec['backend_config'].initial_pose
+    assert np.linalg.norm(poses[0][-1][:2] - start[:2]) > 1e-5      # the first child moved it
+    assert len(poses[1]) >= 5, 'the second child sent no states'
+    for pose in poses[1]:
+        np.testing.assert_array_equal(pose, poses[0][-1])
+    assert not any('without handing' in n for n in proc.notices), list(proc.notices)
