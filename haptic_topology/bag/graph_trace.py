@@ -391,10 +391,11 @@ def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndar
         if cmd is not None and _stamp(cmd.header) < _stamp(states[int(b)].header):
             in_time += 1
     out['bag_answered_fraction'] = in_time / total if total else math.nan
-    # Every state of the run in the bag (the idle ones before engagement too), as a count of
-    # the bag's DeviceState messages gives it; the trace's rows start at the first running one.
+    # Every state and every command of the run in the bag (the idle ones before engagement
+    # too), as a count of the bag's messages gives them; the trace's rows start at the first
+    # running state.
     out['bag_states'] = float(len(states))
-    out['bag_commands'] = float(sum(1 for s in seqs if int(s) in commands))
+    out['bag_commands'] = float(len(commands))
     return out
 
 

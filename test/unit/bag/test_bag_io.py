@@ -495,11 +495,15 @@ def test_write_many_writes_the_same_bytes_as_write(tmp_path: Path) -> None:
 
 
 def test_bag_states_counts_the_device_states_the_bag_holds() -> None:
-    """``bag_states`` (summary.json, the loop table's ``states``) is the number of the run's
-    DeviceState messages in the bag, the idle ones before engagement included; the trace has
-    a row per state from the first running one on."""
+    """``bag_states`` and ``bag_commands`` (summary.json; the loop table's ``states``) are the
+    numbers of the run's DeviceState and DeviceCommand messages in the bag, the idle ones
+    before engagement included; the trace has a row per state from the first running one
+    on."""
     bag = open_bag(REFERENCE)
-    in_bag = sum(1 for m in iter_messages(bag) if m.topic.endswith('haptic/device/state'))
+    topics = [m.topic for m in iter_messages(bag)]
+    states = sum(1 for t in topics if t.endswith('haptic/device/state'))
+    commands = sum(1 for t in topics if t.endswith('haptic/device/command'))
     run = read_graph_bag(REFERENCE, 'fig8', 3)
-    assert run.loop['bag_states'] == in_bag
-    assert len(run.trace.t) < in_bag
+    assert run.loop['bag_states'] == states
+    assert run.loop['bag_commands'] == commands
+    assert len(run.trace.t) < states
