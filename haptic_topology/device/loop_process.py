@@ -207,8 +207,10 @@ class LoopProcess:
                             'lateness': SharedArray.create(PERIOD_WINDOW)}
         assert self._fds is not None
         if self.generation > 1 and self.status.get('final') is not True:
+            self._carry = None      # not an older child's: that state is not the device's now
             self.notices.append('the previous loop process ended without handing its device '
-                                'state over: the device starts as configured')
+                                'state over: the device starts as configured (a simulated '
+                                'one at its initial pose)')
         spec = LoopSpec(**self._spec, carry=self._carry,
                         rings={k: r.name for k, r in self._rings.items()},
                         update_bytes=self._update_bytes, wake_node=self._fds[0],

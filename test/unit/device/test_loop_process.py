@@ -225,14 +225,24 @@ def test_refused_real_time_options_are_one_warning_each_and_the_loop_runs() -> N
 def test_an_activation_again_resumes_the_simulated_device_where_the_last_child_left_it() -> None:
     """Each activation starts a new child, which opens the device anew: the simulated maglev
     the last child moved resumes where it stopped (its final status carries the state), not
-    at the scenario's initial pose, as the same backend in the node's own process would."""
+    at the scenario's initial pose, as the same backend in the node's own process would. A
+    child killed (no final status) hands nothing over, and the next one does not take an
+    older child's state either: it starts at the initial pose, and the node says so."""
     duration = 0.1
     sc = replace(load_scenario('fig8'), duration=duration)
     spec, dim, dof = spec_for('fig8', lockstep=True, duration=duration)
     ve = virtual_environment(sc)
     proc = LoopProcess(spec, dim, dof)
     proc.may_engage = True
-    poses: list[list[np.ndarray]] = [[], []]
+    poses: list[list[np.ndarray]] = [[], [], []]
+
+    def idle(k: int) -> None:
+        while len(poses[k]) < 5 and time.monotonic() < deadline:
+            proc.check()
+            assert proc.error is None, proc.error
+            proc.wait(0.05)
+            poses[k].extend(e.step.tick.reading.pose for e in proc.drain())
+
     inputs, update_seq = 0, 1
     try:
         proc.start()
@@ -253,20 +263,26 @@ def test_an_activation_again_resumes_the_simulated_device_where_the_last_child_l
                         update_seq += 1
         proc.stop()
         poses[0].extend(e.step.tick.reading.pose for e in proc.drain())
-        proc.may_engage = False           # the second child idles: the device stays parked
+        proc.may_engage = False           # the later children idle: the device stays parked
         proc.start()
-        while len(poses[1]) < 5 and time.monotonic() < deadline:
+        idle(1)
+        assert not any('without handing' in n for n in proc.notices), list(proc.notices)
+        os.kill(proc.pid or 0, signal.SIGKILL)
+        while proc.error is None and time.monotonic() < deadline:
+            time.sleep(0.002)
             proc.check()
-            assert proc.error is None, proc.error
-            proc.wait(0.05)
-            poses[1].extend(e.step.tick.reading.pose for e in proc.drain())
+        assert isinstance(proc.error, DeviceError)
+        proc.start()
+        idle(2)
         proc.stop()
     finally:
         proc.close()
     assert proc.finished or len(poses[0]) >= round(duration / sc.dt), len(poses[0])
     start = spec['backend_config'].initial_pose
     assert np.linalg.norm(poses[0][-1][:2] - start[:2]) > 1e-5      # the first child moved it
-    assert len(poses[1]) >= 5, 'the second child sent no states'
+    assert len(poses[1]) >= 5 and len(poses[2]) >= 5, 'a child sent no states'
     for pose in poses[1]:
         np.testing.assert_array_equal(pose, poses[0][-1])
-    assert not any('without handing' in n for n in proc.notices), list(proc.notices)
+    for pose in poses[2]:
+        np.testing.assert_array_equal(pose, start)
+    assert any('without handing its device state over' in n for n in proc.notices)
