@@ -281,11 +281,12 @@ class SimMaglevBackend(DeviceBackend):
         and the user's clock: a new instance resumed from it continues bit for bit as this
         one would after ``activate``."""
         model, _ = self._require()
-        return pickle.dumps((model.params.task.dim, model, self._sensor, self._t, self._f_h))
+        return pickle.dumps((model, self._sensor, self._t, self._f_h))
 
     def resume(self, carried: bytes) -> None:
         model, _ = self._require()
-        dim, carried_model, sensor, t, f_h = pickle.loads(carried)
+        carried_model, sensor, t, f_h = pickle.loads(carried)
+        dim = carried_model.params.task.dim
         if dim != model.params.task.dim:
             raise DeviceError(f'{self.name}: resume(): a carried state of task dimension {dim},'
                               f' configured for {model.params.task.dim}')
