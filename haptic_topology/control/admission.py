@@ -145,6 +145,7 @@ class UpdateAdmission:
         applied; otherwise it becomes the previous update of the continuity check."""
         prev = self._prev
         gate = self.gate
+        restart = False
         if gate is not None:
             refusal = gate.refuse()
             if refusal is not None:
@@ -152,12 +153,14 @@ class UpdateAdmission:
             if prev is not None and snap.seq < prev.seq:
                 if not gate.new_session():
                     raise gate.refuse_restart(snap.seq, prev.seq)
-                prev = None
+                prev, restart = None, True
         if self.dyn is not None:
             self._check_model(snap)
         if prev is not None and not self._forgot:
             self._check_continuity(prev, snap)
-        if gate is not None:
+        if gate is not None:            # every check passed: only now is a restart taken
+            if restart:
+                gate.start_session()
             gate.accepted()
         self._prev = snap
         self._forgot = self._forgot and snap.hand_input_seq > self._sent
@@ -276,10 +279,12 @@ class HandAdmission:
                 raise MessageError('continuity', f'HandInputs seq {seqs[0]}: device pose row '
                                    f'{i} is {moved:.4g} from where the run starts, '
                                    f'expected at most {self.slack[i]:.4g}')
+        restart = False
         if last is not None and seqs[0] <= last[0]:
             # A new controller, or one whose loop was started again (a reactivated driver:
             # same endpoint, new numbering, later stamps); not a copy of inputs already taken.
-            if not (float(stamps[0]) > last[2] or (gate is not None and gate.new_session())):
+            restart = gate is not None and gate.new_session()
+            if not (float(stamps[0]) > last[2] or restart):
                 raise MessageError('session', f'HandInputs seq {seqs[0]} after {last[0]}, '
                                    'stamped no later and from no new controller endpoint: '
                                    'not a restart, refused')
@@ -306,7 +311,9 @@ class HandAdmission:
                 raise MessageError('continuity', f'HandInputs seq {seqs[0]}: device pose row '
                                    f'{i} moved {moved:.4g} in {dt * 1e3:.1f} ms, expected '
                                    f'at most {reach[i]:.4g} at its twist')
-        if gate is not None:
+        if gate is not None:            # every check passed: only now is a restart taken
+            if restart:
+                gate.start_session()
             gate.accepted()
         self._last = (int(seqs[-1]), int(state_seqs[-1]), float(stamps[-1]), np.array(pose[-1]),
                       np.array(twist[-1]))

@@ -309,15 +309,19 @@ BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
 }
 
 
-def zero_and_release(backend: DeviceBackend, dim: int) -> None:
+def zero_and_release(backend: DeviceBackend, dim: int) -> list[str]:
     """Write a zero wrench (``dim`` components), then :meth:`DeviceBackend.deactivate`: the
-    end of every active period (a device that refuses the write is released all the
-    same)."""
-    try:
-        backend.write(np.zeros(dim))
-    except DeviceError:
-        pass
-    backend.deactivate()
+    end of every active period, a failed activation's included. Whatever either raises
+    (a backend's own code: any exception), both are tried; returns what went wrong, a line
+    each, for the caller's log."""
+    problems = []
+    for what, call in (('writing zero wrench', lambda: backend.write(np.zeros(dim))),
+                       ('deactivate()', backend.deactivate)):
+        try:
+            call()
+        except Exception as exc:        # reported: the release goes on
+            problems.append(f'{backend.name}: {what} failed: {type(exc).__name__}: {exc}')
+    return problems
 
 
 def _import_class(spec: str) -> Any:

@@ -2,13 +2,20 @@
 its one thread, no rclpy (``python -m haptic_topology.device.loop_child``; the module doc of
 :mod:`haptic_topology.device.loop_process` describes the exchange and the lifetimes).
 
-It reads its :class:`~haptic_topology.device.loop_process.LoopSpec` from stdin, opens the
-device, builds the :class:`~haptic_topology.device.hosted.HostedCycle` (its updates taken
-from the node's ring) and a :class:`~haptic_topology.device.runner.LoopRunner` whose outbox
-goes into the cycle ring, applies the real-time options to itself and the LMI updates that
-came while it started, freezes the collector's view of everything built so far, and runs
-the cycles until asked to stop, until the run's end, or until its parent dies; then it
-writes zero wrench and releases the device.
+It reads its :class:`~haptic_topology.device.loop_process.LoopSpec` from stdin, attaches the
+segments (:class:`~haptic_topology.device.loop_rings.LoopRings`), opens the device, and builds
+the :class:`~haptic_topology.device.hosted.HostedCycle` (``_RingCycle``: its updates
+taken from the node's ring when :class:`UpdateTiming` says) and a
+:class:`~haptic_topology.device.runner.LoopRunner` whose outbox is the cycle ring
+(:class:`RingOutbox`). Its loop, ``_Child.run``:
+
+1. activate the device, apply the LMI updates that came while it started, freeze the
+   collector's view of everything built so far, start the deadline grid;
+2. each cycle: the gap before the deadline (``_Child.gap``: the node's requests, and the
+   updates that fit), then the cycle (read -> controller -> write, its record into the ring);
+3. until asked to stop (a request, SIGTERM, its parent's death) or the run's end; then, in a
+   ``finally`` that every way out of 1 and 2 takes, zero wrench and release the device, and a
+   final status.
 """
 
 from __future__ import annotations
@@ -21,6 +28,8 @@ import pickle
 import signal
 import sys
 import time
+from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -31,94 +40,143 @@ from haptic_topology.control.update_record import decode_update
 from haptic_topology.device.backend import create_backend, zero_and_release
 from haptic_topology.device.hosted import HostedCycle
 from haptic_topology.device.loop import RTT_KEEP, DeviceLoop, device_report
-from haptic_topology.device.loop_process import (
-    CONTROL_BYTES,
-    CYCLE_RECORDS,
-    GC_EVERY,
-    STATUS_BYTES,
-    STATUS_PERIOD,
-    UPDATE_RECORDS,
-    LoopSpec,
-    wait_eventfd,
-)
+from haptic_topology.device.loop_process import GC_EVERY, STATUS_PERIOD, LoopSpec
+from haptic_topology.device.loop_rings import STATUS_BYTES, LoopRings, wait_eventfd
 from haptic_topology.device.pacing import PERIOD_WINDOW
 from haptic_topology.device.realtime import (
     name_os_thread,
     set_parent_death_signal,
     set_thread_realtime,
 )
-from haptic_topology.device.records import CycleCodec, bytes_dtype, payloads, put_bytes
-from haptic_topology.device.runner import LoopRunner
-from haptic_topology.device.shm_ring import SharedArray, ShmRing
+from haptic_topology.device.records import CycleCodec, payloads, put_bytes
+from haptic_topology.device.runner import LoopRunner, Published
+from haptic_topology.device.shm_ring import ShmRing
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.processes import stacks_on_signal
 
-#: Wall clock: an LMI update is applied between two cycles only while at least this long (s)
-#: is left before the next deadline; its decoding and re-sync take 0.1-0.2 ms here, and one
-#: that came later would delay the next cycle. It waits in the ring for the gap after that
-#: cycle instead.
+#: Wall clock: the least an LMI update is taken to cost to apply (s): its decoding and
+#: re-sync take 0.1-0.2 ms with a few links here (about 1 ms with 100: then the measured
+#: cost rules, :class:`UpdateTiming`).
 APPLY_BEFORE = 0.3e-3
+#: Applies whose duration :class:`UpdateTiming` keeps to estimate the next one's.
+COST_WINDOW = 8
+
+
+class UpdateTiming:
+    """When the loop process applies the LMI updates waiting in its ring: the one object
+    that decides it.
+
+    * **Lock-step** (``before_step``): before every step, all of them, so each state is
+      answered after exactly the updates the offline simulation applies before it.
+    * **Wall clock**: never before a step (the deadline path). Between two cycles, oldest
+      first, one at a time while the time left before the next deadline is more than one
+      costs (``cost``: the longest of the last :data:`COST_WINDOW` applies, at least
+      :data:`APPLY_BEFORE`); the rest wait for the gap after the next cycle, which runs on
+      the model it has. Updates left over from a gap are owed: in the next gap the oldest of
+      them is applied first whatever it costs, so an update costlier than any gap is applied
+      one cycle late rather than never.
+    """
+
+    def __init__(self, lockstep: bool) -> None:
+        self.before_step = lockstep
+        self._recent: deque[float] = deque(maxlen=COST_WINDOW)
+        self.cost = APPLY_BEFORE
+        self._owed = False
+
+    def fits(self, left: float, first: bool) -> bool:
+        """Whether to apply the oldest waiting update now, ``left`` s before the deadline;
+        ``first``: the gap's first look."""
+        return left > self.cost or (first and self._owed)
+
+    def applied(self, seconds: float) -> None:
+        """One update took ``seconds`` to apply."""
+        self._recent.append(seconds)
+        self.cost = max(APPLY_BEFORE, max(self._recent))
+
+    def end_gap(self, waiting: bool) -> None:
+        """The gap ends with updates still ``waiting`` (owed to the next gap) or none."""
+        self._owed = waiting
 
 
 class _RingCycle(HostedCycle):
-    """A :class:`HostedCycle` whose updates come from the node's ring.
-
-    :meth:`apply_early` applies the updates that came while the loop sleeps towards its next
-    deadline: nothing changes the loop's state between the end of one cycle and the start of
-    the next, so the controller ends up where applying them at the start of the next cycle
-    would leave it (the same loop time, the same inputs replayed), and the cycle that follows
-    has only the step left. Their verdicts are returned with that cycle's.
-
-    ``lockstep``: every step first takes what is in the ring, so each state is answered
-    after exactly the updates the offline simulation applies before it. With the wall clock
-    a step takes from the ring only the updates :meth:`defer` left there (no gap came since:
-    the loop overran); the others wait for the gap after the step, so a step never waits for
-    an update's re-sync."""
+    """A :class:`HostedCycle` whose updates come from the node's ring (``ring``), applied
+    straight to the controller when ``timing`` says: before each step (lock-step,
+    :meth:`apply_updates`, which :meth:`step` calls first), in the gap between two cycles
+    (wall clock, :meth:`apply_in_gap`) and all at once before the loop starts
+    (:meth:`catch_up`). A step reports the verdicts of the updates applied since the step
+    before it. ``wake_fd`` and ``poll``: lock-step's wait for an update (the node's eventfd,
+    and the child's look at its requests meanwhile)."""
 
     def __init__(self, device: DeviceLoop, controller: ControllerLoop, ring: ShmRing,
-                 wake_fd: int, poll: Any, lockstep: bool) -> None:
+                 timing: UpdateTiming, wake_fd: int, poll: Callable[[], None],
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(device, controller)
-        self._ring, self._wake_fd, self._poll = ring, wake_fd, poll
-        self._early: tuple[str, ...] = ()
-        self._lockstep = lockstep
-        self._deferred = False
-
-    def pull(self) -> bool:
-        got = False
-        for data in payloads(self._ring):
-            self.offer_update(decode_update(data))
-            got = True
-        return got
+        self._ring, self.timing = ring, timing
+        self._wake_fd, self._poll, self._clock = wake_fd, poll, clock
+        self._applied: tuple[str, ...] = ()
 
     @property
     def waiting(self) -> bool:
         """Updates are waiting in the ring."""
         return self._ring.pending > 0
 
+    def _apply(self, limit: int | None = None) -> None:
+        for data in payloads(self._ring, limit):
+            started = self._clock()
+            self._applied += (self.controller.on_update(decode_update(data)),)
+            self.updates_offered += 1
+            self.updates_applied += 1
+            self.timing.applied(self._clock() - started)
+
     def apply_updates(self) -> tuple[str, ...]:
-        if self._lockstep or self._deferred:
-            self._deferred = False
-            self.pull()
-        early, self._early = self._early, ()
-        return early + super().apply_updates()
+        if self.timing.before_step:
+            self._apply()
+        done, self._applied = self._applied, ()
+        return done
 
-    def apply_early(self) -> None:
-        """Take and apply the updates in the ring now, between two cycles (see class doc)."""
-        self._deferred = False
-        self.pull()
-        self._early += super().apply_updates()
+    def apply_in_gap(self, deadline: float, first: bool) -> None:
+        """Wall clock: apply the waiting updates that fit before ``deadline`` (s, the
+        clock's), oldest first (``first``: the gap's first look; see :class:`UpdateTiming`)."""
+        while self.waiting and self.timing.fits(deadline - self._clock(), first):
+            self._apply(limit=1)
+            first = False
 
-    def defer(self) -> None:
-        """Leave the updates in the ring for the next gap between two cycles; if the loop
-        steps before one comes (an overrun), that step takes them."""
-        self._deferred = True
+    def catch_up(self) -> None:
+        """Apply every update waiting (before the deadline grid starts)."""
+        self._apply()
 
     def wait_offered(self, timeout: float) -> bool:
-        if self.pull():
+        if self.waiting:
             return True
         wait_eventfd(self._wake_fd, timeout)
         self._poll()
-        return self.pull()
+        return self.waiting
+
+
+class RingOutbox:
+    """The runner's outbox (:class:`~haptic_topology.device.runner.Outbox`) as the cycle
+    ring: each cycle's record is written straight into it, overwriting the oldest when full
+    (wall clock: the deadline never waits for the node; lock-step waits for ``room()``),
+    and ``wake`` is called after each (lock-step: the node's eventfd)."""
+
+    def __init__(self, ring: ShmRing, codec: CycleCodec, overwrite: bool,
+                 wake: Callable[[], None]) -> None:
+        self._ring, self._codec, self._overwrite, self._wake = ring, codec, overwrite, wake
+
+    @property
+    def dropped(self) -> int:
+        """Records overwritten (wall clock) or refused (lock-step, before engagement)."""
+        return self._ring.overwritten + self._ring.refused
+
+    def __len__(self) -> int:
+        return self._ring.pending
+
+    def room(self) -> bool:
+        return not self._ring.full
+
+    def put(self, entry: Published) -> None:
+        self._ring.put(self._codec.encode(entry), self._overwrite)
+        self._wake()
 
 
 class _Child:
@@ -126,53 +184,58 @@ class _Child:
 
     def __init__(self, spec: LoopSpec) -> None:
         self.spec = spec
-        rings = spec.rings
-        self.codec = CycleCodec(spec.limit.size)
-        self.cycles = ShmRing.attach(rings['cycles'], self.codec.dtype, CYCLE_RECORDS)
-        self.control = ShmRing.attach(rings['control'], bytes_dtype(CONTROL_BYTES), 64)
-        self.status_ring = ShmRing.attach(rings['status'], bytes_dtype(STATUS_BYTES), 4)
-        updates = ShmRing.attach(rings['updates'], bytes_dtype(spec.update_bytes),
-                                 UPDATE_RECORDS)
-        self.rings = [self.cycles, self.control, self.status_ring, updates]
+        m = spec.limit.size
+        self.mem = LoopRings.attach(spec.segments, m, spec.dof)
+        rings = self.mem.rings
         self.backend = create_backend(spec.backend)
         self.backend.configure(spec.backend_config)
-        if spec.carry is not None:          # where the previous activation's child left it
-            self.backend.resume(spec.carry)
-        dim = spec.limit.size
-        self.device = DeviceLoop(self.backend, spec.limit, CommandWatchdog(spec.watchdog, dim),
-                                 spec.period, spec.takeover_after)
-        self.cycle = _RingCycle(self.device, spec.controller, updates, spec.wake_child,
-                                self.poll_control, spec.runner.lockstep)
-        self.runner = LoopRunner(self.cycle, spec.runner, sleep=self.sleep, wake=self.flush)
-        # The statistics the node sorts for the percentiles, in memory it reads.
-        self.arrays = [SharedArray.attach(spec.periods, PERIOD_WINDOW),
-                       SharedArray.attach(spec.round_trips, RTT_KEEP),
-                       SharedArray.attach(spec.lateness, PERIOD_WINDOW)]
-        self.runner.pacer.use_period_buffer(self.arrays[0].array, self.arrays[2].array)
-        self.device.use_round_trip_buffer(self.arrays[1].array)
+        try:
+            if spec.carry is not None:          # where the previous activation's child left it
+                self.backend.resume(spec.carry)
+            self.device = DeviceLoop(self.backend, spec.limit, CommandWatchdog(spec.watchdog, m),
+                                     spec.period, spec.takeover_after)
+            self.cycle = _RingCycle(self.device, spec.controller, rings['updates'],
+                                    UpdateTiming(spec.runner.lockstep), spec.wake_child,
+                                    self.poll_control)
+            lockstep = spec.runner.lockstep
+            outbox = RingOutbox(rings['cycles'], CycleCodec(m), not lockstep,
+                                self._wake_node if lockstep else lambda: None)
+            self.runner = LoopRunner(self.cycle, spec.runner, outbox=outbox)
+            # The statistics the node sorts for the percentiles, in memory it reads.
+            arrays = self.mem.arrays
+            self.runner.pacer.use_period_buffer(arrays['periods'].array,
+                                                arrays['lateness'].array)
+            self.device.use_round_trip_buffer(arrays['round_trips'].array)
+        except BaseException:
+            self.backend.cleanup()
+            raise
         self.notices: list[str] = []
         self.stop = False
         self.parent_gone = False
         self._status_at = 0.0
 
-    def sleep(self, seconds: float) -> None:
-        """The pacer's sleep until the next deadline: it ends early when the node signals
-        (an update or a request), and the updates waiting are decoded and applied then,
-        between two cycles (:meth:`_RingCycle.apply_early`), if at least
-        :data:`APPLY_BEFORE` is left; the pacer sleeps again until the deadline. Else they
-        wait for the gap after the next cycle (:meth:`_RingCycle.defer`)."""
-        end = time.monotonic() + seconds
-        if not self.cycle.waiting and not wait_eventfd(self.spec.wake_child, seconds):
-            return
-        left = end - time.monotonic()
-        if left > APPLY_BEFORE:
-            self.cycle.apply_early()
-        else:
-            self.cycle.defer()
-            time.sleep(max(left, 0.0))
+    def _wake_node(self) -> None:
+        os.eventfd_write(self.spec.wake_node, 1)
+
+    def gap(self) -> None:
+        """Wall clock: the gap before the next deadline. Serves the node's requests and
+        applies the LMI updates that :class:`UpdateTiming` lets in, as they come (the node
+        signals its eventfd after writing); returns at the deadline, or at a stop."""
+        deadline = self.runner.pacer.next_deadline()
+        first = True
+        while True:
+            self.poll_control()
+            if self.stop:
+                return
+            self.cycle.apply_in_gap(deadline, first)
+            first = False
+            left = deadline - time.monotonic()
+            if left <= 0.0 or not wait_eventfd(self.spec.wake_child, left):
+                self.cycle.timing.end_gap(self.cycle.waiting)
+                return
 
     def poll_control(self) -> None:
-        for data in payloads(self.control):
+        for data in payloads(self.mem.rings['control']):
             generation, *item = pickle.loads(data)
             if generation != self.spec.generation:
                 continue            # for the child before this one
@@ -186,18 +249,6 @@ class _Child:
         if os.getppid() != self.spec.parent:
             self.parent_gone = self.stop = True
             self.runner.request_stop()
-
-    def flush(self) -> None:
-        """Move the runner's outbox into the cycle ring (lock-step: as room allows)."""
-        box = self.runner.outbox
-        wrote = False
-        while box:
-            if not self.cycles.put(self.codec.encode(box[0]), not self.spec.runner.lockstep):
-                break
-            box.popleft()
-            wrote = True
-        if wrote and self.spec.runner.lockstep:
-            os.eventfd_write(self.spec.wake_node, 1)
 
     def report(self, final: bool = False) -> None:
         now = time.monotonic()
@@ -225,6 +276,7 @@ class _Child:
                   'controller': c.values(loop_now),
                   'health': list(HEALTH_MESSAGES[c.guard.health(loop_now)]),
                   'finished': r.finished, 'lockstep_timeouts': r.lockstep_timeouts,
+                  'rings': self.mem.counts(),
                   'generation': self.spec.generation, 'final': final,
                   'carry': None if carry is None else base64.b64encode(carry).decode(),
                   'notices': self.notices[-50:]}
@@ -233,7 +285,7 @@ class _Child:
             print('\n'.join(self.notices), file=sys.stderr, flush=True)
             data = json.dumps(dict(status, notices=[])).encode()
         if len(data) <= STATUS_BYTES:       # else the notices wait for the next record
-            put_bytes(self.status_ring, data, 'status')
+            put_bytes(self.mem.rings['status'], data, 'status')
             self.notices = []
 
     def run(self) -> int:
@@ -242,45 +294,46 @@ class _Child:
         self.notices.extend(set_thread_realtime(s.sched_priority, s.cpu_affinity,
                                                 s.lock_memory, s.sched_slice_us,
                                                 s.timer_slack_ns))
-        self.backend.activate()
-        # The updates that came while this process started (the VE's keep-alives, up to the
-        # ring's UPDATE_RECORDS) are applied now, before the first deadline: in the first gap
-        # between two cycles their copy and re-syncs overran it (5 ms with 3 links, 35 ms
-        # with 100). Then the collection, also before the clock starts.
-        self.cycle.apply_early()
-        gc.collect()
-        gc.freeze()
-        gc.disable()
-        self.runner.pacer.start()
-        k = 0
+        wall = not s.runner.lockstep
+        activated = False
         try:
+            if self.stop:               # asked before it began: the device is not enabled
+                return 0
+            activated = True
+            self.backend.activate()
+            # The updates that came while this process started (the VE's keep-alives, up to
+            # the ring's capacity), before the first deadline: in the first gap between two
+            # cycles their copy and re-syncs overran it (5 ms with 3 links, 35 ms with 100).
+            # Then the collection, also before the clock starts.
+            self.cycle.catch_up()
+            gc.collect()
+            gc.freeze()
+            gc.disable()
+            self.runner.pacer.start()
+            k = 0
             while not self.stop and not self.runner.finished:
-                self.poll_control()
+                if wall:
+                    self.gap()
+                else:
+                    self.poll_control()
                 if self.stop:
                     break
                 self.runner.cycle_once()
-                self.flush()
                 k += 1
                 if k % GC_EVERY == 0:
                     gc.collect(1)
                 self.report()
-            while self.runner.outbox and s.runner.lockstep and not self.stop:
-                self.flush()
-                time.sleep(0.001)
-                self.poll_control()
         finally:
-            zero_and_release(self.backend, s.limit.size)
+            if activated:
+                self.notices.extend(zero_and_release(self.backend, s.limit.size))
             if self.parent_gone or os.getppid() != s.parent:
                 print(f'loop process {os.getpid()}: parent gone: output zeroed, device '
                       'released', file=sys.stderr, flush=True)
             self.report(final=True)
             self.backend.cleanup()
-            for ring in self.rings:
-                ring.close()
             self.runner.pacer.use_period_buffer(np.zeros(PERIOD_WINDOW))
             self.device.use_round_trip_buffer(np.zeros(RTT_KEEP))
-            for arr in self.arrays:
-                arr.close()
+            self.mem.close()
         return 0
 
 
@@ -290,10 +343,12 @@ def child_main() -> int:
     child: _Child | None = None
     term = [False]
 
-    def on_term(signum: int, frame: Any) -> None:     # the parent died (PR_SET_PDEATHSIG)
+    def on_term(signum: int, frame: Any) -> None:
+        # The node's escalation of a stop, or the parent died (PR_SET_PDEATHSIG).
         term[0] = True
         if child is not None:
-            child.parent_gone = child.stop = True
+            child.stop = True
+            child.parent_gone = os.getppid() != spec.parent
             child.runner.request_stop()
 
     stacks_on_signal()
@@ -306,10 +361,10 @@ def child_main() -> int:
         return 1
     child = _Child(spec)
     if term[0]:
-        child.parent_gone = child.stop = True
+        child.stop = True
+        child.parent_gone = os.getppid() != spec.parent
     return child.run()
 
 
 if __name__ == '__main__':
     raise SystemExit(child_main())
-

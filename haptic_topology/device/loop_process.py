@@ -19,30 +19,43 @@ torn reads detected), never a lock:
 * node -> child, LMI updates (a
   :class:`~haptic_topology.control.controller.PreparedUpdate` as an
   :mod:`~haptic_topology.control.update_record`: the snapshot with the matrices
-  its re-sync takes, computed by the node; applied at the start of the next cycle as
-  in-process) and control requests (engagement permission, live law and gains, stop);
+  its re-sync takes, computed by the node; applied between two cycles, see below) and
+  control requests (engagement permission, live law and gains, stop);
 * child -> node, a status record every :data:`STATUS_PERIOD` s: the loop's, the device's and
   the controller's diagnostics values, and notices for the node's log. The last one, written
   after the device is released, carries what the backend hands over to the next activation's
   child (:meth:`~haptic_topology.device.backend.DeviceBackend.carry_over`: the simulated
   maglev's state, so that it resumes where it stopped, as an in-process backend does).
 
+The rings' layout and their losses: :mod:`~haptic_topology.device.loop_rings`.
 In lock-step each side wakes the other with an ``eventfd`` after writing (the child after a
 cycle's record, the node after an update); with the wall clock the node takes the records
-every few milliseconds and the child never makes a system call for it, and the child sleeps
-towards its next deadline on the node's ``eventfd``: an update that comes while it sleeps is
-decoded and applied then, off the deadline path (the loop's state does not change between
-two cycles, so this is what applying it at the start of the next cycle would do), unless
-less than ``loop_child.APPLY_BEFORE`` (0.3 ms) is left: then it waits for the gap after
-the next cycle, which runs on the model it has.
+every few milliseconds and the child never makes a system call for it, and the child waits
+out the gap before its next deadline on the node's ``eventfd``: requests are served then,
+and LMI updates applied when :class:`~haptic_topology.device.loop_child.UpdateTiming` says
+(off the deadline path: the loop's state does not change between two cycles, so this is what
+applying them at the start of the next cycle would do).
 
-Lifetimes: the node creates (and unlinks) the rings. The child stops at a stop request, or
-when its parent dies (``PR_SET_PDEATHSIG`` delivers SIGTERM, and the parent pid is checked
-every cycle), in both cases after writing zero wrench and releasing the device
-(:func:`~haptic_topology.device.backend.zero_and_release`). The node sees the child exit at
-its next check (every 20 ms) and reports it as the device's fault. The child unregisters the
-rings from its resource tracker (:meth:`~haptic_topology.device.shm_ring.ShmRing.attach`),
-so only the owner unlinks them: its :meth:`LoopProcess.close`, or its tracker when it dies.
+Lifetimes: the node creates the rings when the driver is configured (a ``/dev/shm`` without
+room fails there) and unlinks them at cleanup. An activation starts a child; a deactivation
+stops it: a stop request, then, if the child has not exited within :data:`STOP_TIMEOUT`
+(or could not be asked: its control ring full), SIGTERM, then, after :data:`TERM_TIMEOUT`,
+SIGKILL. The child turns a stop request, SIGTERM and its parent's death
+(``PR_SET_PDEATHSIG`` delivers SIGTERM, and the parent pid is checked every cycle) into the
+end of its loop, and writes zero wrench and releases the device
+(:func:`~haptic_topology.device.backend.zero_and_release`) in a ``finally`` that every path
+out of its loop takes, a failed activation included; only SIGKILL skips it (then the device's
+own command timeout must hold it). The node sees an unrequested exit at its next check
+(every 20 ms) and reports it as the device's fault. The child unregisters the rings from its
+resource tracker (:meth:`~haptic_topology.device.shm_ring.ShmRing.attach`), so only the owner
+unlinks them: its :meth:`LoopProcess.close`, or its tracker when it dies.
+
+Each child is a generation: requests, status and hand-over carry its number, and nothing of
+an earlier child is taken as the new one's (one that dies before its first status is a fault).
+
+The percentiles of the child's statistics (720,000 periods, wake-up lateness and round
+trips) are sorted in a thread of the node's (``loop_rings.SortedFigures``), once per
+:data:`STATUS_PERIOD` at most, when diagnostics ask: never in the executor thread.
 
 In the child, after start-up, :func:`gc.freeze` moves every object built so far out of the
 collector's view and automatic collection is off; a young-generation collection runs every
@@ -55,7 +68,7 @@ import base64
 import json
 import os
 import pickle
-import select
+import signal
 import subprocess
 import sys
 import threading
@@ -72,50 +85,30 @@ from haptic_topology.control.loop import ControllerLoop
 from haptic_topology.control.update_record import encode_update
 from haptic_topology.device.backend import BackendConfig
 from haptic_topology.device.hosted import MAX_PENDING
-from haptic_topology.device.loop import RTT_KEEP
-from haptic_topology.device.pacing import PERIOD_WINDOW
-from haptic_topology.device.records import (
-    CycleCodec,
-    bytes_dtype,
-    payloads,
-    put_bytes,
-    update_bytes,
+from haptic_topology.device.loop_rings import (
+    LoopRings,
+    SortedFigures,
+    add_counts,
+    wait_eventfd,
 )
+from haptic_topology.device.records import CycleCodec, payloads, put_bytes, update_bytes
 from haptic_topology.device.runner import Published, RunnerConfig
-from haptic_topology.device.shm_ring import SharedArray, ShmRing
 from haptic_topology.device.watchdog import WatchdogConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.vocabulary import ControlMode
 
 #: The module the loop process runs (``python -m``).
 CHILD_MODULE = 'haptic_topology.device.loop_child'
-#: Cycle records the ring keeps (4 s at 1 kHz), as the in-process outbox.
-CYCLE_RECORDS = 4096
 #: Seconds between two status records of the child.
 STATUS_PERIOD = 0.2
-#: Bytes of one status record (JSON) and of one control record (pickle).
-STATUS_BYTES = 1 << 16
-CONTROL_BYTES = 1 << 12
-#: LMI update records the ring keeps (0.3 s at 100 Hz).
-UPDATE_RECORDS = 32
 #: Cycles between two young-generation collections in the child.
 GC_EVERY = 1000
 #: How long the node waits for the child to stop after a stop request (s); longer by
 #: START_TIMEOUT while it has not reported from its loop (importing, opening the device).
 STOP_TIMEOUT = 3.0
 START_TIMEOUT = 30.0
-
-def wait_eventfd(fd: int, timeout: float) -> bool:
-    """Block until the eventfd ``fd`` (non-blocking) is signalled or ``timeout`` s have
-    passed; reset it. Returns whether it was signalled."""
-    ready, _, _ = select.select([fd], [], [], timeout)
-    if not ready:
-        return False
-    try:
-        os.eventfd_read(fd)
-    except BlockingIOError:         # reset meanwhile: signalled all the same
-        pass
-    return True
+#: How long the node waits for the child to exit after SIGTERM before SIGKILL (s).
+TERM_TIMEOUT = 2.0
 
 
 @dataclass(frozen=True)
@@ -123,8 +116,9 @@ class LoopSpec:
     """What the child builds its loop from (pickled to its stdin): the backend (name and
     configuration: the child opens the device), the device loop's limits, watchdog, period
     and takeover time, the controller loop (built by the hosted ``lmi_controller``, never
-    stepped in the node), the runner's pacing, real-time options, ring names and wake-up
-    descriptors, and the parent's pid."""
+    stepped in the node), the runner's pacing, real-time options, the segments' names
+    (:class:`~haptic_topology.device.loop_rings.LoopRings`) and the linkage's joints (their
+    layout), wake-up descriptors, and the parent's pid."""
 
     backend: str
     backend_config: BackendConfig
@@ -139,15 +133,12 @@ class LoopSpec:
     lock_memory: bool
     sched_slice_us: float
     timer_slack_ns: int
-    rings: dict[str, str]
-    update_bytes: int
+    segments: dict[str, str]
+    dof: int
     wake_node: int            # eventfd the child writes (lock-step: after each record)
     wake_child: int           # eventfd the node writes (after an update or a request)
     parent: int
     generation: int           # the child's number: requests for an earlier one are ignored
-    periods: str              # shared arrays the child's statistics live in (the node sorts
-    round_trips: str          # them for the percentiles, never the loop)
-    lateness: str
     #: What the previous child's backend carried over
     #: (:meth:`~haptic_topology.device.backend.DeviceBackend.carry_over`): resumed after
     #: ``configure``. None: the first activation, or a backend that carries nothing.
@@ -156,24 +147,19 @@ class LoopSpec:
 
 class LoopProcess:
     """The node's handle of the child (see module doc; a deactivation stops the child, an
-    activation starts a new one on the same rings), with the interface the node's
-    publishing thread and checks use of an in-process
-    :class:`~haptic_topology.device.runner.LoopRunner`: :meth:`start`,
-    :meth:`stop`, :meth:`drain`, ``may_engage``, ``finished``, ``error``,
-    ``device_values``, ``notices``; and :meth:`offer_update`, :meth:`change_law`
-    for the hosted controller."""
+    activation starts a new one on the same rings): a
+    :class:`~haptic_topology.device.runner.LoopHandle`, with :meth:`drain_records`,
+    :meth:`wait` and :meth:`check` for the node's publishing thread and timer."""
 
     def __init__(self, spec: dict[str, Any], task_dim: int, dof: int) -> None:
-        self._spec = spec          # LoopSpec fields but the rings, fds and parent
+        self._spec = spec          # LoopSpec fields but the segments, fds and parent
         self.codec = CycleCodec(task_dim)
+        self._dof = dof
         self._update_bytes = update_bytes(dof)
         self.lockstep = bool(spec['runner'].lockstep)
         self.notices: deque[str] = deque(maxlen=100)
         self.status: dict[str, Any] = {}
         self._proc: subprocess.Popen[bytes] | None = None
-        self._rings: dict[str, ShmRing] = {}
-        self._arrays: dict[str, SharedArray] = {}
-        self._fds: tuple[int, int] | None = None
         self._may_engage = False
         self._stopping = False
         self.error: BaseException | None = None
@@ -181,43 +167,39 @@ class LoopProcess:
         self.generation = 0         # children started (requests carry it)
         self._pending: deque[bytes] = deque(maxlen=MAX_PENDING)    # update records
         self.updates_dropped = 0
+        self.updates_refused = 0    # too large for a record
         self._status_lock = threading.Lock()    # the status ring's one consumer at a time
         #: The newest child's hand-over (its final status), for the next child.
         self._carry: bytes | None = None
+        self._figures = SortedFigures(self._sorted, STATUS_PERIOD)
+        #: An ended child's figures, and the status they were sorted for.
+        self._final: tuple[dict[str, Any], dict[str, str]] | None = None
+        # The segments now (the driver is being configured): no room is an error here.
+        self._mem: LoopRings | None = LoopRings.create(task_dim, dof)
+        self._fds: tuple[int, int] | None = (os.eventfd(0, os.EFD_NONBLOCK),
+                                             os.eventfd(0, os.EFD_NONBLOCK))
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self, name: str = 'device_loop', on_start: Any = None) -> None:
-        """Create the rings and start the child (``on_start`` is not used: the child applies
-        the real-time options itself)."""
+        """Start a child (``on_start`` is not used: the child applies the real-time options
+        itself)."""
         if self.running:
             raise RuntimeError('LoopProcess.start: already running')
+        if self._mem is None or self._fds is None:
+            raise RuntimeError('LoopProcess.start: closed')
+        ended_final = self.status.get('final') is True
         self.error = None
         self._stopping = False
         self.generation += 1
-        if not self._rings:     # kept over a deactivation: the node's thread may drain them
-            self._rings = {
-                'cycles': ShmRing.create(self.codec.dtype, CYCLE_RECORDS),
-                'updates': ShmRing.create(bytes_dtype(self._update_bytes), UPDATE_RECORDS),
-                'control': ShmRing.create(bytes_dtype(CONTROL_BYTES), 64),
-                'status': ShmRing.create(bytes_dtype(STATUS_BYTES), 4),
-            }
-            self._fds = (os.eventfd(0, os.EFD_NONBLOCK), os.eventfd(0, os.EFD_NONBLOCK))
-            self._arrays = {'periods': SharedArray.create(PERIOD_WINDOW),
-                            'round_trips': SharedArray.create(RTT_KEEP),
-                            'lateness': SharedArray.create(PERIOD_WINDOW)}
-        assert self._fds is not None
-        if self.generation > 1 and self.status.get('final') is not True:
+        self.status = {}            # the new child's, from its first record on
+        if self.generation > 1 and not ended_final:
             self._carry = None      # not an older child's: that state is not the device's now
             self.notices.append('the previous loop process ended without handing its device '
                                 'state over: the device starts as configured (a simulated '
                                 'one at its initial pose)')
-        spec = LoopSpec(**self._spec, carry=self._carry,
-                        rings={k: r.name for k, r in self._rings.items()},
-                        update_bytes=self._update_bytes, wake_node=self._fds[0],
-                        wake_child=self._fds[1], parent=os.getpid(),
-                        generation=self.generation, periods=self._arrays['periods'].name,
-                        round_trips=self._arrays['round_trips'].name,
-                        lateness=self._arrays['lateness'].name)
+        spec = LoopSpec(**self._spec, carry=self._carry, segments=self._mem.names(),
+                        dof=self._dof, wake_node=self._fds[0], wake_child=self._fds[1],
+                        parent=os.getpid(), generation=self.generation)
         # This node's session (as haptic-topology run starts every node), a process group of
         # its own: under the kernel's autogroup the scheduler weighs the loop thread against
         # the nodes' threads directly, by nice, SCHED_BATCH and its slice (docs/nodes.md).
@@ -227,46 +209,73 @@ class LoopProcess:
         assert self._proc.stdin is not None
         self._proc.stdin.write(pickle.dumps(spec))
         self._proc.stdin.close()
-        self._request(('engage', self._may_engage))
+        if not self._request(('engage', self._may_engage)):
+            self.notices.append('loop process: control ring full at the start')
 
     def stop(self, timeout: float = STOP_TIMEOUT) -> None:
-        """Ask the child to stop (zero wrench, device released); wait (:data:`STOP_TIMEOUT`)."""
+        """Stop the child (see module doc: a request, then SIGTERM, then SIGKILL); it zeroes
+        the device and releases it unless killed. Never raises: what went wrong is in
+        ``notices``, and a child that had to be killed is ``error``."""
         proc = self._proc
         if proc is None or proc.poll() is not None:
+            self._poll_status()
             return
         self._stopping = True
-        self._request(('stop',))
+        asked = self._request(('stop',))
         self._poll_status()
         if self.status.get('generation') != self.generation:      # not in its loop yet
             timeout += START_TIMEOUT
         try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-            raise RuntimeError(f'loop process did not stop within {timeout} s: killed') from None
+            if asked:
+                try:
+                    proc.wait(timeout)
+                    return
+                except subprocess.TimeoutExpired:
+                    why = f'did not stop within {timeout:g} s of a stop request'
+            else:
+                why = 'could not be asked to stop (its control ring is full)'
+            self._terminate(proc, why)
         finally:
             self._poll_status()
 
+    def _terminate(self, proc: subprocess.Popen[bytes], why: str) -> None:
+        """SIGTERM (the child zeroes and releases the device), then SIGKILL after
+        :data:`TERM_TIMEOUT`."""
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(TERM_TIMEOUT)
+            self.notices.append(f'loop process {proc.pid} {why}: stopped by SIGTERM (output '
+                                'zeroed, device released)')
+            return
+        except subprocess.TimeoutExpired:
+            pass
+        proc.kill()
+        proc.wait()
+        self.error = DeviceError(f'loop process {proc.pid} {why} and did not exit within '
+                                 f'{TERM_TIMEOUT:g} s of SIGTERM: killed, device output not '
+                                 'known to be zeroed')
+        self.notices.append(str(self.error))
+
     def close(self) -> None:
-        """Unlink the rings and close the descriptors (after :meth:`stop`, or at shutdown)."""
-        if self._proc is not None and self._proc.poll() is None:
-            self._proc.kill()
-            self._proc.wait()
-        for ring in self._rings.values():
-            ring.close()
-        self._rings = {}
-        for arr in self._arrays.values():
-            arr.close()
-        self._arrays = {}
-        if self._fds is not None:
-            for fd in self._fds:
-                os.close(fd)
-            self._fds = None
+        """Stop a running child (:meth:`stop`), stop the figures' thread, then unlink the
+        segments and close the descriptors, each whatever the others do (at cleanup, or at
+        shutdown)."""
+        try:
+            self.stop()
+        finally:
+            self._figures.stop()
+            mem, fds = self._mem, self._fds
+            self._mem = self._fds = None
+            try:
+                if mem is not None:
+                    mem.close()
+            finally:
+                for fd in fds or ():
+                    os.close(fd)
 
     def ring_names(self) -> list[str]:
-        """The shared-memory segments of the rings (``/dev/shm/<name>``)."""
-        return [r.name for r in self._rings.values()] + [a.name for a in self._arrays.values()]
+        """The shared-memory segments (``/dev/shm/<name>``)."""
+        return list(self._mem.names().values()) if self._mem else []
 
     @property
     def pid(self) -> int | None:
@@ -290,14 +299,19 @@ class LoopProcess:
                                      f'{proc.returncode}: device output lost')
 
     # -- requests --------------------------------------------------------------------------------
-    def _request(self, item: tuple[Any, ...]) -> None:
-        ring = self._rings.get('control')
+    def _ring(self, name: str) -> Any:
+        return self._mem.rings[name] if self._mem else None
+
+    def _request(self, item: tuple[Any, ...]) -> bool:
+        """Put a request for the current child; False when the control ring is full."""
+        ring = self._ring('control')
         if ring is None:
-            return
+            return False
         if not put_bytes(ring, pickle.dumps((self.generation, *item)), 'control request',
                          overwrite=False):
-            raise DeviceError('loop process: control ring full (the child does not read it)')
+            return False
         self._wake_child()
+        return True
 
     def _wake_child(self) -> None:
         if self._fds is not None:
@@ -311,27 +325,34 @@ class LoopProcess:
     def may_engage(self, value: bool) -> None:
         if bool(value) != self._may_engage:
             self._may_engage = bool(value)
-            self._request(('engage', self._may_engage))
+            if not self._request(('engage', self._may_engage)):
+                raise DeviceError('loop process: control ring full (the child does not read '
+                                  'it)')
 
     def offer_update(self, snap: LmiSnapshot) -> None:
-        """Hand an LMI update to the child (applied at the start of its next cycle, after
-        every update offered before it), with the matrices its re-sync takes computed here
+        """Hand an LMI update to the child, with the matrices its re-sync takes computed here
         (:meth:`~haptic_topology.control.controller.HapticController.prepare`, by the node's
         copy of the controller, which is never stepped): the child only adopts them. While
         the ring is full (the child starting up, or not stepping) updates wait here, at most
         :data:`~haptic_topology.device.hosted.MAX_PENDING` (then the oldest is dropped and
-        counted, as in-process). Call from one
-        thread (the executor's), as :meth:`flush_updates`."""
+        counted in ``updates_dropped``). An update too large for a record is refused and
+        counted (``updates_refused``). Call from one thread (the executor's), as
+        :meth:`flush_updates`."""
+        data = encode_update(self._spec['controller'].ctrl.prepare(snap))
+        if len(data) > self._update_bytes:
+            self.updates_refused += 1
+            self.notices.append(f'LMI update {snap.seq}: {len(data)} bytes, more than a '
+                                f'record holds ({self._update_bytes}): refused')
+            return
         if len(self._pending) == self._pending.maxlen:
             self.updates_dropped += 1
-        prepared = self._spec['controller'].ctrl.prepare(snap)
-        self._pending.append(encode_update(prepared))
+        self._pending.append(data)
         self.flush_updates()
 
     def flush_updates(self) -> None:
         """Move waiting updates into the ring as room allows (the node's check timer calls
         this too, so the last update of a burst is not left waiting)."""
-        ring = self._rings.get('updates')
+        ring = self._ring('updates')
         if ring is None:
             return
         moved = False
@@ -344,7 +365,8 @@ class LoopProcess:
 
     def change_law(self, gains: ControlGains, mode: ControlMode) -> None:
         """A live change of gains and mode, applied between two cycles."""
-        self._request(('law', gains, mode))
+        if not self._request(('law', gains, mode)):
+            raise DeviceError('loop process: control ring full (the child does not read it)')
 
     # -- what the child produced ---------------------------------------------------------------
     def wait(self, timeout: float) -> None:
@@ -360,7 +382,7 @@ class LoopProcess:
 
     def drain_records(self) -> np.ndarray:
         """:meth:`drain` as the records of ``codec`` (not decoded)."""
-        ring = self._rings.get('cycles')
+        ring = self._ring('cycles')
         if ring is None:
             return np.empty(0, self.codec.dtype)
         recs = ring.take()
@@ -370,31 +392,33 @@ class LoopProcess:
 
     def _poll_status(self) -> None:
         with self._status_lock:
-            ring = self._rings.get('status')
+            ring = self._ring('status')
             if ring is None:
                 return
             for data in payloads(ring):
                 status = json.loads(data)
                 self.notices.extend(status.pop('notices', []))
                 carry = status.pop('carry', None)
-                if status.get('final') and status.get('generation') == self.generation:
+                if status.get('generation') != self.generation:
+                    continue            # an earlier child's last words: not this one's
+                if status.get('final'):
                     self._carry = None if carry is None else base64.b64decode(carry)
                 self.status = status
 
     @property
-    def outbox(self) -> int:
+    def outbox_pending(self) -> int:
         """Cycle records not taken yet."""
-        ring = self._rings.get('cycles')
+        ring = self._ring('cycles')
         return 0 if ring is None else ring.pending
 
     @property
     def appended(self) -> int:
-        ring = self._rings.get('cycles')
+        ring = self._ring('cycles')
         return self.taken if ring is None else ring.written
 
     @property
     def outbox_dropped(self) -> int:
-        ring = self._rings.get('cycles')
+        ring = self._ring('cycles')
         return 0 if ring is None else ring.lost
 
     @property
@@ -405,30 +429,52 @@ class LoopProcess:
     def lockstep_timeouts(self) -> int:
         return int(self.status.get('lockstep_timeouts', 0))
 
-    def _percentiles(self, values: dict[str, str]) -> dict[str, str]:
-        """``values`` with the period, wake-up lateness and round-trip percentiles (ms) of the
-        child's shared statistics (the child reports them as NaN: sorting is this process's
-        job)."""
-        out = dict(values)
+    # -- figures ---------------------------------------------------------------------------------
+    def _sorted(self) -> dict[str, str]:
+        """The figures' thread: period, wake-up lateness and round-trip percentiles (ms) of
+        the child's shared statistics (the child reports them as NaN: sorting is this
+        process's job)."""
+        out: dict[str, str] = {}
+        mem = self._mem
+        if mem is None:
+            return out
         for name, n_key, keys in (
                 ('periods', 'n_periods', ('period', 'loop_period')),
                 ('lateness', 'n_periods', ('wake_late', 'loop_wake_late')),
                 ('round_trips', 'n_round_trips', ('round_trip',))):
-            arr = self._arrays.get(name)
-            n = min(int(self.status.get(n_key, 0)), 0 if arr is None else arr.array.size)
-            if arr is None or n == 0:
+            arr = mem.arrays[name].array
+            n = min(int(self.status.get(n_key, 0)), arr.size)
+            if n == 0:
                 continue
-            p50, p99 = (1e3 * float(v) for v in np.percentile(arr.array[:n], [50, 99]))
+            p50, p99 = (1e3 * float(v) for v in np.percentile(arr[:n], [50, 99]))
             for key in keys:
-                if f'{key}_p50_ms' in out:
-                    out[f'{key}_p50_ms'], out[f'{key}_p99_ms'] = f'{p50:.3f}', f'{p99:.3f}'
+                out[f'{key}_p50_ms'], out[f'{key}_p99_ms'] = f'{p50:.3f}', f'{p99:.3f}'
+        return out
+
+    def _with_figures(self, values: dict[str, str]) -> dict[str, str]:
+        """``values`` with the percentiles (where it has those keys: the newest the figures'
+        thread has while a child runs; once it has ended, its final ones, sorted here once)
+        and the rings' losses of both sides."""
+        out = dict(values)
+        if self.running:
+            figures = self._figures.read()
+        else:
+            if self._final is None or self._final[0] is not self.status:
+                self._final = (self.status, self._sorted())
+            figures = self._final[1]
+        for key, v in figures.items():
+            if key in out:
+                out[key] = v
+        if self._mem is not None:
+            out.update(add_counts(self._mem.counts(), self.status.get('rings', {})))
         return out
 
     def device_values(self) -> dict[str, str]:
-        out = self._percentiles(self.status.get('device', {}))
+        out = self._with_figures(self.status.get('device', {}))
         out.update({'loop_process_pid': str(self.pid or 0),
                     'loop_records_lost': str(self.outbox_dropped),
                     'updates_waiting': str(len(self._pending)),
+                    'updates_refused': str(self.updates_refused),
                     'updates_dropped': str(int(out.get('updates_dropped', 0))
                                            + self.updates_dropped)})
         return out
@@ -438,7 +484,7 @@ class LoopProcess:
         :func:`~haptic_topology.device.loop.device_report`), with the node's ``fault`` and
         its ``rejected`` messages."""
         level, message, values = self.status.get('report', (1, 'loop process starting', {}))
-        values = self._percentiles(values)
+        values = self._with_figures(values)
         values['rejected_commands'] = str(int(values.get('rejected_commands', 0)) + rejected)
         if fault:
             level, message = 2, f'fault: {fault}'

@@ -156,6 +156,11 @@ class DeadlinePacer:
             raise RuntimeError('deadline() before start()')
         return self._t0 + k * self.period
 
+    def next_deadline(self) -> float:
+        """The deadline (s) of the cycle :meth:`wait` releases next, unless the loop overruns
+        it (the end of the gap between two cycles)."""
+        return self.deadline(self._index + 1)
+
     def start(self, t0: float | None = None) -> None:
         """Begin a deadline grid at ``t0`` (s; default now): the next :meth:`wait` releases
         cycle 0 at ``t0``. Counters and statistics carry on; no period is measured across

@@ -149,10 +149,10 @@ def put_bytes(ring: ShmRing, data: bytes, what: str, overwrite: bool = True) -> 
     return ring.put_with(fill, overwrite)
 
 
-def payloads(ring: ShmRing) -> list[bytes]:
-    """The byte records waiting in ``ring``, oldest first (taken)."""
+def payloads(ring: ShmRing, limit: int | None = None) -> list[bytes]:
+    """The byte records waiting in ``ring``, oldest first (taken; at most ``limit``)."""
     if not ring.pending:
         return []
     # Only the payload is copied: a record is sized for the largest (an LMI update of a
     # 100-link chain: 650 kB), and a backlog copied whole took tens of milliseconds.
-    return ring.take_each(lambda r: bytes(r['b'][:int(r['n'])]))
+    return ring.take_each(lambda r: bytes(r['b'][:int(r['n'])]), limit)

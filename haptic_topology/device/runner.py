@@ -47,7 +47,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiSnapshot
@@ -112,6 +112,84 @@ class Published(NamedTuple):
     stamp_ns: int
 
 
+class Outbox(Protocol):
+    """Where :class:`LoopRunner` puts each cycle it ran (:class:`Published`) for the thread
+    that publishes it: a :class:`DequeOutbox` in the node's process, the cycle ring of a loop
+    process (:mod:`~haptic_topology.device.loop_child`). ``dropped``: entries lost because
+    it was full (wall clock)."""
+
+    @property
+    def dropped(self) -> int: ...
+
+    def __len__(self) -> int: ...
+
+    def room(self) -> bool:
+        """Whether an entry can be put without losing one (lock-step waits for it)."""
+
+    def put(self, entry: Published) -> None:
+        """Add ``entry``; when full, the oldest entry not yet taken is lost and counted."""
+
+
+class DequeOutbox:
+    """An :class:`Outbox` of ``capacity`` entries that the publishing thread drains."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._box: deque[Published] = deque()
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self._box)
+
+    def room(self) -> bool:
+        return len(self._box) < self.capacity
+
+    def put(self, entry: Published) -> None:
+        if len(self._box) >= self.capacity:
+            self._box.popleft()
+            self.dropped += 1
+        self._box.append(entry)
+
+    def drain(self) -> list[Published]:
+        """Take everything put so far, oldest first (any one thread)."""
+        out = []
+        box = self._box
+        while box:
+            out.append(box.popleft())
+        return out
+
+
+class LoopHandle(Protocol):
+    """What the hosted layout's node uses of its loop, wherever the loop runs: a thread of
+    its own process (:class:`LoopRunner`) or a loop process
+    (:class:`~haptic_topology.device.loop_process.LoopProcess`)."""
+
+    may_engage: bool
+    notices: deque[str]
+
+    @property
+    def error(self) -> BaseException | None: ...
+    @property
+    def running(self) -> bool: ...
+    @property
+    def finished(self) -> bool: ...
+    @property
+    def appended(self) -> int: ...
+    @property
+    def outbox_dropped(self) -> int: ...
+    @property
+    def outbox_pending(self) -> int: ...
+    @property
+    def lockstep_timeouts(self) -> int: ...
+
+    def start(self, name: str = 'device_loop',
+              on_start: Callable[[], None] | None = None) -> None: ...
+    def stop(self) -> None: ...
+    def offer_update(self, snap: LmiSnapshot) -> None: ...
+    def change_law(self, gains: ControlGains, mode: ControlMode) -> None: ...
+    def device_values(self) -> dict[str, str]: ...
+
+
 class LoopRunner:
     """Runs a :class:`~haptic_topology.device.hosted.HostedCycle` in a paced loop thread (see
     module doc).
@@ -119,14 +197,16 @@ class LoopRunner:
     ``wall_ns``: the wall clock that stamps states (ns; the node passes its ROS clock);
     ``clock``/``sleep``: monotonic time (s) and sleep, for the pacer and the waits; ``wake``
     (attribute, settable before ``start``): called after each outbox append, to wake the
-    thread that publishes.
+    thread that publishes; ``outbox``: where the cycles go (default: a
+    :class:`DequeOutbox` of ``cfg.outbox`` entries, which :meth:`drain` takes).
     """
 
     def __init__(self, cycle: HostedCycle, cfg: RunnerConfig,
                  wall_ns: Callable[[], int] = time.time_ns,
                  clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep,
-                 wake: Callable[[], None] = lambda: None) -> None:
+                 wake: Callable[[], None] = lambda: None,
+                 outbox: Outbox | None = None) -> None:
         if abs(cycle.device.period - cfg.period) > 1e-12:
             raise ConfigError(f'runner period {cfg.period} s differs from the device loop\'s '
                               f'{cycle.device.period} s')
@@ -138,7 +218,7 @@ class LoopRunner:
         self._sleep = sleep
         self.wake = wake
         self._period_ns = period_ns(cfg.period)
-        self.outbox: deque[Published] = deque()
+        self.outbox: Outbox = DequeOutbox(cfg.outbox) if outbox is None else outbox
         self._calls: deque[Callable[[], None]] = deque()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -148,7 +228,6 @@ class LoopRunner:
         self._run_start_ns: int | None = None
         self.notices: deque[str] = deque(maxlen=100)
         self.appended = 0                # entries put in the outbox in all
-        self.outbox_dropped = 0
         self.missed_deadlines = 0        # skipped while engaged (wall clock)
         self.max_missed_deadlines = 0    # ... the most in a row
         self.lockstep_timeouts = 0
@@ -220,12 +299,20 @@ class LoopRunner:
             fn()
 
     def drain(self) -> list[Published]:
-        """Take what the loop thread has published so far, oldest first."""
-        out = []
-        box = self.outbox
-        while box:
-            out.append(box.popleft())
-        return out
+        """Take what the loop thread has published so far, oldest first (the default
+        outbox)."""
+        assert isinstance(self.outbox, DequeOutbox)
+        return self.outbox.drain()
+
+    @property
+    def outbox_dropped(self) -> int:
+        """Entries the outbox lost (wall clock: the publisher fell behind)."""
+        return self.outbox.dropped
+
+    @property
+    def outbox_pending(self) -> int:
+        """Entries in the outbox not taken yet."""
+        return len(self.outbox)
 
     # -- loop thread -------------------------------------------------------------------------
     def _run_calls(self) -> None:
@@ -275,11 +362,11 @@ class LoopRunner:
             waited = True
             self.cycle.wait_offered(_POLL)
         self.lockstep_waits += waited
-        while len(self.outbox) >= self.cfg.outbox:      # the recorder must get everything
+        while not self.outbox.room():       # the recorder must get everything
             self._run_calls()
             if self._stop.is_set():
                 return None
-            self.wake()             # the publisher (or a loop process's ring) takes some
+            self.wake()             # the publisher takes some
             self._sleep(0.001)
         self._run_calls()
         d = self.cycle.device
@@ -290,10 +377,7 @@ class LoopRunner:
     def _publish(self, step: HostedStep, stamp: int) -> Published:
         entry = Published(step, stamp)
         self.appended += 1
-        if len(self.outbox) >= self.cfg.outbox:
-            self.outbox.popleft()
-            self.outbox_dropped += 1
-        self.outbox.append(entry)
+        self.outbox.put(entry)
         if step.tick.run_index >= 0:
             if self._run_start_ns is None or step.tick.run_index == 0:
                 self._run_start_ns = stamp

@@ -13,7 +13,9 @@ inside :meth:`ShmRing.put` or :meth:`ShmRing.take`.
 the copy (the producer lapped the consumer and rewrote the slot) discards the copy, and a
 word that is already past ``2k + 2`` means the record was overwritten before it was taken.
 The numpy stores of the producer reach the other core in program order on x86-64 (total
-store order), the only architecture this project runs on.
+store order), and the consumer's copy is complete before it marks the record taken: rings
+are refused on any other architecture (:func:`check_machine`: there, run the loop in a
+thread of the node, ``loop_process: false``).
 
 **A full ring** (the consumer ``capacity`` records behind): :meth:`ShmRing.put` with
 ``overwrite=True`` (the wall-clock loop: the deadline never waits for an observer) writes
@@ -21,6 +23,12 @@ anyway, the oldest unread record is lost and counted in :attr:`ShmRing.overwritt
 consumer skips to the oldest record still there and counts what it missed in
 :attr:`ShmRing.lost`; with ``overwrite=False`` (lock-step: nothing recorded may be lost)
 :meth:`ShmRing.put` returns False and writes nothing, and the producer tries again later.
+The consumer marks each record taken only after its copy is checked intact, so a producer that
+does not overwrite never rewrites a slot still being copied: nothing is lost.
+
+**Memory** is allocated when a segment is created (``posix_fallocate``): a ``/dev/shm`` too
+small for it is a :class:`~haptic_topology.errors.DeviceError` then, never a SIGBUS in the
+middle of the loop.
 
 **Lifetime.** The process that :meth:`ShmRing.create` s a segment owns it and unlinks it in
 :meth:`ShmRing.close`; :meth:`ShmRing.attach` opens it in the other process. Python 3.11's
@@ -44,6 +52,9 @@ Example (checked by ``test/unit/device/test_shm_ring.py``)::
 
 from __future__ import annotations
 
+import os
+import platform
+import shutil
 from collections.abc import Callable
 from multiprocessing import resource_tracker
 from multiprocessing.shared_memory import SharedMemory
@@ -51,7 +62,7 @@ from typing import Any
 
 import numpy as np
 
-from haptic_topology.errors import ConfigError
+from haptic_topology.errors import ConfigError, DeviceError
 
 #: Header words (int64): records written (producer), records taken (consumer), capacity,
 #: record size in bytes (both sides check they agree on the layout).
@@ -61,8 +72,40 @@ _HEADER_WORDS = 8
 _OWNED: set[str] = set()
 
 
+#: Machines whose memory ordering the rings rely on (total store order).
+TSO_MACHINES = ('x86_64', 'amd64')
+
+
 def _segment_size(dtype: np.dtype[Any], capacity: int) -> int:
     return 8 * (_HEADER_WORDS + capacity) + dtype.itemsize * capacity
+
+
+def check_machine(machine: str | None = None) -> None:
+    """Refuse a machine (default: this one, ``platform.machine()``) whose memory ordering
+    the rings do not hold on (see module doc)."""
+    machine = platform.machine() if machine is None else machine
+    if machine.lower() not in TSO_MACHINES:
+        raise ConfigError(f'shm ring: this machine is {machine!r}, expected one of '
+                          f'{", ".join(TSO_MACHINES)} (the rings rely on total store order); '
+                          'set loop_process: false to run the loop in a thread of the node')
+
+
+def new_segment(size: int, what: str) -> SharedMemory:
+    """A new shared-memory segment of ``size`` bytes, its memory allocated now (see module
+    doc); ``what`` names it in the error when ``/dev/shm`` has no room."""
+    check_machine()
+    shm = SharedMemory(create=True, size=size)
+    try:
+        os.posix_fallocate(shm._fd, 0, size)        # type: ignore[attr-defined]
+    except OSError as exc:
+        shm.close()
+        shm.unlink()
+        free = shutil.disk_usage('/dev/shm').free
+        raise DeviceError(f'shared memory: no room for {what} ({size} bytes) in /dev/shm '
+                          f'({exc.strerror}; {free} bytes free): free or enlarge /dev/shm '
+                          '(a container: --shm-size)') from None
+    _OWNED.add(shm.name)
+    return shm
 
 
 class ShmRing:
@@ -97,13 +140,13 @@ class ShmRing:
         return str(self._shm.name)
 
     @classmethod
-    def create(cls, dtype: np.dtype[Any], capacity: int, name: str | None = None) -> ShmRing:
-        """A new, empty ring owned by this process (unlinked by :meth:`close`)."""
+    def create(cls, dtype: np.dtype[Any], capacity: int, what: str = 'a ring') -> ShmRing:
+        """A new, empty ring owned by this process (unlinked by :meth:`close`); ``what`` names
+        it in errors."""
         dtype = np.dtype(dtype)
         if capacity < 1:
             raise ConfigError(f'shm ring: capacity must be >= 1, got {capacity}')
-        shm = SharedMemory(name=name, create=True, size=_segment_size(dtype, capacity))
-        _OWNED.add(shm.name)
+        shm = new_segment(_segment_size(dtype, capacity), what)
         ring = cls(shm, dtype, capacity, owner=True)
         ring._header[:] = 0
         ring._seq[:] = 0
@@ -115,6 +158,7 @@ class ShmRing:
     def attach(cls, name: str, dtype: np.dtype[Any], capacity: int) -> ShmRing:
         """The ring ``name`` created by another process, with the layout both agree on."""
         dtype = np.dtype(dtype)
+        check_machine()
         shm = SharedMemory(name=name, create=False)
         if name not in _OWNED:
             # Python 3.11 registers the attached segment with this process's resource
@@ -171,10 +215,18 @@ class ShmRing:
         """Records put over the ring's life."""
         return int(self._header[_WRITTEN])
 
+    @property
+    def full(self) -> bool:
+        """The producer's view: the consumer has not taken (and marked) ``capacity``
+        records: a put now overwrites one or is refused."""
+        return int(self._header[_WRITTEN]) - int(self._header[_TAKEN]) >= self.capacity
+
     # -- consumer ------------------------------------------------------------------------------
     def _claim(self, limit: int | None) -> range:
-        """The record numbers to take now (at most ``limit``), marked taken; records the
-        producer overwrote before they were taken are counted in :attr:`lost`."""
+        """The record numbers to take now (at most ``limit``); records the producer overwrote
+        before they could be taken are counted in :attr:`lost`. Nothing is marked taken here:
+        :meth:`_taken` does it record by record, after each copy is checked intact, so the
+        producer's room check never lets it rewrite a slot still being copied."""
         written = int(self._header[_WRITTEN])
         if written == self._next:       # nothing new (most calls: the loop polls each cycle)
             return range(0)
@@ -183,10 +235,12 @@ class ShmRing:
             self.lost += oldest - self._next
             self._next = oldest
         n = written - self._next if limit is None else min(written - self._next, limit)
-        ks = range(self._next, self._next + n)
-        self._next += n
-        self._header[_TAKEN] = self._next
-        return ks
+        return range(self._next, self._next + n)
+
+    def _taken(self, k: int) -> None:
+        """Record ``k`` is copied (or lost): its slot is the producer's again."""
+        self._next = k + 1
+        self._header[_TAKEN] = k + 1
 
     def _intact(self, k: int, before: bool) -> bool:
         """Whether slot ``k % capacity`` still holds record ``k`` (``before`` the copy: not
@@ -211,6 +265,7 @@ class ShmRing:
             if self._intact(k, before=True):
                 out[got] = self._slots[k % self.capacity]
                 got += self._intact(k, before=False)
+            self._taken(k)
         return out[:got]
 
     def take_each(self, copy: Callable[[Any], Any], limit: int | None = None) -> list[Any]:
@@ -225,6 +280,7 @@ class ShmRing:
                 item = copy(self._slots[k % self.capacity])
                 if self._intact(k, before=False):
                     out.append(item)
+            self._taken(k)
         return out
 
     @property
@@ -264,17 +320,17 @@ class SharedArray:
         return str(self._shm.name)
 
     @classmethod
-    def create(cls, size: int) -> SharedArray:
+    def create(cls, size: int, what: str = 'an array') -> SharedArray:
         if size < 1:
             raise ConfigError(f'shared array: size must be >= 1, got {size}')
-        shm = SharedMemory(create=True, size=8 * size)
-        _OWNED.add(shm.name)
+        shm = new_segment(8 * size, what)
         arr = cls(shm, size, owner=True)
         arr.array[:] = 0.0
         return arr
 
     @classmethod
     def attach(cls, name: str, size: int) -> SharedArray:
+        check_machine()
         shm = SharedMemory(name=name, create=False)
         if name not in _OWNED:      # see ShmRing.attach
             resource_tracker.unregister(shm._name, 'shared_memory')  # type: ignore[attr-defined]

@@ -116,7 +116,9 @@ class SourceGate:
     * :meth:`new_session`: a message numbered below its predecessor (seq 0 after seq 5,000)
       claims that its sender restarted. That is believed only when an own endpoint is there
       that the current session never saw (the restarted node's new publisher); a message that
-      only *says* so, from the same endpoints, is refused (reason ``session``).
+      only *says* so, from the same endpoints, is refused (reason ``session``). The session
+      starts over (:meth:`start_session`) only once the message passed every other check
+      too: a false message sent as the restarted sender appears uses nothing up.
     * :meth:`distinct`: the graph can tell its own messages from foreign ones while an own
       publisher is there or no foreign one is. With the own one gone and a foreign one left,
       a message with this graph's ``graph_id`` can only be foreign: refused (reason
@@ -157,15 +159,17 @@ class SourceGate:
 
     def new_session(self) -> bool:
         """Whether a message that restarts its sender's numbering may be believed: an own
-        endpoint is there that this session never saw (see class doc). If so, the session
-        starts over with the endpoints there now."""
+        endpoint is there that this session never saw (see class doc). Nothing changes
+        until the message passed every check: then :meth:`start_session`."""
         if not self.own - self._session and self.refresh is not None:
             self.refresh()
-        if not self.own - self._session:
-            return False
+        return bool(self.own - self._session)
+
+    def start_session(self) -> None:
+        """The restart was admitted (:meth:`new_session`, then every other check): the
+        session starts over with the endpoints there now."""
         self._session = set(self.own)
         self._unseen = False
-        return True
 
     def distinct(self) -> bool:
         """Whether this graph's messages on the topic can be told from foreign ones."""

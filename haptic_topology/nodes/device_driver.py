@@ -163,8 +163,8 @@ class DeviceDriver(LifecycleNode):
             if not self.in_child:
                 self.backend.activate()
         except DeviceError as exc:
-            self.backend.deactivate()
-            return self.fail(str(exc))
+            return self.fail('; '.join([str(exc), *zero_and_release(self.backend,
+                                                                    self.cfg.task_dim)]))
         self.layout.start()
         self._active = self._ran = True
         c = self.cfg
@@ -205,7 +205,8 @@ class DeviceDriver(LifecycleNode):
         if self.layout is not None:
             self.layout.stop()
         if self.backend is not None and not self.in_child:   # the child zeroed its own
-            zero_and_release(self.backend, self.cfg.task_dim)
+            for problem in zero_and_release(self.backend, self.cfg.task_dim):
+                self.get_logger().error(problem)
         if self.loop is not None and self.loop.engaged:
             self.get_logger().info(f'output zeroed at state {self.loop.seq}; loop: '
                                    f'{self.loop.figures()}')

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -31,7 +32,7 @@ from haptic_topology.device.realtime import (
     set_thread_realtime,
 )
 from haptic_topology.device.records import CycleCodec
-from haptic_topology.device.runner import LoopRunner, RunnerConfig
+from haptic_topology.device.runner import LoopHandle, LoopRunner, RunnerConfig
 from haptic_topology.errors import DeviceError
 from haptic_topology.nodes.convert import CONTROLLER_ID
 from haptic_topology.nodes.diagnostics import log_notices, monotonic
@@ -71,25 +72,27 @@ class HostedLoop:
         pacing = RunnerConfig(c.period, driver.lockstep, c.run_duration,
                               controller.cfg.lockstep_wait)
         self.process: LoopProcess | None = None
-        self.runner: LoopRunner | LoopProcess
+        self.runner: LoopHandle
+        drain: Callable[[], np.ndarray]
         if driver.in_child:         # decided once, when the driver configured
             self.runner = self.process = LoopProcess(loop_spec(driver, controller.loop, pacing),
                                                      c.task_dim, controller.dof)
+            codec = self.process.codec
+            drain = self.process.drain_records
         else:
-            self.runner = LoopRunner(HostedCycle(driver.loop, controller.loop), pacing,
-                                     wall_ns=lambda: driver.get_clock().now().nanoseconds)
-        codec = self.process.codec if self.process is not None else CycleCodec(c.task_dim)
+            thread = LoopRunner(HostedCycle(driver.loop, controller.loop), pacing,
+                                wall_ns=lambda: driver.get_clock().now().nanoseconds)
+            self.runner = thread
+            codec = CycleCodec(c.task_dim)
+            drain = lambda: codec.records(thread.drain())     # noqa: E731
         self.wire = CycleWire(codec, driver.states.writer, controller.command_wire)
         self._hand_at = codec.position('hand_seq')
         self._update_at = codec.position('update_seq')
-        runner = self.runner
         # Lock-step: woken by every cycle (the VE waits on the hand inputs); wall clock: the
         # outbox is drained after each batch of hand inputs, so the loop pays no wake-up.
         self._newest = (0, 0)       # (stamp_ns, hand seq) of the newest record published
         self.outbox = OutboxThread(
-            runner, (self.process.drain_records if self.process is not None
-                     else lambda: codec.records(runner.drain())),
-            self._observe, controller.flush_hand,
+            self.runner, drain, self._observe, controller.flush_hand,
             min(controller.flush_period, PUBLISH_PERIOD if not driver.lockstep else
                 PROCESS_IDLE_WAKE if self.process is not None else 1.0),
             self.process.wait if self.process is not None else None,

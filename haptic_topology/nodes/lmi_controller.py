@@ -55,7 +55,7 @@ from haptic_topology.control.batch import HandBatch
 from haptic_topology.control.loop import StateSample
 from haptic_topology.control.port import ControllerPort, Outgoing, UpdateGap, live_change
 from haptic_topology.device.loop_process import LoopProcess
-from haptic_topology.device.runner import LoopRunner
+from haptic_topology.device.runner import LoopHandle
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.model.frames import DEVICE_BASE
 from haptic_topology.nodes import wire
@@ -122,7 +122,7 @@ class LmiController(Node):
         self._endpoints = {TOPIC_LMI: lmi_sub, TOPIC_COMMAND: self.cmd_pub,
                            TOPIC_HAND_INPUTS: self.hand_pub}
         self.hosted = hosted
-        self.host: LoopRunner | LoopProcess | None = None   # the driver's loop, once attached
+        self.host: LoopHandle | None = None   # the driver's loop, once attached
         self.ack_pub = (self.create_publisher(UInt64, TOPIC_LMI_ACK, QOS_LMI)
                         if s.ack_updates else None)
         self.graph = GraphFilter(s.graph_id)
@@ -165,7 +165,7 @@ class LmiController(Node):
         return SetParametersResult(successful=True)
 
     # -- hosted --------------------------------------------------------------------------------
-    def attach(self, runner: LoopRunner | LoopProcess) -> None:
+    def attach(self, runner: LoopHandle) -> None:
         """Hosted: the driver's loop thread now runs :attr:`loop` (see module doc)."""
         self.host = runner
 

@@ -27,9 +27,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from haptic_topology.device.loop_process import LoopProcess
 from haptic_topology.device.realtime import name_os_thread, raise_session_nice, renice_thread
-from haptic_topology.device.runner import LoopRunner
+from haptic_topology.device.runner import LoopHandle
 
 
 def until_batch(now_ns: int, stamp_ns: int, hand_seq: int, batch: int, period_ns: int,
@@ -68,7 +67,7 @@ class OutboxThread:
     """Publishes what ``runner`` puts in its outbox, taken by ``drain`` as cycle records
     (see module doc)."""
 
-    def __init__(self, runner: LoopRunner | LoopProcess, drain: Callable[[], np.ndarray],
+    def __init__(self, runner: LoopHandle, drain: Callable[[], np.ndarray],
                  publish: Callable[[np.ndarray], None], idle: Callable[[], None],
                  period: float, wait: Callable[[float], None] | None = None,
                  nice: int = 0, timeout: Callable[[], float] | None = None) -> None:
@@ -135,7 +134,7 @@ class OutboxThread:
                     self._publish(entries)
                     self.published += len(entries)
                 self._idle()
-                if self._stop.is_set() and not self.runner.outbox:
+                if self._stop.is_set() and not self.runner.outbox_pending:
                     return
         except BaseException as exc:  # reported by the node's check timer
             self.error = exc

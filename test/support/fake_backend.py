@@ -11,6 +11,8 @@ ignores the commanded wrench (it only counts writes) and measures no hand wrench
 from __future__ import annotations
 
 import math
+import os
+import time
 
 import numpy as np
 
@@ -115,3 +117,62 @@ class FaultBackend(SimMaglevBackend):
 
     def idle(self, dt: float) -> DeviceReading:
         return self._flag(super().idle(dt))
+
+
+class CallLogBackend(SimMaglevBackend):
+    """The simulated maglev, selected as ``fake_backend:CallLogBackend``, for tests of a loop
+    in another process (the loop process): it appends ``activate``, ``zero`` (a zero wrench
+    written), ``deactivate`` and ``cleanup`` to the file named by the environment variable
+    ``HAPTIC_TEST_CALL_LOG``, one line each, and misbehaves as ``HAPTIC_TEST_MISBEHAVE``
+    says: ``activate`` (raises DeviceError after enabling the output), ``write`` (every
+    write raises RuntimeError: a backend's own bug), ``stall:<n>:<s>`` (the n-th read or
+    idle reading notes ``stall`` and blocks for s seconds, as a hung vendor call)."""
+
+    name = 'call_log_test_double'
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._log = os.environ['HAPTIC_TEST_CALL_LOG']
+        self._misbehave = os.environ.get('HAPTIC_TEST_MISBEHAVE', '')
+        self._reads = 0
+
+    def _note(self, what: str) -> None:
+        with open(self._log, 'a', encoding='utf-8') as f:
+            f.write(what + '\n')
+
+    def activate(self) -> None:
+        self._note('activate')
+        super().activate()
+        if self._misbehave == 'activate':
+            raise DeviceError(f'{self.name}: activation failed half-way (test)')
+
+    def write(self, wrench: np.ndarray) -> None:
+        if self._misbehave == 'write':
+            raise RuntimeError(f'{self.name}: write failed (test)')
+        if not np.any(wrench):
+            self._note('zero')
+        super().write(wrench)
+
+    def _stall(self) -> None:
+        self._reads += 1
+        if self._misbehave.startswith('stall:'):
+            _, n, seconds = self._misbehave.split(':')
+            if self._reads == int(n):
+                self._note('stall')
+                time.sleep(float(seconds))
+
+    def read(self, dt: float) -> DeviceReading:
+        self._stall()
+        return super().read(dt)
+
+    def idle(self, dt: float) -> DeviceReading:
+        self._stall()
+        return super().idle(dt)
+
+    def deactivate(self) -> None:
+        self._note('deactivate')
+        super().deactivate()
+
+    def cleanup(self) -> None:
+        self._note('cleanup')
+        super().cleanup()

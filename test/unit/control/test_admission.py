@@ -192,6 +192,43 @@ def test_a_restart_is_believed_only_with_a_new_endpoint_of_the_own_publisher() -
     assert reason == 'session'
 
 
+def test_a_false_update_as_the_restarted_ve_appears_uses_nothing_up() -> None:
+    """A forged update numbered below the last (seq 0) arrives just as a restarted VE's new
+    endpoint appears: it is refused by the model check, and the restarted VE's own first
+    update is still taken as a new session (not refused as 'session' until its numbers pass
+    the old ones)."""
+    sc = load_scenario('fig8')
+    updates, _ = _run(dataclasses.replace(sc, duration=0.1))
+    gate = SourceGate('lmi/update', 've_sim')
+    gate.observe(frozenset({b'old'}), ())
+    admit = UpdateAdmission(LinkageDynamics(sc.linkage), gate)
+    for snap, _ in updates[:5]:
+        admit.admit(snap)
+    gate.observe(frozenset({b'new'}), ())                   # the VE restarted
+    forged = dataclasses.replace(updates[0][0], gravity=updates[0][0].gravity + 1.0)
+    reason, _ = _reason(admit.admit, forged)
+    assert reason == 'model'
+    admit.admit(dataclasses.replace(updates[0][0], hand_input_seq=-1))   # the real one
+    admit.admit(updates[1][0])
+
+
+def test_a_false_batch_as_a_restarted_controller_appears_uses_nothing_up() -> None:
+    """The hand-input side of the same: a copy numbered from 1 again and refused for its
+    continuity does not use up the new controller endpoint's session."""
+    sc = load_scenario('fig8')
+    _, batches = _run(dataclasses.replace(sc, duration=0.1))
+    gate = SourceGate('hand_inputs', 'lmi_controller')
+    gate.observe(frozenset({b'old'}), ())
+    hands = HandAdmission(sc.linkage.task, gate, complete=True)
+    for batch in batches[:3]:
+        hands.admit(*batch)
+    gate.observe(frozenset({b'new'}), ())                   # the controller restarted
+    seqs, states, stamps, pose, twist = batches[0]
+    reason, _ = _reason(hands.admit, [5, 6], states[:2], [0.0, 0.0], pose[:2], twist[:2])
+    assert reason == 'continuity'                           # not input 1: refused
+    hands.admit(seqs, states, stamps, pose, twist)          # the new controller's own
+
+
 def test_updates_taken_before_their_publisher_was_discovered_are_the_sessions() -> None:
     """Under load the VE's first updates can arrive before its endpoint is in the graph the
     controller sees: the endpoint discovered then is the session's, so a copy numbered below

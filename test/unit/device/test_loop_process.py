@@ -5,6 +5,7 @@ either side killed (the other sees it; the child zeroes the device; nothing is l
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -12,6 +13,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -142,8 +144,13 @@ def test_a_killed_child_is_a_fault_and_close_leaves_no_segment() -> None:
         while int(proc.status.get('n_periods', 0)) < 10 and time.monotonic() < deadline:
             proc.wait(0.05)
             proc.drain()
-        # How late the child woke after its deadlines, sorted here from the shared array.
-        late = [float(proc.device_values()[f'wake_late_{q}_ms']) for q in ('p50', 'p99', 'max')]
+        # How late the child woke after its deadlines, sorted here from the shared array
+        # (in a thread of this process's, once asked: the next reading has them).
+        late = [math.nan]
+        while math.isnan(late[0]) and time.monotonic() < deadline:
+            late = [float(proc.device_values()[f'wake_late_{q}_ms'])
+                    for q in ('p50', 'p99', 'max')]
+            time.sleep(0.05)
         assert 0.0 <= late[0] <= late[1] <= late[2], late
         # This process's session (one autogroup with the node's threads), a process group of
         # its own (the terminal's Ctrl-C is not for it).
@@ -286,3 +293,221 @@ def test_an_activation_again_resumes_the_simulated_device_where_the_last_child_l
     for pose in poses[2]:
         np.testing.assert_array_equal(pose, start)
     assert any('without handing its device state over' in n for n in proc.notices)
+
+
+def _logged_child(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, misbehave: str,
+                  lockstep: bool = False) -> tuple[LoopProcess, Path]:
+    """A loop process for fig8 whose device is ``fake_backend:CallLogBackend`` (its calls in
+    the returned file; ``misbehave`` as that class says)."""
+    log = tmp_path / 'calls.txt'
+    monkeypatch.setenv('HAPTIC_TEST_CALL_LOG', str(log))
+    monkeypatch.setenv('HAPTIC_TEST_MISBEHAVE', misbehave)
+    monkeypatch.setenv('PYTHONPATH', os.pathsep.join(
+        [str(SUPPORT), *filter(None, [os.environ.get('PYTHONPATH')])]))
+    spec, dim, dof = spec_for('fig8', lockstep=lockstep, duration=0.0)
+    spec['backend'] = 'fake_backend:CallLogBackend'
+    return LoopProcess(spec, dim, dof), log
+
+
+def _until(cond: Any, proc: LoopProcess, seconds: float = 60.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not cond() and time.monotonic() < deadline:
+        proc.wait(0.02)
+        proc.drain()
+    assert cond(), 'not within the time'
+
+
+def _calls(log: Path) -> list[str]:
+    return log.read_text().split() if log.exists() else []
+
+
+def test_an_activation_that_fails_half_way_is_zeroed_and_released(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The backend enables its output, then its activate() raises: the child writes zero and
+    deactivates the device before it exits, and the node sees the exit as a fault."""
+    proc, log = _logged_child(monkeypatch, tmp_path, 'activate')
+    try:
+        proc.start()
+        _until(lambda: proc._proc is not None and proc._proc.poll() is not None, proc)
+        proc.check()
+        assert isinstance(proc.error, DeviceError), proc.error
+    finally:
+        proc.close()
+    assert _calls(log) == ['activate', 'zero', 'deactivate', 'cleanup'], _calls(log)
+
+
+def test_a_zero_write_that_raises_anything_still_releases_the_device(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A backend whose write raises RuntimeError (its own bug, not a DeviceError): at the
+    stop the device is deactivated all the same, and the failed write is reported."""
+    proc, log = _logged_child(monkeypatch, tmp_path, 'write')
+    try:
+        proc.start()
+        _until(lambda: bool(proc.status), proc)
+        proc.stop()
+        assert proc._proc is not None and proc._proc.returncode == 0
+    finally:
+        proc.close()
+    assert _calls(log) == ['activate', 'deactivate', 'cleanup'], _calls(log)
+    assert any('writing zero wrench failed: RuntimeError' in n for n in proc.notices), \
+        list(proc.notices)
+
+
+def test_a_new_child_starts_with_no_status_of_the_last_one(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The last child's status (here: finished, final) is not the new child's: the new one
+    is neither finished nor reported before its own first status, and if it dies before
+    that, its exit is a fault."""
+    proc, log = _logged_child(monkeypatch, tmp_path, '')
+    try:
+        proc.start()
+        _until(lambda: bool(proc.status), proc)
+        proc.stop()
+        assert proc.status.get('final') is True and proc.error is None
+        proc.status['finished'] = True          # as a child that reached run_duration
+        proc.start()
+        assert proc.status == {} and not proc.finished
+        os.kill(proc.pid or 0, signal.SIGKILL)   # before its first status
+        _until(lambda: proc._proc is not None and proc._proc.poll() is not None, proc)
+        proc.check()
+        assert isinstance(proc.error, DeviceError) and 'exited with code -9' in str(proc.error)
+    finally:
+        proc.close()
+
+
+def test_a_stop_the_child_does_not_answer_escalates_to_sigterm_and_it_zeroes(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A child stuck in a device call (1.5 s) does not answer the stop request within the
+    stop timeout: the node sends SIGTERM, and the child zeroes and releases the device when
+    the call returns, and exits 0; nothing is killed."""
+    proc, log = _logged_child(monkeypatch, tmp_path, 'stall:20:1.5')
+    try:
+        proc.start()
+        _until(lambda: 'stall' in _calls(log), proc)
+        proc.stop(timeout=0.1)
+        assert proc._proc is not None and proc._proc.returncode == 0
+        assert proc.error is None and proc.status.get('final') is True
+        assert any('stopped by SIGTERM' in n for n in proc.notices), list(proc.notices)
+    finally:
+        proc.close()
+    calls = _calls(log)
+    assert calls[-3:] == ['zero', 'deactivate', 'cleanup'] and 'stall' in calls, calls
+
+
+def test_a_stop_that_cannot_be_asked_escalates_and_a_hung_child_is_killed(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The control ring full (the child stuck, not reading it): the stop goes to SIGTERM at
+    once; a child that does not exit then is killed, and that is the loop's error."""
+    proc, log = _logged_child(monkeypatch, tmp_path, 'stall:20:60')
+    try:
+        proc.start()
+        _until(lambda: 'stall' in _calls(log), proc)
+        _until(lambda: not proc._request(('engage', False)), proc, 30.0)   # ring full
+        started = time.monotonic()
+        proc.stop(timeout=30.0)                 # no request can be put: no 30 s wait
+        assert time.monotonic() - started < 30.0
+        assert proc._proc is not None and proc._proc.returncode == -signal.SIGKILL
+        assert isinstance(proc.error, DeviceError) and 'killed' in str(proc.error)
+    finally:
+        proc.close()
+    assert 'deactivate' not in _calls(log)      # SIGKILL: nothing could run
+
+
+def test_close_stops_a_running_child_by_request(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    proc, log = _logged_child(monkeypatch, tmp_path, '')
+    proc.start()
+    try:
+        _until(lambda: bool(proc.status), proc)
+    finally:
+        proc.close()
+    assert proc._proc is not None and proc._proc.returncode == 0
+    assert _calls(log)[-3:] == ['zero', 'deactivate', 'cleanup'], _calls(log)
+
+
+def test_an_update_too_large_for_its_record_is_refused_and_counted() -> None:
+    spec, dim, dof = spec_for('fig8', lockstep=False, duration=0.0)
+    proc = LoopProcess(spec, dim, dof)
+    try:
+        proc._update_bytes = 16             # as if the linkage outgrew the record
+        snap = virtual_environment(load_scenario('fig8')).snapshot(seq=3)
+        proc.offer_update(snap)
+        proc.flush_updates()
+        assert proc.updates_refused == 1 and not proc._pending
+        assert proc.device_values()['updates_refused'] == '1'
+        assert any('LMI update 3' in n and 'refused' in n for n in proc.notices)
+    finally:
+        proc.close()
+
+
+def test_a_dev_shm_without_room_fails_at_construction_and_leaves_nothing() -> None:
+    """In a mount namespace of its own with a 256 kB /dev/shm, the rings do not fit: the
+    construction (the driver's configure) fails with the segment named; the segments made
+    before it are gone."""
+    code = ('import os\n'
+            'from loop_specs import spec_for\n'
+            'from haptic_topology.device.loop_process import LoopProcess\n'
+            'from haptic_topology.errors import DeviceError\n'
+            "spec, dim, dof = spec_for('fig8', lockstep=False, duration=0.0)\n"
+            'try:\n'
+            '    LoopProcess(spec, dim, dof)\n'
+            'except DeviceError as exc:\n'
+            '    print(exc)\n'
+            "print('left', len(os.listdir('/dev/shm')))\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(SUPPORT), *filter(None, [os.environ.get('PYTHONPATH')])]))
+    res = subprocess.run(['unshare', '--user', '--map-root-user', '--mount', 'sh', '-c',
+                          'mount -t tmpfs -o size=256k tmpfs /dev/shm && exec "$0" -c "$1"',
+                          sys.executable, code], env=env, capture_output=True, text=True,
+                         timeout=120, check=False)
+    assert res.returncode == 0, res.stdout + res.stderr
+    first, last = res.stdout.splitlines()[0], res.stdout.splitlines()[-1]
+    assert first.startswith("shared memory: no room for the loop process's cycles ring"), \
+        res.stdout
+    assert 'free or enlarge /dev/shm' in first
+    assert last == 'left 0', res.stdout
+
+
+def test_rings_are_refused_on_a_machine_without_total_store_order() -> None:
+    from haptic_topology.device.shm_ring import check_machine
+    from haptic_topology.errors import ConfigError
+    check_machine('x86_64')
+    with pytest.raises(ConfigError, match=r"this machine is 'aarch64', expected one of "
+                                          r'x86_64, amd64 .*loop_process: false'):
+        check_machine('aarch64')
+
+
+def test_the_percentiles_are_sorted_off_the_callers_thread_at_most_once_a_period(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """While a child runs, the node's diagnostics (device_values, device_report: the
+    executor thread that also takes the LMI updates) never sort the statistics themselves:
+    the figures' thread does, at most once per status period however often asked."""
+    import threading
+
+    import haptic_topology.device.loop_process as lp
+    real = np.percentile
+    sorted_in: list[str] = []
+
+    def percentile(*args: Any, **kwargs: Any) -> Any:
+        sorted_in.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    spec, dim, dof = spec_for('fig8', lockstep=False, duration=0.0)
+    proc = LoopProcess(spec, dim, dof)
+    try:
+        proc.start()
+        _until(lambda: int(proc.status.get('n_periods', 0)) > 10, proc)
+        monkeypatch.setattr(lp.np, 'percentile', percentile)
+        started = time.monotonic()
+        values: dict[str, str] = {}
+        while time.monotonic() - started < 1.0:
+            values = proc.device_values()
+            proc.device_report('', 0)
+            time.sleep(0.005)
+        monkeypatch.setattr(lp.np, 'percentile', real)
+        assert sorted_in and set(sorted_in) == {'loop_figures'}, sorted_in
+        # three arrays a time, at most once per STATUS_PERIOD (+1 for the first)
+        assert len(sorted_in) <= 3 * (1.0 / lp.STATUS_PERIOD + 2), len(sorted_in)
+        assert not math.isnan(float(values['period_p99_ms']))
+    finally:
+        proc.close()

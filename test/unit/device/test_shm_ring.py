@@ -9,6 +9,7 @@ from __future__ import annotations
 import doctest
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -237,5 +238,93 @@ def test_a_layout_the_sides_disagree_on_is_refused() -> None:
             ShmRing.attach(ring.name, RECORD, 8)
         with pytest.raises(ConfigError, match='capacity must be >= 1, got 0'):
             ShmRing.create(RECORD, 0)
+    finally:
+        ring.close()
+
+
+class _OfferingSlots:
+    """The consumer's slot array, whose every read first lets the producer offer (what a
+    producer in another process can do during any copy)."""
+
+    def __init__(self, slots: np.ndarray, offer: Any) -> None:
+        self.slots, self.offer = slots, offer
+
+    def __getitem__(self, i: int) -> Any:
+        self.offer()
+        return self.slots[i]
+
+
+@pytest.mark.parametrize('take', [lambda peer: peer.take()['k'].tolist(),
+                                  lambda peer: peer.take_each(_k)], ids=['take', 'take_each'])
+def test_no_loss_a_slot_being_copied_is_not_the_producers_until_its_copy_is_checked(
+        take: Any) -> None:
+    """A full ring, the producer offering without overwrite while the consumer copies (what
+    the node does while the child copies a backlog of LMI updates): the producer must be
+    refused until the copy is checked intact, and every record arrives once, in order."""
+    ring = ShmRing.create(RECORD, 4)
+    peer = ShmRing.attach(ring.name, RECORD, 4)
+    offered = [4, 5, 6, 7]                      # the producer's queue, oldest first
+
+    def offer() -> None:
+        if offered and ring.put((offered[0], [offered[0]] * 3), overwrite=False):
+            del offered[0]                      # refused: offered again next time
+
+    try:
+        for k in range(4):
+            assert ring.put((k, [k] * 3), overwrite=False)
+        peer._slots = _OfferingSlots(peer._slots, offer)  # type: ignore[assignment]
+        got: list[int] = take(peer)
+        peer._slots = peer._slots.slots  # type: ignore[attr-defined]
+        while offered:
+            offer()
+        got += peer.take_each(_k)
+        assert got == list(range(8)), got
+        assert (peer.lost, peer.torn) == (0, 0)
+    finally:
+        if isinstance(peer._slots, _OfferingSlots):
+            peer._slots = peer._slots.slots  # type: ignore[assignment]
+        peer.close()
+        ring.close()
+
+
+_OFFERER = r'''
+import sys, time
+import numpy as np
+from haptic_topology.device.shm_ring import ShmRing
+dtype = np.dtype([('k', '<i8'), ('x', '<f8', 3)])
+ring = ShmRing.attach(sys.argv[1], dtype, int(sys.argv[2]))
+k, n = int(sys.argv[2]), int(sys.argv[3])
+while k < n:                       # offer every ~0.5 ms, never overwrite; refused: offer again
+    if ring.put((k, [k, k, k]), overwrite=False):
+        k += 1
+    time.sleep(0.0005)
+print(ring.refused)
+ring.close()
+'''
+
+
+def test_no_loss_two_processes_a_full_ring_and_a_slow_copy_lose_nothing() -> None:
+    """The issue's experiment: a full ring of 32 (the child's start), copies that take a
+    while, the other process offering all the time without overwrite: nothing lost."""
+    n, capacity = 96, 32
+    ring = ShmRing.create(RECORD, capacity)
+    try:
+        for k in range(capacity):
+            ring.put((k, [k] * 3))
+        proc = subprocess.Popen([sys.executable, '-c', _OFFERER, ring.name, str(capacity),
+                                 str(n)], stdout=subprocess.PIPE, text=True)
+
+        def slow(r: Any) -> tuple[int, list[float]]:
+            time.sleep(0.002)            # slower than the offers: they catch up
+            return int(r['k']), r['x'].tolist()
+
+        got: list[tuple[int, list[float]]] = []
+        while proc.poll() is None or ring.pending:
+            got += ring.take_each(slow)
+        proc.communicate(timeout=60)
+        assert proc.returncode == 0
+        assert [k for k, _ in got] == list(range(n)), [k for k, _ in got]
+        assert all(x == [k] * 3 for k, x in got)
+        assert (ring.lost, ring.torn) == (0, 0)
     finally:
         ring.close()
