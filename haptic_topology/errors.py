@@ -23,6 +23,17 @@ class BagError(HapticTopologyError):
     """A bag is missing, corrupt, truncated or holds unexpected message types."""
 
 
+class BagWriteError(BagError, OSError):
+    """A bag's file could not be written (disk full, I/O error): raised by
+    :class:`~haptic_topology.bag.writer.BagWriter`'s ``flush`` and ``close``, naming the file;
+    an ``OSError`` too (``errno`` set), so code catching ``OSError`` catches it. What was
+    flushed before stays readable (``haptic-topology bag repair``)."""
+
+    def __init__(self, message: str, errno: int | None = None) -> None:
+        super().__init__(message)
+        self.errno = errno
+
+
 class DeviceError(HapticTopologyError):
     """A device backend cannot be configured, activated, read or written."""
 

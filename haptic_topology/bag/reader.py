@@ -21,6 +21,7 @@ field (:func:`bag_typestore`).
 from __future__ import annotations
 
 import functools
+import re
 import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -70,6 +71,9 @@ class Bag:
     truncated: list[Path] = field(default_factory=list)
     #: Topic -> type seen while reading (channels of the files).
     topics: dict[str, str] = field(default_factory=dict)
+    #: Storage files left out of ``files``: empty, or only the start of the MCAP magic (a
+    #: recorder killed as it created them; ``bag repair`` removes them).
+    empty: list[Path] = field(default_factory=list)
 
     @property
     def size(self) -> int:
@@ -87,16 +91,29 @@ class Bag:
         return out
 
 
-def _check_mcap(path: Path) -> None:
+def _check_mcap(path: Path, in_bag: bool = False) -> bool:
+    """True if ``path`` starts with the MCAP magic; False if it is empty or holds only the
+    start of the magic and ``in_bag`` (a file of a bag directory whose writer was killed as
+    it created the file: it holds no message); else raise."""
     try:
         with path.open('rb') as f:
             head = f.read(len(MCAP_MAGIC))
     except OSError as exc:
         raise BagError(f'{path}: cannot read ({exc.strerror})') from None
+    if head == MCAP_MAGIC:
+        return True
+    if in_bag and MCAP_MAGIC.startswith(head):
+        return False
     if not head:
         raise BagError(f'{path}: empty file, not an MCAP bag')
-    if head != MCAP_MAGIC:
-        raise BagError(f'{path}: not an MCAP file (no MCAP magic at the start)')
+    raise BagError(f'{path}: not an MCAP file (no MCAP magic at the start)')
+
+
+def storage_order(path: Path) -> tuple[str, int, str]:
+    """Sort key of a bag's storage files: by name, numbered files (``b_2.mcap``) by their
+    number (``b_2`` before ``b_10``)."""
+    m = re.fullmatch(r'(.*?)(\d+)\.mcap', path.name)
+    return (m.group(1), int(m.group(2)), '') if m else (path.name, -1, path.name)
 
 
 def _load_metadata(path: Path) -> dict[str, Any]:
@@ -140,12 +157,11 @@ def open_bag(path: str | Path) -> Bag:
             if not f.is_file():
                 raise BagError(f'{f}: listed in {meta_path} but missing')
     else:
-        files = sorted(p.glob('*.mcap'))
+        files = sorted(p.glob('*.mcap'), key=storage_order)
         if not files:
             raise BagError(f'{p}: not a bag (no {METADATA} and no .mcap file)')
-    for f in files:
-        _check_mcap(f)
-    return Bag(p, files, metadata)
+    readable = [f for f in files if _check_mcap(f, in_bag=True)]
+    return Bag(p, readable, metadata, empty=[f for f in files if f not in readable])
 
 
 def iter_records(path: Path, stream: IO[bytes]) -> Iterator[Any]:

@@ -29,6 +29,7 @@ a file as it is.
 from __future__ import annotations
 
 import os
+import secrets
 import struct
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -54,7 +55,7 @@ from rosbags.typesys.store import Typestore
 
 from haptic_topology import __version__
 from haptic_topology.bag.metadata_text import MetadataText, dump_yaml
-from haptic_topology.errors import BagError
+from haptic_topology.errors import BagError, BagWriteError
 
 METADATA = 'metadata.yaml'
 ROSBAG2_VERSION = 9
@@ -166,9 +167,11 @@ class FileInfo:
 
 def metadata_info(files: Sequence[FileInfo], topics: Sequence[TopicSpec],
                   hashes: Mapping[str, str], counts: Sequence[int], start_ns: int,
-                  end_ns: int, custom: Mapping[str, str] | None = None) -> dict[str, Any]:
+                  end_ns: int, custom: Mapping[str, str] | None = None,
+                  ros_distro: str = 'jazzy') -> dict[str, Any]:
     """The ``rosbag2_bagfile_information`` mapping (metadata version 9) of a bag whose
-    storage ``files`` are in order."""
+    storage ``files`` are in order; ``custom``: its ``custom_data`` (the recorder's graph id
+    and scenario)."""
     total = int(sum(counts))
     start = start_ns if total else 0
     duration = max(0, end_ns - start_ns) if total else 0
@@ -195,7 +198,7 @@ def metadata_info(files: Sequence[FileInfo], topics: Sequence[TopicSpec],
                                 if f.messages else 0},
                    'message_count': int(f.messages)} for f in files],
         'custom_data': dict(custom) if custom else None,
-        'ros_distro': 'jazzy',
+        'ros_distro': ros_distro,
     }
 
 
@@ -247,8 +250,13 @@ class BagWriter:
                 except KeyError:
                     raise BagError(f'{path}: unknown message type {spec.msgtype} '
                                    f'(topic {spec.topic})') from None
+        # The bag is made in a hidden directory beside ``path`` and renamed to ``path`` once
+        # its first file has its header and metadata.yaml lists it: ``path`` never exists
+        # without both (a kill before leaves ``.<name>.<hex>.part``).
+        self._dir = path.parent / f'.{path.name}.{secrets.token_hex(4)}.part'
         try:
-            path.mkdir(parents=True)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._dir.mkdir()
         except OSError as exc:
             raise BagError(f'{path}: cannot create bag ({exc.strerror})') from None
         self._files: list[FileInfo] = []       # the closed storage files, in order
@@ -257,20 +265,28 @@ class BagWriter:
         self._open_file()
         self._open = True
         self.flush(force=True)
+        try:
+            self._dir.rename(path)
+        except OSError as exc:
+            raise BagError(f'{path}: cannot create bag ({exc.strerror})') from None
+        self._dir = path
 
     def _open_file(self) -> None:
         """Start storage file ``<name>_<k>.mcap`` (k: the files so far): schemas, channels."""
         self.mcap_name = f'{self.path.name}_{len(self._files)}.mcap'
         try:
-            self._file: IO[bytes] = (self.path / self.mcap_name).open('xb')
+            self._file: IO[bytes] = (self._dir / self.mcap_name).open('xb')
         except OSError as exc:
             raise BagError(f'{self.path}: cannot create {self.mcap_name} '
                            f'({exc.strerror})') from None
         self._mcap = McapWriter(self._file, chunk_size=self._chunk_size,
                                 compression=self._compression)
         if hasattr(self._mcap, '_Writer__chunk_indices'):    # mcap 1.x (requirements.lock)
-            self._mcap._Writer__chunk_indices = SpilledChunkIndexes(self.path)
+            self._mcap._Writer__chunk_indices = SpilledChunkIndexes(self._dir)
         self._mcap.start(profile='ros2', library=f'haptic_topology {__version__}')
+        # The header on disk before metadata.yaml names the file: a bag killed after the
+        # next metadata write never lists a file that no reader can open.
+        self._sync()
         schema_ids = {t: self._mcap.register_schema(t, 'ros2msg', text)
                       for t, text in self._schemas.items()}
         self.channel_ids: list[int] = [
@@ -378,7 +394,7 @@ class BagWriter:
         finalize = getattr(self._mcap, '_Writer__finalize_chunk', None)
         if finalize is not None:
             finalize()
-        self._file.flush()
+        self._sync()        # the data on disk before the metadata that counts it
         if self._split_due():
             self._finish_file()
             self._open_file()
@@ -406,10 +422,19 @@ class BagWriter:
                              c.per_topic, c.start_ns, c.end_ns, self.custom)
         self._mcap.add_metadata('rosbag2', {'serialized_metadata': dump_yaml(info)})
         self._mcap.finish()
-        self._file.flush()
-        os.fsync(self._file.fileno())
+        self._sync()
         self._file.close()
         self._files.append(self._current())
+
+    def _sync(self) -> None:
+        """Hand the current file's bytes to the OS (a SIGKILL loses nothing of them) and to
+        the disk (nor does a power cut)."""
+        try:
+            self._file.flush()
+            os.fsync(self._file.fileno())
+        except OSError as exc:
+            raise BagWriteError(f'{self.path / self.mcap_name}: cannot write '
+                                f'({exc.strerror or exc})', exc.errno) from exc
 
     @property
     def files(self) -> list[str]:
@@ -421,19 +446,27 @@ class BagWriter:
         files = self._files + ([self._current()] if self._open else [])
         info = metadata_info(files, self.topics, self.hashes, counts, c.start_ns, c.end_ns,
                              self.custom)
-        write_metadata(self.path, info, self._metadata_text(info))
+        try:
+            write_metadata(self._dir, info, self._metadata_text(info))
+        except OSError as exc:
+            raise BagWriteError(f'{self.path / METADATA}: cannot write '
+                                f'({exc.strerror or exc})', exc.errno) from exc
 
     def close(self) -> None:
         """Write the summary and footer and the final ``metadata.yaml``; idempotent."""
         if not self._open:
             return
         if self._files and self._current().messages == 0:
-            # Split at the last flush and nothing came since: no empty file at the end.
+            # Split at the last flush and nothing came since: no empty file at the end. The
+            # metadata stops naming it before it goes (a kill in between leaves an unlisted
+            # file without messages, which readers ignore and `bag repair` removes).
             self._mcap.finish()
             self._file.close()
-            (self.path / self.mcap_name).unlink()
-        else:
-            self._finish_file()
+            self._open = False
+            self._write_metadata(self._counts.per_topic)
+            (self._dir / self.mcap_name).unlink()
+            return
+        self._finish_file()
         self._open = False
         self._write_metadata(self._counts.per_topic)
 

@@ -85,8 +85,12 @@ def test_a_recorder_killed_in_a_later_file_leaves_a_bag_that_reads_and_repairs(
     assert bag.truncated and seqs[:2800] == list(range(1, 2801))
     res = repair_bag(tmp_path / 'k')
     assert res.repaired and res.counts['/haptic/device/state'] == len(seqs)
+    # The last file was opened at the split of the last flush and holds only its header
+    # (the 100 messages since were not flushed): removed, the others listed.
+    last = bag.files[-1].name
+    assert res.removed == [last] and not (tmp_path / 'k' / last).exists()
     meta = _meta(tmp_path / 'k')
-    assert len(meta['files']) == len(bag.files)
+    assert [f['path'] for f in meta['files']] == [p.name for p in bag.files[:-1]]
     with AnyReader([tmp_path / 'k']) as reader:
         assert reader.message_count == len(seqs)
 
