@@ -25,7 +25,7 @@ class BagError(HapticTopologyError):
 
 class BagWriteError(BagError, OSError):
     """A bag's file could not be written (disk full, I/O error): raised by
-    :class:`~haptic_topology.bag.writer.BagWriter`'s ``flush`` and ``close``, naming the file;
+    ``haptic_topology.bag.writer.BagWriter``'s ``flush`` and ``close``, naming the file;
     an ``OSError`` too (``errno`` set), so code catching ``OSError`` catches it. What was
     flushed before stays readable (``haptic-topology bag repair``)."""
 

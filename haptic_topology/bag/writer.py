@@ -17,13 +17,14 @@ as rosbag2 does.
 
 Crash tolerance: messages go into chunks of ``chunk_size`` bytes (64 KiB: ~0.1 s of the
 1 kHz graph), and :meth:`BagWriter.flush` (called every ``flush_period``) closes the current
-chunk early and hands it to the OS, so a process killed with SIGKILL leaves every message
-older than one flush period in the file. ``metadata.yaml`` is written when the bag opens and
-rewritten atomically (temporary file + rename) with the running counts on every flush, so
-it is always complete YAML. A killed bag lacks the MCAP summary and footer: readers that
-seek to the footer (``rosbags``, ``mcap.reader.make_reader``) then need
-:func:`haptic_topology.bag.repair.repair_bag`; :mod:`haptic_topology.bag.reader` reads such
-a file as it is.
+chunk early and puts it on disk (fsync), then rewrites ``metadata.yaml`` atomically
+(temporary file, fsync, rename) with the running counts: the metadata never counts data the
+disk lacks, and a new file's header is on disk before the metadata names it. The bag
+directory appears (renamed from a hidden one) only with its first file and metadata. A
+killed bag lacks the MCAP summary and footer: readers that seek to the footer (``rosbags``,
+``mcap.reader.make_reader``) then need :func:`haptic_topology.bag.repair.repair_bag`;
+:mod:`haptic_topology.bag.reader` reads such a file as it is. ``flush`` and ``close`` raise
+:class:`~haptic_topology.errors.BagWriteError` (an ``OSError`` too) when the disk fails.
 """
 
 from __future__ import annotations
