@@ -6,6 +6,7 @@ disk before the metadata that counts it."""
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import subprocess
@@ -23,6 +24,7 @@ from rosbags.rosbag2 import Reader as Rosbag2Reader
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag
 from haptic_topology.bag.repair import repair_bag
 from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
+from haptic_topology.errors import BagError, BagWriteError
 from haptic_topology.messages.definitions import (
     message_definitions,
     type_name,
@@ -266,3 +268,16 @@ def test_the_data_is_on_disk_before_the_metadata_that_counts_it(
     w.close()
     assert len(synced) >= 3
     assert unsynced == []
+
+
+def test_a_failing_disk_raises_a_bag_write_error_naming_the_file(tmp_path: Path) -> None:
+    """The recorder catches ``OSError`` around its writer; the writer's error is one, and a
+    ``BagError`` naming the file it could not write."""
+    w = _writer(tmp_path / 'x')
+    _write(w, 1, 100)
+    shutil.rmtree(tmp_path / 'x')           # the bag's directory is gone
+    with pytest.raises(BagWriteError) as err:
+        w.flush()
+    assert isinstance(err.value, OSError) and isinstance(err.value, BagError)
+    assert err.value.errno == errno.ENOENT
+    assert str(err.value).startswith(f'{tmp_path / "x" / "metadata.yaml"}: cannot write')
