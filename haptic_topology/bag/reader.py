@@ -4,7 +4,9 @@
 directory holding ``.mcap`` files without metadata, or one ``.mcap`` file. It checks what can
 be checked without reading every message (the path exists, the storage is MCAP, each file
 starts with the MCAP magic) and raises :class:`~haptic_topology.errors.BagError` naming the
-file and the problem.
+file and the problem. In a bag directory a storage file that is empty or holds only the start
+of the magic (a recorder killed as it created the file) is skipped (:attr:`Bag.empty`), and
+files found without ``metadata.yaml`` are taken in the order of their numbers.
 
 :func:`iter_messages` reads the files front to back with ``mcap``'s non-seeking stream
 reader, so it needs neither the summary nor the footer: a bag whose recorder was killed
