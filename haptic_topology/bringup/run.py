@@ -211,6 +211,18 @@ def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
     return codes
 
 
+def remove_stale_shm(when: str) -> None:
+    """Remove the Fast DDS shared-memory segments of ended processes from ``/dev/shm`` (a
+    killed graph's, this machine's other programs' alike; a running process's stay:
+    :mod:`haptic_topology.nodes.dds_shm`), with one line saying how many, ``when``."""
+    from haptic_topology.nodes.dds_shm import remove_stale_segments
+
+    removed = remove_stale_segments()
+    if removed:
+        print(f'removed {len(removed)} Fast DDS shared-memory segments of ended processes '
+              f'from /dev/shm ({when})', flush=True)
+
+
 def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path,
               layout: str = 'hosted', backend: str | None = None,
               startup_timeout: float = 30.0, clock: str = 'wall',
@@ -275,6 +287,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ros += overrides or []
     domain_lock = (claim_domain(environment_domain() if domain_id is None else domain_id)
                    if claim else None)
+    remove_stale_shm('before the run')
     log_dir = Path(tempfile.mkdtemp(prefix='haptic_run_'))
     procs: list[_Proc] = []
     codes: dict[str, int] = {}
@@ -365,6 +378,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     finally:
         # Device first, recorder last (it keeps every message until then).
         codes.update(stop([p for p in reversed(procs) if p.name not in codes]))
+        remove_stale_shm('after the run')
         if bag.is_dir():
             shutil.copytree(log_dir, bag / 'logs', dirs_exist_ok=True)
             (bag / 'logs' / 'cpu.json').write_text(json.dumps(cpu) + '\n', encoding='utf-8')

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from rclpy.node import Node
 
 from haptic_topology.config import node_params
-from haptic_topology.nodes.runtime import run_main
+from haptic_topology.nodes.runtime import destroy_nodes, run_main
 
 
 def build() -> list[Node]:
@@ -37,7 +37,7 @@ def build() -> list[Node]:
             close = getattr(n, 'close', None)
             if close is not None:
                 close()
-            n.destroy_node()
+        destroy_nodes(nodes)
         raise
     # The device driver's executor parameter decides (it is the clock master).
     return [nodes[2], *nodes[:2], *nodes[3:]]

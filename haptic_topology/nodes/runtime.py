@@ -193,13 +193,15 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
             close = getattr(n, 'close', None)
             if close is not None:
                 close()
+        # The nodes go before the process ends on every path: the last one destroyed
+        # deletes the process's DDS participant, and with it Fast DDS's shared-memory
+        # segment in /dev/shm, which outlives a process that ends with it alive.
+        destroy_nodes(nodes)
         if exit_after_close:
             # Everything the nodes own is closed (the recorder's bag is complete): nothing
             # is left for rclpy's teardown to do. (Clean-clone CI runs had reported the
             # recorder "hung" here; the cause found later was the lost SIGINT, see spin().)
             _end_process(status)
-        for n in nodes:
-            n.destroy_node()
         rclpy.try_shutdown()
     if args is None:
         # A node process (console script, python -m) ends here, without the interpreter's
@@ -209,6 +211,19 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
         # frame), and the bringup's SIGTERM ended the process with -15.
         _end_process(status)
     return status
+
+
+def destroy_nodes(nodes: Sequence[Node]) -> None:
+    """Destroy ``nodes`` and what keeps their rcl node alive besides them: a lifecycle node's
+    state machine, which rclpy 7.1's ``LifecycleNode.destroy_node`` leaves in place. While an
+    rcl node lives, its context's DDS participant does too (it goes with the context's last
+    node), and a process that ends with its participant alive leaves the participant's
+    shared-memory segment in ``/dev/shm`` (:mod:`haptic_topology.nodes.dds_shm`)."""
+    for n in nodes:
+        machine = getattr(n, '_state_machine', None)     # rclpy.lifecycle.LifecycleNode
+        if machine is not None:
+            machine.destroy_when_not_in_use()
+        n.destroy_node()
 
 
 def _end_process(status: int) -> None:

@@ -146,6 +146,10 @@ def main() -> None:
             take_errors += 1
             print(f'take error: {exc}', flush=True)
     out.write_text(json.dumps({**counts, 'take_errors': take_errors}), encoding='utf-8')
+    # The node goes first: with it the process's DDS participant and its shared-memory
+    # segment in /dev/shm, which would outlive the process.
+    executor.shutdown(timeout_sec=1.0)
+    node.destroy_node()
     # Ends here, as the node processes do (nodes.runtime): no rclpy teardown and no
     # interpreter finalization destroying rclpy's and Fast DDS's objects in whatever order
     # (a CI run had all three of test_foreign_graph's intruders exit with SIGSEGV, -11).
