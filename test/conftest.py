@@ -15,6 +15,7 @@ import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -89,6 +90,51 @@ def ros_domain_env() -> Iterator[dict[str, str]]:
 def topic_prefix() -> str:
     """A topic namespace unique to one test."""
     return f'/test_{secrets.token_hex(4)}'
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The session's controlling process (with pytest-xdist: before the workers start, which
+    inherit its environment) removes stale Fast DDS segments and notes what is in /dev/shm
+    (``support/shm_session.py``)."""
+    if hasattr(config, 'workerinput'):
+        return
+    import shm_session
+
+    config.stash[_SHM] = shm_session.begin()
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Once every test (and every worker) has ended: what the session leaves of Fast DDS in
+    /dev/shm fails it, exit status 1 (``support/shm_session.py``)."""
+    if hasattr(session.config, 'workerinput') or _SHM not in session.config.stash:
+        return
+    import shm_session
+
+    token, _, present = session.config.stash[_SHM]
+    removed, left = shm_session.end(token, present)
+    session.config.stash[_SHM_END] = (removed, left)
+    if left and session.exitstatus == pytest.ExitCode.OK:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> None:
+    if _SHM_END not in config.stash:
+        return
+    _, before, _ = config.stash[_SHM]
+    removed, left = config.stash[_SHM_END]
+    if before or removed:
+        terminalreporter.write_line(
+            f'/dev/shm: removed {len(before)} stale Fast DDS segments of ended processes at '
+            f'the start, {len(removed)} at the end (nodes the tests killed)')
+    if left:
+        terminalreporter.write_line(
+            f'/dev/shm: this session left {len(left)} Fast DDS entries behind:', red=True)
+        for name, why in left.items():
+            terminalreporter.write_line(f'  {name}: {why}', red=True)
+
+
+_SHM = pytest.StashKey[tuple[str, list[str], set[str]]]()
+_SHM_END = pytest.StashKey[tuple[list[str], dict[str, str]]]()
 
 
 #: Test files that start node graphs, longest first (pytest --durations, 2 cores): with
