@@ -125,7 +125,7 @@ def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> Non
     if before or removed:
         terminalreporter.write_line(
             f'/dev/shm: removed {len(before)} stale Fast DDS segments of ended processes at '
-            f'the start, {len(removed)} at the end (nodes the tests killed)')
+            f'the start, {len(removed)} at the end')
     if left:
         terminalreporter.write_line(
             f'/dev/shm: this session left {len(left)} Fast DDS entries behind:', red=True)
