@@ -10,6 +10,7 @@ machine make and remove segments at the same time."""
 from __future__ import annotations
 
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -20,7 +21,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
-from procs import pidfd, wait_exit
+from procs import pidfd
 
 from haptic_topology.nodes.dds_shm import SHM_DIR, process_segments
 from haptic_topology.paths import config_dir
@@ -150,27 +151,66 @@ def test_a_stopped_node_process_deletes_its_segment(
     assert existing(seen) == {}, log
 
 
+def ended_within(fd: int, timeout: float) -> bool:
+    """Whether the process of pidfd ``fd`` ends within ``timeout`` s (``fd`` stays open)."""
+    return bool(select.select([fd], [], [], timeout)[0])
+
+
+def kill_all(fds: list[int]) -> None:
+    """SIGKILL the processes of pidfds ``fds`` that still run (by descriptor: a number
+    reused since is never hit), wait until they have ended, close the descriptors."""
+    for fd in fds:
+        try:
+            signal.pidfd_send_signal(fd, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    try:
+        assert all(ended_within(fd, 30.0) for fd in fds)
+    finally:
+        for fd in fds:
+            os.close(fd)
+
+
+def start_long_run(bag: Path) -> tuple[subprocess.Popen[bytes], SegmentSampler]:
+    """``haptic-topology run circle`` for a minute, once the command and its three node
+    processes each have their segment."""
+    run = subprocess.Popen(
+        [sys.executable, '-m', 'haptic_topology.cli', 'run', 'circle', '--duration', '60',
+         '--no-plot', '--out', str(bag)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    sampler = SegmentSampler(run.pid)
+    deadline = time.monotonic() + START
+    while len(set(sampler.seen.values())) < 4 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return run, sampler
+
+
+@pytest.mark.timeout(300)
+def test_sigterm_of_run_stops_the_graph_and_leaves_nothing(tmp_path: Path) -> None:
+    """SIGTERM ends ``run`` as Ctrl-C: it stops its nodes, each deletes its segment. (The
+    command used to end at once, its nodes running on.)"""
+    run, sampler = start_long_run(tmp_path / 'bag')
+    fds = [fd for fd in map(pidfd, tree(run.pid)) if fd is not None]
+    try:
+        run.send_signal(signal.SIGTERM)
+        out, _ = run.communicate(timeout=60)
+        ended = [ended_within(fd, 30.0) for fd in fds]
+    finally:
+        kill_all(fds)
+        seen = sampler.stop()
+    log = out.decode(errors='replace')[-3000:]
+    assert len(set(seen.values())) == 4, (seen, log)
+    assert run.returncode == 128 + signal.SIGTERM, log
+    assert all(ended), log                       # the nodes too
+    assert existing(seen) == {}, log
+
+
 @pytest.mark.timeout(300)
 def test_a_killed_graphs_segments_are_removed_by_the_next_run(tmp_path: Path) -> None:
-    killed = subprocess.Popen(
-        [sys.executable, '-m', 'haptic_topology.cli', 'run', 'circle', '--duration', '60',
-         '--no-plot', '--out', str(tmp_path / 'killed')],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    sampler = SegmentSampler(killed.pid)
+    killed, sampler = start_long_run(tmp_path / 'killed')
     try:
-        # The run's command and its three node processes each have their segment.
-        deadline = time.monotonic() + START
-        while len(set(sampler.seen.values())) < 4 and time.monotonic() < deadline:
-            time.sleep(0.1)
-        procs = tree(killed.pid)
-        fds = [pidfd(p) for p in procs]
-        for pid in procs:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+        fds = [fd for fd in map(pidfd, tree(killed.pid)) if fd is not None]
+        kill_all(fds)
         killed.wait()
-        assert all(wait_exit(fd, 30.0) for fd in fds)
     finally:
         if killed.poll() is None:
             killed.kill()
