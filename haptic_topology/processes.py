@@ -218,8 +218,17 @@ def process_times(pid: int) -> dict[str, float] | None:
             'wall_s': uptime - int(fields[19]) / hz}
 
 
-def terminate(popen: subprocess.Popen[Any], timeout: float = 5.0,
-              escalate: float = 2.0) -> int:
+#: s a stopped process gets after SIGINT before SIGTERM (:func:`terminate`); a node's
+#: teardown is bounded below it (the recorder's ``CLOSE_TIMEOUT``)
+STOP_TIMEOUT = 5.0
+#: s after SIGTERM before SIGKILL (the node processes keep their SIGINT handler through their
+#: teardown, so for them only the SIGKILL, ``STOP_TIMEOUT + STOP_ESCALATE`` after the SIGINT,
+#: ends it)
+STOP_ESCALATE = 2.0
+
+
+def terminate(popen: subprocess.Popen[Any], timeout: float = STOP_TIMEOUT,
+              escalate: float = STOP_ESCALATE) -> int:
     """SIGINT ``popen``, then SIGTERM and SIGKILL if it has not exited after ``timeout`` /
     ``escalate`` seconds; return its exit code."""
     for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, escalate),

@@ -66,7 +66,7 @@ from haptic_topology.bringup.options import (
 )
 from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import BringupError, ConfigError
-from haptic_topology.processes import RunUsage, terminate
+from haptic_topology.processes import STOP_TIMEOUT, RunUsage, terminate
 from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE, Clock
 
 if TYPE_CHECKING:
@@ -202,7 +202,7 @@ def _start(name: str, argv: list[str], log_dir: Path,
     return _Proc(name, popen, log, handle)
 
 
-def stop(procs: list[_Proc], timeout: float = 5.0) -> dict[str, int]:
+def stop(procs: list[_Proc], timeout: float = STOP_TIMEOUT) -> dict[str, int]:
     """SIGINT each process in order, escalating to SIGTERM and SIGKILL; return exit codes."""
     codes: dict[str, int] = {}
     for p in procs:

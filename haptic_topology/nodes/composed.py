@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from rclpy.node import Node
 
 from haptic_topology.config import node_params
-from haptic_topology.nodes.runtime import destroy_nodes, run_main
+from haptic_topology.nodes.runtime import close_all, destroy_nodes, run_main
 
 
 def build() -> list[Node]:
@@ -33,10 +33,7 @@ def build() -> list[Node]:
         if len(driver_nodes) == 1:
             nodes.append(LmiController())
     except BaseException:
-        for n in nodes:
-            close = getattr(n, 'close', None)
-            if close is not None:
-                close()
+        close_all(nodes, 'composed')
         destroy_nodes(nodes)
         raise
     # The device driver's executor parameter decides (it is the clock master).

@@ -22,8 +22,6 @@ deep queue (see :mod:`haptic_topology.nodes.qos`).
 
 from __future__ import annotations
 
-import threading
-import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -37,8 +35,10 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
+from haptic_topology.bag.writer_thread import WriterThread
 from haptic_topology.config import node_params, resolve
 from haptic_topology.config.settings import RecorderSettings
+from haptic_topology.errors import BagError
 from haptic_topology.messages.definitions import message_definitions, typestore_with_haptic_msgs
 from haptic_topology.nodes.diagnostics import diagnostics
 from haptic_topology.nodes.parameters import declare_settings
@@ -50,8 +50,9 @@ from haptic_topology.nodes.qos import (
     TOPIC_QOS,
     publisher_qos,
 )
-from haptic_topology.nodes.runtime import run_main
+from haptic_topology.nodes.runtime import EXECUTOR_SHUTDOWN, SPIN_PERIOD, run_main
 from haptic_topology.nodes.take import BatchTaker
+from haptic_topology.processes import STOP_TIMEOUT
 from haptic_topology.vocabulary import (
     TOPIC_COMMAND,
     TOPIC_DEVICE_POSE,
@@ -102,6 +103,10 @@ LOOP_TOPICS = (TOPIC_STATE, TOPIC_COMMAND)
 #: s between two takes of everything DDS holds (the readers' histories hold 1,000-10,000
 #: messages per topic: at the graph's rates at 10x, a second or more).
 DRAIN_PERIOD = 0.01
+#: s :meth:`Recorder.close` waits for the writer thread to finish the bag: what the bringup's
+#: SIGINT-to-SIGTERM time (``STOP_TIMEOUT``) leaves after the spin loop's end and the
+#: executor's shutdown, less a second for the rest of the teardown
+CLOSE_TIMEOUT = STOP_TIMEOUT - SPIN_PERIOD - EXECUTOR_SHUTDOWN - 1.0
 
 
 def select_topics(names: Sequence[str], regex: str) -> list[str]:
@@ -151,14 +156,13 @@ class Recorder(Node):
                                         'graph_id': settings.graph_id},
                                 max_bag_size=config.max_bag_size,
                                 max_bag_duration=config.max_bag_duration)
-        self._error: BaseException | None = None
         self.taker = BatchTaker(self, [(self.resolve_topic_name(t), RECORDED[t][0],
                                         _record_qos(t, config.clock)) for t in topics])
         self.subscriptions_by_topic = dict(zip(topics, self.taker.subscriptions, strict=True))
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._write_loop, name='bag-writer',
-                                        daemon=True)
-        self._thread.start()
+        # One thread takes and writes (module doc; it alone touches the writer).
+        self.writer_thread = WriterThread(self.writer, self.taker.drain, self.flush_period,
+                                          DRAIN_PERIOD)
+        self.writer_thread.start()
         self._open = True
         self._connect = [t for t in CONNECT_TOPICS if t in self.subscriptions_by_topic]
         self.connected = False
@@ -168,28 +172,6 @@ class Recorder(Node):
         self.create_timer(0.25, self._publish_status)
         self.get_logger().info(f'recording to {self.path}')
         print(f'recording to {self.path}', flush=True)
-
-    def _write_loop(self) -> None:
-        """Writer thread: every ``DRAIN_PERIOD`` take what DDS holds into the MCAP, flush every
-        ``flush_period``; after the stop mark, take the rest once more.
-
-        One thread wakes 100 times a second whatever the message rate, instead of the
-        executor waking once per message: at 30,000 msg/s that is the difference between
-        more than two cores and a fraction of one, and with all nodes in one process
-        (``--composed``) it keeps the recorder off the GIL between batches.
-        """
-        drain, write = self.taker.drain, self.writer.write_many
-        next_flush = time.monotonic() + self.flush_period
-        try:
-            while not self._stop.wait(DRAIN_PERIOD):
-                drain(write)
-                now = time.monotonic()
-                if now >= next_flush:
-                    self.writer.flush()
-                    next_flush = now + self.flush_period
-            drain(write)
-        except OSError as exc:  # disk full, ...: reported by close(); flushed data stays
-            self._error = exc
 
     def _check_connected(self) -> None:
         """Report ``connected`` once the controller's and the VE's topics have a publisher
@@ -219,8 +201,12 @@ class Recorder(Node):
                   **{f'publishers {t}': str(sub.get_publisher_count())
                      for t, sub in self.subscriptions_by_topic.items()
                      if t in LOOP_TOPICS}}
-        self.diag_pub.publish(diagnostics(self, 'recorder: bag', values, 0,
-                                                 'recording'))
+        level, message = 0, 'recording'
+        failed = self.writer_thread.error
+        if failed is not None:      # within one status period of the failure
+            level, message = 2, f'writing the bag failed: {_describe(failed)}'
+            values['not written'] = str(self.writer_thread.unwritten(sum(self.taker.taken)))
+        self.diag_pub.publish(diagnostics(self, 'recorder: bag', values, level, message))
 
     @property
     def counts(self) -> dict[str, int]:
@@ -228,22 +214,35 @@ class Recorder(Node):
         return dict(zip(self.subscriptions_by_topic, self.taker.taken, strict=True))
 
     def close(self) -> None:
-        """Drain the queue, finalise the bag (summary, metadata.yaml); idempotent."""
+        """Stop the writer thread, which takes the rest and finalises the bag (summary,
+        metadata.yaml), waiting at most ``CLOSE_TIMEOUT``; print what was written. Raises
+        :class:`BagError` with the count of messages received but not written when the writer
+        failed or had not finished by then. Idempotent."""
         if not self._open:
             return
         self._open = False
-        self._stop.set()
-        self._thread.join(timeout=30.0)
-        self.taker.destroy()
-        if self._error is not None:
-            print(f'recorder: error: writing {self.path} failed: {self._error}', flush=True)
-            return
-        self.writer.close()
-        written = self.writer.counts
-        unwritten = sum(self.taker.taken) - sum(written.values())
-        summary = ', '.join(f'{t}: {n}' for t, n in written.items())
+        thread = self.writer_thread
+        ended = thread.stop(CLOSE_TIMEOUT)
+        taken = sum(self.taker.taken)
+        unwritten, lost = thread.unwritten(taken), sum(self.taker.lost)
+        if ended:           # else the thread still takes from it
+            self.taker.destroy()
+        if thread.error is not None:
+            raise BagError(f'{self.path}: writing the bag failed ({_describe(thread.error)}): '
+                           f'{unwritten} of {taken} messages received were not written; what '
+                           'was flushed before stays readable (`haptic-topology bag repair` '
+                           'completes it)')
+        if not ended:
+            raise BagError(f'{self.path}: the bag was not finished within {CLOSE_TIMEOUT:g} s '
+                           f'of the stop ({unwritten} of {taken} messages received not written '
+                           'yet); `haptic-topology bag repair` completes what was flushed')
+        summary = ', '.join(f'{t}: {n}' for t, n in self.writer.counts.items())
         print(f'bag written: {self.path} ({summary}; received but not written: {unwritten}; '
-              f'lost before the recorder: {sum(self.taker.lost)})', flush=True)
+              f'lost before the recorder: {lost})', flush=True)
+
+
+def _describe(exc: BaseException) -> str:
+    return f'{type(exc).__name__}: {exc}'
 
 
 def main(args: Sequence[str] | None = None) -> int:

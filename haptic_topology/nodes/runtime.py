@@ -49,6 +49,10 @@ def make_executor(kind: str) -> Any:
 #: Seconds after SIGINT/SIGTERM at which a node still running dumps its threads' stacks (the
 #: bringup escalates to SIGTERM after 5 s).
 STOP_DUMP_AFTER = 4.0
+#: s: the longest wait of :func:`spin`'s loop (it sees a stop signal within this)
+SPIN_PERIOD = 0.1
+#: s :func:`spin` gives the executor to shut down after the loop
+EXECUTOR_SHUTDOWN = 1.0
 
 
 def freeze_startup_objects() -> None:
@@ -96,9 +100,9 @@ def spin(nodes: Sequence[Node], kind: str) -> None:
         signal.signal(sig, request_stop)
     try:
         while rclpy.ok() and not stop:
-            executor.spin_once(timeout_sec=0.1)
+            executor.spin_once(timeout_sec=SPIN_PERIOD)
     finally:
-        executor.shutdown(timeout_sec=1.0)
+        executor.shutdown(timeout_sec=EXECUTOR_SHUTDOWN)
 
 
 def run_main(prog: str, build: Callable[[], Sequence[Node]],
@@ -189,10 +193,8 @@ def run_main(prog: str, build: Callable[[], Sequence[Node]],
             print(f'{prog}: error: {_first_line(exc)}', file=sys.stderr)
             status = 2
     finally:
-        for n in nodes:
-            close = getattr(n, 'close', None)
-            if close is not None:
-                close()
+        if not close_all(nodes, prog):
+            status = status or 1
         # The nodes go before the process ends on every path: the last one destroyed
         # deletes the process's DDS participant, and with it Fast DDS's shared-memory
         # segment in /dev/shm, which outlives a process that ends with it alive.
@@ -224,6 +226,26 @@ def destroy_nodes(nodes: Sequence[Node]) -> None:
         if machine is not None:
             machine.destroy_when_not_in_use()
         n.destroy_node()
+
+
+def close_all(nodes: Sequence[Node], prog: str) -> bool:
+    """Call every node's ``close`` (if it has one), in order, whatever the others do: one that
+    raises is reported (``<prog>: error: <node>: closing failed: ...`` on stderr) and the next
+    ones are closed all the same (the recorder, finalising its bag, among them). Returns
+    whether every close succeeded (a process then exits with status 1)."""
+    ok = True
+    for n in nodes:
+        close = getattr(n, 'close', None)
+        if close is None:
+            continue
+        try:
+            close()
+        except Exception as exc:  # reported; the other nodes are closed all the same
+            what = (str(exc) if isinstance(exc, HapticTopologyError)
+                    else f'closing failed: {type(exc).__name__}: {exc}')
+            print(f'{prog}: error: {n.get_name()}: {what}', file=sys.stderr, flush=True)
+            ok = False
+    return ok
 
 
 def _end_process(status: int) -> None:

@@ -20,7 +20,9 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
@@ -35,6 +37,7 @@ pytestmark = pytest.mark.graph
 TEST_DIR = Path(__file__).resolve().parents[1] / 'support'
 SEQ_FIELD = {'/haptic/device/state': 'seq', '/haptic/device/command': 'state_seq',
              '/haptic/hand_inputs': 'seq', '/haptic/lmi/update': 'seq'}
+STATE_TOPIC = 'haptic/device/state'
 #: Samples per message: HandInputs carries bag_publisher.BATCH sequence numbers.
 PER_MESSAGE = {'/haptic/hand_inputs': 10}
 
@@ -171,3 +174,138 @@ def test_sigkill_leaves_a_readable_bag(tmp_path: Path, topic_prefix: str) -> Non
         states = [reader.deserialize(raw, c.msgtype).seq for c, _, raw in reader.messages()
                   if c.topic == f'{topic_prefix}/haptic/device/state']
     assert states == list(range(1, k + 1))
+
+
+class _Graph:
+    """This test's own rclpy node (its own context): publishes device states as the
+    lock-step graph does and keeps the recorder's ``/diagnostics`` status of ``bag``."""
+
+    def __init__(self, namespace: str, bag: Path) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+
+        from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, publisher_qos
+        from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS, TOPIC_STATE, Clock
+        from haptic_topology_msgs.msg import DeviceState
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('recorder_failure_test', namespace=namespace,
+                                      context=self.context)
+        self.pub = self.node.create_publisher(
+            DeviceState, TOPIC_STATE.lstrip('/'), publisher_qos(TOPIC_STATE, Clock.LOCKSTEP))
+        self.statuses: list[tuple[int, str, dict[str, str]]] = []
+
+        def keep(arr: Any) -> None:
+            for st in arr.status:
+                values = {kv.key: kv.value for kv in st.values}
+                if st.name == 'recorder: bag' and values.get('path') == str(bag):
+                    self.statuses.append((st.level[0], st.message, values))
+
+        self.node.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, keep,
+                                      QOS_DIAGNOSTICS)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.msg = DeviceState(task_dim=3, pose=[0.0] * 3, twist=[0.0] * 3,
+                               hand_wrench=[0.0] * 3, applied_wrench=[0.0] * 3)
+        self.sent = 0
+
+    def publish(self, n: int) -> None:
+        for _ in range(n):
+            self.sent += 1
+            self.msg.seq = self.sent
+            self.pub.publish(self.msg)
+
+    def until(self, what: str, cond: Callable[[], bool], timeout: float = 30.0,
+              publish: int = 0) -> None:
+        """Spin (publishing ``publish`` states each turn) until ``cond`` holds."""
+        deadline = time.monotonic() + timeout
+        while not cond():
+            assert time.monotonic() < deadline, f'{what}: not within {timeout} s; ' \
+                f'last status {self.statuses[-1:]}'
+            self.publish(publish)
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def test_a_writer_failure_is_an_error_status_with_the_count_not_written(
+        tmp_path: Path, topic_prefix: str) -> None:
+    """The bag's directory is replaced by a regular file while the recorder runs (this fails
+    for root too): the next split cannot create its file (BagError in the writer thread).
+    The recorder's status turns ERROR, naming the exception, and counts the messages received
+    since and not written; at the stop it reports that count and exits with 1. Every
+    message received is either in the bag's files or counted as not written."""
+    bag = tmp_path / 'failing'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'haptic_topology.nodes.recorder', '--ros-args', '-p',
+         f'output:={bag}', '-p', 'clock:=lockstep', '-p', 'max_bag_size:=1',
+         '-p', f'topics:=[{STATE_TOPIC}]', '-r', f'__ns:={topic_prefix}'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
+    graph = _Graph(topic_prefix, bag)
+    try:
+        _wait_for_line(proc, 'recording to', 40.0)
+        graph.until('subscriber matched', lambda: graph.pub.get_subscription_count() > 0)
+        graph.until('a split file written', lambda: (bag / 'failing_1.mcap').exists(),
+                    publish=5)
+        moved = tmp_path / 'moved'
+        bag.rename(moved)
+        bag.write_text('not a directory\n')
+        graph.until('ERROR status', lambda: any(s[0] == 2 for s in graph.statuses),
+                    publish=5)
+        level, message, _ = next(s for s in graph.statuses if s[0] == 2)
+        # (BagError: the split's next file; or OSError: the flush's metadata.yaml before it;
+        # the path is gone for an instant before the file takes its place)
+        assert message.startswith('writing the bag failed: ') and any(
+            why in message for why in ('Not a directory', 'No such file or directory')), message
+        graph.publish(50)           # after the failure: received, never written
+        total = graph.sent
+        graph.until('every state received and counted',
+                    lambda: graph.statuses[-1][2].get(f'received {STATE_TOPIC}') == str(total))
+        _, _, values = graph.statuses[-1]
+        assert values['lost'] == '0'
+        not_written = int(values['not written'])
+    finally:
+        graph.close()
+        proc.send_signal(signal.SIGINT)
+        log, _ = proc.communicate(timeout=30)
+    # (a file just created when the writer failed is empty)
+    in_files = sum(1 for f in sorted(moved.glob('*.mcap')) if f.stat().st_size
+                   for _ in iter_messages(open_bag(f)))
+    assert in_files + not_written == total >= 50 + in_files, (in_files, not_written, total)
+    assert proc.returncode == 1, log
+    assert f'{not_written} of {total} messages received were not written' in log, log
+
+
+def test_a_node_whose_close_raises_does_not_keep_the_recorder_from_its_bag(
+        tmp_path: Path, topic_prefix: str) -> None:
+    """Several nodes in one process (``composed``): the first node's close raises; the
+    recorder's close still finalises the bag (summary and footer: not truncated), the failure
+    is reported and the process exits with 1."""
+    bag = tmp_path / 'closed'
+    proc = subprocess.Popen(
+        [sys.executable, str(TEST_DIR / 'close_all_node.py'), '--ros-args', '-p',
+         f'output:={bag}', '-p', f'topics:=[{STATE_TOPIC}]', '-r', f'__ns:={topic_prefix}'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
+    try:
+        # Spinning (its first timer: no topic to wait for); a SIGINT before the spin would
+        # end the start-up instead.
+        _wait_for_line(proc, 'connected to (none)', 40.0)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        log, _ = proc.communicate(timeout=30)
+    assert 'recorder: error: failing_close: closing failed: RuntimeError: this close fails' \
+        in log, log
+    assert 'bag written' in log, log
+    assert proc.returncode == 1, log
+    opened = open_bag(bag)
+    list(iter_messages(opened))
+    assert not opened.truncated
