@@ -7,6 +7,7 @@ them), and the check's result. The publishing side (rclpy) is
 from __future__ import annotations
 
 import argparse
+import bisect
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -94,20 +95,29 @@ def plan(bag: Bag, topics: Iterable[str] | None = None, start_offset: float = 0.
                        'recorded with an older definition of '
                        f'{", ".join(sorted({old[t] for t in wanted & set(old)}))} than the '
                        'installed one')
-    msgs = [m for m in iter_messages(bag)
-            if (wanted is None or m.topic in wanted) and m.topic not in old]
+
+    def wanted_messages() -> Iterable[BagMessage]:
+        return (m for m in iter_messages(bag)
+                if (wanted is None or m.topic in wanted) and m.topic not in old)
+
+    # A first pass finds the start and the topics without keeping a message, so the
+    # messages are held once, as the items.
+    first, seen = None, set()
+    for m in wanted_messages():
+        first = m.log_time if first is None else min(first, m.log_time)
+        seen.add(m.topic)
     if wanted is not None:
-        missing = wanted - {m.topic for m in msgs}
+        missing = wanted - seen
         if missing:
             raise BagError(f'{bag.path}: no messages on {", ".join(sorted(missing))} (it has '
                            f'{", ".join(sorted(bag.topics))})')
-    if not msgs:
+    if first is None:
         raise BagError(f'{bag.path}: no messages to replay')
-    t0 = min(m.log_time for m in msgs) + int(start_offset * 1e9)
+    t0 = first + int(start_offset * 1e9)
     upgrade = upgraders(bag)
     items = [Item((m.log_time - t0) * 1e-9, m.topic, m.msgtype,
                   upgrade[m.msgtype](m.data) if m.msgtype in upgrade else m.data)
-             for m in msgs if m.log_time >= t0]
+             for m in wanted_messages() if m.log_time >= t0]
     if not items:
         raise BagError(f'{bag.path}: --start-offset {start_offset:g} s is past the bag\'s end')
     items.sort(key=lambda it: it.t)  # stable: equal times keep file order
@@ -135,6 +145,16 @@ class ControllerPlan:
     graph_id: str = ''
 
 
+@dataclass(frozen=True)
+class _Seq:
+    """What the plan keeps of a state or an update besides its bytes: seq and header (the
+    decoded arrays are left to the garbage collector: a 15-minute bag holds ~900,000
+    states)."""
+
+    seq: int
+    header: Any
+
+
 def _stamp(header: Any) -> float:
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
 
@@ -159,11 +179,11 @@ def controller_plan(bag: Bag) -> ControllerPlan:
         if not graph.own(msg, m.topic):
             continue            # another graph's (module doc)
         if m.topic.endswith(STATE):
-            states.append((m, msg))
+            states.append((m, _Seq(int(msg.seq), msg.header)))
         elif m.topic.endswith(COMMAND):
             commands.setdefault(int(msg.state_seq), msg)
         elif m.topic.endswith(UPDATE):
-            updates.append((m, msg))
+            updates.append((m, _Seq(int(msg.seq), msg.header)))
         elif m.topic.endswith(HAND_INPUTS):
             answered.update(int(s) for s in msg.state_seq)
     answered |= set(commands)
@@ -185,8 +205,8 @@ def controller_plan(bag: Bag) -> ControllerPlan:
         items, groups = _items_from_ages(answered_states, commands, updates, data)
     else:
         items, groups = _items_from_update_seqs(answered_states, commands, updates, data)
-    return ControllerPlan(items, {s: c for s, c in commands.items()
-                                  if s in {int(st.seq) for _, st in answered_states}},
+    replayed = {int(st.seq) for _, st in answered_states}
+    return ControllerPlan(items, {s: c for s, c in commands.items() if s in replayed},
                           scenario, mode, groups, len(updates), graph.graph_id)
 
 
@@ -201,18 +221,21 @@ def _items_from_update_seqs(answered_states: list[tuple[BagMessage, Any]],
     fed = 0                                 # updates placed so far (recorded order)
     groups = 0
     t_first = answered_states[0][0].log_time if answered_states else 0
+    where: dict[int, list[int]] = {}        # update seq -> its indexes, ascending
+    for j, (_, u) in enumerate(updates):
+        where.setdefault(int(u.seq), []).append(j)
     for m, st in answered_states:
         seq = int(st.seq)
         t = (m.log_time - t_first) * 1e-9
         cmd = commands.get(seq)
         newest = -1 if cmd is None else int(cmd.update_seq)
-        if newest >= 0:
-            ahead = [j for j in range(fed, len(updates)) if int(updates[j][1].seq) == newest]
-            if ahead:
-                for u, _ in updates[fed:ahead[0] + 1]:
-                    items.append(Item(max(t - 2e-4, 0.0), u.topic, u.msgtype, data(u)))
-                fed = ahead[0] + 1
-                groups += 1
+        at = where.get(newest, []) if newest >= 0 else []
+        k = bisect.bisect_left(at, fed)     # the first update named so, not placed yet
+        if k < len(at):
+            for u, _ in updates[fed:at[k] + 1]:
+                items.append(Item(max(t - 2e-4, 0.0), u.topic, u.msgtype, data(u)))
+            fed = at[k] + 1
+            groups += 1
         items.append(Item(t, m.topic, m.msgtype, data(m), seq))
     return items, groups
 
