@@ -15,7 +15,9 @@ every ``flush_period`` (0.2 s) and rewrites ``metadata.yaml`` with the running c
 recorder costs a fraction of a core at 30,000 msg/s, a clean stop (SIGINT/SIGTERM) finalises
 the bag, and a SIGKILL leaves a file that reads back up to the last flush (``haptic-topology
 bag repair`` completes it for other readers). Drops are counted and reported in its status
-(``lost``: samples DDS never delivered, or gaps in a publisher's sequence numbers). QoS
+(``lost``: samples DDS never delivered, or gaps in a publisher's sequence numbers). A
+failure of the writing (:class:`~haptic_topology.bag.writer_thread.WriterThread`) turns the
+status ERROR at its next report, with the count of messages ``not written``. QoS
 mirrors each publisher's reliability with a
 deep queue (see :mod:`haptic_topology.nodes.qos`).
 """
