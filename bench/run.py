@@ -19,7 +19,10 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    run of consecutive missed cycles, round trip p50/p99 (separate layout), CPU per process
    and in total. A bare rclpy ping-pong of two processes with the same messages, QoS and
    executor (``bench/pingpong.py``) runs in the same session, with and without SCHED_FIFO,
-   for the separate layout's round-trip ratio.
+   for the separate layout's round-trip ratio. The machine's floor (``bench/floor.c``: a
+   compiled loop that only sleeps to the same 1 ms deadlines, with and without SCHED_FIFO)
+   runs in the same session, before and after the graph's runs; each loop run is printed
+   beside it and as a ratio to it (answered, longest missed run, period p99).
 2. Controller compute per cycle without ROS (eq. 14 + LMI step, and eq. 10).
 3. ``ve_sim`` cost per 100 Hz update for chains of 3-200 links, planar and spatial.
 4. The recorder at the graph's rate and at ``RECORDER_HIGH`` x (over 30,000 msg/s) with a
@@ -60,6 +63,7 @@ BENCH = Path(__file__).resolve().parent
 sys.path.insert(0, str(BENCH))
 
 import core_costs  # noqa: E402
+import floor  # noqa: E402
 import recorder_load  # noqa: E402
 from chain_scenario import write_chain_scenario  # noqa: E402
 
@@ -275,6 +279,22 @@ def _pingpong(duration: float, fifo: bool) -> dict[str, Any]:
     return dict(json.loads(out[out.index('{'):]))
 
 
+def _floors(res: dict[str, Any], duration: float, fifo: bool, key: str) -> None:
+    """The machine's floor (``floor.py``), without and (where permitted) with SCHED_FIFO, as
+    ``res[key]`` and ``res[key + '_fifo']``."""
+    for suffix, prio in (('', 0), ('_fifo', DEVICE_PRIORITY if fifo else 0)):
+        if suffix and not prio:
+            continue
+        print(f'== machine floor{" (SCHED_FIFO)" if prio else ""}, {duration:g} s ...',
+              flush=True)
+        res[key + suffix] = floor.run(duration, prio)
+
+
+#: The floor each loop run is read against: with SCHED_FIFO for the runs that use it.
+def _floor_of(key: str) -> str:
+    return 'floor_fifo' if key.endswith('_fifo') else 'floor'
+
+
 def run(loop_duration: float, recorder_duration: float,
         memory_duration: float = 150.0) -> dict[str, Any]:
     res: dict[str, Any] = {'date': time.strftime('%Y-%m-%d %H:%M:%S %Z'),
@@ -283,6 +303,7 @@ def run(loop_duration: float, recorder_duration: float,
     res['fifo_permitted'] = fifo
     print('== controller and VE compute (no ROS) ...', flush=True)
     res['core'] = core_costs.run()
+    _floors(res, loop_duration, fifo, 'floor')
     for key, layout, with_fifo, busy in LOOP_RUNS:
         if with_fifo and not fifo:
             print(f'== graph, {key}: skipped, SCHED_FIFO not permitted here', flush=True)
@@ -308,6 +329,7 @@ def run(loop_duration: float, recorder_duration: float,
             # its result, in the tables, and the other runs still count.
             res[f'{key}_failed'] = str(exc).strip().splitlines()[-1][:300]
             print(f'== graph, {key}: the run failed: {res[f"{key}_failed"]}', flush=True)
+    _floors(res, loop_duration, fifo, 'floor_end')
     print('== live fig8 eq. 14 (hosted, wall clock) against simulate ...', flush=True)
     off = offline('fig8', 'penalty')
     live = graph_loop(off['duration_s'], 'hosted', False, 'fig8', 'penalty')
@@ -387,6 +409,16 @@ def headline(res: dict[str, Any]) -> dict[str, Any]:
         'max_links_within_30pct_planar': core['max_links_within_30pct_planar'],
         'max_links_within_30pct_spatial': core['max_links_within_30pct_spatial'],
     }
+    for key in ('floor', 'floor_fifo', 'floor_end', 'floor_end_fifo'):
+        if key in res:
+            for fig in ('answered_fraction', 'max_consecutive_missed', 'period_p99_us',
+                        'wake_late_p99_us'):
+                out[f'{fig}_{key}'] = res[key][fig]
+    if 'floor' in res:
+        out['answered_ratio_hosted_to_floor'] = (h['answered_fraction']
+                                                 / res['floor']['answered_fraction'])
+        out['period_p99_ratio_hosted_to_floor'] = (h['period_p99_us']
+                                                   / res['floor']['period_p99_us'])
     for key in (k for k, _, _, _ in LOOP_RUNS if k not in ('hosted', 'separate')):
         if f'{key}_failed' in res:
             out[f'failed_{key}'] = res[f'{key}_failed']
@@ -507,7 +539,8 @@ def goals(head: dict[str, Any]) -> str:
 def table(res: dict[str, Any]) -> str:
     lines = ['loop (1 kHz)          answered  ans.|prev  max miss  rtt p50/p99/max [us]      '
              'period p50/p99/max [us]   wake late p50/p99 [us]  CPU']
-    for key in ('baseline', 'baseline_fifo', *(k for k, _, _, _ in LOOP_RUNS)):
+    for key in ('floor', 'floor_fifo', 'baseline', 'baseline_fifo',
+                *(k for k, _, _, _ in LOOP_RUNS), 'floor_end', 'floor_end_fifo'):
         if key not in res:
             continue
         r = res[key]
@@ -522,6 +555,17 @@ def table(res: dict[str, Any]) -> str:
             f'{r["period_p50_us"]:6.0f}/{r["period_p99_us"]:6.0f}/{r["period_max_us"]:7.0f}   '
             f'{r.get("wake_late_p50_us", math.nan):6.0f}/'
             f'{r.get("wake_late_p99_us", math.nan):6.0f}           {cpu}')
+    lines.append('loop / machine floor  answered  missed in a row  period p99   (ratio of the '
+                 'run to the floor measured before the runs: floor, or floor_fifo)')
+    for key in (k for k, _, _, _ in LOOP_RUNS):
+        fl = res.get(_floor_of(key))
+        if key not in res or fl is None:
+            continue
+        r = res[key]
+        miss = r.get('max_consecutive_missed') or math.nan
+        lines.append(f'{key:20s}  {r["answered_fraction"] / fl["answered_fraction"]:8.4f}  '
+                     f'{miss / max(fl["max_consecutive_missed"], 1):15.2f}  '
+                     f'{r["period_p99_us"] / fl["period_p99_us"]:10.3f}')
     for key in (k for k, _, _, _ in LOOP_RUNS):
         changes = res.get(key, {}).get('loop_cpu_changes')
         if changes:     # run --loop-cpu auto pinned (or unpinned) the loop during the run
