@@ -341,28 +341,30 @@ def child_main() -> int:
     """Entry point of the child (``python -m haptic_topology.device.loop_child``)."""
     spec: LoopSpec = pickle.loads(sys.stdin.buffer.read())
     child: _Child | None = None
-    term = [False]
+    asked: set[int] = set()             # the signals that came before the child was built
 
-    def on_term(signum: int, frame: Any) -> None:
-        # The node's escalation of a stop, or the parent died (PR_SET_PDEATHSIG).
-        term[0] = True
+    def on_signal(signum: int, frame: Any) -> None:
+        # SIGHUP: the parent died (PR_SET_PDEATHSIG; it comes as the parent's thread exits,
+        # when getppid() may still name it). SIGTERM: the node's escalation of a stop.
+        asked.add(signum)
         if child is not None:
             child.stop = True
-            child.parent_gone = os.getppid() != spec.parent
+            child.parent_gone = child.parent_gone or signum == signal.SIGHUP
             child.runner.request_stop()
 
     stacks_on_signal()
-    signal.signal(signal.SIGTERM, on_term)            # before the signal can come
+    signal.signal(signal.SIGTERM, on_signal)          # before the signals can come
+    signal.signal(signal.SIGHUP, on_signal)
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the node's Ctrl-C stops us by request
-    set_parent_death_signal(signal.SIGTERM)
+    set_parent_death_signal(signal.SIGHUP)
     if os.getppid() != spec.parent:         # the parent died before the signal was set
         print(f'loop process {os.getpid()}: parent gone before the start: device not opened',
               file=sys.stderr, flush=True)
         return 1
     child = _Child(spec)
-    if term[0]:
+    if asked:
         child.stop = True
-        child.parent_gone = os.getppid() != spec.parent
+        child.parent_gone = signal.SIGHUP in asked or os.getppid() != spec.parent
     return child.run()
 
 

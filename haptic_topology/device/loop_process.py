@@ -41,7 +41,7 @@ room fails there) and unlinks them at cleanup. An activation starts a child; a d
 stops it: a stop request, then, if the child has not exited within :data:`STOP_TIMEOUT`
 (or could not be asked: its control ring full), SIGTERM, then, after :data:`TERM_TIMEOUT`,
 SIGKILL. The child turns a stop request, SIGTERM and its parent's death
-(``PR_SET_PDEATHSIG`` delivers SIGTERM, and the parent pid is checked every cycle) into the
+(``PR_SET_PDEATHSIG`` delivers SIGHUP, and the parent pid is checked every cycle) into the
 end of its loop, and writes zero wrench and releases the device
 (:func:`~haptic_topology.device.backend.zero_and_release`) in a ``finally`` that every path
 out of its loop takes, a failed activation included; only SIGKILL skips it (then the device's

@@ -241,9 +241,9 @@ class DeviceDriver(LifecycleNode):
             level, message, loop_values = child.device_report(self.fault, self.rejected.total)
             loop_values.update(layout.values())
         else:
-            level, message, loop_values = device_report(
-                self.loop, monotonic(), self.fault, self.rejected.total,
-                layout.values() if layout is not None else {})
+            level, message, loop_values = device_report(   # a hosted loop thread's round
+                self.loop, monotonic(), self.fault, self.rejected.total,   # trips: its values
+                layout.values() if layout else {}, not isinstance(layout, HostedLoop))
         values = {'backend': self.cfg.backend, 'clock': self.cfg.clock.value,
                   'loop_running': str(layout is not None and layout.running).lower(),
                   **self.states.values(),

@@ -23,7 +23,8 @@ import numpy as np
 
 from haptic_topology.control.loop import ControllerLoop
 from haptic_topology.device.hosted import HostedCycle
-from haptic_topology.device.loop_process import LoopProcess
+from haptic_topology.device.loop_process import STATUS_PERIOD, LoopProcess
+from haptic_topology.device.loop_rings import SortedFigures
 from haptic_topology.device.realtime import (
     loop_cpus,
     name_os_thread,
@@ -72,6 +73,7 @@ class HostedLoop:
         pacing = RunnerConfig(c.period, driver.lockstep, c.run_duration,
                               controller.cfg.lockstep_wait)
         self.process: LoopProcess | None = None
+        self.thread: LoopRunner | None = None
         self.runner: LoopHandle
         drain: Callable[[], np.ndarray]
         if driver.in_child:         # decided once, when the driver configured
@@ -82,7 +84,7 @@ class HostedLoop:
         else:
             thread = LoopRunner(HostedCycle(driver.loop, controller.loop), pacing,
                                 wall_ns=lambda: driver.get_clock().now().nanoseconds)
-            self.runner = thread
+            self.runner = self.thread = thread
             codec = CycleCodec(c.task_dim)
             drain = lambda: codec.records(thread.drain())     # noqa: E731
         self.wire = CycleWire(codec, driver.states.writer, controller.command_wire)
@@ -101,6 +103,9 @@ class HostedLoop:
         if driver.lockstep and isinstance(self.runner, LoopRunner):
             self.runner.wake = self.outbox.wake
         controller.attach(self.runner)
+        # The loop thread's percentiles (a minute of periods, the round trips), sorted off the
+        # executor thread, as the loop process's are (loop_process.SortedFigures).
+        self._figures = SortedFigures(self._sorted, STATUS_PERIOD)
         self._problems: list[str] = []      # real-time settings refused (loop thread)
         self._timer: Any = None
 
@@ -172,6 +177,7 @@ class HostedLoop:
 
     def close(self) -> None:
         self.outbox.stop()
+        self._figures.stop()
         if self.process is not None:
             self.process.close()
 
@@ -181,9 +187,27 @@ class HostedLoop:
         return self.runner.running or not self.outbox.caught_up()
 
     def values(self) -> dict[str, str]:
-        """The loop thread's figures as the device's (:meth:`LoopRunner.device_values`)."""
+        """The loop's figures as the device's (:meth:`LoopRunner.device_values`), with the
+        loop thread's round-trip percentiles (the device loop reports them as NaN here:
+        ``device_driver`` asks it without). While the loop thread runs, every percentile is
+        the newest the figures' thread has, never sorted on the caller's thread."""
         # The hosted controller's commands are published with this process's id.
-        return {**self.runner.device_values(), 'controller_id': str(CONTROLLER_ID)}
+        if self.thread is None:
+            return {**self.runner.device_values(), 'controller_id': str(CONTROLLER_ID)}
+        running = self.thread.running
+        out = self.thread.device_values(percentiles=not running)
+        out.update(self._figures.read() if running else self._sorted())
+        return {**out, 'controller_id': str(CONTROLLER_ID)}
+
+    def _sorted(self) -> dict[str, str]:
+        """The figures' thread: the loop thread's period, wake-up lateness and round-trip
+        percentiles."""
+        assert self.thread is not None
+        pacing = self.thread.pacer.figures()
+        rtt = self.thread.cycle.device.figures()
+        return {**pacing.values(), **pacing.values('loop_'),
+                **{f'round_trip_{q}_ms': f'{rtt[f"round_trip_{q}_ms"]:.3f}'
+                   for q in ('p50', 'p99')}}
 
     def _until_batch(self) -> float:
         """Outbox thread, wall clock: how long to wait for the next batch of hand inputs."""
