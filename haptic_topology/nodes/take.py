@@ -8,13 +8,19 @@ this was measured on, ~80 us a message): at 30,000 msg/s that is more than two c
 :class:`BatchTaker` instead subscribes from a hidden helper node
 (``_<node>_reader``, left out of ``ros2 node list``) that no executor spins: DDS keeps the
 samples in each reader's history (the recorder's deep queues, ``QOS_RECORD_*``), and one thread
-takes everything there every few milliseconds with ``rcl_take_serialized_message`` (~4 us a
-message), with the time DDS received it.
+takes everything there every few milliseconds with ``rcl_take_serialized_message``
+(:mod:`haptic_topology.nodes.rcl_take`, ~3 us a message), with the time DDS received it and
+the publisher's gid and sequence number.
 
-Drops are counted, not guessed: DDS reports samples it never delivered (the
-``MESSAGE_LOST`` event: best-effort gaps); and a gap in a publisher's sequence numbers between
-two taken samples (the reader's history overflowed before a drain) counts as lost when the
-topic has one publisher (with several, their numbers interleave and only DDS's count is kept).
+Drops are counted per publisher, not guessed: a gap in a publisher's sequence numbers between
+two of its samples taken is that many messages it sent and this reader never took, whatever
+dropped them (the network or a full socket buffer for best effort, the reader's keep-last
+history overflowing between two takes, the publisher's own history dropping samples a
+reliable reader had not acknowledged). A topic's count is the larger of its publishers' gaps
+summed and DDS's own count (the ``MESSAGE_LOST`` event, best-effort gaps, which DDS can
+report before the publisher's next sample is taken but does not attribute to a publisher).
+Messages a publisher sent before this reader matched it, and ones lost after its last sample
+taken, are not gaps.
 """
 
 from __future__ import annotations
@@ -29,6 +35,8 @@ from rclpy.event_handler import QoSSubscriptionEventType
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
+
+from haptic_topology.nodes.rcl_take import Gid, SerializedTaker, gid_bytes, gid_of
 
 #: ``write([(topic_index, receive_time_ns, serialized), ...])``, oldest first
 Write = Callable[[list[tuple[int, int, bytes]]], None]
@@ -87,7 +95,7 @@ class BatchTaker:
         self.subscriptions = [self.node.create_subscription(t, name, _never_called, qos,
                                                             raw=True)
                               for name, t, qos in topics]
-        self._types = [t for _, t, _ in topics]
+        self._takers = [SerializedTaker(sub) for sub in self.subscriptions]
         self._lost_events: list[Any] = []
         for sub in self.subscriptions:
             try:
@@ -100,14 +108,40 @@ class BatchTaker:
         n = len(topics)
         self.taken = [0] * n
         self.lost_dds = [0] * n
-        self.lost_gaps = [0] * n
-        self._last_seq = [0] * n
+        #: per topic: publisher gid -> messages it sent that were never taken (gaps)
+        self.lost_by_gid: list[dict[Gid, int]] = [{} for _ in range(n)]
+        self._last_seq: list[dict[Gid, int]] = [{} for _ in range(n)]
+        self._names: dict[Gid, str] = {}
+
+    @property
+    def lost_gaps(self) -> list[int]:
+        """Messages per topic missing from its publishers' sequence numbers."""
+        return [sum(d.copy().values()) for d in self.lost_by_gid]
 
     @property
     def lost(self) -> list[int]:
         """Messages per topic that were published but not taken (see module doc)."""
         # A sample lost on the way is both reported by DDS and a gap: count it once.
         return [max(a, b) for a, b in zip(self.lost_dds, self.lost_gaps, strict=True)]
+
+    def lost_by_publisher(self) -> list[dict[str, int]]:
+        """Per topic: publisher -> messages lost (only publishers that lost any). A publisher
+        is named by its node (``/namespace/name``) as the ROS graph gives it, with its gid in
+        hex where one node has several of the topic's publishers, or by ``gid <hex>`` alone
+        if it left the graph before it could be named."""
+        out = []
+        for sub, lost_by_gid in zip(self.subscriptions, self.lost_by_gid, strict=True):
+            lost = {g: n for g, n in lost_by_gid.copy().items() if n}
+            if any(g not in self._names for g in lost):     # a graph query while one is unnamed
+                for info in self.node.get_publishers_info_by_topic(sub.topic_name):
+                    self._names[gid_of(bytes(info.endpoint_gid))] = \
+                        f'{info.node_namespace.rstrip("/")}/{info.node_name}'
+            names = [self._names.get(g, '') for g in lost]
+            labels = [(name if names.count(name) == 1 else f'{name} {gid_bytes(g).hex()}')
+                      if name else f'gid {gid_bytes(g).hex()}'
+                      for g, name in zip(lost, names, strict=True)]
+            out.append(dict(zip(labels, lost.values(), strict=True)))
+        return out
 
     def publisher_counts(self) -> list[int]:
         return [sub.get_publisher_count() for sub in self.subscriptions]
@@ -117,22 +151,10 @@ class BatchTaker:
         in the order DDS received them (across topics too, as a recorder taking each message
         on arrival would); return how many were taken."""
         items: list[tuple[int, int, bytes]] = []
-        for i, sub in enumerate(self.subscriptions):
-            take, msg_type = sub.handle.take_message, self._types[i]
-            last, gaps, n = self._last_seq[i], 0, 0
-            with sub.handle:
-                while (item := take(msg_type, True)) is not None:
-                    data, info = item
-                    seq = info['publication_sequence_number'] or 0
-                    # The publisher count (a graph query) only when there is a gap to judge.
-                    if last and seq > last + 1 and sub.get_publisher_count() == 1:
-                        gaps += seq - last - 1
-                    last = seq
-                    items.append((i, info['received_timestamp'] or time.time_ns(), data))
-                    n += 1
-            self._last_seq[i] = last
-            self.lost_gaps[i] += gaps
-            self.taken[i] += n
+        now = time.time_ns()        # for an rmw that gives no receive time
+        for i, taker in enumerate(self._takers):
+            self.taken[i] += taker.take_into(items, i, self._last_seq[i], self.lost_by_gid[i],
+                                             now)
         items.sort(key=_receive_time)
         if items:
             write(items)
@@ -143,6 +165,8 @@ class BatchTaker:
         return len(items)
 
     def destroy(self) -> None:
+        for taker in self._takers:
+            taker.destroy()
         for ev in self._lost_events:
             if ev is not None:
                 ev.destroy_when_not_in_use()

@@ -1,6 +1,6 @@
 """The recorder's input side (:class:`~haptic_topology.nodes.take.BatchTaker`) over real DDS,
 in this process: every message taken once, in order, with DDS's receive time, and a reader
-history that overflowed between two drains counted as lost, exactly."""
+history that overflowed between two drains counted as lost, exactly, per publisher."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def pair(topic_prefix: str) -> Iterator[tuple[Any, BatchTaker, Any]]:
         rclpy.shutdown(context=context)
 
 
-def _publish(pub: Any, seqs: range) -> None:
+def _publish(pub: Any, seqs: range | list[int]) -> None:
     from haptic_topology_msgs.msg import DeviceState
 
     msg = DeviceState(task_dim=3, pose=[0.0] * 3, twist=[0.0] * 3, hand_wrench=[0.0] * 3,
@@ -96,6 +96,61 @@ def test_messages_taken_in_order_and_overflow_counted_as_lost(pair: Any) -> None
     assert seqs == sorted(seqs) and len(seqs) >= DEPTH
     assert taker.taken[0] + taker.lost[0] == 35        # every message taken or counted lost
     assert taker.lost[0] == 35 - 5 - len(seqs) >= 1, (seqs, taker.lost)
+
+
+def test_overflow_with_two_publishers_is_counted_per_publisher(topic_prefix: str) -> None:
+    """Two publishers (nodes ``pub_a`` and ``pub_b``) on one topic, a reader history of
+    ``DEPTH``: a burst of one publisher pushes both publishers' older samples out before the
+    next drain (keep-last: DDS reports nothing lost). Each publisher's gap in its sequence
+    numbers is counted against it. Publishers and reader share one participant, so Fast DDS
+    delivers in ``publish()`` and the history holds exactly the newest ``DEPTH`` samples."""
+    import rclpy
+    from rclpy.serialization import deserialize_message
+
+    from haptic_topology_msgs.msg import DeviceState
+
+    best_effort = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        owner = rclpy.create_node('take_test', context=context)
+        a, b = (rclpy.create_node(name, namespace=topic_prefix, context=context)
+                for name in ('pub_a', 'pub_b'))
+        topic = f'{topic_prefix}/state'
+        pub_a, pub_b = (n.create_publisher(DeviceState, topic, best_effort) for n in (a, b))
+        taker = BatchTaker(owner, [(topic, DeviceState, QoSProfile(
+            depth=DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT))])
+        deadline = time.monotonic() + 20.0
+        while taker.publisher_counts() != [2] or not all(
+                p.get_subscription_count() for p in (pub_a, pub_b)):
+            assert time.monotonic() < deadline, 'publishers and reader never matched'
+            time.sleep(0.01)
+        _publish(pub_a, range(1, 4))            # A: 1-3, B: 1001-1002, all taken
+        _publish(pub_b, range(1001, 1003))
+        _drain_until(taker, 5)
+        assert taker.lost == [0]
+
+        # B sends 1003, A 4-33, B 1004, nobody taking: the history keeps A's 25-33 and B's
+        # 1004; A's 4-24 (21) and B's 1003 (1) are gone.
+        _publish(pub_b, [1003])
+        _publish(pub_a, range(4, 34))
+        _publish(pub_b, [1004])
+        taken: list[tuple[int, int, bytes]] = []
+        while not {33, 1004} <= {deserialize_message(d, DeviceState).seq for _, _, d in taken}:
+            assert time.monotonic() < deadline, f'took {taker.taken}, lost {taker.lost}'
+            taker.drain(taken.extend)
+            time.sleep(0.01)
+        seqs = [deserialize_message(d, DeviceState).seq for _, _, d in taken]
+        assert seqs == [*range(25, 34), 1004]
+        assert taker.lost == [22]
+        assert taker.lost_by_publisher() == [{f'{topic_prefix}/pub_a': 21,
+                                              f'{topic_prefix}/pub_b': 1}]
+        assert taker.taken[0] + taker.lost[0] == 3 + 2 + 32  # each taken or counted lost
+        taker.destroy()
+        for node in (a, b, owner):
+            node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
 
 
 def test_udp_receive_buffers_are_enlarged_up_to_the_kernel_limit() -> None:
