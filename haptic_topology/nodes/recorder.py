@@ -10,16 +10,17 @@ package.
 
 No executor callback runs per message: a writer thread takes what DDS holds for each topic
 every 10 ms (:class:`~haptic_topology.nodes.take.BatchTaker`: serialized, with DDS's receive
-time, about 4 us a message), writes it into the MCAP chunks in receive order, closes a chunk
-every ``flush_period`` (0.2 s) and rewrites ``metadata.yaml`` with the running counts. So the
-recorder costs a fraction of a core at 30,000 msg/s, a clean stop (SIGINT/SIGTERM) finalises
-the bag, and a SIGKILL leaves a file that reads back up to the last flush (``haptic-topology
-bag repair`` completes it for other readers). Drops are counted and reported in its status
-(``lost``: samples DDS never delivered, or gaps in a publisher's sequence numbers). A
-failure of the writing (:class:`~haptic_topology.bag.writer_thread.WriterThread`) turns the
-status ERROR at its next report, with the count of messages ``not written``. QoS
-mirrors each publisher's reliability with a
-deep queue (see :mod:`haptic_topology.nodes.qos`).
+time and the publisher's gid, about 3 us a message), writes it into the MCAP chunks in
+receive order, closes a chunk every ``flush_period`` (0.2 s) and rewrites ``metadata.yaml``
+with the running counts. So the recorder costs a fraction of a core at 30,000 msg/s, a clean
+stop (SIGINT/SIGTERM) finalises the bag, and a SIGKILL leaves a file that reads back up to the
+last flush (``haptic-topology bag repair`` completes it for other readers). Drops are counted
+per publisher and reported in its status and its closing summary (``lost``: gaps in each
+publisher's sequence numbers, whatever dropped the messages, or samples DDS never delivered;
+see :mod:`haptic_topology.nodes.take`). A failure of the writing
+(:class:`~haptic_topology.bag.writer_thread.WriterThread`) turns the status ERROR at its next
+report, with the count of messages ``not written``. QoS mirrors each publisher's reliability
+with a deep queue (see :mod:`haptic_topology.nodes.qos`).
 """
 
 from __future__ import annotations
@@ -200,6 +201,7 @@ class Recorder(Node):
                   **{f'received {t}': str(n) for t, n in self.counts.items()},
                   'lost': str(sum(lost.values())),
                   **{f'lost {t}': str(n) for t, n in lost.items() if n},
+                  **{f'lost {t} from {p}': str(n) for t, p, n in self.lost_by_publisher()},
                   **{f'publishers {t}': str(sub.get_publisher_count())
                      for t, sub in self.subscriptions_by_topic.items()
                      if t in LOOP_TOPICS}}
@@ -215,6 +217,13 @@ class Recorder(Node):
         """Messages received so far, per topic."""
         return dict(zip(self.subscriptions_by_topic, self.taker.taken, strict=True))
 
+    def lost_by_publisher(self) -> list[tuple[str, str, int]]:
+        """``(topic, publisher, messages lost)`` for every publisher that lost any (see
+        :meth:`BatchTaker.lost_by_publisher`)."""
+        return [(t, p, n) for t, by in zip(self.subscriptions_by_topic,
+                                           self.taker.lost_by_publisher(), strict=True)
+                for p, n in by.items()]
+
     def close(self) -> None:
         """Stop the writer thread, which takes the rest and finalises the bag (summary,
         metadata.yaml), waiting at most ``CLOSE_TIMEOUT``; print what was written. Raises
@@ -227,6 +236,7 @@ class Recorder(Node):
         ended = thread.stop(CLOSE_TIMEOUT)
         taken = sum(self.taker.taken)
         unwritten, lost = thread.unwritten(taken), sum(self.taker.lost)
+        by_publisher = ', '.join(f'{t} from {p}: {n}' for t, p, n in self.lost_by_publisher())
         if ended:           # else the thread still takes from it
             self.taker.destroy()
         if thread.error is not None:
@@ -240,7 +250,8 @@ class Recorder(Node):
                            'yet); `haptic-topology bag repair` completes what was flushed')
         summary = ', '.join(f'{t}: {n}' for t, n in self.writer.counts.items())
         print(f'bag written: {self.path} ({summary}; received but not written: {unwritten}; '
-              f'lost before the recorder: {lost})', flush=True)
+              f'lost before the recorder: {lost}{f" ({by_publisher})" if by_publisher else ""})',
+              flush=True)
 
 
 def _describe(exc: BaseException) -> str:

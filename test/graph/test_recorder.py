@@ -309,3 +309,87 @@ def test_a_node_whose_close_raises_does_not_keep_the_recorder_from_its_bag(
     opened = open_bag(bag)
     list(iter_messages(opened))
     assert not opened.truncated
+
+
+def test_messages_lost_are_counted_per_publisher(tmp_path: Path, topic_prefix: str) -> None:
+    """Two reliable publishers of the state (nodes ``pub_a``, ``pub_b``; writer history 100)
+    and a recorder that is stopped (SIGSTOP) while ``pub_a`` sends ``burst`` states and
+    ``pub_b`` one: ``pub_a``'s writer keeps only its newest 100 unacknowledged and the
+    recorder's socket buffer holds only some thousands of datagrams, so the recorder,
+    continued, takes only part of the burst, and ``pub_a``'s sequence numbers skip the rest.
+    Every state sent after the publishers matched is taken or counted lost, per publisher, in
+    the status and in the summary printed at the stop. Exact whatever the timing: each
+    publisher's last state is in its writer's history, so it is taken and closes every gap;
+    how many of the burst are lost depends on the machine, the counts are checked against
+    the bag."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from haptic_topology_msgs.msg import DeviceState
+
+    bag = tmp_path / 'lossy'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'haptic_topology.nodes.recorder', '--ros-args', '-p',
+         f'output:={bag}', '-p', 'clock:=lockstep', '-p', f'topics:=[{STATE_TOPIC}]',
+         '-r', f'__ns:={topic_prefix}'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
+    graph = _Graph(topic_prefix, bag)
+    burst, b_offset = 30000, 1_000_000          # B's states carry seq > b_offset
+    reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    nodes = [graph.node.__class__(n, namespace=topic_prefix, context=graph.context)
+             for n in ('pub_a', 'pub_b')]
+    pub_a, pub_b = (n.create_publisher(DeviceState, STATE_TOPIC, reliable) for n in nodes)
+    msg = DeviceState(task_dim=3, pose=[0.0] * 3, twist=[0.0] * 3, hand_wrench=[0.0] * 3,
+                      applied_wrench=[0.0] * 3)
+
+    def publish(pub: Any, seqs: range) -> None:
+        for seq in seqs:
+            msg.seq = seq
+            pub.publish(msg)
+
+    def status(key: str) -> int:
+        return int(graph.statuses[-1][2].get(key, '0')) if graph.statuses else -1
+
+    received, lost = f'received {STATE_TOPIC}', f'lost {STATE_TOPIC}'
+    stopped = False
+    try:
+        _wait_for_line(proc, 'recording to', 40.0)
+        graph.until('publishers matched', lambda: all(
+            p.get_subscription_count() > 0 for p in (pub_a, pub_b)))
+        publish(pub_a, range(1, 4))
+        publish(pub_b, range(b_offset + 1, b_offset + 3))
+        graph.until('5 states received', lambda: status(received) == 5)
+        proc.send_signal(signal.SIGSTOP)
+        stopped = True
+        publish(pub_a, range(4, 4 + burst))
+        publish(pub_b, range(b_offset + 3, b_offset + 4))
+        proc.send_signal(signal.SIGCONT)
+        stopped = False
+        total = 3 + burst + 3
+        graph.until('every state received or counted lost', timeout=60.0,
+                    cond=lambda: status(received) + status(lost) == total)
+        values = graph.statuses[-1][2]
+    finally:
+        if stopped:
+            proc.send_signal(signal.SIGCONT)
+        for node in nodes:
+            node.destroy_node()
+        graph.close()
+        proc.send_signal(signal.SIGINT)
+        log, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, log
+    seqs, _ = _seqs_by_topic(bag, topic_prefix)
+    states = seqs['/haptic/device/state']
+    in_bag_a = sum(1 for s in states if s < b_offset)
+    lost_a, lost_b = 3 + burst - in_bag_a, 3 - (len(states) - in_bag_a)
+    # (each publisher's last state is taken: at most 101 states were received after it,
+    # far fewer than the recorder's reader history holds)
+    assert {3 + burst, b_offset + 3} <= set(states) and lost_a >= 1, (lost_a, states[-3:])
+    assert int(values[lost]) == lost_a + lost_b == total - len(states)
+    by_publisher = {k.removeprefix(f'{lost} from '): int(v) for k, v in values.items()
+                    if k.startswith(f'{lost} from ')}
+    expected = {p: n for p, n in ((f'{topic_prefix}/pub_a', lost_a),
+                                  (f'{topic_prefix}/pub_b', lost_b)) if n}
+    assert by_publisher == expected, values
+    listed = ', '.join(f'{STATE_TOPIC} from {p}: {n}' for p, n in expected.items())
+    assert f'lost before the recorder: {lost_a + lost_b} ({listed})' in log, log
