@@ -171,3 +171,42 @@ def test_udp_receive_buffers_are_enlarged_up_to_the_kernel_limit() -> None:
         assert udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) == 2 * min(size, rmem_max)
         assert udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) in granted
         assert tcp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) == tcp_before
+
+
+def test_the_recorders_history_holds_its_whole_depth(topic_prefix: str) -> None:
+    """A burst of the recorder's history depth (``RECORD_BEST_EFFORT``, 10,000) between two
+    drains is taken whole: Fast DDS's default of 5,000 samples per reader (max_samples) would
+    keep only the newest 5,000 (the package's profile raises it)."""
+    import rclpy
+    from rclpy.serialization import deserialize_message
+
+    from haptic_topology.vocabulary import RECORD_BEST_EFFORT
+    from haptic_topology_msgs.msg import DeviceState
+
+    depth = RECORD_BEST_EFFORT.depth
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        owner = rclpy.create_node('take_depth_test', context=context)
+        pub_node = rclpy.create_node('pub', namespace=topic_prefix, context=context)
+        topic = f'{topic_prefix}/state'
+        pub = pub_node.create_publisher(DeviceState, topic, QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        taker = BatchTaker(owner, [(topic, DeviceState, QoSProfile(
+            depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT))])
+        deadline = time.monotonic() + 20.0
+        while not pub.get_subscription_count():
+            assert time.monotonic() < deadline, 'publisher and reader never matched'
+            time.sleep(0.01)
+        _publish(pub, range(1, depth + 1))      # in one participant: delivered in publish()
+        taken: list[tuple[int, int, bytes]] = []
+        while len(taken) < depth and time.monotonic() < deadline:
+            taker.drain(taken.extend)
+            time.sleep(0.01)
+        seqs = [deserialize_message(d, DeviceState).seq for _, _, d in taken]
+        assert seqs == list(range(1, depth + 1)), (len(seqs), seqs[:3])
+        taker.destroy()
+        for node in (pub_node, owner):
+            node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
