@@ -41,15 +41,16 @@ myst_heading_anchors = 3
 smartquotes = False
 myst_enable_extensions = ['colon_fence', 'deflist']
 
-html_theme = 'alabaster'
+# Read the Docs' theme, the one rosdoc2 builds ROS package documentation with: its navigation
+# stays beside the text down to 768 px wide (a laptop, a 1280 px window) and folds into a menu
+# button below. It ships its files (jQuery through sphinxcontrib-jquery), so the build fetches
+# nothing.
+html_theme = 'sphinx_rtd_theme'
 html_title = 'haptic_topology'
 html_theme_options = {
-    'description': 'The topology of a virtual serial linkage, rendered to a haptic device '
-                   '(ROS 2 Jazzy)',
-    'fixed_sidebar': True,
-    'page_width': '1280px',
-    'sidebar_width': '240px',
-    'body_max_width': 'none',
+    'collapse_navigation': False,
+    'navigation_depth': 3,
+    'titles_only': False,
 }
 html_static_path: list[str] = []
 

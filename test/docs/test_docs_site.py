@@ -1,7 +1,8 @@
 """The Sphinx site: it builds with warnings and unresolved references as errors (what
 ``make docs`` runs), its generated parameter tables equal the settings classes, and it renders
 in a real headless browser (Chromium): the landing page with its table of contents, a
-parameter table and an API page.
+parameter table and an API page, and the navigation beside the text in a 1280 px window and on
+a 1000 px laptop screen.
 
 The site is built once per test module into a temporary directory, offline (no extension
 fetches anything). Chromium comes from ``make setup`` (``apt-get install chromium``); without
@@ -10,6 +11,7 @@ it the browser tests fail and say so.
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -138,9 +140,10 @@ def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[str]]:
            '--disable-dev-shm-usage', f'--user-data-dir={profile}']
 
 
-def rendered_dom(browser: list[str], page: Path) -> str:
-    """The DOM of ``page`` after Chromium has loaded and laid it out (scripts run)."""
-    run = subprocess.run([*browser, '--dump-dom', page.as_uri()],
+def rendered_dom(browser: list[str], page: Path, width: int = 1280) -> str:
+    """The DOM of ``page`` after Chromium has loaded and laid it out (scripts run) in a
+    window ``width`` px wide."""
+    run = subprocess.run([*browser, f'--window-size={width},900', '--dump-dom', page.as_uri()],
                          capture_output=True, text=True, timeout=180)
     assert run.returncode == 0, f'chromium exited {run.returncode}: {run.stderr[-2000:]}'
     assert '<body' in run.stdout, f'no DOM from chromium: {run.stderr[-2000:]}'
@@ -151,8 +154,8 @@ def test_the_landing_page_renders_with_theme_and_table_of_contents(
         site: Path, browser: list[str]) -> None:
     dom = rendered_dom(browser, site / 'index.html')
     assert '<title>haptic_topology' in dom
-    assert 'class="sphinxsidebar"' in dom, 'the theme did not render its sidebar'
-    assert '_static/alabaster.css' in dom and (site / '_static' / 'alabaster.css').is_file()
+    assert 'class="wy-nav-side"' in dom, 'the theme did not render its navigation'
+    assert '_static/css/theme.css' in dom and (site / '_static' / 'css' / 'theme.css').is_file()
     for entry in ('Getting started', 'Concepts: the paper in code', 'Node parameters',
                   'Devices', 'API reference', 'Changelog'):
         assert f'>{entry}</a>' in dom, f'table of contents lacks {entry!r}'
@@ -178,3 +181,54 @@ def test_an_api_page_renders_the_backend_interface(site: Path, browser: list[str
                    'haptic_topology.device.maglev.MaglevModel'):
         assert f'id="{target}"' in dom, f'autodoc rendered no entry for {target}'
     assert 'A haptic device as seen by' in dom, 'the docstring of DeviceBackend is missing'
+
+
+#: Run at the end of a copy of a page: the boxes, in CSS px, of the page's text (``role="main"``)
+#: and of its navigation: the largest element holding the link to the Getting started page that
+#: does not also hold the text (the sidebar, whatever the theme calls it). Written into the DOM
+#: for ``--dump-dom`` to carry out.
+_LAYOUT_PROBE = """<script>
+(function () {
+  const box = (e) => { const r = e.getBoundingClientRect();
+    return {left: r.left, right: r.right, top: r.top, bottom: r.bottom}; };
+  const main = document.querySelector('[role="main"]');
+  const links = Array.from(document.querySelectorAll('a[href="getting_started.html"]'))
+    .filter((a) => !main.contains(a));
+  let nav = links.length ? links[0] : null;
+  while (nav && nav.parentElement && !nav.parentElement.contains(main)) nav = nav.parentElement;
+  const out = {width: window.innerWidth, main: box(main), nav: nav ? box(nav) : null};
+  document.body.setAttribute('data-layout', JSON.stringify(out));
+})();
+</script>"""
+
+
+def layout(browser: list[str], site: Path, page: str, width: int) -> dict[str, object]:
+    """Where the text and the navigation of ``page`` lie in a ``width`` px window."""
+    html = (site / page).read_text(encoding='utf-8')
+    assert '</body>' in html, page
+    probe = site / f'_layout_probe_{width}.html'   # beside the page: its relative links hold
+    probe.write_text(html.replace('</body>', _LAYOUT_PROBE + '</body>', 1), encoding='utf-8')
+    dom = rendered_dom(browser, probe, width)
+    start = dom.find('data-layout="')
+    assert start >= 0, 'the layout probe did not run'
+    raw = dom[start + len('data-layout="'):dom.index('"', start + len('data-layout="'))]
+    result: dict[str, object] = json.loads(raw.replace('&quot;', '"').replace('&amp;', '&'))
+    return result
+
+
+@pytest.mark.parametrize('width', [1280, 1000])
+def test_the_navigation_stays_beside_the_text(site: Path, browser: list[str],
+                                              width: int) -> None:
+    """In a 1280 px window and on a 1000 px laptop screen, a page's navigation is a column left
+    of its text, both starting in the first screen, not a block stacked above or below it."""
+    got = layout(browser, site, 'concepts.html', width)
+    assert got['width'] == width, f'chromium laid the page out {got["width"]} px wide'
+    nav, main = got['nav'], got['main']
+    assert isinstance(nav, dict) and isinstance(main, dict), f'no navigation found: {got}'
+    assert nav['right'] <= main['left'], (
+        f'at {width} px the navigation {nav} is not left of the text {main}')
+    assert nav['top'] < main['bottom'] and main['top'] < nav['bottom'], (
+        f'at {width} px the navigation {nav} and the text {main} do not lie side by side')
+    assert main['top'] < 900 and nav['top'] < 900, (
+        f'at {width} px the text {main} or the navigation {nav} starts below the first screen')
+    assert main['right'] - main['left'] >= 480, f'at {width} px the text is narrow: {main}'
