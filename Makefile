@@ -1,8 +1,9 @@
 # Developer entry points. Everything runs from the venv that scripts/setup.sh maintains.
-#   make demo   set up (first time ~1-2 min), then run the demo
-#   make test   set up, then lint (ruff, lint-imports) + typecheck + docs + pytest; fails if any fails
+#   make demo   set up (first time ~1-2 min), then run the demo: no browser, no Node.js, no root
+#   make test   set up for the tests (+ Chromium, the Node client of test/foxglove_client), then
+#               lint (ruff, lint-imports) + typecheck + docs + pytest; fails if any fails
 #   make docs   set up, then build the documentation site (docs/ -> docs/_build/html)
-#   make test-quick   set up, then pytest without the node-graph tests (-m 'not graph')
+#   make test-quick   set up for the tests, then pytest without the node-graph tests (-m 'not graph')
 SHELL := /bin/bash
 .SHELLFLAGS := -euo pipefail -c
 .DEFAULT_GOAL := help
@@ -21,7 +22,7 @@ export DEMO_CMD
 
 PYTEST_ARGS ?=
 
-.PHONY: help setup test test-quick lint typecheck docs pytest demo bench clean colcon-check
+.PHONY: help setup setup-tests test test-quick lint typecheck docs pytest demo bench clean colcon-check
 
 help:
 	@echo 'make demo       set up the venv and run the demo'
@@ -29,6 +30,7 @@ help:
 	@echo 'make docs       set up, then build the Sphinx site: docs/_build/html/index.html'
 	@echo 'make test-quick set up, then pytest -m "not graph" (no ROS 2 node processes, no lint)'
 	@echo 'make setup      create/update .venv (idempotent, seconds when nothing changed)'
+	@echo 'make setup-tests  make setup + what the tests add: Chromium (apt-get), npm ci of test/foxglove_client'
 	@echo 'make lint | typecheck | pytest   one check (assumes setup)'
 	@echo 'make bench      loop, compute and recorder benchmarks -> bench/latest.json'
 	@echo 'make colcon-check  colcon (PyPI) builds the repo in a workspace; the nodes run from it'
@@ -38,11 +40,16 @@ help:
 setup:
 	@bash scripts/setup.sh
 
-test: setup
+# What the tests add to the venv: Chromium (the docs tests render the site) and the Node client
+# of the live-view test (Node.js >= 20 with npm). make demo and make docs do without them.
+setup-tests:
+	@bash scripts/setup.sh --for-tests
+
+test: setup-tests
 	@$(MAKE) --no-print-directory lint typecheck docs pytest
 
 # The quick loop: every test except those marked `graph` (they start ROS 2 node processes).
-test-quick: setup
+test-quick: setup-tests
 	$(BIN)/python -m pytest -m 'not graph' $(PYTEST_ARGS)
 
 lint:

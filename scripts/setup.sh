@@ -4,7 +4,10 @@
 # Each step runs only when its inputs changed (sha256 stamps inside the venv), so a second run
 # with nothing changed takes a second or two. Safe with no stdin (CI).
 #
-#   0. chromium (apt-get), if missing: the docs tests render the site headless
+#   scripts/setup.sh              what `make setup` and `make demo` need (steps 1-6): no browser,
+#                                 no Node.js, no root
+#   scripts/setup.sh --for-tests  the same, then what `make test` adds (steps 7-8)
+#
 #   1. <venv> from python3.11, if missing
 #   2. pip install --no-deps -r requirements.lock                (stamp: hash of the lock)
 #   3. build msg_schemas/ with cmake, install into the venv prefix (stamp: msg_schemas/ + lock)
@@ -14,11 +17,22 @@
 #      + share/haptic_topology/{package.xml,config} as symlinks, ament index marker
 #   5. <site-packages>/haptic_topology_env.pth: AMENT_PREFIX_PATH for every venv process
 #   6. the loop's compiled functions into numba's cache (haptic_topology/*/__pycache__)
-#   7. test/foxglove_client/: npm ci (the @foxglove/ws-protocol client of the live-view test),
-#      only where node and npm exist           (stamp: package.json + package-lock.json)
+#   7. --for-tests: unshare present; chromium (apt-get), if missing: the docs tests render the
+#      site headless
+#   8. --for-tests: test/foxglove_client/: npm ci (the @foxglove/ws-protocol client of the
+#      live-view test); needs Node.js >= 20 with npm   (stamp: package.json + package-lock.json)
 #
 # Environment: HAPTIC_VENV (default <repo>/.venv), PYTHON (default python3.11).
 set -euo pipefail
+
+for_tests=0
+for arg in "$@"; do
+  case $arg in
+    --for-tests) for_tests=1 ;;
+    -h|--help) sed -n '2,/^set -euo/p' "${BASH_SOURCE[0]}" | sed -e '$d' -e 's/^# \{0,1\}//'; exit 0 ;;
+    *) printf 'setup: ERROR: unknown argument %s (expected --for-tests)\n' "$arg" >&2; exit 2 ;;
+  esac
+done
 
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 venv=${HAPTIC_VENV:-$root/.venv}
@@ -37,27 +51,6 @@ for tool in cmake gcc g++ make; do
   command -v "$tool" >/dev/null 2>&1 \
     || die "$tool not found; it builds msg_schemas/ (apt-get install cmake build-essential)."
 done
-command -v unshare >/dev/null 2>&1 \
-  || die "unshare not found; the tests run the loop process without real-time privileges in a user namespace (apt-get install util-linux)."
-# chromium: the docs tests render the built site in a headless browser (test/docs). Installed
-# with apt only when missing, so a machine that has it is left alone.
-if ! command -v chromium >/dev/null 2>&1; then
-  if [[ $(id -u) -eq 0 ]]; then
-    apt=(apt-get)
-  elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
-    apt=(sudo apt-get)
-  else
-    die "chromium not found and no root to install it; the docs tests need it (apt-get install chromium)."
-  fi
-  command -v apt-get >/dev/null 2>&1 || die "chromium not found and no apt-get; install Chromium (the docs tests need it)."
-  say "installing chromium with apt-get (the docs tests render the site headless)"
-  export DEBIAN_FRONTEND=noninteractive
-  "${apt[@]}" update -qq > /dev/null || die "apt-get update failed; install chromium by hand."
-  "${apt[@]}" install -y -qq --no-install-recommends chromium > /dev/null \
-    || die "apt-get install chromium failed; install it by hand."
-  command -v chromium >/dev/null 2>&1 || die "apt-get installed chromium but it is not on PATH."
-fi
-
 hash_files() { # sha256 over the names and contents of the given files, in sorted order
   local f
   printf '%s\n' "$@" | LC_ALL=C sort | while IFS= read -r f; do
@@ -191,13 +184,37 @@ fi
 "$vpy" -c 'import haptic_topology.control.compiled, haptic_topology.device.compiled' \
   || die "compiling haptic_topology's loop arithmetic (numba) failed"
 
-# --- 7. the Node client of test/graph/test_foxglove_clients.py ------------------------------
-# Exact versions from package-lock.json; the tests themselves never use the network. Without
-# node/npm the step is skipped with one line and that test skips saying so.
+# --- 7. unshare and chromium (--for-tests) ----------------------------------------------------
+if ((for_tests)); then
+  command -v unshare >/dev/null 2>&1 \
+    || die "unshare not found; the tests run the loop process without real-time privileges in a user namespace (apt-get install util-linux)."
+fi
+# The docs tests render the built site in a headless browser (test/docs). Installed with apt only
+# when missing, so a machine that has it is left alone.
+if ((for_tests)) && ! command -v chromium >/dev/null 2>&1; then
+  if [[ $(id -u) -eq 0 ]]; then
+    apt=(apt-get)
+  elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
+    apt=(sudo apt-get)
+  else
+    die "chromium not found and no root to install it; make test needs it for the docs tests (apt-get install chromium). make demo and make setup do not."
+  fi
+  command -v apt-get >/dev/null 2>&1 || die "chromium not found and no apt-get; install Chromium (the docs tests of make test need it)."
+  say "installing chromium with apt-get (the docs tests render the site headless)"
+  export DEBIAN_FRONTEND=noninteractive
+  "${apt[@]}" update -qq > /dev/null || die "apt-get update failed; install chromium by hand."
+  "${apt[@]}" install -y -qq --no-install-recommends chromium > /dev/null \
+    || die "apt-get install chromium failed; install it by hand."
+  command -v chromium >/dev/null 2>&1 || die "apt-get installed chromium but it is not on PATH."
+fi
+
+# --- 8. the Node client of test/graph/test_foxglove_clients.py (--for-tests) ------------------
+# Exact versions from package-lock.json; the tests themselves never use the network.
 client="$root/test/foxglove_client"
-if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
-  say "node/npm not found: skipping test/foxglove_client (its live-view test will be skipped; install Node.js >= 20 with npm to run it)"
-else
+if ((for_tests)); then
+  if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
+    die "node/npm not found; make test needs Node.js >= 20 with npm for the live-view test (test/foxglove_client). make demo and make setup do not."
+  fi
   npm_hash=$(hash_files "$client/package.json" "$client/package-lock.json")
   if ! stamp_ok npm "$npm_hash" || [[ ! -d "$client/node_modules" ]]; then
     say "installing test/foxglove_client (npm ci, exact versions of package-lock.json)"

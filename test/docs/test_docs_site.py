@@ -5,8 +5,8 @@ parameter table and an API page, and the navigation beside the text in a 1280 px
 a 1000 px laptop screen.
 
 The site is built once per test module into a temporary directory, offline (no extension
-fetches anything). Chromium comes from ``make setup`` (``apt-get install chromium``); without
-it the browser tests fail and say so.
+fetches anything). Chromium comes from ``make setup-tests``, which ``make test`` runs
+(``apt-get install chromium``); without it the browser tests fail and say so.
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def chromium() -> str:
         if path:
             return path
     pytest.fail('chromium not found: the rendered-site tests need a headless browser; '
-                '`make setup` installs it (apt-get install chromium)')
+                '`make setup-tests` (part of `make test`) installs it (apt-get install chromium)')
 
 
 @pytest.fixture(scope='module')

@@ -14,7 +14,8 @@ recorder, ve_sim, device_driver and foxglove_bridge as processes) served to
 
 Only what holds on any machine is asserted (counts, equality, bounds); the loop's figures of
 the run are printed (``-s``) for comparison with a run without clients, not asserted.
-Without Node.js the test is skipped with one line saying so.
+Without Node.js the test fails saying so (``make test`` sets up the client; ``make demo`` does
+not need it).
 """
 
 from __future__ import annotations
@@ -47,11 +48,11 @@ _CLIENT_STATUS = re.compile(r'(?P<proto>\S+) sent (?P<sent>\d+) dropped (?P<drop
 def _node() -> str:
     node = shutil.which('node')
     if node is None:
-        pytest.skip('node not found: this test runs @foxglove/ws-protocol clients on Node.js '
-                    '>= 20 (install Node.js and npm, then make setup)')
+        pytest.fail('node not found: this test runs @foxglove/ws-protocol clients on Node.js '
+                    '>= 20 (install Node.js and npm, then make setup-tests)')
     if not (CLIENT_DIR / 'node_modules' / '@foxglove' / 'ws-protocol').is_dir():
-        pytest.fail(f'{CLIENT_DIR.relative_to(REPO)}/node_modules is missing: run make setup '
-                    '(it runs npm ci there)')
+        pytest.fail(f'{CLIENT_DIR.relative_to(REPO)}/node_modules is missing: run '
+                    'make setup-tests (it runs npm ci there)')
     return node
 
 
