@@ -45,10 +45,11 @@ def bare_path(tmp_path: Path, extra: dict[str, str] | None = None) -> tuple[str,
     bin_dir.mkdir()
     log = tmp_path / 'called.log'
     for entry in os.environ.get('PATH', '').split(os.pathsep):
-        directory = Path(entry)
-        if not entry or not directory.is_dir():
+        try:
+            programs = sorted(Path(entry).iterdir()) if entry else []
+        except OSError:     # missing or unreadable (another user's directory)
             continue
-        for program in directory.iterdir():
+        for program in programs:
             link = bin_dir / program.name
             if program.name in HIDDEN or link.exists() or link.is_symlink():
                 continue
