@@ -106,7 +106,7 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
     import yaml
 
     from haptic_topology.paths import config_dir
-    from haptic_topology.sim.trace import Trace
+    from haptic_topology.sim.trace_io import read_trace
 
     with tempfile.TemporaryDirectory(prefix='bench_graph_') as tmp:
         bag = Path(tmp) / 'bag'
@@ -136,7 +136,7 @@ def graph_loop(duration: float, layout: str, fifo: bool, scenario: str = 'circle
         if res.returncode != 0:
             raise RuntimeError(f'{" ".join(cmd)} failed:\n{res.stdout}\n{res.stderr}')
         s = json.loads((bag / 'summary.json').read_text())
-        trace = Trace.from_csv(bag / 'trace.csv')
+        trace = read_trace(bag / 'trace.parquet')
     seq = trace.seq
     consecutive = np.diff(seq) == 1
     periods = np.diff(trace.t)[consecutive] * 1e6

@@ -239,13 +239,13 @@ def resync_figures(bag: Path) -> dict[str, Any]:
 
 
 def analyse(bag: Path, sim: Any) -> dict[str, Any]:
-    from haptic_topology.sim.trace import Trace
+    from haptic_topology.sim.trace_io import read_trace
 
     summary = json.loads((bag / 'summary.json').read_text(encoding='utf-8'))
     link_file = bag / 'link.json'
     link: dict[str, Any] = (json.loads(link_file.read_text(encoding='utf-8'))
                             if link_file.is_file() else {'stage': 'loopback'})
-    live = Trace.from_csv(bag / 'trace.csv')
+    live = read_trace(bag / 'trace.parquet')
     row: dict[str, Any] = {k: summary.get(k) for k in (
         'final_distance_m', 'max_distance_m', 'rms_distance_m', 'workspace_limit_time_s',
         'device_answered_fraction', 'device_period_p99_ms', 'max_consecutive_missed',

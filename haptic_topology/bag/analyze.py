@@ -1,8 +1,9 @@
 """``haptic-topology analyze INPUT... --out DIR``: drift and loop health of recorded runs.
 
 Each INPUT is a bag of the node graph (a rosbag2 directory or ``.mcap`` file, read with
-:func:`~haptic_topology.bag.graph_trace.read_graph_bag`, truncated ones too), or a trace of
-the offline simulation (a ``trace.csv`` or a ``simulate --out`` directory). For each it
+:func:`~haptic_topology.bag.graph_trace.stream_graph_bag`, truncated ones too), or a trace
+(a ``trace.parquet`` or ``trace.csv`` of ``simulate`` or ``run``, or a ``simulate --out``
+directory). For each it
 prints one row of the drift table (the columns of ``simulate``: final, max and RMS distance
 between the device and the VT grasp point, time constrained, time at the workspace limit)
 and one row of loop health (bags only: fraction of states answered before the next one,
@@ -20,7 +21,11 @@ period p50/p99 and its standard deviation, from the state stamps). It writes int
   :mod:`haptic_topology.bag.graph_trace`); the trace, plot and summary are written anyway.
 
 Reading a large bag shows a progress line on stderr (when stderr is a terminal, or the bag
-is larger than 20 MB).
+is larger than 20 MB). Inputs are read as a stream, one after the other: the memory used
+does not grow with a run's length but for a few bytes a device cycle (the figures that need
+every row, such as the median period and the RMS drift, keep one float per row), and a plot
+draws at most :data:`~haptic_topology.sim.trace_stats.PLOT_ROWS` rows of a longer run
+(:class:`~haptic_topology.sim.trace_stats.PlotRows`: the envelope of each curve, every step).
 """
 
 from __future__ import annotations
@@ -33,29 +38,43 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from haptic_topology.bag.graph_trace import read_graph_bag
+from haptic_topology.bag.graph_trace import stream_graph_bag
 from haptic_topology.bag.reader import METADATA
 from haptic_topology.errors import BagError, ConfigError
+from haptic_topology.model.linkage import Linkage
 from haptic_topology.sim.trace import Trace
+from haptic_topology.sim.trace_io import (
+    TraceWriter,
+    empty_trace,
+    iter_trace,
+    read_trace,
+    trace_meta,
+)
+from haptic_topology.sim.trace_stats import PeriodStats, PlotRows, Summary, feed
 
 BIG_BAG_BYTES = 20_000_000
+#: The names of a trace file in a ``simulate --out`` / ``run`` directory, by preference.
+TRACE_NAMES = ('trace.parquet', 'trace.csv')
 
 
 @dataclass
 class Run:
-    """One analysed input."""
+    """One analysed input: its figures and the rows a plot of it draws (``plot``)."""
 
     label: str
     path: Path
-    trace: Trace
+    plot: Trace
+    summary: dict[str, Any]
     loop: dict[str, float] = field(default_factory=dict)
     skipped: dict[str, int] = field(default_factory=dict)
     #: A bag's graph (its recorder's ``graph_id``) and the messages of other graphs per topic
     graph_id: str | None = None
     foreign_messages: dict[str, int] = field(default_factory=dict)
     foreign_publishers: dict[str, list[str]] = field(default_factory=dict)
+
+    @property
+    def meta(self) -> dict[str, Any]:
+        return self.plot.meta
 
 
 class _ProgressLine:
@@ -91,7 +110,52 @@ def _scenario_of_bag(p: Path) -> str:
     return str(custom.get('scenario', '')) if isinstance(custom, dict) else ''
 
 
-def load_run(path: str | Path) -> Run:
+def _trace_file(p: Path) -> Path | None:
+    """The trace file of ``p`` (itself, or the trace of a directory), None if it has none."""
+    if p.is_dir():
+        return next((p / n for n in TRACE_NAMES if (p / n).is_file()), None)
+    return p if p.is_file() and not _is_bag(p) else None
+
+
+def label_of(path: str | Path) -> str:
+    """An input's label: a bag's directory name or file stem; a trace file's directory name
+    when it is the trace of a directory (``trace.parquet``, ``trace.csv``), else its stem."""
+    p = Path(path)
+    if _is_bag(p):
+        return p.name if p.is_dir() else p.stem
+    f = _trace_file(p) or p
+    return f.parent.name if f.name in TRACE_NAMES else f.stem
+
+
+def _summary(sink: Summary, path: Path) -> dict[str, Any]:
+    try:
+        return sink.result()
+    except ValueError as exc:
+        raise BagError(f'{path}: {exc}') from None
+
+
+def reduce_bag(path: str | Path, scenario: str = '', dof: int | None = None,
+               task_dim: int | None = None, linkage: Linkage | None = None,
+               traces: tuple[Path, ...] = (), periods: bool = False, plot: bool = True,
+               progress: Any = None) -> Run:
+    """Read the bag ``path`` once as a stream (:func:`~haptic_topology.bag.graph_trace.
+    stream_graph_bag`; arguments as there) into its drift summary, loop figures (with the
+    device period figures if ``periods``), the rows of its plot (if ``plot``) and the trace
+    files ``traces`` (``.parquet``, ``.csv``), written as the rows come."""
+    p = Path(path)
+    summary, period, rows = Summary(), PeriodStats(), PlotRows()
+    sinks: list[Any] = [summary, period] + ([rows] if plot else [])
+    sinks += [TraceWriter(f) for f in traces]
+    result = stream_graph_bag(p, sinks, scenario, dof, progress, task_dim, linkage)
+    loop = dict(result.loop)
+    if periods:
+        loop.update(period.result())
+    return Run(label_of(p), p, rows.trace or result.trace, _summary(summary, p), loop,
+               dict(result.skipped), result.graph_id, dict(result.foreign_messages),
+               dict(result.foreign_publishers))
+
+
+def load_run(path: str | Path, plot: bool = True) -> Run:
     """Read one input (see module doc)."""
     p = Path(path)
     if not p.exists():
@@ -109,40 +173,28 @@ def load_run(path: str | Path) -> Run:
             except ConfigError:
                 pass
         size = sum(f.stat().st_size for f in ([p] if p.is_file() else p.glob('*.mcap')))
-        result = read_graph_bag(p, name, dof, progress=_ProgressLine(p.name, size),
-                                task_dim=task_dim)
-        loop = dict(result.loop)
-        loop.update(_period_figures(result.trace))
+        run = reduce_bag(p, name, dof, task_dim, periods=True, plot=plot,
+                         progress=_ProgressLine(p.name, size))
         if scenario:
-            result.trace.meta.setdefault('scenario_ref', scenario)
-        return Run(p.name if p.is_dir() else p.stem, p, result.trace, loop,
-                   dict(result.skipped), result.graph_id, dict(result.foreign_messages),
-                   dict(result.foreign_publishers))
-    csv_path = p / 'trace.csv' if p.is_dir() else p
-    if not csv_path.is_file():
-        raise BagError(f'{p}: not a bag (no {METADATA} and no .mcap file) and no trace.csv')
-    trace = Trace.from_csv(csv_path)
-    label = csv_path.parent.name if csv_path.name == 'trace.csv' else csv_path.stem
-    return Run(label, p, trace, _period_figures(trace))
-
-
-def _period_figures(trace: Trace) -> dict[str, float]:
-    """Device period p50/p99/std (ms) from the row times (state stamps for a bag)."""
-    if len(trace) < 3:
-        return {}
-    seq = np.asarray(trace.seq)
-    consecutive = np.diff(seq) == 1
-    periods = np.diff(trace.t)[consecutive] * 1e3
-    if periods.size == 0:
-        return {}
-    return {'bag_period_p50_ms': float(np.percentile(periods, 50)),
-            'bag_period_p99_ms': float(np.percentile(periods, 99)),
-            'bag_period_std_ms': float(np.std(periods)),
-            'bag_missing_states': float(int(seq[-1] - seq[0] + 1) - len(seq))}
+            run.plot.meta.setdefault('scenario_ref', scenario)
+        return run
+    f = _trace_file(p)
+    if f is None:
+        raise BagError(f'{p}: not a bag (no {METADATA} and no .mcap file) and no '
+                       f'{" or ".join(TRACE_NAMES)}')
+    if f.suffix == '.parquet':
+        meta, n = trace_meta(f)
+        head, chunks = empty_trace(meta), iter_trace(f)
+    else:
+        whole = read_trace(f)
+        head, chunks, n = whole.take(slice(0, 0)), iter([whole]), len(whole)
+    summary, period, rows = Summary(), PeriodStats(), PlotRows()
+    feed(chunks, head, n, [summary, period] + ([rows] if plot else []))
+    return Run(label_of(p), p, rows.trace or head, _summary(summary, p), period.result())
 
 
 def _linkage_of(run: Run) -> Any:
-    ref = run.trace.meta.get('scenario_ref') or run.trace.meta.get('scenario')
+    ref = run.meta.get('scenario_ref') or run.meta.get('scenario')
     if not ref:
         return None
     try:
@@ -188,8 +240,8 @@ def plot_comparison(runs: list[Run], path: Path) -> Path:
 
     fig, ax = plt.subplots(figsize=(10, 5))
     for r in runs:
-        ax.plot(r.trace.t, r.trace.distance() * 1000.0, lw=1.5,
-                label=f'{r.label} ({r.trace.meta.get("source", "simulate")})')
+        ax.plot(r.plot.t, r.plot.distance() * 1000.0, lw=1.5,
+                label=f'{r.label} ({r.meta.get("source", "simulate")})')
     ax.set_xlabel('t [s]')
     ax.set_ylabel('device - VT distance [mm]')
     ax.set_title('drift between the device and the VT grasp point')
@@ -202,29 +254,33 @@ def plot_comparison(runs: list[Run], path: Path) -> Path:
     return path
 
 
-def _unique_labels(runs: list[Run]) -> None:
+def _unique_labels(labels: list[str]) -> list[str]:
     seen: dict[str, int] = {}
-    for r in runs:
-        n = seen.get(r.label, 0)
-        seen[r.label] = n + 1
-        if n:
-            r.label = f'{r.label}_{n + 1}'
+    out = []
+    for label in labels:
+        n = seen.get(label, 0)
+        seen[label] = n + 1
+        out.append(f'{label}_{n + 1}' if n else label)
+    return out
 
 
 def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str, Any]]:
-    """Analyse ``inputs`` into ``out`` (see module doc); return the summary rows."""
-    runs = [load_run(p) for p in inputs]
-    _unique_labels(runs)
+    """Analyse ``inputs`` into ``out`` (see module doc), one after the other; return the
+    summary rows."""
+    for p in inputs:
+        if not Path(p).exists():
+            raise BagError(f'{p}: no such file or directory')
+    labels = _unique_labels([label_of(p) for p in inputs])
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
-    for r in runs:
-        try:
-            summary = r.trace.summary()
-        except ValueError as exc:
-            raise BagError(f'{r.path}: {exc}') from None
+    runs: list[Run] = []
+    for p, label in zip(inputs, labels, strict=True):
+        r = load_run(p, plots)
+        r.label = label
+        summary = r.summary
         row: dict[str, Any] = {'label': r.label, 'input': str(r.path),
-                               'source': r.trace.meta.get('source', 'simulate'),
-                               'truncated': bool(r.trace.meta.get('truncated', False))}
+                               'source': r.meta.get('source', 'simulate'),
+                               'truncated': bool(r.meta.get('truncated', False))}
         row.update(summary)
         row.update({k: (v if math.isfinite(v) else None) for k, v in r.loop.items()})
         if row['source'] == 'graph':
@@ -236,9 +292,10 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
         if plots:
             from haptic_topology.sim.plots import plot_trace
 
-            plot_trace(r.trace, out / f'{r.label}.png', _linkage_of(r),
+            plot_trace(r.plot, out / f'{r.label}.png', _linkage_of(r),
                        title=f'{r.label}: final drift {summary["final_distance_m"] * 1e3:.2f} '
                        f'mm, max {summary["max_distance_m"] * 1e3:.2f} mm')
+            runs.append(r)
     if plots and len(runs) > 1:
         plot_comparison(runs, out / 'comparison.png')
     (out / 'summary.json').write_text(json.dumps({'runs': rows}, indent=2) + '\n',
@@ -248,7 +305,8 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('inputs', nargs='+', type=Path, metavar='INPUT',
-                        help='bag directory / .mcap file, trace.csv, or simulate --out dir')
+                        help='bag directory / .mcap file, trace.parquet / trace.csv, or a '
+                        'simulate --out dir')
     parser.add_argument('--out', type=Path, required=True, metavar='DIR',
                         help='output directory (plots, summary.json)')
     parser.add_argument('--no-plot', action='store_true', help='summary only')

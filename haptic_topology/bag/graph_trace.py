@@ -41,7 +41,6 @@ stamped.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -49,35 +48,29 @@ from typing import Any
 import numpy as np
 
 from haptic_topology import vocabulary as vocab
-from haptic_topology.bag.reader import (
-    BagMessage,
-    Progress,
-    decoder,
-    iter_messages,
-    open_bag,
-    require_types,
+from haptic_topology.bag.graph_index import (
+    DEVICE_STATUS,
+    KINDS,
+    MAX_SEQ_GAP,
+    PATH_TOPIC,
+    BagIndex,
+    index_bag,
+    stamp,
 )
-from haptic_topology.control.admission import UpdateAdmission, UpdateFields
-from haptic_topology.dynamics import LinkageDynamics
-from haptic_topology.errors import BagError, MessageError
-from haptic_topology.messages.check import (
-    GraphFilter,
-    array,
-    check_command,
-    check_state,
-    check_update_contacts,
-    check_update_header,
-    check_vt_path,
-    env_wrench,
-)
+from haptic_topology.bag.reader import Progress, decoder, iter_messages, open_bag, require_types
+from haptic_topology.errors import BagError
+from haptic_topology.messages.check import check_vt_path, env_wrench
 from haptic_topology.messages.definitions import type_name
 from haptic_topology.model.linkage import Linkage
-from haptic_topology.sim.scenario import load_scenario
-from haptic_topology.sim.trace import Trace, contact_depth
-from haptic_topology.vocabulary import ControlMode, TaskSpace
+from haptic_topology.sim.trace import Trace
+from haptic_topology.sim.trace_io import CHUNK_ROWS
+from haptic_topology.sim.trace_stats import TraceSink
+from haptic_topology.vocabulary import ControlMode
 
-_WATCHDOG = 4
-_DEVICE_STATUS = 'device_driver: loop'
+__all__ = ['GRAPH_TYPES', 'MAX_SEQ_GAP', 'PATH_TOPIC', 'GraphRun', 'format_loop',
+           'read_graph_bag', 'stream_graph_bag']
+
+_DEVICE_STATUS = DEVICE_STATUS
 #: Topic suffix -> type the graph publishes on it (a bag without any of them is foreign);
 #: ``haptic/hand`` (one ``HandInput`` per cycle): bags recorded before the hand inputs were
 #: batched on ``haptic/hand_inputs``.
@@ -88,17 +81,15 @@ GRAPH_TYPES = {
     vocab.TOPIC_HAND_LEGACY: type_name('HandInput'),
     vocab.TOPIC_LMI: type_name('LmiUpdate'),
 }
-#: Topics the graph also publishes that newer bags have (not required to read a bag).
-PATH_TOPIC = vocab.TOPIC_VT_PATH
 _MODE_LABELS = {int(m): m.label for m in ControlMode}
-#: Largest gap between consecutive state seqs within one run (10 s of 1 kHz states; a
-#: recorder loses far less).
-MAX_SEQ_GAP = 10_000
 
 
 @dataclass
 class GraphRun:
-    """A recorded run: its trace and loop figures (``loop`` keys are documented above)."""
+    """A recorded run: its trace and loop figures (``loop`` keys are documented above).
+
+    From :func:`stream_graph_bag` the trace has no rows (they went to the sinks): it holds
+    the metadata and :attr:`rows` says how many there were."""
 
     trace: Trace
     loop: dict[str, float] = field(default_factory=dict)
@@ -112,251 +103,219 @@ class GraphRun:
     #: Publishers of another node than the graph expects on its input topics, as the nodes
     #: reported them any time in the bag (``foreign_publishers``): name -> topics
     foreign_publishers: dict[str, list[str]] = field(default_factory=dict)
+    rows: int = 0
 
 
-def _stamp(header: Any) -> float:
-    return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
+class _Collect:
+    """A sink keeping every chunk (:func:`read_graph_bag`)."""
+
+    def __init__(self) -> None:
+        self.chunks: list[Trace] = []
+
+    def begin(self, template: Trace, rows: int) -> None:
+        pass
+
+    def add(self, chunk: Trace) -> None:
+        self.chunks.append(chunk)
+
+    def end(self) -> None:
+        pass
 
 
 def read_graph_bag(path: str | Path, scenario: str = '', dof: int | None = None,
                    progress: Progress | None = None, task_dim: int | None = None,
                    linkage: Linkage | None = None) -> GraphRun:
-    """Read the bag ``path`` (see module doc); ``progress`` gets the fraction read;
-    ``dof``/``task_dim``: the scenario's linkage (None: from the bag's majority);
-    ``linkage``: the scenario's linkage itself (None: loaded by the name ``scenario``; give
-    it for a scenario file, whose name is not a known scenario).
+    """Read the bag ``path`` (see module doc) into a trace held whole in memory (a long run:
+    :func:`stream_graph_bag`); ``progress`` gets the fraction read; ``dof``/``task_dim``:
+    the scenario's linkage (None: from the bag's majority); ``linkage``: the scenario's
+    linkage itself (None: loaded by the name ``scenario``; give it for a scenario file,
+    whose name is not a known scenario).
 
     A truncated bag (recorder killed) is read up to its last complete chunk; the trace's
     ``meta['truncated']`` is then True. Foreign and malformed messages are skipped and
     counted (:attr:`GraphRun.skipped`).
     """
+    sink = _Collect()
+    run = stream_graph_bag(path, [sink], scenario, dof, progress, task_dim, linkage)
+    run.trace = Trace.concat(sink.chunks)
+    return run
+
+
+def _scaled(progress: Progress | None, lo: float) -> Progress | None:
+    return None if progress is None else (lambda f: progress(lo + 0.5 * f))
+
+
+def stream_graph_bag(path: str | Path, sinks: list[TraceSink], scenario: str = '',
+                     dof: int | None = None, progress: Progress | None = None,
+                     task_dim: int | None = None, linkage: Linkage | None = None,
+                     chunk_rows: int = CHUNK_ROWS) -> GraphRun:
+    """Read the bag ``path`` (see module doc and :func:`read_graph_bag` for the arguments)
+    in two passes, in memory that does not grow with the run's length but for a few bytes
+    a cycle: the first (:func:`~haptic_topology.bag.graph_index.index_bag`) decides which
+    message fills which row, the second decodes those and gives the trace to ``sinks``
+    (:class:`~haptic_topology.sim.trace_stats.TraceSink`) in chunks of ``chunk_rows`` rows,
+    in order. Returns the run with a row-less trace (its metadata)."""
     bag = open_bag(path)
-    p = bag.path
     require_types(bag, GRAPH_TYPES)
+    index = index_bag(bag, scenario, dof, task_dim, linkage, _scaled(progress, 0.0))
+    template = Trace.empty(0, index.m, index.dof, index.contacts,
+                           mode=_MODE_LABELS.get(index.mode, str(index.mode)),
+                           scenario=scenario, dt=0.001, source='graph', bag=str(bag.path),
+                           truncated=index.truncated)
+    n = int(index.seqs.size)
+    for sink in sinks:
+        sink.begin(template, n)
+    rows = _Rows(index, template, chunk_rows, sinks)
     decode = decoder(bag=bag)
-    skipped: dict[str, int] = {}
-
-    def skip(kind: str, reason: str) -> None:
-        key = f'{kind}_{reason}'
-        skipped[key] = skipped.get(key, 0) + 1
-
-    def decoded(kind: str, raw: BagMessage) -> Any:
-        try:
-            return decode(raw)
-        except BagError:
-            skip(kind, 'decode')
-            return None
-
-    raw_states: list[Any] = []
-    raw_commands: list[Any] = []
-    updates_in: list[Any] = []
-    paths_in: list[Any] = []
-    diags: dict[str, dict[str, str]] = {}
-    publishers: dict[str, set[str]] = {}    # foreign publisher -> topics (nodes' reports)
-    followed: set[int] = set()     # controller ids the device driver reported following
-    # The recorder's graph (bag metadata; none: a bag of the default graph): messages and
-    # statuses of another graph are skipped and counted as foreign.
-    graph = GraphFilter(str(((bag.metadata or {}).get('custom_data') or {}).get('graph_id')
-                            or ''))
-    kinds = ((vocab.TOPIC_STATE, 'state', raw_states), (vocab.TOPIC_COMMAND, 'command',
-                                                        raw_commands),
-             (vocab.TOPIC_LMI, 'update', updates_in), (PATH_TOPIC, 'path', paths_in))
-    for raw in iter_messages(bag, progress=progress):
-        topic = raw.topic
-        for suffix, kind, out in kinds:
-            if topic.endswith(suffix):
-                msg = decoded(kind, raw)
-                if msg is not None and not graph.own(msg, suffix.lstrip('/')):
-                    skip(kind, 'foreign_graph')
-                    msg = None
-                out.append(msg)
+    count = dict.fromkeys(('state', 'command', 'update', 'path'), 0)
+    for raw in iter_messages(bag, progress=_scaled(progress, 0.5)):
+        for suffix, kind in KINDS:
+            if raw.topic.endswith(suffix):
+                pos = count[kind]
+                count[kind] += 1
+                wanted = index.wanted.get(kind)
+                if wanted is not None and pos < wanted.size and wanted[pos]:
+                    rows.fill(kind, pos, decode(raw))
                 break
-        else:
-            if topic != '/diagnostics':
-                continue
-            msg = decoded('diagnostics', raw)
-            for st in getattr(msg, 'status', None) or []:
-                pairs = {kv.key: kv.value for kv in st.values}
-                if pairs.get('graph_id', graph.graph_id) != graph.graph_id:
-                    skip('diagnostics', 'foreign_graph')
-                    continue
-                diags[st.name] = pairs
-                for part in filter(None, pairs.get('foreign_publishers', '').split('; ')):
-                    topic, _, names = part.partition(': ')
-                    for name in names.split(', '):
-                        publishers.setdefault(name, set()).add(topic)
-                if st.name == _DEVICE_STATUS and pairs.get('controller_id', '').isdigit():
-                    followed.add(int(pairs['controller_id']))
-    m = task_dim if task_dim is not None else _most_common(
-        [int(s.task_dim) for s in raw_states if s is not None])
-    if dof is None:
-        dof = _most_common([int(u.dof) for u in updates_in if u is not None]) or 0
-
-    def valid(kind: str, msgs: list[Any], check: Any) -> list[Any]:
-        out = []
-        for msg in msgs:
-            if msg is None:
-                continue
-            try:
-                check(msg)
-            except MessageError as exc:
-                skip(kind, exc.reason)
-                continue
-            out.append(msg)
-        return out
-
-    states: dict[int, Any] = {}
-    for msg in valid('state', raw_states, lambda s: check_state(s, m)):
-        if int(msg.seq) in states:
-            skip('state', 'duplicate')
-        else:
-            states[int(msg.seq)] = msg
-    commands: dict[int, Any] = {}
-    followed.discard(0)
-    for msg in valid('command', raw_commands, lambda c: check_command(c, m)):
-        seq = int(msg.state_seq)
-        if seq in commands:
-            skip('command', 'duplicate')
-            if (int(getattr(msg, 'controller_id', 0)) in followed
-                    and int(getattr(commands[seq], 'controller_id', 0)) not in followed):
-                commands[seq] = msg
-        else:
-            commands[seq] = msg
-    updates = _admitted(valid('update', updates_in, lambda u: _check_update(u, m, dof)),
-                        scenario, m, dof, skip, linkage)
-    vt_path: dict[int, Any] = {}
-    for msg in valid('path', paths_in, lambda v: check_vt_path(v, m)):
-        _, path_seqs, poses = check_vt_path(msg, m)
-        vt_path.update(zip(path_seqs, poses, strict=True))
-    for seq in _foreign_seqs(states):
-        del states[seq]
-        skip('state', 'foreign_seq')
-    run_seqs = sorted(s for s, m in states.items() if not m.status & _WATCHDOG)
-    if not run_seqs:
-        raise BagError(f'{p}: no device state of a running loop (controller never engaged?)')
-    k0 = run_seqs[0]
-    seqs = np.array(sorted(s for s in states if s >= k0))
-    first = states[k0]
-    modes = [int(c.mode) for s, c in commands.items() if s >= k0]
-    mode = max(set(modes), key=modes.count) if modes else 2
-    contacts = any(float(getattr(u, 'contact_stiffness', 0.0)) > 0.0 for u in updates)
-    trace = Trace.empty(len(seqs), m, dof, contacts, mode=_MODE_LABELS.get(mode, str(mode)),
-                        scenario=scenario, dt=0.001, source='graph', bag=str(p),
-                        truncated=bool(bag.truncated))
-    t0 = _stamp(first.header)
-    row_of = {int(s): i for i, s in enumerate(seqs)}
-    for i, s in enumerate(seqs):
-        st = states[int(s)]
-        values: dict[str, Any] = dict(
-            device_pose=st.pose, device_twist=st.twist, hand_wrench=st.hand_wrench,
-            applied=st.applied_wrench, status=int(st.status))
-        cmd = commands.get(int(s))
-        if cmd is not None:
-            values.update(command=cmd.wrench, lmi_pose=cmd.vt_pose,
-                          lmi_constraint_count=int(cmd.constraint_count))
-            if contacts:
-                env = env_wrench(cmd, m)
-                values['env_wrench'] = np.zeros(m) if env is None else env
-        trace.record(i, t=_stamp(st.header) - t0, **values)
-        trace.seq[i] = int(s)
-    # VE samples at known rows, interpolated in time between them.
-    known: dict[int, Any] = {}
-    for u in updates:
-        s = int(u.hand_input_seq)
-        row = row_of.get(s + 1) if s > 0 else (0 if s == 0 else None)
-        if row is not None and (s > 0 or row not in known):
-            known[row] = u
-    if known:
-        rows = np.array(sorted(known))
-        t_known = trace.t[rows]
-        last = rows[-1]
-        poses = np.array([known[r].hand_pose for r in rows])
-        qs = np.array([known[r].q for r in rows]) if dof else np.zeros((len(rows), 0))
-        span = slice(0, last + 1)
-        for j in range(m):
-            trace.columns['vt_pose'][span, j] = np.interp(trace.t[span], t_known, poses[:, j])
-        for j in range(qs.shape[1]):
-            trace.columns['q'][span, j] = np.interp(trace.t[span], t_known, qs[:, j])
-        if vt_path:
-            # The VE's own VT hand at every cycle it reported (exact, no interpolation).
-            vt = trace.columns['vt_pose']
-            vt[1:] = np.nan
-            for i, s in enumerate(seqs[1:], start=1):
-                if int(s) - 1 in vt_path:
-                    vt[i] = vt_path[int(s) - 1]
-        trace.hold_constraint_counts(rows, [int(known[r].constraint_count) for r in rows])
-        if contacts:
-            # The VE's deepest contact and energy balance at each update, held until the next
-            # one (the VE reports them at its rate), NaN after the last.
-            trace.hold_contacts(rows, [contact_depth(known[r].contact_gaps) for r in rows],
-                                [float(known[r].contact_energy) for r in rows])
-    figures = loop_figures(states, commands, seqs, diags)
-    figures['ve_update_rate_hz'] = _update_rate(trace.t, sorted(known))
-    return GraphRun(trace, figures, diags, skipped, graph.graph_id, dict(graph.foreign),
-                    {n: sorted(t) for n, t in sorted(publishers.items())})
+    rows.finish(bag.path)
+    for sink in sinks:
+        sink.end()
+    figures = loop_figures(index, rows.in_time, rows.pairs)
+    return GraphRun(template, figures, index.diagnostics, index.skipped, index.graph_id,
+                    index.foreign_messages, index.foreign_publishers, n)
 
 
-def _update_rate(t: np.ndarray, rows: list[int]) -> float:
-    """The VE's LMI update rate (Hz) over the run, on the device's clock: updates that
-    consumed a hand input of the run, per second between the first and the last of them."""
-    rows = [r for r in rows if r > 0]
-    if len(rows) < 2 or t[rows[-1]] <= t[rows[0]]:
-        return math.nan
-    return (len(rows) - 1) / float(t[rows[-1]] - t[rows[0]])
+class _Chunk:
+    """Rows ``start .. start + len`` of the trace while their messages come in."""
+
+    def __init__(self, start: int, size: int, template: Trace, left: int) -> None:
+        self.start = start
+        self.trace = Trace.empty(size, template.task_dim, int(template.meta['dof']),
+                                 template.has_contacts, **{
+                                     k: v for k, v in template.meta.items()
+                                     if k not in ('task_dim', 'dof', 'contacts')})
+        self.path = np.full((size, template.task_dim), np.nan)
+        self.state_stamp = np.full(size, np.nan)
+        self.command_stamp = np.full(size, np.nan)
+        self.left = left
 
 
-def _most_common(values: list[int]) -> int:
-    return max(set(values), key=values.count) if values else 0
+class _Rows:
+    """The second pass's rows: filled by message, handed on by chunk once complete."""
 
+    def __init__(self, index: BagIndex, template: Trace, size: int,
+                 sinks: list[TraceSink]) -> None:
+        self.index, self.template, self.size, self.sinks = index, template, size, sinks
+        self.n = int(index.seqs.size)
+        #: Messages each row still waits for: its state, command and VtPath pose.
+        self.pieces = (1 + (index.command_pos >= 0).astype(np.int64)
+                       + (index.path_pos >= 0).astype(np.int64))
+        self.chunks: dict[int, _Chunk] = {}
+        self.next = 0
+        self.in_time = self.pairs = 0
+        self.last_seq = -1
+        self.last_command = math.nan
 
-def _check_update(msg: Any, m: int, dof: int) -> None:
-    """The fields of an ``LmiUpdate`` the trace uses: integers, VT hand pose, q, contacts."""
-    check_update_header(msg, m, dof)
-    array(msg, 'hand_pose', m)
-    array(msg, 'q', dof)
-    check_update_contacts(msg, dof)
+    def _chunk(self, row: int) -> tuple[_Chunk, int]:
+        c = row // self.size
+        chunk = self.chunks.get(c)
+        if chunk is None:
+            start = c * self.size
+            end = min(start + self.size, self.n)
+            chunk = _Chunk(start, end - start, self.template,
+                           int(self.pieces[start:end].sum()))
+            self.chunks[c] = chunk
+        return chunk, row - chunk.start
 
+    def _row(self, seq: int) -> int:
+        return int(np.searchsorted(self.index.seqs, seq))
 
-def _admitted(updates: list[Any], scenario: str, m: int, dof: int,
-              skip: Callable[[str, str], None], linkage: Linkage | None = None) -> list[Any]:
-    """The updates the controller's checks admit, in the bag's order
-    (:class:`~haptic_topology.control.admission.UpdateAdmission`: the model check against
-    the scenario's linkage (``linkage``, else loaded by the name ``scenario``) when it
-    matches ``dof`` and ``m``; the
-    consumed input never going back): a sender that copied the graph id is skipped as
-    ``update_model`` / ``update_continuity``. A bag records no publisher, so a seq going
-    back is not refused here."""
-    dyn = None
-    if linkage is None and scenario:
-        linkage = load_scenario(scenario).linkage
-    if linkage is not None:
-        if linkage.dof == dof and linkage.task.dim == m and not linkage.loops:
-            dyn = LinkageDynamics(linkage)
-    task = TaskSpace.PLANAR if m == TaskSpace.PLANAR.dim else TaskSpace.SPATIAL
-    admission = UpdateAdmission(dyn)
-    out = []
-    for u in updates:
-        try:
-            admission.admit(UpdateFields.from_msg(u, task, dof))
-        except MessageError as exc:
-            skip('update', exc.reason)
-            continue
-        out.append(u)
-    return out
+    def fill(self, kind: str, pos: int, msg: Any) -> None:
+        index = self.index
+        if kind == 'state':
+            row = self._row(int(msg.seq))
+            chunk, j = self._chunk(row)
+            st = stamp(msg.header)
+            chunk.trace.record(j, t=st - index.t0, device_pose=msg.pose,
+                               device_twist=msg.twist, hand_wrench=msg.hand_wrench,
+                               applied=msg.applied_wrench, status=int(msg.status))
+            chunk.trace.seq[j] = int(msg.seq)
+            chunk.state_stamp[j] = st
+            self._done(chunk)
+        elif kind == 'command':
+            row = self._row(int(msg.state_seq))
+            chunk, j = self._chunk(row)
+            tr = chunk.trace
+            tr.columns['command'][j] = msg.wrench
+            tr.columns['lmi_pose'][j] = msg.vt_pose
+            tr.columns['lmi_constraint_count'][j] = int(msg.constraint_count)
+            if tr.has_contacts:
+                env = env_wrench(msg, index.m)
+                tr.columns['env_wrench'][j] = np.zeros(index.m) if env is None else env
+            chunk.command_stamp[j] = stamp(msg.header)
+            self._done(chunk)
+        elif kind == 'path':
+            _, seqs, poses = check_vt_path(msg, index.m)
+            done: set[int] = set()
+            for s, pose in zip(seqs, poses, strict=True):
+                row = self._row(s + 1)
+                if 1 <= row < self.n and int(index.seqs[row]) == s + 1 \
+                        and index.path_pos[row] == pos:
+                    chunk, j = self._chunk(row)
+                    chunk.path[j] = pose
+                    if row not in done:
+                        done.add(row)
+                        self._done(chunk)
 
+    def _done(self, chunk: _Chunk) -> None:
+        chunk.left -= 1
+        while self.next in self.chunks and self.chunks[self.next].left == 0:
+            self._flush(self.chunks.pop(self.next))
+            self.next += 1
 
-def _foreign_seqs(states: dict[int, Any]) -> list[int]:
-    """Seqs of the states outside the run (module doc: groups split at gaps larger than
-    MAX_SEQ_GAP; the run is the largest group with a running state)."""
-    seqs = sorted(states)
-    if not seqs:
-        return []
-    cuts = [i + 1 for i, (a, b) in enumerate(zip(seqs[:-1], seqs[1:], strict=True))
-            if b - a > MAX_SEQ_GAP]
-    groups = [seqs[a:b] for a, b in zip([0, *cuts], [*cuts, len(seqs)], strict=True)]
-    running = [g for g in groups if any(not states[s].status & _WATCHDOG for s in g)]
-    run = max(running or groups, key=len)
-    return [s for g in groups if g is not run for s in g]
+    def _flush(self, chunk: _Chunk) -> None:
+        """Complete the chunk's rows (the VE's samples, held and interpolated) and hand it
+        on."""
+        index, tr = self.index, chunk.trace
+        rows = chunk.start + np.arange(len(tr))
+        known = index.known_rows
+        if known.size:
+            last = int(known[-1])
+            span = rows <= last
+            for j in range(index.m):
+                tr.columns['vt_pose'][span, j] = np.interp(tr.t[span], index.known_t,
+                                                           index.known_pose[:, j])
+            for j in range(index.known_q.shape[1]):
+                tr.columns['q'][span, j] = np.interp(tr.t[span], index.known_t,
+                                                     index.known_q[:, j])
+            if index.vt_path:
+                later = rows >= 1
+                tr.columns['vt_pose'][later] = chunk.path[later]
+            at = np.searchsorted(known, rows, side='right') - 1
+            held = at >= 0
+            at = np.maximum(at, 0)
+            tr.columns['constraint_count'][:] = np.where(held, index.known_count[at], 0)
+            if tr.has_contacts:
+                held &= rows <= last
+                tr.columns['penetration'][:] = np.where(held, index.known_depth[at], np.nan)
+                tr.columns['contact_energy'][:] = np.where(held, index.known_energy[at],
+                                                           np.nan)
+        # States answered in time: the command of state k computed before state k + 1.
+        seq = np.concatenate([[self.last_seq], tr.seq])
+        command = np.concatenate([[self.last_command], chunk.command_stamp])
+        pairs = np.diff(seq) == 1
+        if self.last_seq < 0:
+            pairs[0] = False
+        self.pairs += int(np.count_nonzero(pairs))
+        self.in_time += int(np.count_nonzero(pairs & (command[:-1] < chunk.state_stamp)))
+        self.last_seq, self.last_command = int(tr.seq[-1]), float(chunk.command_stamp[-1])
+        for sink in self.sinks:
+            sink.add(tr)
+
+    def finish(self, path: Path) -> None:
+        if self.chunks or self.next * self.size < self.n:
+            raise BagError(f'{path}: the bag changed while it was read (rows '
+                           f'{self.next * self.size} on lack their messages)')
 
 
 def _float(values: dict[str, str], key: str) -> float:
@@ -366,11 +325,11 @@ def _float(values: dict[str, str], key: str) -> float:
         return math.nan
 
 
-def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndarray,
-                 diags: dict[str, dict[str, str]]) -> dict[str, float]:
-    """Loop figures from the device driver's diagnostics and from the bag's stamps."""
+def loop_figures(index: BagIndex, in_time: int, pairs: int) -> dict[str, float]:
+    """Loop figures from the device driver's diagnostics and from the bag's stamps
+    (``in_time`` of ``pairs`` consecutive states answered before the next one)."""
     out: dict[str, float] = {}
-    dev = diags.get(_DEVICE_STATUS, {})
+    dev = index.diagnostics.get(_DEVICE_STATUS, {})
     for key in ('answered_fraction', 'answered_or_previous_fraction', 'round_trip_p50_ms',
                 'round_trip_p99_ms', 'round_trip_max_ms', 'rate_hz', 'period_p99_ms',
                 'overruns', 'max_consecutive_missed'):
@@ -381,21 +340,13 @@ def loop_figures(states: dict[int, Any], commands: dict[int, Any], seqs: np.ndar
     for key in ('wake_late_p50_ms', 'wake_late_p99_ms', 'wake_late_max_ms'):
         if key in dev:
             out[f'device_{key}'] = _float(dev, key)
-    in_time = 0
-    total = 0
-    for a, b in zip(seqs[:-1], seqs[1:], strict=True):
-        if b != a + 1:
-            continue
-        total += 1
-        cmd = commands.get(int(a))
-        if cmd is not None and _stamp(cmd.header) < _stamp(states[int(b)].header):
-            in_time += 1
-    out['bag_answered_fraction'] = in_time / total if total else math.nan
+    out['bag_answered_fraction'] = in_time / pairs if pairs else math.nan
     # Every state and every command of the run in the bag (the idle ones before engagement
     # too), as a count of the bag's messages gives them; the trace's rows start at the first
     # running state.
-    out['bag_states'] = float(len(states))
-    out['bag_commands'] = float(len(commands))
+    out['bag_states'] = float(index.bag_states)
+    out['bag_commands'] = float(index.bag_commands)
+    out['ve_update_rate_hz'] = index.update_rate_hz
     return out
 
 

@@ -20,8 +20,9 @@ inputs its writers (:func:`~haptic_topology.bringup.watch.loop_writers`); the ru
 when the driver's lifecycle state is ``inactive`` (it deactivates itself after
 ``run_duration`` from engagement). Then it stops
 the device, controller, VE and the recorder with SIGINT (SIGTERM, then SIGKILL, after a
-timeout each), reads the bag back into a trace and writes ``trace.csv``, ``plot.png`` and
-``summary.json`` next to the bag's files, and prints the drift summary (as ``simulate``) and
+timeout each), reads the bag back as a stream (memory flat in the run's length) and writes
+``trace.parquet`` (``--csv``: also ``trace.csv``), ``plot.png`` and ``summary.json`` next to
+the bag's files, and prints the drift summary (as ``simulate``) and
 the loop figures. Several ``--mode`` options run one after the other. While the loop runs,
 ``--loop-cpu auto`` (the default for the hosted layout on the wall clock) keeps a CPU for the
 loop process whenever other software keeps the machine busy
@@ -154,6 +155,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--startup-timeout', type=float, default=30.0,
                         help='seconds to wait for the loop to close (default 30)')
     parser.add_argument('--no-plot', action='store_true', help='skip plot.png')
+    parser.add_argument('--csv', action='store_true',
+                        help='also write the trace as trace.csv (trace.parquet is always written)')
     parser.add_argument('--node-prefix', action='append', default=[], metavar='NODE=COMMAND',
                         help='start process NODE of the layout with COMMAND before its command '
                         "line, e.g. 've_sim=ip netns exec ht_ve' (the VE on another network "
@@ -437,7 +440,8 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
                params: Path, scenario_ref: str, layout: str, overrides: list[str],
                loop_cpu_auto: bool) -> int:
     """:func:`run`'s runs, one per mode, on the domain it has claimed."""
-    from haptic_topology.bag.graph_trace import format_loop, read_graph_bag
+    from haptic_topology.bag.analyze import reduce_bag
+    from haptic_topology.bag.graph_trace import format_loop
     from haptic_topology.sim.trace import format_summary
 
     summaries = []
@@ -452,11 +456,10 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
                                                                args.foxglove),
                   node_prefix=node_prefixes(args.node_prefix, layout),
                   overrides=overrides, claim=False, loop_cpu_auto=loop_cpu_auto)
-        result = read_graph_bag(bag, sc.name, sc.lmi_dof, task_dim=sc.linkage.task.dim,
-                                linkage=sc.linkage)
-        trace = result.trace
-        trace.to_csv(bag / 'trace.csv')
-        summary = dict(trace.summary(), **{k: v for k, v in result.loop.items()})
+        traces = (bag / 'trace.parquet',) + ((bag / 'trace.csv',) if args.csv else ())
+        result = reduce_bag(bag, sc.name, sc.lmi_dof, sc.linkage.task.dim, sc.linkage,
+                            traces, plot=not args.no_plot)
+        summary = dict(result.summary, **{k: v for k, v in result.loop.items()})
         summary['layout'] = layout
         summary['skipped_messages'] = dict(result.skipped)
         summary['graph_id'] = result.graph_id
@@ -486,7 +489,7 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
         if not args.no_plot:
             from haptic_topology.sim.plots import plot_trace
 
-            plot_trace(trace, bag / 'plot.png', sc.linkage,
+            plot_trace(result.plot, bag / 'plot.png', sc.linkage,
                        title=f'{sc.name} {mode} (ROS graph)',
                        obstacles=sc.contacts.obstacles if sc.contacts else ())
             print(f'plot: {bag / "plot.png"}')

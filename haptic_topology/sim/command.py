@@ -1,7 +1,7 @@
 """``haptic-topology simulate SCENARIO --mode penalty|acceleration_only --out DIR``.
 
-Runs the offline lock-step simulation and writes ``trace.csv``, ``plot.png`` and
-``summary.json`` into DIR, and prints the summary table.
+Runs the offline lock-step simulation and writes ``trace.parquet`` (``--csv``: also
+``trace.csv``), ``plot.png`` and ``summary.json`` into DIR, and prints the summary table.
 """
 
 from __future__ import annotations
@@ -24,7 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='control law: eq. 14 (penalty) or eq. 10 (acceleration_only); '
                         "default: the scenario's")
     parser.add_argument('--out', required=True, type=Path,
-                        help='output directory (created; trace.csv, plot.png, summary.json)')
+                        help='output directory (created; trace.parquet, plot.png, '
+                        'summary.json)')
+    parser.add_argument('--csv', action='store_true',
+                        help='also write the trace as trace.csv')
     parser.add_argument('--linkage', help='replace the scenario linkage (YAML or URDF file)')
     parser.add_argument('--q0', metavar='Q,Q,...',
                         help='initial joint positions (rad / m), comma-separated, e.g. '
@@ -55,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.sim.plots import plot_trace
     from haptic_topology.sim.scenario import load_scenario
     from haptic_topology.sim.trace import format_summary
+    from haptic_topology.sim.trace_io import write_trace
     from haptic_topology.vocabulary import ControlMode
 
     scenario = load_scenario(args.scenario)
@@ -79,12 +83,15 @@ def run(args: argparse.Namespace) -> int:
     trace = simulate(scenario, mode)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    trace.to_csv(out / 'trace.csv')
+    traces = [out / 'trace.parquet'] + ([out / 'trace.csv'] if args.csv else [])
+    for path in traces:
+        write_trace(trace, path)
     plot_trace(trace, out / 'plot.png', scenario.linkage,
                obstacles=scenario.contacts.obstacles if scenario.contacts else ())
     summary = trace.summary()
     summary['linkage'] = scenario.linkage.name
     (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n', encoding='utf-8')
     print(format_summary([summary]))
-    print(f'wrote {out / "trace.csv"}, {out / "plot.png"}, {out / "summary.json"}')
+    print(f'wrote {", ".join(str(p) for p in traces)}, {out / "plot.png"}, '
+          f'{out / "summary.json"}')
     return 0

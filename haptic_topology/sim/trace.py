@@ -21,8 +21,6 @@ offline simulation as in a recorded run, so both summaries sample contact alike.
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,12 +28,13 @@ from typing import Any
 
 import numpy as np
 
-from haptic_topology.errors import ConfigError
-
-_VECTORS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'applied', 'vt_pose',
-            'lmi_pose')
-_SCALARS = ('constraint_count', 'lmi_constraint_count', 'status')
-_CONTACT_FLOATS = ('penetration', 'contact_energy')
+#: Columns of m entries per row (m: the task dimension), of single integers, and of single
+#: floats of a run with contacts; ``q`` has ``dof`` entries per row.
+VECTORS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'applied', 'vt_pose',
+           'lmi_pose')
+SCALARS = ('constraint_count', 'lmi_constraint_count', 'status')
+CONTACT_FLOATS = ('penetration', 'contact_energy')
+_VECTORS, _SCALARS, _CONTACT_FLOATS = VECTORS, SCALARS, CONTACT_FLOATS
 
 
 def contact_depth(gaps: np.ndarray) -> float:
@@ -131,56 +130,29 @@ class Trace:
         return np.linalg.norm(diff, axis=1)
 
     def summary(self) -> dict[str, Any]:
-        """Drift figures of the run (the keys ``simulate`` and ``analyze`` both print)."""
-        dist = self.distance()
-        ok = np.isfinite(dist)
-        dist = dist[ok]
-        if dist.size == 0:
-            raise ValueError('trace has no row with both a device and a VT hand pose')
-        t = self.t[ok]
-        dt = float(np.median(np.diff(t))) if t.size > 1 else float(self.meta.get('dt', 0.0))
-        counts = self.columns['constraint_count'][ok]
-        status = self.columns['status'][ok]
-        applied = self.columns['applied'][ok]
-        at_limit = np.nonzero(status & 1)[0]
-        return {
-            'scenario': self.meta.get('scenario', ''),
-            'mode': self.meta.get('mode', ''),
-            'duration_s': float(t[-1] - t[0]),
-            'samples': int(dist.size),
-            'final_distance_m': float(dist[-1]),
-            'max_distance_m': float(dist.max()),
-            'rms_distance_m': float(math.sqrt(float(np.mean(dist * dist)))),
-            'constrained_time_s': float(np.count_nonzero(counts > 0) * dt),
-            'workspace_limit_time_s': float(np.count_nonzero(status & 1) * dt),
-            # When the device first reported a workspace stop (s from the first row), or None.
-            'first_limit_s': float(t[at_limit[0]] - t[0]) if at_limit.size else None,
-            'max_abs_wrench': float(np.nanmax(np.abs(applied))) if applied.size else 0.0,
-            **self._contact_summary(ok, dt),
-        }
+        """Drift figures of the run (the keys ``simulate`` and ``analyze`` both print; see
+        :class:`SummaryStats`, which computes them chunk by chunk)."""
+        stats = SummaryStats()
+        stats.add(self)
+        return stats.result(self.meta)
 
-    def _contact_summary(self, ok: np.ndarray, dt: float) -> dict[str, Any]:
-        """Penetration max/RMS (over the rows in contact), time in contact and the energy the
-        contact model injected (the largest positive contact energy balance; J); None for a
-        run without obstacles."""
-        keys = ('max_penetration_m', 'rms_penetration_m', 'contact_time_s',
-                'energy_injected_j', 'energy_dissipated_j')
-        if not self.has_contacts:
-            return dict.fromkeys(keys)
-        depth = self.columns['penetration'][ok]
-        depth = depth[np.isfinite(depth)]
-        inside = depth[depth > 0.0]
-        energy = self.columns['contact_energy'][ok]
-        energy = energy[np.isfinite(energy)]
-        return dict(zip(keys, (
-            float(depth.max()) if depth.size else 0.0,
-            float(math.sqrt(float(np.mean(inside * inside)))) if inside.size else 0.0,
-            float(inside.size * dt),
-            max(0.0, float(energy.max())) if energy.size else 0.0,
-            max(0.0, -float(energy[-1])) if energy.size else 0.0), strict=True))
+    def take(self, rows: np.ndarray | slice) -> Trace:
+        """The rows ``rows`` (indices or a slice) as a trace of their own (same metadata)."""
+        return Trace(self.t[rows], self.seq[rows],
+                     {name: col[rows] for name, col in self.columns.items()}, dict(self.meta))
 
-    # -- CSV ---------------------------------------------------------------------------------
+    @classmethod
+    def concat(cls, chunks: list[Trace]) -> Trace:
+        """The rows of ``chunks`` (same metadata and columns) one after the other."""
+        first = chunks[0]
+        return cls(np.concatenate([c.t for c in chunks]),
+                   np.concatenate([c.seq for c in chunks]),
+                   {name: np.concatenate([c.columns[name] for c in chunks])
+                    for name in first.columns}, dict(first.meta))
+
+    # -- files (haptic_topology.sim.trace_io) -------------------------------------------------
     def header(self) -> list[str]:
+        """The column names of a trace file."""
         m = self.task_dim
         names = ['t', 'seq']
         for name in _VECTORS:
@@ -192,56 +164,121 @@ class Trace:
         return names
 
     def to_csv(self, path: str | Path) -> None:
-        with Path(path).open('w', newline='', encoding='utf-8') as f:
-            f.write('# ' + json.dumps(self.meta) + '\n')
-            w = csv.writer(f)
-            w.writerow(self.header())
-            blocks = [self.t[:, None], self.seq[:, None]]
-            blocks += [self.columns[n] for n in _VECTORS]
-            blocks += [self.columns['q']]
-            blocks += [self.columns[n][:, None] for n in _SCALARS]
-            first_scalar = sum(b.shape[1] for b in blocks) - len(_SCALARS)
-            end_scalar = first_scalar + len(_SCALARS)
-            if self.has_contacts:
-                blocks += [self.columns['env_wrench']]
-                blocks += [self.columns[n][:, None] for n in _CONTACT_FLOATS]
-            table = np.hstack([b.astype(float) for b in blocks])
-            for row in table:
-                w.writerow([int(v) if (i == 1 or first_scalar <= i < end_scalar)
-                            else repr(float(v)) for i, v in enumerate(row)])
+        """Write the trace as CSV (:mod:`haptic_topology.sim.trace_io`)."""
+        from haptic_topology.sim.trace_io import write_trace
+
+        write_trace(self, path, 'csv')
+
+    def to_parquet(self, path: str | Path) -> None:
+        """Write the trace as Parquet (:mod:`haptic_topology.sim.trace_io`)."""
+        from haptic_topology.sim.trace_io import write_trace
+
+        write_trace(self, path, 'parquet')
 
     @classmethod
     def from_csv(cls, path: str | Path) -> Trace:
-        p = Path(path)
-        try:
-            with p.open(encoding='utf-8') as f:
-                first = f.readline()
-                if not first.startswith('# {'):
-                    raise ConfigError(f'{p}: not a haptic_topology trace (no metadata line)')
-                meta = json.loads(first[2:])
-                rows = list(csv.reader(f))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ConfigError(f'{p}: cannot read trace ({exc})') from None
-        if not rows:
-            raise ConfigError(f'{p}: trace has no header row')
-        header, body = rows[0], rows[1:]
-        table = np.array(body, dtype=float) if body else np.zeros((0, len(header)))
-        m, dof = int(meta.pop('task_dim')), int(meta.pop('dof'))
-        contacts = bool(meta.pop('contacts', False))
-        trace = cls.empty(len(body), m, dof, contacts, **meta)
-        col = {name: i for i, name in enumerate(header)}
-        trace.t = table[:, col['t']]
-        trace.seq = table[:, col['seq']].astype(int)
-        for name in _VECTORS:
-            trace.columns[name] = table[:, [col[f'{name}_{i}'] for i in range(m)]]
-        trace.columns['q'] = table[:, [col[f'q_{i}'] for i in range(dof)]]
-        for name in _SCALARS:
-            trace.columns[name] = table[:, col[name]].astype(int)
-        if contacts:
-            trace.columns['env_wrench'] = table[:, [col[f'env_wrench_{i}'] for i in range(m)]]
-            for name in _CONTACT_FLOATS:
-                trace.columns[name] = table[:, col[name]]
-        return trace
+        """Read a trace file: Parquet if its name ends in ``.parquet``, else CSV
+        (:func:`haptic_topology.sim.trace_io.read_trace`)."""
+        from haptic_topology.sim.trace_io import read_trace
+
+        return read_trace(path)
+
+
+class SummaryStats:
+    """The drift figures of :meth:`Trace.summary`, from the rows given chunk by chunk
+    (:meth:`add`, in order): running counts and extremes, and the distances and times of the
+    rows with both poses (16 bytes a row; the median period and the RMS need all of them),
+    so that the figures are those of the whole trace, to the last bit.
+
+    Rows counted: those with both a device and a VT hand pose (finite distance). ``dt`` is
+    the median time step between them; the constrained time, the time at the workspace limit
+    (status bit 0) and the contact time count rows times ``dt``."""
+
+    def __init__(self) -> None:
+        self.t: list[np.ndarray] = []
+        self.dist: list[np.ndarray] = []
+        self.constrained = 0
+        self.at_limit = 0
+        self.first_limit: float | None = None
+        self.wrench_rows = 0
+        self.max_wrench = math.nan
+        self.contacts = False
+        self.max_depth: float | None = None
+        self.inside: list[np.ndarray] = []
+        self.max_energy: float | None = None
+        self.last_energy: float | None = None
+
+    def add(self, chunk: Trace) -> None:
+        """The next rows of the trace."""
+        dist = chunk.distance()
+        ok = np.isfinite(dist)
+        self.dist.append(dist[ok])
+        t = chunk.t[ok]
+        self.t.append(t)
+        self.constrained += int(np.count_nonzero(chunk.columns['constraint_count'][ok] > 0))
+        limit = np.nonzero(chunk.columns['status'][ok] & 1)[0]
+        self.at_limit += int(limit.size)
+        if self.first_limit is None and limit.size:
+            self.first_limit = float(t[limit[0]])
+        applied = np.abs(chunk.columns['applied'][ok])
+        self.wrench_rows += int(applied.size)
+        known = applied[~np.isnan(applied)]
+        if known.size:
+            top = float(known.max())
+            self.max_wrench = top if math.isnan(self.max_wrench) else max(self.max_wrench, top)
+        if not chunk.has_contacts:
+            return
+        self.contacts = True
+        depth = chunk.columns['penetration'][ok]
+        depth = depth[np.isfinite(depth)]
+        if depth.size:
+            top = float(depth.max())
+            self.max_depth = top if self.max_depth is None else max(self.max_depth, top)
+        self.inside.append(depth[depth > 0.0])
+        energy = chunk.columns['contact_energy'][ok]
+        energy = energy[np.isfinite(energy)]
+        if energy.size:
+            top = float(energy.max())
+            self.max_energy = top if self.max_energy is None else max(self.max_energy, top)
+            self.last_energy = float(energy[-1])
+
+    def result(self, meta: dict[str, Any]) -> dict[str, Any]:
+        """The figures (keys of :meth:`Trace.summary`); ``meta``: the trace's metadata.
+        Raises ValueError when no row has both poses."""
+        dist = np.concatenate(self.dist) if self.dist else np.zeros(0)
+        if dist.size == 0:
+            raise ValueError('trace has no row with both a device and a VT hand pose')
+        t = np.concatenate(self.t)
+        dt = float(np.median(np.diff(t))) if t.size > 1 else float(meta.get('dt', 0.0))
+        out = {
+            'scenario': meta.get('scenario', ''),
+            'mode': meta.get('mode', ''),
+            'duration_s': float(t[-1] - t[0]),
+            'samples': int(dist.size),
+            'final_distance_m': float(dist[-1]),
+            'max_distance_m': float(dist.max()),
+            'rms_distance_m': float(math.sqrt(float(np.mean(dist * dist)))),
+            'constrained_time_s': float(self.constrained * dt),
+            'workspace_limit_time_s': float(self.at_limit * dt),
+            # When the device first reported a workspace stop (s from the first row), or None.
+            'first_limit_s': (float(self.first_limit - t[0]) if self.first_limit is not None
+                              else None),
+            'max_abs_wrench': self.max_wrench if self.wrench_rows else 0.0,
+        }
+        keys = ('max_penetration_m', 'rms_penetration_m', 'contact_time_s',
+                'energy_injected_j', 'energy_dissipated_j')
+        if not (self.contacts or meta.get('contacts')):
+            return dict(out, **dict.fromkeys(keys))
+        # Penetration max/RMS (over the rows in contact), time in contact and the energy the
+        # contact model injected (the largest positive contact energy balance; J).
+        inside = np.concatenate(self.inside) if self.inside else np.zeros(0)
+        return dict(out, **dict(zip(keys, (
+            self.max_depth if self.max_depth is not None else 0.0,
+            float(math.sqrt(float(np.mean(inside * inside)))) if inside.size else 0.0,
+            float(inside.size * dt),
+            max(0.0, self.max_energy) if self.max_energy is not None else 0.0,
+            max(0.0, -self.last_energy) if self.last_energy is not None else 0.0),
+            strict=True)))
 
 
 def format_summary(rows: list[dict[str, Any]]) -> str:

@@ -3,7 +3,7 @@ with older message definitions, in ``test/fixtures/old_messages/``) into live pr
 
 Regenerate the bag after an intended change of the controller's output with
 ``haptic-topology run fig8 --mode penalty --duration 2 --out bags/reference_fig8 --no-plot``
-(then delete its ``logs/`` and ``trace.csv``).
+(then delete its ``logs/`` and ``trace.parquet``).
 """
 
 from __future__ import annotations

@@ -186,7 +186,7 @@ def prefix(tmp_path: Path) -> Iterator[str]:
 def test_ve_in_another_namespace_behind_a_delayed_link(prefix: str, tmp_path: Path) -> None:
     from haptic_topology.bag.reader import iter_messages, open_bag
     from haptic_topology.sim.scenario import load_scenario
-    from haptic_topology.sim.trace import Trace
+    from haptic_topology.sim.trace_io import read_trace
 
     bag = tmp_path / 'bag'
     env = dict(os.environ, HT_PREFIX=prefix, HT_STATE=str(tmp_path / 'state'), OUT=str(bag))
@@ -201,7 +201,7 @@ def test_ve_in_another_namespace_behind_a_delayed_link(prefix: str, tmp_path: Pa
     assert updates > 0
 
     # Every applied wrench finite and within the device's limit.
-    trace = Trace.from_csv(bag / 'trace.csv')
+    trace = read_trace(bag / 'trace.parquet')
     applied = trace.columns['applied']
     limit = np.asarray(load_scenario('fig8').device.wrench_limit)
     assert np.all(np.isfinite(applied))
@@ -229,7 +229,7 @@ def test_device_server_in_another_namespace_behind_a_lossy_link(prefix: str,
     """The network backend across the namespace pair (issue 15, item 2): the device server in
     the far namespace behind 1 ms +-20 % with 1 % frame loss, the graph in the near one."""
     from haptic_topology.sim.scenario import load_scenario
-    from haptic_topology.sim.trace import Trace
+    from haptic_topology.sim.trace_io import read_trace
 
     bag = tmp_path / 'bag'
     env = dict(os.environ, HT_PREFIX=prefix, HT_STATE=str(tmp_path / 'state'), OUT=str(bag),
@@ -240,7 +240,7 @@ def test_device_server_in_another_namespace_behind_a_lossy_link(prefix: str,
 
     # The loop ran through the remote device; what it applied is finite and within limits.
     assert json.loads((bag / 'summary.json').read_text())['samples'] > 0
-    trace = Trace.from_csv(bag / 'trace.csv')
+    trace = read_trace(bag / 'trace.parquet')
     applied = trace.columns['applied']
     limit = np.asarray(load_scenario('fig8').device.wrench_limit)
     assert np.all(np.isfinite(applied))

@@ -31,7 +31,7 @@ from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.paths import config_dir
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
-from haptic_topology.sim.trace import Trace
+from haptic_topology.sim.trace_io import read_trace
 from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology.vocabulary import ControlMode, TaskSpace
 
@@ -286,7 +286,7 @@ def test_simulate_is_deterministic_and_writes_the_contact_summary(tmp_path) -> N
     for key in ('max_penetration_m', 'rms_penetration_m', 'contact_time_s',
                 'energy_injected_j'):
         assert isinstance(summary[key], float)
-    back = Trace.from_csv(out / 'trace.csv')
+    back = read_trace(out / 'trace.parquet')
     again = simulate(dataclasses.replace(load_scenario('wall'), duration=0.5))
     np.testing.assert_array_equal(back.columns['env_wrench'], again.columns['env_wrench'])
     np.testing.assert_array_equal(back.columns['penetration'], again.columns['penetration'])

@@ -15,6 +15,7 @@ import yaml
 from haptic_topology.errors import ConfigError
 from haptic_topology.paths import config_dir
 from haptic_topology.sim import Trace, load_scenario, simulate
+from haptic_topology.sim.trace_io import iter_trace, read_trace, write_trace
 from haptic_topology.vocabulary import ControlMode
 
 
@@ -66,14 +67,43 @@ def test_fig8_only_eq10_reaches_the_workspace_limit() -> None:
     assert s14['max_distance_m'] < 0.5 * s10['max_distance_m']
 
 
-def test_trace_csv_round_trip(fig6: dict[ControlMode, Trace], tmp_path: Path) -> None:
+@pytest.mark.parametrize('name', ['trace.parquet', 'trace.csv'])
+def test_trace_file_round_trip(fig6: dict[ControlMode, Trace], tmp_path: Path,
+                               name: str) -> None:
     tr = fig6[ControlMode.PENALTY]
-    tr.to_csv(tmp_path / 'trace.csv')
-    back = Trace.from_csv(tmp_path / 'trace.csv')
+    write_trace(tr, tmp_path / name)
+    back = read_trace(tmp_path / name)
     assert back.meta == tr.meta
-    for name, col in tr.columns.items():
-        np.testing.assert_array_equal(back.columns[name], col)
+    np.testing.assert_array_equal(back.t, tr.t)
+    np.testing.assert_array_equal(back.seq, tr.seq)
+    for name_, col in tr.columns.items():
+        np.testing.assert_array_equal(back.columns[name_], col)
+        assert back.columns[name_].dtype.kind == col.dtype.kind
     assert back.summary() == tr.summary()
+    # In chunks (Parquet: row groups) the same rows come back, in order.
+    chunks = list(iter_trace(tmp_path / name, rows=700))
+    assert [len(c) for c in chunks] == ([700, 700, len(tr) - 1400] if name.endswith('parquet')
+                                        else [len(tr)])
+    np.testing.assert_array_equal(Trace.concat(chunks).columns['vt_pose'],
+                                  tr.columns['vt_pose'])
+
+
+def test_parquet_trace_opens_as_a_plain_table(fig6: dict[ControlMode, Trace],
+                                              tmp_path: Path) -> None:
+    """What docs/recording.md tells a user: pyarrow opens the trace, the metadata is the
+    schema's ``haptic_topology`` key, the columns those of the CSV header."""
+    import pyarrow.parquet as pq
+
+    tr = fig6[ControlMode.PENALTY]
+    write_trace(tr, tmp_path / 'trace.parquet')
+    table = pq.read_table(tmp_path / 'trace.parquet')
+    assert table.column_names == tr.header()
+    assert table.num_rows == len(tr)
+    assert json.loads(pq.read_schema(tmp_path / 'trace.parquet').metadata[b'haptic_topology']
+                      ) == tr.meta
+    np.testing.assert_array_equal(table.column('device_pose_0').to_numpy(),
+                                  tr.columns['device_pose'][:, 0])
+    assert str(table.schema.field('status').type) == 'int64'
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
@@ -92,8 +122,9 @@ def test_simulate_command_writes_trace_plot_summary(tmp_path: Path) -> None:
         assert isinstance(summary[key], float)
     assert summary['mode'] == 'acceleration_only' and summary['duration_s'] == 0.5
     assert (out / 'plot.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
-    assert Trace.from_csv(out / 'trace.csv').summary()['final_distance_m'] == pytest.approx(
+    assert read_trace(out / 'trace.parquet').summary()['final_distance_m'] == pytest.approx(
         summary['final_distance_m'])
+    assert not (out / 'trace.csv').exists()
     assert 'final [mm]' in res.stdout and 'acceleration_only' in res.stdout
 
 
@@ -159,8 +190,8 @@ def test_simulate_q0_sets_the_initial_state(tmp_path: Path) -> None:
                 '--q0=0,0.5,-1').returncode == 0
     assert _cli('simulate', str(tmp_path / 'fig8_q.yaml'), '--out', str(b), '--duration',
                 '0.2').returncode == 0
-    assert (a / 'trace.csv').read_bytes() == (b / 'trace.csv').read_bytes()
-    assert (a / 'trace.csv').read_bytes() != b''
+    assert (a / 'trace.parquet').read_bytes() == (b / 'trace.parquet').read_bytes()
+    assert (a / 'trace.parquet').read_bytes() != b''
 
 
 @pytest.mark.parametrize(('mutate', 'expected'), [

@@ -17,6 +17,7 @@ from haptic_topology.model.linkage import linkage_from_dict
 from haptic_topology.paths import resolve_package_uri
 from haptic_topology.sim import Trace, load_scenario, simulate
 from haptic_topology.sim.plots import plot_trace
+from haptic_topology.sim.trace_io import read_trace
 from haptic_topology.vocabulary import ControlMode
 
 PANDA = 'package://example-robot-data/robots/panda_description/urdf/panda.urdf'
@@ -94,5 +95,5 @@ def test_simulate_command_runs_a_spatial_scenario(tmp_path: Path) -> None:
     assert 'first at limit [s]' in res.stdout
     summary = json.loads((tmp_path / 'summary.json').read_text())
     assert summary['linkage'] == 'spatial_arm4' and summary['first_limit_s'] is None
-    tr = Trace.from_csv(tmp_path / 'trace.csv')
+    tr = read_trace(tmp_path / 'trace.parquet')
     assert tr.task_dim == 6 and len(tr) == 301
