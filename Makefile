@@ -22,7 +22,7 @@ export DEMO_CMD
 
 PYTEST_ARGS ?=
 
-.PHONY: help setup setup-tests test test-quick lint typecheck docs pytest demo bench clean colcon-check
+.PHONY: help setup setup-tests test test-quick lint typecheck docs pytest demo bench soak clean colcon-check
 
 help:
 	@echo 'make demo       set up the venv and run the demo'
@@ -33,6 +33,7 @@ help:
 	@echo 'make setup-tests  make setup + what the tests add: Chromium (apt-get), npm ci of test/foxglove_client'
 	@echo 'make lint | typecheck | pytest   one check (assumes setup)'
 	@echo 'make bench      loop, compute and recorder benchmarks -> bench/latest.json'
+	@echo 'make soak       an hour of run circle (SOAK_SECONDS=...): every process'"'"'s memory'
 	@echo 'make colcon-check  colcon (PyPI) builds the repo in a workspace; the nodes run from it'
 	@echo 'make clean      remove .venv and build output'
 	@echo 'scripts/stress_tests.sh N [--busy K] [-- PYTEST_ARGS]   pytest N times, K beside a busy core'
@@ -77,6 +78,12 @@ demo: setup
 # Benchmarks (about 25 min): prints a table, writes bench/latest.json, appends bench/RESULTS.md.
 bench: setup
 	$(BIN)/python bench/run.py
+
+# A long run (SOAK_SECONDS, default an hour) of `run circle`, then `analyze` of its bag: each
+# process's resident set at start and end, peak and slope after the first minute.
+SOAK_SECONDS ?= 3600
+soak: setup
+	$(BIN)/python bench/soak.py --seconds $(SOAK_SECONDS)
 
 # colcon from PyPI in a venv of its own builds a workspace holding this working tree and a node
 # runs from its install space (scripts/colcon_check.sh; measured on the shared 2-core machine

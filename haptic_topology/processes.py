@@ -177,8 +177,9 @@ class RssSampler(Periodic):
                 self.samples.setdefault(name, []).append((t, rss))
 
     def growth(self, series_step: float = 10.0) -> dict[str, dict[str, Any]]:
-        """Per process: ``rss_mb`` (the last sample, MiB), ``growth_kb_s`` (kB/s, 1 kB = 1000
-        bytes), ``from_s`` (the fit's first second) and ``series`` (``[s, MiB]`` pairs at least
+        """Per process: ``rss_mb`` (the last sample, MiB), ``start_mb`` and ``peak_mb`` (the
+        first and the largest sample, MiB), ``growth_kb_s`` (kB/s, 1 kB = 1000 bytes),
+        ``from_s`` (the fit's first second) and ``series`` (``[s, MiB]`` pairs at least
         ``series_step`` s apart); a process with fewer than 3 samples in the fit's window has
         no ``growth_kb_s``."""
         out: dict[str, dict[str, Any]] = {}
@@ -191,6 +192,8 @@ class RssSampler(Periodic):
                 if not series or t - series[-1][0] >= series_step:
                     series.append([round(t, 1), round(r / 2 ** 20, 3)])
             entry: dict[str, Any] = {'rss_mb': round(pts[-1][1] / 2 ** 20, 2),
+                                     'start_mb': round(pts[0][1] / 2 ** 20, 2),
+                                     'peak_mb': round(max(r for _, r in pts) / 2 ** 20, 2),
                                      'from_s': round(since, 1), 'series': series}
             if len(fit) >= 3:
                 tm = sum(t for t, _ in fit) / len(fit)

@@ -4,12 +4,12 @@
 :mod:`haptic_topology.bag.graph_trace` (module doc there: foreign graphs, malformed messages,
 duplicates, states far outside the run, the controller the device driver followed, the
 update admission) and keeps, per message, only what those choices need (sequence numbers,
-stamps, a status bit, the message's position among those of its topic): about 60 bytes a
-device cycle, no decoded message. The result, :class:`BagIndex`, names for every row of the
-trace the state, command and ``VtPath`` messages that fill it (by position), and holds the
-VE's samples (``LmiUpdate``, 100 Hz) the rows interpolate; the second pass
-(:func:`haptic_topology.bag.graph_trace.stream_graph_bag`) decodes only those messages and
-hands the rows on in chunks.
+stamps, a status bit, controller ids): under 40 bytes a device cycle, no decoded message.
+The result, :class:`BagIndex`, says for every row of the trace which messages fill it (the
+first valid state of its seq, the command chosen among those answering it, the ``VtPath``
+poses of its VT hand) and holds the VE's samples (``LmiUpdate``, 100 Hz) the rows
+interpolate; the second pass (:func:`haptic_topology.bag.graph_trace.stream_graph_bag`)
+applies the same checks, fills the rows and hands them on in chunks.
 """
 
 from __future__ import annotations
@@ -98,12 +98,14 @@ class BagIndex:
     dof: int
     contacts: bool
     mode: int
-    #: Per row: the state's seq, the position of its state message (among the state topic's
-    #: messages), of its command (-1: none) and of the ``VtPath`` giving its VT pose (-1).
+    #: Per row: the state's seq; its command (0: none answers it, 1: the first valid one,
+    #: 2: the first from a controller in :attr:`followed`); how many ``VtPath`` poses of the
+    #: previous seq the bag has (the last one read is the row's VT pose).
     seqs: np.ndarray
-    state_pos: np.ndarray
-    command_pos: np.ndarray
-    path_pos: np.ndarray
+    command: np.ndarray
+    paths: np.ndarray
+    #: Controller ids the device driver reported following.
+    followed: set[int]
     #: The stamp (s) of the first row's state (t = 0).
     t0: float
     #: The VE's samples: rows they describe (ascending), their times (s from t0), VT hand
@@ -117,8 +119,6 @@ class BagIndex:
     known_energy: np.ndarray
     #: Whether the bag has VtPath poses (then rows after the first take their VT pose there).
     vt_path: bool
-    #: Per kind, which of its messages the second pass decodes (by position).
-    wanted: dict[str, np.ndarray]
     diagnostics: dict[str, dict[str, str]]
     skipped: dict[str, int]
     graph_id: str
@@ -212,47 +212,45 @@ class _Pass:
         self.m, self.dof, self.admit = m, dof, admit
         self.task = TaskSpace.PLANAR if m == TaskSpace.PLANAR.dim else TaskSpace.SPATIAL
         self.skips: dict[str, dict[str, int]] = {p: {} for p in PHASES}
-        self.count = dict.fromkeys(('state', 'command', 'update', 'path'), 0)
-        self.s_pos, self.s_seq = Column(np.int32), Column(np.int64)
-        self.s_run, self.s_stamp = Column(np.bool_), Column(np.float64)
-        self.c_pos, self.c_seq = Column(np.int32), Column(np.int64)
-        self.c_ctrl, self.c_mode = Column(np.int32), Column(np.int8)
+        self.s_seq, self.s_run, self.s_stamp = (Column(np.int64), Column(np.bool_),
+                                                Column(np.float64))
+        self.c_seq, self.c_ctrl, self.c_mode = Column(np.int64), Column(np.int16), Column(np.int8)
         self.controllers: dict[int, int] = {}
         self.u_seq, self.u_pose = Column(np.int64), Column(np.float64, m)
         self.u_q, self.u_count = Column(np.float64, dof), Column(np.int64)
         self.u_depth, self.u_energy = Column(np.float64), Column(np.float64)
         self.contacts = False
-        self.p_seq, self.p_pos = Column(np.int64), Column(np.int32)
+        self.p_seq = Column(np.int64)
 
     def skip(self, phase: str, key: str, n: int = 1) -> None:
         if n:
             table = self.skips[phase]
             table[key] = table.get(key, 0) + n
 
-    def state(self, pos: int, msg: Any) -> None:
+    def state(self, msg: Any) -> None:
         try:
             check_state(msg, self.m)
         except MessageError as exc:
             self.skip('state', f'state_{exc.reason}')
             return
-        self.s_pos.append(pos)
         self.s_seq.append(int(msg.seq))
         self.s_run.append(not msg.status & WATCHDOG)
         self.s_stamp.append(stamp(msg.header))
 
-    def command(self, pos: int, msg: Any) -> None:
+    def command(self, msg: Any) -> None:
         try:
             check_command(msg, self.m)
         except MessageError as exc:
             self.skip('command', f'command_{exc.reason}')
             return
-        self.c_pos.append(pos)
         self.c_seq.append(int(msg.state_seq))
         ctrl = int(getattr(msg, 'controller_id', 0))
-        self.c_ctrl.append(self.controllers.setdefault(ctrl, len(self.controllers)))
+        # (ids as small numbers; past 32767 distinct controllers, the rest share the last)
+        self.c_ctrl.append(self.controllers.setdefault(ctrl, min(len(self.controllers),
+                                                                  32767)))
         self.c_mode.append(int(msg.mode))
 
-    def update(self, pos: int, msg: Any) -> None:
+    def update(self, msg: Any) -> None:
         try:
             _check_update(msg, self.m, self.dof)
         except MessageError as exc:
@@ -271,7 +269,7 @@ class _Pass:
         self.u_energy.append(float(getattr(msg, 'contact_energy', math.nan)))
         self.contacts |= float(getattr(msg, 'contact_stiffness', 0.0)) > 0.0
 
-    def path(self, pos: int, msg: Any) -> None:
+    def path(self, msg: Any) -> None:
         try:
             _, seqs, _ = check_vt_path(msg, self.m)
         except MessageError as exc:
@@ -279,7 +277,6 @@ class _Pass:
             return
         for s in seqs:
             self.p_seq.append(s)
-            self.p_pos.append(pos)
 
 
 def index_bag(bag: Bag, scenario: str, dof: int | None, task_dim: int | None,
@@ -303,8 +300,6 @@ def index_bag(bag: Bag, scenario: str, dof: int | None, task_dim: int | None,
         topic = raw.topic
         for suffix, kind in KINDS:
             if topic.endswith(suffix):
-                pos = run.count[kind]
-                run.count[kind] += 1
                 try:
                     msg = decode(raw)
                 except BagError:
@@ -313,7 +308,7 @@ def index_bag(bag: Bag, scenario: str, dof: int | None, task_dim: int | None,
                 if not graph.own(msg, suffix.lstrip('/')):
                     run.skip('read', f'{kind}_foreign_graph')
                     break
-                handlers[kind](pos, msg)
+                handlers[kind](msg)
                 break
         else:
             if topic != '/diagnostics':
@@ -335,6 +330,7 @@ def index_bag(bag: Bag, scenario: str, dof: int | None, task_dim: int | None,
                         publishers.setdefault(name, set()).add(topic)
                 if st.name == DEVICE_STATUS and pairs.get('controller_id', '').isdigit():
                     followed.add(int(pairs['controller_id']))
+    followed.discard(0)
     index = _resolve(bag, run, followed)
     index.diagnostics = diags
     index.graph_id = graph.graph_id
@@ -343,55 +339,87 @@ def index_bag(bag: Bag, scenario: str, dof: int | None, task_dim: int | None,
     return index
 
 
+def _first(values: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """``np.unique(values, return_index=True)``; the index None when ``values`` already
+    increase (the bag's usual order: nothing sorted, nothing copied)."""
+    if values.size < 2 or bool(np.all(values[1:] > values[:-1])):
+        return values, None
+    return np.unique(values, return_index=True)
+
+
+def _take(values: np.ndarray, index: np.ndarray | None) -> np.ndarray:
+    return values if index is None else values[index]
+
+
 def _resolve(bag: Bag, run: _Pass, followed: set[int]) -> BagIndex:
     """The choices after the first pass (module doc of graph_trace)."""
     # States: the first valid one of each seq; then the run's group; rows from the first
     # running state on.
-    s_pos, s_seq = run.s_pos.array(), run.s_seq.array()
-    s_run, s_stamp = run.s_run.array(), run.s_stamp.array()
-    seqs, first = np.unique(s_seq, return_index=True)
+    s_seq = run.s_seq.array()
+    seqs, first = _first(s_seq)
     run.skip('state_duplicate', 'state_duplicate', int(s_seq.size - seqs.size))
-    s_pos, s_run, s_stamp = s_pos[first], s_run[first], s_stamp[first]
-    del s_seq, first
-    # Commands: per seq the first valid one, or the first from a controller the device
-    # driver followed when the first is not.
-    c_pos, c_seq = run.c_pos.array(), run.c_seq.array()
-    c_ctrl, c_mode = run.c_ctrl.array(), run.c_mode.array()
-    c_seqs, chosen = np.unique(c_seq, return_index=True)
-    run.skip('command_duplicate', 'command_duplicate', int(c_seq.size - c_seqs.size))
-    followed.discard(0)
-    is_followed = np.isin(c_ctrl, [i for c, i in run.controllers.items() if c in followed])
-    if is_followed.any():
-        f_seqs, f_first = np.unique(c_seq[is_followed], return_index=True)
-        chosen[np.searchsorted(c_seqs, f_seqs)] = np.nonzero(is_followed)[0][f_first]
-    c_pos, c_mode = c_pos[chosen], c_mode[chosen]
-    del c_seq, c_ctrl, chosen, is_followed
-    # VtPath: the last pose given for each seq.
-    p_seq, p_pos = run.p_seq.array()[::-1], run.p_pos.array()[::-1]
-    path_seqs, last = np.unique(p_seq, return_index=True)
-    path_pos = p_pos[last]
-    del p_seq, p_pos, last
+    del s_seq
+    s_run, s_stamp = _take(run.s_run.array(), first), _take(run.s_stamp.array(), first)
+    del first
     foreign = foreign_seqs(seqs, s_run)
-    run.skip('state_foreign_seq', 'state_foreign_seq', int(np.count_nonzero(foreign)))
-    seqs, s_pos, s_run, s_stamp = (a[~foreign] for a in (seqs, s_pos, s_run, s_stamp))
+    if foreign.any():
+        seqs, s_run, s_stamp = seqs[~foreign], s_run[~foreign], s_stamp[~foreign]
     if not s_run.any():
         raise BagError(f'{bag.path}: no device state of a running loop (controller never '
                        'engaged?)')
     i0 = int(np.argmax(s_run))
     k0 = int(seqs[i0])
     bag_states = int(seqs.size)
-    rows_seq, state_pos, row_stamp = seqs[i0:], s_pos[i0:], s_stamp[i0:]
-    del seqs, s_pos, s_run, s_stamp
+    rows_seq, row_stamp = seqs[i0:], s_stamp[i0:]
+    del seqs, s_run, s_stamp
+    n = rows_seq.size
     t0 = float(row_stamp[0])
+    # Commands: per seq the first valid one, or the first from a controller the device
+    # driver followed when the first is not (then the row waits for that one).
+    c_seq = run.c_seq.array()
+    c_seqs, chosen = _first(c_seq)
+    run.skip('command_duplicate', 'command_duplicate', int(c_seq.size - c_seqs.size))
+    c_ctrl = run.c_ctrl.array()
+    is_followed = np.isin(c_ctrl, [i for c, i in run.controllers.items() if c in followed])
+    del c_ctrl
+    late = np.zeros(c_seqs.size, dtype=bool)
+    if is_followed.any() and chosen is not None:
+        f_seqs, f_first = np.unique(c_seq[is_followed], return_index=True)
+        at = np.searchsorted(c_seqs, f_seqs)
+        late[at] = ~is_followed[chosen[at]]
+        chosen[at] = np.nonzero(is_followed)[0][f_first]
+    del c_seq, is_followed
+    c_mode = _take(run.c_mode.array(), chosen)
+    del chosen
     modes = Counter(dict(zip(*(v.tolist() for v in np.unique(c_mode[c_seqs >= k0],
                                                                  return_counts=True)),
                              strict=True)))
     mode = _most_common(modes) if modes else 2
-    n = rows_seq.size
-    command_pos = np.full(n, -1, dtype=np.int32)
-    at = np.minimum(np.searchsorted(c_seqs, rows_seq), max(c_seqs.size - 1, 0))
-    hit = (c_seqs[at] == rows_seq) if c_seqs.size else np.zeros(n, dtype=bool)
-    command_pos[hit] = c_pos[at[hit]]
+    del c_mode
+    command = np.zeros(n, dtype=np.int8)
+    if c_seqs.size:
+        at = np.minimum(np.searchsorted(c_seqs, rows_seq), c_seqs.size - 1)
+        hit = c_seqs[at] == rows_seq
+        command[hit] = np.where(late[at[hit]], 2, 1)
+        del at, hit
+    bag_commands = int(c_seqs.size)
+    del c_seqs, late
+    # VtPath: how many poses each row's VT hand gets (the last one read counts).
+    p_seq = run.p_seq.array()
+    has_path = bool(p_seq.size)
+    if p_seq.size < 2 or bool(np.all(p_seq[1:] > p_seq[:-1])):
+        path_seqs, path_count = p_seq, np.ones(p_seq.size, dtype=np.int64)
+    else:
+        path_seqs, path_count = np.unique(p_seq, return_counts=True)
+    del p_seq
+    paths = np.zeros(n, dtype=np.int16)
+    if path_seqs.size and n > 1:
+        at = np.minimum(np.searchsorted(path_seqs, rows_seq[1:] - 1), path_seqs.size - 1)
+        hit = path_seqs[at] == rows_seq[1:] - 1
+        paths[1:][hit] = np.minimum(path_count[at[hit]], np.iinfo(np.int16).max)
+        del at, hit
+    del path_seqs, path_count
+    run.skip('state_foreign_seq', 'state_foreign_seq', int(np.count_nonzero(foreign)))
     # The VE's samples at known rows (an update that consumed input s describes the row of
     # state s + 1; the initial one, input 0, the first row).
     u_seq = run.u_seq.array()
@@ -407,34 +435,20 @@ def _resolve(bag: Bag, run: _Pass, followed: set[int]) -> BagIndex:
     pick = np.array([known[r] for r in known_rows.tolist()], dtype=np.int64)
     del known
     known_t = row_stamp[known_rows] - t0
-    path_row = np.full(n, -1, dtype=np.int32)
-    if path_seqs.size and n > 1:
-        at = np.minimum(np.searchsorted(path_seqs, rows_seq[1:] - 1), path_seqs.size - 1)
-        hit = path_seqs[at] == rows_seq[1:] - 1
-        path_row[1:][hit] = path_pos[at[hit]]
-    use_path = bool(path_seqs.size) and known_rows.size > 0
+    del row_stamp
+    use_path = has_path and known_rows.size > 0
     if not use_path:
-        path_row[:] = -1
-
-    def wanted(count: int, positions: np.ndarray) -> np.ndarray:
-        mask = np.zeros(count, dtype=bool)
-        mask[positions[positions >= 0]] = True
-        return mask
-
+        paths[:] = 0
     skipped: dict[str, int] = {}
     for phase in PHASES:
         for key, v in run.skips[phase].items():
             skipped[key] = skipped.get(key, 0) + v
     return BagIndex(
         m=run.m, dof=run.dof, contacts=run.contacts, mode=mode, seqs=rows_seq,
-        state_pos=state_pos, command_pos=command_pos, path_pos=path_row, t0=t0,
+        command=command, paths=paths, followed=followed, t0=t0,
         known_rows=known_rows, known_t=known_t, known_pose=run.u_pose.array()[pick],
         known_q=run.u_q.array()[pick], known_count=run.u_count.array()[pick],
         known_depth=run.u_depth.array()[pick], known_energy=run.u_energy.array()[pick],
-        vt_path=use_path,
-        wanted={'state': wanted(run.count['state'], state_pos),
-                'command': wanted(run.count['command'], command_pos),
-                'path': wanted(run.count['path'], path_row)},
-        diagnostics={}, skipped=skipped, graph_id='', foreign_messages={},
-        foreign_publishers={}, bag_states=bag_states, bag_commands=int(c_seqs.size),
+        vt_path=use_path, diagnostics={}, skipped=skipped, graph_id='', foreign_messages={},
+        foreign_publishers={}, bag_states=bag_states, bag_commands=bag_commands,
         update_rate_hz=_update_rate(known_t, known_rows), truncated=bool(bag.truncated))

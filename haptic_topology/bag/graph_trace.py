@@ -58,8 +58,14 @@ from haptic_topology.bag.graph_index import (
     stamp,
 )
 from haptic_topology.bag.reader import Progress, decoder, iter_messages, open_bag, require_types
-from haptic_topology.errors import BagError
-from haptic_topology.messages.check import check_vt_path, env_wrench
+from haptic_topology.errors import BagError, MessageError
+from haptic_topology.messages.check import (
+    GraphFilter,
+    check_command,
+    check_state,
+    check_vt_path,
+    env_wrench,
+)
 from haptic_topology.messages.definitions import type_name
 from haptic_topology.model.linkage import Linkage
 from haptic_topology.sim.trace import Trace
@@ -167,15 +173,21 @@ def stream_graph_bag(path: str | Path, sinks: list[TraceSink], scenario: str = '
         sink.begin(template, n)
     rows = _Rows(index, template, chunk_rows, sinks)
     decode = decoder(bag=bag)
-    count = dict.fromkeys(('state', 'command', 'update', 'path'), 0)
+    graph = GraphFilter(index.graph_id)
+    checks = {'state': check_state, 'command': check_command, 'path': check_vt_path}
     for raw in iter_messages(bag, progress=_scaled(progress, 0.5)):
         for suffix, kind in KINDS:
             if raw.topic.endswith(suffix):
-                pos = count[kind]
-                count[kind] += 1
-                wanted = index.wanted.get(kind)
-                if wanted is not None and pos < wanted.size and wanted[pos]:
-                    rows.fill(kind, pos, decode(raw))
+                if kind == 'update':
+                    break
+                # The first pass's checks again (their counts are the first pass's).
+                try:
+                    msg = decode(raw)
+                    if graph.own(msg, suffix):
+                        checks[kind](msg, index.m)
+                        rows.fill(kind, msg)
+                except (BagError, MessageError):
+                    pass
                 break
     rows.finish(bag.path)
     for sink in sinks:
@@ -207,9 +219,12 @@ class _Rows:
                  sinks: list[TraceSink]) -> None:
         self.index, self.template, self.size, self.sinks = index, template, size, sinks
         self.n = int(index.seqs.size)
-        #: Messages each row still waits for: its state, command and VtPath pose.
-        self.pieces = (1 + (index.command_pos >= 0).astype(np.int64)
-                       + (index.path_pos >= 0).astype(np.int64))
+        #: Per row: its state not yet read; its command (0: none to come, 1: the first valid
+        #: one, 2: a followed controller's, which replaces the first valid one, 3: the same
+        #: once the first has come); VtPath poses to come.
+        self.state = np.ones(self.n, dtype=bool)
+        self.command = index.command.copy()
+        self.paths = index.paths.copy()
         self.chunks: dict[int, _Chunk] = {}
         self.next = 0
         self.in_time = self.pairs = 0
@@ -222,18 +237,28 @@ class _Rows:
         if chunk is None:
             start = c * self.size
             end = min(start + self.size, self.n)
+            index = self.index      # (what the rows take in all, not what is left)
             chunk = _Chunk(start, end - start, self.template,
-                           int(self.pieces[start:end].sum()))
+                           int(end - start + np.count_nonzero(index.command[start:end])
+                               + index.paths[start:end].astype(np.int64).sum()))
             self.chunks[c] = chunk
         return chunk, row - chunk.start
 
     def _row(self, seq: int) -> int:
-        return int(np.searchsorted(self.index.seqs, seq))
+        """The row of state ``seq``, -1 if none."""
+        row = int(np.searchsorted(self.index.seqs, seq))
+        return row if row < self.n and int(self.index.seqs[row]) == seq else -1
 
-    def fill(self, kind: str, pos: int, msg: Any) -> None:
+    def fill(self, kind: str, msg: Any) -> None:
+        """A message that passed the first pass's checks: into its row if the row takes it
+        (module doc: the first valid state of a seq, the chosen command, every VtPath pose
+        of the previous seq, the last one read counting)."""
         index = self.index
         if kind == 'state':
             row = self._row(int(msg.seq))
+            if row < 0 or not self.state[row]:
+                return
+            self.state[row] = False
             chunk, j = self._chunk(row)
             st = stamp(msg.header)
             chunk.trace.record(j, t=st - index.t0, device_pose=msg.pose,
@@ -244,6 +269,12 @@ class _Rows:
             self._done(chunk)
         elif kind == 'command':
             row = self._row(int(msg.state_seq))
+            want = int(self.command[row]) if row >= 0 else 0
+            followed = int(getattr(msg, 'controller_id', 0)) in index.followed
+            if want == 0 or (want == 3 and not followed):
+                return      # none wanted, or a duplicate that does not replace the first
+            # 1: the first valid one; 2, 3: the first followed one (before it: the first)
+            self.command[row] = 0 if want == 1 or followed else 3
             chunk, j = self._chunk(row)
             tr = chunk.trace
             tr.columns['command'][j] = msg.wrench
@@ -253,19 +284,17 @@ class _Rows:
                 env = env_wrench(msg, index.m)
                 tr.columns['env_wrench'][j] = np.zeros(index.m) if env is None else env
             chunk.command_stamp[j] = stamp(msg.header)
-            self._done(chunk)
-        elif kind == 'path':
+            if self.command[row] == 0:
+                self._done(chunk)
+        elif kind == 'path' and index.vt_path:
             _, seqs, poses = check_vt_path(msg, index.m)
-            done: set[int] = set()
             for s, pose in zip(seqs, poses, strict=True):
                 row = self._row(s + 1)
-                if 1 <= row < self.n and int(index.seqs[row]) == s + 1 \
-                        and index.path_pos[row] == pos:
+                if row >= 1 and self.paths[row] > 0:
+                    self.paths[row] -= 1
                     chunk, j = self._chunk(row)
                     chunk.path[j] = pose
-                    if row not in done:
-                        done.add(row)
-                        self._done(chunk)
+                    self._done(chunk)
 
     def _done(self, chunk: _Chunk) -> None:
         chunk.left -= 1

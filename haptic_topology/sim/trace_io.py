@@ -1,6 +1,7 @@
 """Trace files: ``trace.parquet`` (the default) and ``trace.csv``, written as the rows come.
 
-A trace file holds one row per device cycle, in the columns of :meth:`Trace.header`
+A trace file holds one row per device cycle, in the columns of
+:meth:`~haptic_topology.sim.trace.Trace.header`
 (``t``, ``seq``, ``device_pose_0``, ..., ``status``; floats as float64, ``seq`` and the counts
 as int64) and the trace's metadata (``mode``, ``scenario``, ``task_dim``, ``dof``, ...):
 
@@ -12,15 +13,17 @@ as int64) and the trace's metadata (``mode``, ``scenario``, ``task_dim``, ``dof`
 * CSV: the metadata as a one-line JSON comment (``# {...}``), then the header row, then the
   rows (``repr`` of each float: exact).
 
-:class:`TraceWriter` writes either, chunk by chunk (:class:`~haptic_topology.sim.trace_stats.
-TraceSink`), so a trace of any length is written in bounded memory; :func:`iter_trace` reads a
-file back chunk by chunk and :func:`read_trace` whole.
+:class:`TraceWriter` writes either, chunk by chunk (a
+:class:`~haptic_topology.sim.trace_stats.TraceSink`), so a trace of any length is written in
+bounded memory; :func:`iter_trace` reads a file back chunk by chunk and :func:`read_trace`
+whole.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -56,11 +59,12 @@ def _is_int(name: str) -> bool:
 
 
 class TraceWriter:
-    """Writes the chunks of one trace to ``path`` (``.parquet`` or ``.csv``, see module doc):
+    """Writes the chunks of one trace to ``path`` in the format ``fmt`` (``parquet`` or
+    ``csv``; None: CSV if the name ends in ``.csv``, else Parquet; see module doc):
     :meth:`begin` with a row-less trace holding the metadata, :meth:`add` per chunk,
     :meth:`end` closes the file."""
 
-    def __init__(self, path: str | Path, fmt: str | None = None) -> None:
+    def __init__(self, path: str | os.PathLike[str], fmt: str | None = None) -> None:
         self.path = Path(path)
         self.fmt = fmt or ('csv' if self.path.suffix == '.csv' else 'parquet')
         if self.fmt not in FORMATS:
@@ -71,6 +75,7 @@ class TraceWriter:
         self._ints: list[bool] = []
 
     def begin(self, template: Trace, rows: int = 0) -> None:
+        """Open the file: the columns and metadata of ``template`` (``rows``: unused)."""
         names = [name for name, _ in _blocks(template)]
         self._ints = [_is_int(n) for n in names]
         if self.fmt == 'csv':
@@ -87,6 +92,7 @@ class TraceWriter:
         self._parquet = pq.ParquetWriter(str(self.path), schema)
 
     def add(self, chunk: Trace) -> None:
+        """Write the next rows (Parquet: one row group)."""
         blocks = _blocks(chunk)
         if self._csv is not None:
             table = np.column_stack([b.astype(float) for _, b in blocks]) if blocks else None
@@ -102,6 +108,7 @@ class TraceWriter:
         self._parquet.write_table(pa.Table.from_arrays(arrays, schema=self._parquet.schema))
 
     def end(self) -> None:
+        """Close the file."""
         if self._csv is not None:
             self._csv.close()
             self._csv = None
@@ -110,7 +117,7 @@ class TraceWriter:
             self._parquet = None
 
 
-def write_trace(trace: Trace, path: str | Path, fmt: str | None = None) -> Path:
+def write_trace(trace: Trace, path: str | Path, fmt: str | None = None) -> None:
     """Write all of ``trace`` to ``path`` in ``fmt`` (``parquet`` or ``csv``; None: CSV if
     the name ends in ``.csv``, else Parquet)."""
     writer = TraceWriter(path, fmt)
@@ -118,7 +125,6 @@ def write_trace(trace: Trace, path: str | Path, fmt: str | None = None) -> Path:
     for start in range(0, len(trace), CHUNK_ROWS):
         writer.add(trace.take(np.arange(start, min(start + CHUNK_ROWS, len(trace)))))
     writer.end()
-    return writer.path
 
 
 def empty_trace(meta: dict[str, Any], rows: int = 0) -> Trace:

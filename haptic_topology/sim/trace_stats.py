@@ -2,14 +2,14 @@
 bounded memory: the trace's rows pass once, in order, and only compact per-row figures
 (a float or two a row) are kept.
 
-A :class:`TraceSink` gets :meth:`~TraceSink.begin` with a row-less trace holding the metadata
-and the number of rows to come, then :meth:`~TraceSink.add` per chunk (a :class:`Trace` of
-consecutive rows), then :meth:`~TraceSink.end`. The sinks here:
+A :class:`TraceSink` gets ``begin`` with a row-less trace holding the metadata and the number
+of rows to come, then ``add`` per chunk (a :class:`~haptic_topology.sim.trace.Trace` of
+consecutive rows), then ``end``. The sinks here:
 
 * :class:`Summary`: the drift figures (:class:`~haptic_topology.sim.trace.SummaryStats`,
-  the figures of :meth:`Trace.summary` to the last bit);
+  the figures of :meth:`~haptic_topology.sim.trace.Trace.summary` to the last bit);
 * :class:`PeriodStats`: the device period p50/p99/std (ms) from the row times;
-* :class:`PlotRows`: the rows a plot draws (:func:`plot_rows`);
+* :class:`PlotRows`: the rows a plot draws;
 * :class:`~haptic_topology.sim.trace_io.TraceWriter`: the trace file.
 """
 
@@ -23,7 +23,8 @@ import numpy as np
 
 from haptic_topology.sim.trace import SummaryStats, Trace
 
-#: A trace of at most this many rows is plotted whole; a longer one from :func:`plot_rows`.
+#: A trace of at most this many rows is plotted whole; a longer one as :class:`PlotRows`
+#: samples it.
 PLOT_ROWS = 100_000
 
 
@@ -49,7 +50,8 @@ def feed(chunks: Iterable[Trace], template: Trace, rows: int, sinks: list[Any]) 
 
 
 class Summary:
-    """The drift figures of the trace (:meth:`Trace.summary`): :attr:`stats`."""
+    """The drift figures of the trace (:meth:`~haptic_topology.sim.trace.Trace.summary`,
+    :meth:`result`)."""
 
     def __init__(self) -> None:
         self.stats = SummaryStats()
@@ -158,7 +160,7 @@ def _levels(chunk: Trace) -> np.ndarray:
 
 
 class PlotRows:
-    """The rows a plot of the trace draws (:attr:`trace` after :meth:`end`): all of them when
+    """The rows a plot of the trace draws (``trace``, after ``end``): all of them when
     there are at most :data:`PLOT_ROWS`; else, in buckets of ``ceil(rows / PLOT_ROWS)`` rows,
     the first row of each bucket and the rows of the smallest and the largest value of each
     drawn time series (drift; with contacts, ``F_env``, the wrench norms and the penetration),

@@ -53,6 +53,9 @@ def test_growth_is_the_slope_after_the_settling_time() -> None:
     assert g['a']['from_s'] == RSS_SETTLE
     assert g['a']['rss_mb'] == round(pts[-1][1] / 2 ** 20, 2)
     assert 'growth_kb_s' not in g['b'] and g['b']['rss_mb'] == 1.0
+    # first and largest sample (a bump in the middle is the peak)
+    s.samples['c'] = [(0.0, 3 << 20), (1.0, 5 << 20), (2.0, 4 << 20)]
+    assert (s.growth()['c']['start_mb'], s.growth()['c']['peak_mb']) == (3.0, 5.0)
 
 
 def test_a_short_run_is_fitted_over_its_second_half() -> None:
