@@ -50,16 +50,12 @@ def soak_run(seconds: float, out: Path, scenario: str) -> dict[str, dict[str, An
     proc = subprocess.Popen(cmd)
     graph: list[tuple[float, int]] = []     # run's samples while its nodes run
     whole: list[tuple[float, int]] = []
-    seen_nodes = False
     while proc.poll() is None:
         t = time.monotonic() - started
         rss = rss_bytes(proc.pid)
         if rss is not None:
             whole.append((t, rss))
-            if children(proc.pid):
-                seen_nodes = True
-                graph.append((t, rss))
-            elif not seen_nodes:
+            if children(proc.pid):      # (from its first node on: its start-up left out)
                 graph.append((t, rss))
         time.sleep(1.0)
     if proc.wait() != 0:

@@ -22,9 +22,9 @@ period p50/p99 and its standard deviation, from the state stamps). It writes int
 
 Reading a large bag shows a progress line on stderr (when stderr is a terminal, or the bag
 is larger than 20 MB). Inputs are read as a stream, one after the other: the memory used
-does not grow with a run's length but for a few bytes a device cycle (the figures that need
+does not grow with a run's length but for about 60 bytes a device cycle (the figures that need
 every row, such as the median period and the RMS drift, keep one float per row), and a plot
-draws at most :data:`~haptic_topology.sim.trace_stats.PLOT_ROWS` rows of a longer run
+draws at most :data:`~haptic_topology.sim.trace_stats.PLOT_ROWS` buckets of a longer run
 (:class:`~haptic_topology.sim.trace_stats.PlotRows`: the envelope of each curve, every step).
 """
 
@@ -144,7 +144,7 @@ def reduce_bag(path: str | Path, scenario: str = '', dof: int | None = None,
     files ``traces`` (``.parquet``, ``.csv``), written as the rows come."""
     p = Path(path)
     summary, period, rows = Summary(), PeriodStats(), PlotRows()
-    sinks: list[Any] = [summary, period] + ([rows] if plot else [])
+    sinks: list[Any] = [summary] + ([period] if periods else []) + ([rows] if plot else [])
     sinks += [TraceWriter(f) for f in traces]
     result = stream_graph_bag(p, sinks, scenario, dof, progress, task_dim, linkage)
     loop = dict(result.loop)

@@ -55,7 +55,7 @@ KINDS = ((vocab.TOPIC_STATE, 'state'), (vocab.TOPIC_COMMAND, 'command'),
 #: ``skipped``): while reading, then the checks of each kind, then the foreign seqs.
 PHASES = ('read', 'state', 'state_duplicate', 'command', 'command_duplicate', 'update',
           'update_admission', 'path', 'state_foreign_seq')
-_BLOCK = 65_536
+_FIRST, _BLOCK = 1024, 65_536
 
 
 def stamp(header: Any) -> float:
@@ -64,22 +64,22 @@ def stamp(header: Any) -> float:
 
 
 class Column:
-    """A numpy column growing by blocks (no Python object per value)."""
+    """A numpy column growing by blocks (no Python object per value): the first of
+    :data:`_FIRST` values, each next one twice as large, up to :data:`_BLOCK`."""
 
     def __init__(self, dtype: Any, width: int | None = None) -> None:
         self.dtype, self.width = dtype, width
         self.blocks: list[np.ndarray] = []
-        self.cur = self._new()
+        self.cur = self._new(_FIRST)
         self.n = 0
 
-    def _new(self) -> np.ndarray:
-        shape = (_BLOCK,) if self.width is None else (_BLOCK, self.width)
-        return np.empty(shape, self.dtype)
+    def _new(self, size: int) -> np.ndarray:
+        return np.empty((size,) if self.width is None else (size, self.width), self.dtype)
 
     def append(self, value: Any) -> None:
-        if self.n == _BLOCK:
+        if self.n == len(self.cur):
             self.blocks.append(self.cur)
-            self.cur, self.n = self._new(), 0
+            self.cur, self.n = self._new(min(2 * len(self.cur), _BLOCK)), 0
         self.cur[self.n] = value
         self.n += 1
 

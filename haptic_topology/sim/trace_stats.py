@@ -25,7 +25,7 @@ from haptic_topology.sim.trace import SummaryStats, Trace
 
 #: A trace of at most this many rows is plotted whole; a longer one as :class:`PlotRows`
 #: samples it.
-PLOT_ROWS = 100_000
+PLOT_ROWS = 50_000
 
 
 class TraceSink(Protocol):
