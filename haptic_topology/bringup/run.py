@@ -440,8 +440,8 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
                params: Path, scenario_ref: str, layout: str, overrides: list[str],
                loop_cpu_auto: bool) -> int:
     """:func:`run`'s runs, one per mode, on the domain it has claimed."""
-    from haptic_topology.bag.analyze import reduce_bag
     from haptic_topology.bag.graph_trace import format_loop
+    from haptic_topology.bringup.analysis import AnalysisJob, analyse_in_child
     from haptic_topology.sim.trace import format_summary
 
     summaries = []
@@ -456,46 +456,12 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
                                                                args.foxglove),
                   node_prefix=node_prefixes(args.node_prefix, layout),
                   overrides=overrides, claim=False, loop_cpu_auto=loop_cpu_auto)
-        traces = (bag / 'trace.parquet',) + ((bag / 'trace.csv',) if args.csv else ())
-        result = reduce_bag(bag, sc.name, sc.lmi_dof, sc.linkage.task.dim, sc.linkage,
-                            traces, plot=not args.no_plot)
-        summary = dict(result.summary, **{k: v for k, v in result.loop.items()})
-        summary['layout'] = layout
-        summary['skipped_messages'] = dict(result.skipped)
-        summary['graph_id'] = result.graph_id
-        summary['foreign_messages'] = result.foreign_messages
-        summary['foreign_publishers'] = result.foreign_publishers
-        if result.foreign_publishers:
-            print(f'foreign publishers on the graph\'s topics (nothing of theirs applied): '
-                  f'{", ".join(result.foreign_publishers)}', flush=True)
-        if result.skipped:
-            print(f'skipped {sum(result.skipped.values())} foreign or malformed messages in '
-                  f'the bag: {result.skipped}', flush=True)
-        cpu_file = bag / 'logs' / 'cpu.json'
-        if cpu_file.is_file():
-            summary.update({f'cpu_{name}': v for name, v in
-                            json.loads(cpu_file.read_text(encoding='utf-8')).items()})
-        auto_file = bag / 'logs' / 'loop_cpu.json'
-        if auto_file.is_file():
-            summary['loop_cpu_changes'] = json.loads(auto_file.read_text(encoding='utf-8'))
-        rss_file = bag / 'logs' / 'rss.json'
-        if rss_file.is_file():
-            for name, m in json.loads(rss_file.read_text(encoding='utf-8')).items():
-                summary[f'rss_mb_{name}'] = m['rss_mb']
-                if 'growth_kb_s' in m:
-                    summary[f'rss_growth_kb_s_{name}'] = m['growth_kb_s']
-        (bag / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n',
-                                          encoding='utf-8')
-        if not args.no_plot:
-            from haptic_topology.sim.plots import plot_trace
-
-            plot_trace(result.plot, bag / 'plot.png', sc.linkage,
-                       title=f'{sc.name} {mode} (ROS graph)',
-                       obstacles=sc.contacts.obstacles if sc.contacts else ())
-            print(f'plot: {bag / "plot.png"}')
+        # The bag is read in a process of its own: this one has watched the graph.
+        result = analyse_in_child(AnalysisJob(bag, sc, mode, layout, args.csv,
+                                              not args.no_plot, bag / 'logs' / 'result.json'))
         print(f'bag: {bag}', flush=True)
-        summaries.append(summary)
-        loops.append((f'{sc.name} {mode}', result.loop))
+        summaries.append(result['summary'])
+        loops.append((f'{sc.name} {mode}', result['loop']))
     print()
     print(format_summary(summaries))
     print()

@@ -85,8 +85,9 @@ def write_synthetic_bag(path: Path, cycles: int) -> Path:
     ts = typestore_with_haptic_msgs()
     tpl = _templates()
     names = list(TOPICS)
+    custom = (open_bag(REFERENCE).metadata or {}).get('custom_data') or {}
     w = BagWriter(path, [TopicSpec(t, TOPICS[t], (make_qos(False, 1),)) for t in names], ts,
-                  sources=message_definitions())
+                  sources=message_definitions(), custom=custom)     # the messages' graph id
     angle = np.linspace(0.0, 2.0 * math.pi, cycles)
     for k in range(1, cycles + 1):
         ns = 1_000_000_000 + k * 1_000_000
