@@ -67,21 +67,124 @@ def device_status(bits: int) -> DeviceStatus:
     return status
 
 
+class Axis(enum.Enum):
+    """One axis of a device in the world frame: a translation (force along it) or a rotation
+    (torque about it). What a task needs (:attr:`TaskSpace.axes`) and what a device backend
+    senses and actuates (``haptic_topology.device.backend.DeviceAxes``) are sets of these."""
+
+    X = 'x'
+    Y = 'y'
+    Z = 'z'
+    RX = 'rx'
+    RY = 'ry'
+    RZ = 'rz'
+
+    @property
+    def rotation(self) -> bool:
+        return self in (Axis.RX, Axis.RY, Axis.RZ)
+
+    @property
+    def label(self) -> str:
+        """``force along x`` / ``torque about z``: how a message names the axis."""
+        return f'torque about {self.value[1]}' if self.rotation else f'force along {self.value}'
+
+
+#: Every axis, translations first.
+ALL_AXES: frozenset[Axis] = frozenset(Axis)
+
+
+def axes_text(axes: frozenset[Axis] | set[Axis]) -> str:
+    """``x, y, z forces and torque about z``: a set of axes in one phrase (world order)."""
+    forces = [a.value for a in Axis if a in axes and not a.rotation]
+    torques = [a.value[1] for a in Axis if a in axes and a.rotation]
+    parts = []
+    if forces:
+        parts.append(f'{", ".join(forces)} force{"s" if len(forces) > 1 else ""}')
+    if torques:
+        parts.append(f'torque{"s" if len(torques) > 1 else ""} about {", ".join(torques)}')
+    return ' and '.join(parts) if parts else 'nothing'
+
+
 class TaskSpace(enum.Enum):
-    """Dimension of the hand's rigid-body motion: planar (3-DOF) or spatial (6-DOF)."""
+    """What the hand holds and how it moves: the task vectors' layout and size ``m``.
+
+    A rigid grasp holds the link's frame: ``planar`` (x, y, theta; m = 3) or ``spatial``
+    (x, y, z and a rotation vector; m = 6). A point grasp holds the link at a point through
+    a pin (``planar_point``: x, y; m = 2) or a ball joint (``spatial_point``: x, y, z; m = 3):
+    the link turns freely about that point, so the task has the translation rows only, the
+    hand wrench is a force and ``J_h`` is the translational rows of the grasp frame's
+    Jacobian.
+    """
 
     PLANAR = 'planar'
     SPATIAL = 'spatial'
+    PLANAR_POINT = 'planar_point'
+    SPATIAL_POINT = 'spatial_point'
+
+    @property
+    def planar(self) -> bool:
+        """Whether the linkage moves in the world xy plane (``planar``, ``planar_point``)."""
+        return self in (TaskSpace.PLANAR, TaskSpace.PLANAR_POINT)
+
+    @property
+    def point(self) -> bool:
+        """Whether the hand holds a point (no rotation rows): ``planar_point``,
+        ``spatial_point``."""
+        return self in (TaskSpace.PLANAR_POINT, TaskSpace.SPATIAL_POINT)
 
     @property
     def dim(self) -> int:
-        """Task dimension m: 3 planar (vx, vy, wz), 6 spatial (vx, vy, vz, wx, wy, wz)."""
-        return 3 if self is TaskSpace.PLANAR else 6
+        """Task dimension m: 3 planar (vx, vy, wz), 6 spatial (vx, vy, vz, wx, wy, wz),
+        2 planar_point (vx, vy), 3 spatial_point (vx, vy, vz)."""
+        return _TASK_DIMS[self]
 
     @property
     def translation_rows(self) -> slice:
         """Rows of a task vector that are translations (m, m/s, N); the others are rotations."""
-        return slice(0, 2) if self is TaskSpace.PLANAR else slice(0, 3)
+        return slice(0, 2) if self.planar else slice(0, 3)
+
+    @property
+    def rotation_dim(self) -> int:
+        """Number of rotation rows: 1 planar (theta), 3 spatial (a rotation vector), 0 for a
+        point grasp. The compiled pose arithmetic dispatches on it."""
+        return self.dim - (2 if self.planar else 3)
+
+    @property
+    def frame_rows(self) -> tuple[int, ...]:
+        """Rows of a 6-row frame Jacobian / wrench ``(v, w)`` (world-aligned at the grasp
+        point) that make up the task: planar (0, 1, 5), spatial 0-5, planar_point (0, 1),
+        spatial_point (0, 1, 2)."""
+        return _FRAME_ROWS[self]
+
+    @property
+    def axes(self) -> tuple[Axis, ...]:
+        """The device axes the task needs, one per row of its task vectors."""
+        return tuple(_AXIS_BY_ROW[r] for r in self.frame_rows)
+
+    @property
+    def rigid(self) -> TaskSpace:
+        """The rigid grasp of the same space (``planar_point`` -> ``planar``)."""
+        return TaskSpace.PLANAR if self.planar else TaskSpace.SPATIAL
+
+    @property
+    def point_grasp(self) -> TaskSpace:
+        """The point grasp of the same space (``planar`` -> ``planar_point``)."""
+        return TaskSpace.PLANAR_POINT if self.planar else TaskSpace.SPATIAL_POINT
+
+    @classmethod
+    def for_dim(cls, m: int) -> TaskSpace:
+        """The rigid task of dimension ``m`` (3 planar, 6 spatial): what a message of
+        ``task_dim`` m was recorded with before point grasps existed."""
+        return TaskSpace.PLANAR if m == TaskSpace.PLANAR.dim else TaskSpace.SPATIAL
+
+
+_TASK_DIMS = {TaskSpace.PLANAR: 3, TaskSpace.SPATIAL: 6, TaskSpace.PLANAR_POINT: 2,
+              TaskSpace.SPATIAL_POINT: 3}
+_FRAME_ROWS = {TaskSpace.PLANAR: (0, 1, 5), TaskSpace.SPATIAL: (0, 1, 2, 3, 4, 5),
+               TaskSpace.PLANAR_POINT: (0, 1), TaskSpace.SPATIAL_POINT: (0, 1, 2)}
+_AXIS_BY_ROW = (Axis.X, Axis.Y, Axis.Z, Axis.RX, Axis.RY, Axis.RZ)
+#: The task names a linkage or scenario file may give (``task:``).
+TASK_NAMES: tuple[str, ...] = tuple(t.value for t in TaskSpace)
 
 
 class Clock(enum.Enum):

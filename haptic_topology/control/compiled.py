@@ -12,9 +12,10 @@ Why compiled: in Python the controller's cycle is about 40 numpy calls on 3- and
 (about 1 us each on a 2-core machine) and the 1 kHz loop's budget is the millisecond. Each
 function here is one call from Python, and works in place on arrays the caller owns.
 
-Vectors are task vectors at the hand (m = 3 planar, 6 spatial; layouts in
-:mod:`haptic_topology.dynamics.taskspace`), matrices m x m unless stated; units as in
-:mod:`haptic_topology.control.laws`.
+Vectors are task vectors at the hand (m = 3 planar, 6 spatial, 2 or 3 for a point grasp;
+layouts in :mod:`haptic_topology.dynamics.taskspace`), matrices m x m unless stated; units as
+in :mod:`haptic_topology.control.laws`. ``law`` and ``force_step`` tell a rigid grasp's task
+by the vectors' size; ``task_law`` and ``task_force_step`` take the task's rotation rows.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import math
 import numpy as np
 from numba import boolean, float64, int64, njit, void
 
-from haptic_topology.dynamics.compiled import MAT, VEC, integrate_pose, pose_difference
+from haptic_topology.dynamics.compiled import MAT, VEC, integrate_pose, task_pose_difference
 
 #: ``law`` modes, as ``ControlMode`` values (eq. 14, eq. 10, zero).
 PENALTY = 0
@@ -102,15 +103,17 @@ def lmi_replay(accel_map: np.ndarray, accel_bias: np.ndarray, jacobian: np.ndarr
     return consumed
 
 
-@njit(void(int64, boolean, MAT, MAT, MAT, MAT, VEC, VEC, float64, float64,
+@njit(void(int64, int64, boolean, MAT, MAT, MAT, MAT, VEC, VEC, float64, float64,
            VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC), cache=True)
-def law(mode: int, vt_coupling: bool, ml: np.ndarray, m_d: np.ndarray, c_d: np.ndarray,
-        projector: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray, k_tc: float, b_tc: float,
-        x_vt: np.ndarray, xd_vt: np.ndarray, x_h: np.ndarray, xd_h: np.ndarray,
-        f_h: np.ndarray, f_env: np.ndarray, u: np.ndarray, f_pc: np.ndarray,
-        f_vt: np.ndarray) -> None:
+def task_law(rotation_dim: int, mode: int, vt_coupling: bool, ml: np.ndarray, m_d: np.ndarray,
+             c_d: np.ndarray, projector: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray,
+             k_tc: float, b_tc: float, x_vt: np.ndarray, xd_vt: np.ndarray, x_h: np.ndarray,
+             xd_h: np.ndarray, f_h: np.ndarray, f_env: np.ndarray, u: np.ndarray,
+             f_pc: np.ndarray, f_vt: np.ndarray) -> None:
     """The device wrench ``u`` of ``mode`` (eq. 14, eq. 10, or zero), the coordination
-    wrench ``f_pc`` and the VT's wrench ``f_vt``, written into the three m-vectors::
+    wrench ``f_pc`` and the VT's wrench ``f_vt``, written into the three m-vectors, for a
+    task with ``rotation_dim`` rotation rows (``TaskSpace.rotation_dim``: 0 for a point
+    grasp, whose pose error is a difference of points)::
 
         e = x_vt (-) x_h;  edot = xd_vt - xd_h
         F_pc = K_pc e + B_pc edot                                         (eqs. 15-16)
@@ -124,7 +127,7 @@ def law(mode: int, vt_coupling: bool, ml: np.ndarray, m_d: np.ndarray, c_d: np.n
     ``b_d = k_d = 0`` (eq. 4 as in the paper)."""
     m = x_h.size
     e = np.empty(m)
-    pose_difference(x_vt, x_h, e)
+    task_pose_difference(x_vt, x_h, rotation_dim, e)
     edot = np.empty(m)
     for i in range(m):
         edot[i] = xd_vt[i] - xd_h[i]
@@ -155,10 +158,23 @@ def law(mode: int, vt_coupling: bool, ml: np.ndarray, m_d: np.ndarray, c_d: np.n
             u[i] = u[i] + a[i]
 
 
-@njit(float64(MAT, MAT, VEC, VEC, float64, float64, VEC, VEC, VEC, VEC), cache=True)
-def force_step(m_d: np.ndarray, projector: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray,
-               k_tc: float, b_tc: float, pose: np.ndarray, twist: np.ndarray,
-               vt_pose: np.ndarray, vt_twist: np.ndarray) -> float:
+@njit(void(int64, boolean, MAT, MAT, MAT, MAT, VEC, VEC, float64, float64,
+           VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC), cache=True)
+def law(mode: int, vt_coupling: bool, ml: np.ndarray, m_d: np.ndarray, c_d: np.ndarray,
+        projector: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray, k_tc: float, b_tc: float,
+        x_vt: np.ndarray, xd_vt: np.ndarray, x_h: np.ndarray, xd_h: np.ndarray,
+        f_h: np.ndarray, f_env: np.ndarray, u: np.ndarray, f_pc: np.ndarray,
+        f_vt: np.ndarray) -> None:
+    """:func:`task_law` of a rigid grasp, told by the size (3 planar, 6 spatial)."""
+    task_law(1 if x_h.size == 3 else 3, mode, vt_coupling, ml, m_d, c_d, projector, k_pc,
+             b_pc, k_tc, b_tc, x_vt, xd_vt, x_h, xd_h, f_h, f_env, u, f_pc, f_vt)
+
+
+@njit(float64(int64, MAT, MAT, VEC, VEC, float64, float64, VEC, VEC, VEC, VEC), cache=True)
+def task_force_step(rotation_dim: int, m_d: np.ndarray, projector: np.ndarray,
+                    k_pc: np.ndarray, b_pc: np.ndarray, k_tc: float, b_tc: float,
+                    pose: np.ndarray, twist: np.ndarray, vt_pose: np.ndarray,
+                    vt_twist: np.ndarray) -> float:
     """The largest component (N or N m) of the step in force that moving the VT hand from
     ``vt_pose``, ``vt_twist`` to ``pose``, ``twist`` gives eq. 14, bounded term by term::
 
@@ -168,7 +184,7 @@ def force_step(m_d: np.ndarray, projector: np.ndarray, k_pc: np.ndarray, b_pc: n
     (the coordination wrench of eqs. 15-16 and the penalty of eq. 13; ``projector`` P)."""
     m = pose.size
     dx = np.empty(m)
-    pose_difference(pose, vt_pose, dx)
+    task_pose_difference(pose, vt_pose, rotation_dim, dx)
     dv = np.empty(m)
     s = np.empty(m)
     for i in range(m):
@@ -183,3 +199,12 @@ def force_step(m_d: np.ndarray, projector: np.ndarray, k_pc: np.ndarray, b_pc: n
     for i in range(m):
         top = max(top, k_pc[i] * dx[i] + b_pc[i] * dv[i] + abs(pen[i]))
     return top
+
+
+@njit(float64(MAT, MAT, VEC, VEC, float64, float64, VEC, VEC, VEC, VEC), cache=True)
+def force_step(m_d: np.ndarray, projector: np.ndarray, k_pc: np.ndarray, b_pc: np.ndarray,
+               k_tc: float, b_tc: float, pose: np.ndarray, twist: np.ndarray,
+               vt_pose: np.ndarray, vt_twist: np.ndarray) -> float:
+    """:func:`task_force_step` of a rigid grasp, told by the size (3 planar, 6 spatial)."""
+    return task_force_step(1 if pose.size == 3 else 3, m_d, projector, k_pc, b_pc, k_tc, b_tc,
+                           pose, twist, vt_pose, vt_twist)

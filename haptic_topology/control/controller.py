@@ -69,9 +69,10 @@ class HapticController:
             raise ValueError('gains.b_d and gains.k_d (eq. 4) must be zero: the controller '
                              'renders the VT with b_d = k_d = 0, as the paper does')
         # Imported here, as in LocalModel.__init__: loading the compiled code costs ~1 s.
-        from haptic_topology.control.compiled import force_step, law
-        self._law, self._force_step = law, force_step
+        from haptic_topology.control.compiled import task_force_step, task_law
+        self._law, self._force_step = task_law, task_force_step
         self.task = task
+        self._rot = task.rotation_dim
         self.mode = mode
         self.gains = gains
         self.m_d = np.asarray(device_mass, dtype=float)
@@ -90,9 +91,9 @@ class HapticController:
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:
-        from haptic_topology.control.compiled import force_step, law
+        from haptic_topology.control.compiled import task_force_step, task_law
         self.__dict__.update(state)
-        self._law, self._force_step = law, force_step
+        self._law, self._force_step = task_law, task_force_step
 
     def prepare(self, snap: LmiSnapshot) -> PreparedUpdate:
         """What :meth:`update` computes from ``snap`` alone (the LMI's matrices, eqs. 17-19,
@@ -117,7 +118,8 @@ class HapticController:
         ``vt_pose``, ``vt_twist`` to ``pose``, ``twist`` under the current LMI's projector
         (:func:`~haptic_topology.control.compiled.force_step`)."""
         g = self.gains
-        return float(self._force_step(self.m_d, self.lmi.projector, g.k_pc, g.b_pc, g.k_tc,
+        return float(self._force_step(self._rot, self.m_d, self.lmi.projector, g.k_pc, g.b_pc,
+                                      g.k_tc,
                                       g.b_tc, pose, twist, vt_pose, vt_twist))
 
     def _stable_dt(self, lambda_inv: np.ndarray) -> float:
@@ -149,7 +151,8 @@ class HapticController:
         g = self.gains
         f_env = lmi.env_wrench
         u, f_pc, f_vt = np.empty(m), np.empty(m), np.empty(m)
-        self._law(int(self.mode), self.vt_coupling, self._ml, self.m_d, self.c_d, lmi.projector,
+        self._law(self._rot, int(self.mode), self.vt_coupling, self._ml, self.m_d, self.c_d,
+                  lmi.projector,
                   g.k_pc, g.b_pc, g.k_tc, g.b_tc, lmi.x_vt, lmi.xd_vt, x_h, xd_h, f_h, f_env,
                   u, f_pc, f_vt)
         lmi.record_input(seq, f_vt)

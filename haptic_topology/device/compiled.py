@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import boolean, float64, int64, njit, void
 
-from haptic_topology.dynamics.compiled import MAT, VEC, integrate_pose, pose_difference
+from haptic_topology.dynamics.compiled import MAT, VEC, integrate_pose, task_pose_difference
 
 #: :func:`maglev_step`'s bit: the command was clamped (``DeviceStatus.SATURATED``).
 SATURATED = 1
@@ -150,14 +150,18 @@ def maglev_step(u: np.ndarray, f_h: np.ndarray, dt: float, limit: np.ndarray,
     return bits
 
 
-@njit(float64[:](int64, VEC, VEC, float64, float64, VEC, VEC, float64, VEC, VEC), cache=True)
-def spring_damper_wrench(path: int, start: np.ndarray, velocity: np.ndarray, radius: float,
-                         period: float, k: np.ndarray, b: np.ndarray, t: float,
-                         pose: np.ndarray, twist: np.ndarray) -> np.ndarray:
-    """``F_h = K_u (x_target(t) (-) x_h) + B_u (xd_target(t) - xd_h)`` (a new m-vector): a
-    hand tracking a target path with stiffness ``k`` and damping ``b`` (m each). ``path``
-    :data:`LINE`: ``x(t) = start + velocity t``; :data:`CIRCLE`: centre ``start``, ``radius``
-    (m), ``period`` (s) in the x-y plane, the other coordinates at ``start``."""
+@njit(float64[:](int64, int64, VEC, VEC, float64, float64, VEC, VEC, float64, VEC, VEC),
+      cache=True)
+def task_spring_damper_wrench(rotation_dim: int, path: int, start: np.ndarray,
+                              velocity: np.ndarray, radius: float, period: float, k: np.ndarray,
+                              b: np.ndarray, t: float, pose: np.ndarray,
+                              twist: np.ndarray) -> np.ndarray:
+    """``F_h = K_u (x_target(t) (-) x_h) + B_u (xd_target(t) - xd_h)`` (a new m-vector) for a
+    task with ``rotation_dim`` rotation rows (``TaskSpace.rotation_dim``; 0: a point grasp,
+    ``F_h`` a force): a hand tracking a target path with stiffness ``k`` and damping ``b``
+    (m each). ``path`` :data:`LINE`: ``x(t) = start + velocity t``; :data:`CIRCLE`: centre
+    ``start``, ``radius`` (m), ``period`` (s) in the x-y plane, the other coordinates at
+    ``start``."""
     m = pose.size
     target = np.empty(m)
     rate = np.empty(m)
@@ -175,8 +179,18 @@ def spring_damper_wrench(path: int, start: np.ndarray, velocity: np.ndarray, rad
         rate[0] = -radius * w * math.sin(w * t)
         rate[1] = radius * w * math.cos(w * t)
     e = np.empty(m)
-    pose_difference(target, pose, e)
+    task_pose_difference(target, pose, rotation_dim, e)
     out = np.empty(m)
     for i in range(m):
         out[i] = k[i] * e[i] + b[i] * (rate[i] - twist[i])
     return out
+
+
+@njit(float64[:](int64, VEC, VEC, float64, float64, VEC, VEC, float64, VEC, VEC), cache=True)
+def spring_damper_wrench(path: int, start: np.ndarray, velocity: np.ndarray, radius: float,
+                         period: float, k: np.ndarray, b: np.ndarray, t: float,
+                         pose: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """:func:`task_spring_damper_wrench` of a rigid grasp, told by the size (3 planar, 6
+    spatial)."""
+    return task_spring_damper_wrench(1 if pose.size == 3 else 3, path, start, velocity, radius,
+                                     period, k, b, t, pose, twist)

@@ -337,6 +337,9 @@ def parse_topic_options(options: Mapping[str, Any], task: TaskSpace) -> TopicOpt
     :class:`~haptic_topology.errors.DeviceError` naming the field and what it must be."""
     if not isinstance(options, Mapping):
         raise DeviceError(f'{BACKEND}: backend_options: expected a mapping, got {options!r}')
+    if task.point:
+        raise DeviceError(f'{BACKEND}: a {task.value} task (a point grasp) is not supported by '
+                          'this backend yet; expected a planar or spatial scenario')
     unknown = sorted(set(options) - set(DEFAULTS))
     if unknown:
         raise DeviceError(f'{BACKEND}: backend_options: unknown option {unknown[0]!r} '

@@ -82,8 +82,8 @@ class SpringDamperUser:
     def __post_init__(self) -> None:
         # Imported here: loading the compiled code costs about 1 s, which a process that
         # never steps a device does not pay.
-        from haptic_topology.device.compiled import CIRCLE, LINE, spring_damper_wrench
-        object.__setattr__(self, '_wrench', spring_damper_wrench)
+        from haptic_topology.device.compiled import CIRCLE, LINE, task_spring_damper_wrench
+        object.__setattr__(self, '_wrench', task_spring_damper_wrench)
         object.__setattr__(self, '_path_code', LINE if self.path.kind == 'line' else CIRCLE)
 
     def __reduce__(self) -> tuple[Any, ...]:
@@ -95,8 +95,8 @@ class SpringDamperUser:
         """``K_u (x_target(t) (-) x_h) + B_u (xd_target(t) - xd_h)`` for the path's
         :meth:`~haptic_topology.device.users.TargetPath.at`, compiled (one call per cycle)."""
         p = self.path
-        return self._wrench(self._path_code, p.start, p.velocity, p.radius, p.period,
-                            self.k, self.b, t, np.asarray(pose, dtype=float),
+        return self._wrench(self.task.rotation_dim, self._path_code, p.start, p.velocity,
+                            p.radius, p.period, self.k, self.b, t, np.asarray(pose, dtype=float),
                             np.asarray(twist, dtype=float))
 
 

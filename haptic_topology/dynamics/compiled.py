@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import boolean, float64, njit, void
+from numba import boolean, float64, int64, njit, void
 
 #: Array types of the signatures: float64, any memory layout (one compiled specialization per
 #: function, compiled or loaded from the cache at import, never in the loop).
@@ -124,11 +124,18 @@ def _mul3(a: np.ndarray, b: np.ndarray, b_transposed: bool) -> np.ndarray:
     return out
 
 
-@njit(void(VEC, VEC, VEC), cache=True)
-def pose_difference(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """``out`` = ``a (-) b`` (``taskspace.pose_difference``): the translation difference and
-    the rotation taking ``b`` to ``a`` (world frame); planar angles wrapped to [-pi, pi)."""
-    if a.size == 3:
+@njit(void(VEC, VEC, int64, VEC), cache=True)
+def task_pose_difference(a: np.ndarray, b: np.ndarray, rotation_dim: int,
+                         out: np.ndarray) -> None:
+    """``out`` = ``a (-) b`` (``taskspace.pose_difference``) for a task with ``rotation_dim``
+    rotation rows (``TaskSpace.rotation_dim``): 0, a point grasp: ``a - b``; 1, planar: the
+    angle wrapped to [-pi, pi); 3, spatial: the rotation taking ``b`` to ``a`` (world
+    frame)."""
+    if rotation_dim == 0:
+        for i in range(a.size):
+            out[i] = a[i] - b[i]
+        return
+    if rotation_dim == 1:
         out[0] = a[0] - b[0]
         out[1] = a[1] - b[1]
         out[2] = wrap_angle(a[2] - b[2])
@@ -143,12 +150,20 @@ def pose_difference(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     log3(rel, out[3:6])
 
 
+@njit(void(VEC, VEC, VEC), cache=True)
+def pose_difference(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out`` = ``a (-) b`` of a rigid grasp, told by the size: 3 planar, 6 spatial
+    (:func:`task_pose_difference` for any task)."""
+    task_pose_difference(a, b, 1 if a.size == 3 else 3, out)
+
+
 @njit(void(VEC, VEC, float64), cache=True)
 def integrate_pose(pose: np.ndarray, twist: np.ndarray, dt: float) -> None:
     """Move ``pose`` in place with the constant world-frame ``twist`` for ``dt`` s
-    (``taskspace.integrate_pose``; planar angles are not wrapped)."""
-    if pose.size == 3:
-        for i in range(3):
+    (``taskspace.integrate_pose``; planar angles are not wrapped). Up to 3 entries (planar,
+    and a point grasp's point) the step is linear; 6 entries turn the rotation vector."""
+    if pose.size <= 3:
+        for i in range(pose.size):
             pose[i] = pose[i] + twist[i] * dt
         return
     step = np.empty((3, 3))

@@ -77,7 +77,6 @@ from haptic_topology.model.solids import (
     solid_gaps,
 )
 from haptic_topology.validate import as_bool, as_float, check_keys
-from haptic_topology.vocabulary import TaskSpace
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
@@ -192,7 +191,7 @@ class ContactSettings:
         for a choice naming a link ``linkage`` lacks, and for a URDF collision shape that
         cannot be modelled exactly (a mesh; planar: a cylinder tilted out of the plane) on a
         link without a choice."""
-        planar = linkage.task is TaskSpace.PLANAR
+        planar = linkage.task.planar
         chosen = dict(self.links)
         unknown = sorted(set(chosen) - set(linkage.link_names))
         if unknown:
@@ -351,7 +350,7 @@ class ContactModel:
         self.settings = settings
         self.params = settings.params
         self.dof = linkage.dof
-        self._planar = linkage.task is TaskSpace.PLANAR
+        self._planar = linkage.task.planar
         shapes = settings.shapes(linkage)
         caps = [c for c in shapes if isinstance(c, LinkCapsule)]
         self._solids = solids = [c for c in shapes if isinstance(c, LinkSolid)]

@@ -61,9 +61,10 @@ class LinkageDynamics:
         self.hand_frame: int = lm.hand_frame
         self.task: TaskSpace = lm.linkage.task
         self.dof: int = lm.model.nv
-        #: Rows of Pinocchio's 6-row frame Jacobian ``(v, w)`` that make up the task space.
-        self.task_rows: tuple[int, ...] = ((0, 1, 5) if self.task is TaskSpace.PLANAR
-                                           else tuple(range(6)))
+        #: Rows of Pinocchio's 6-row frame Jacobian ``(v, w)`` that make up the task space
+        #: (:attr:`~haptic_topology.vocabulary.TaskSpace.frame_rows`: a point grasp takes the
+        #: translation rows only, the velocity of the grasp point).
+        self.task_rows: tuple[int, ...] = self.task.frame_rows
         self._rows = list(self.task_rows)
         scale = joint_scale(self.linkage)
         # Revolute joints only: S = I, and scaling by ones would change nothing.
@@ -123,7 +124,8 @@ class LinkageDynamics:
     def hand_jacobian(self, q: np.ndarray) -> np.ndarray:
         """J_h(q) (m x d) of eq. 7: ``xdot_h = J_h qdot`` at the grasp point, world-aligned.
 
-        Planar rows (vx, vy, wz); spatial rows (vx, vy, vz, wx, wy, wz).
+        Planar rows (vx, vy, wz); spatial rows (vx, vy, vz, wx, wy, wz); a point grasp the
+        grasp point's velocity, (vx, vy) planar_point and (vx, vy, vz) spatial_point.
         """
         return self.hand_frame_jacobian(q)[self._rows, :]
 
@@ -133,9 +135,10 @@ class LinkageDynamics:
         return pose_from_placement(self.data.oMf[self.hand_frame], self.task)
 
     def wrench6(self, wrench: np.ndarray) -> np.ndarray:
-        """A task wrench (m: planar ``(fx, fy, tau_z)``, spatial ``(f, tau)``; N, N m, world
-        frame at the grasp point) as the 6-vector of the frame Jacobian's rows, zero in the
-        rows the planar task lacks, so ``J_6^T F_6 = J_h^T F`` (eq. 12)."""
+        """A task wrench (m: planar ``(fx, fy, tau_z)``, spatial ``(f, tau)``, a point grasp's
+        force ``(fx, fy)`` / ``(fx, fy, fz)``; N, N m, world frame at the grasp point) as the
+        6-vector of the frame Jacobian's rows, zero in the rows the task lacks (a point grasp
+        transmits no torque), so ``J_6^T F_6 = J_h^T F`` (eq. 12)."""
         w6 = np.zeros(6)
         w6[self._rows] = wrench
         return w6

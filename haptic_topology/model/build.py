@@ -31,7 +31,7 @@ class LinkageModel:
 
 def _joint_model(link: LinkSpec, task: TaskSpace) -> Any:
     """Pinocchio joint for ``link``: RZ / PX for the default planar axes, else unaligned."""
-    if task is TaskSpace.PLANAR:
+    if task.planar:
         if link.joint is JointType.REVOLUTE and np.array_equal(link.axis, [0.0, 0.0, 1.0]):
             return pin.JointModelRZ()
         if link.joint is JointType.PRISMATIC and np.array_equal(link.axis, [1.0, 0.0, 0.0]):

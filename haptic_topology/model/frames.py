@@ -19,7 +19,9 @@ for the coupling wrench), as a force-torque sensor reports it and as RViz draws 
 
 Task vectors (see :mod:`haptic_topology.dynamics.taskspace`): planar pose ``[x, y, theta]``,
 twist ``[vx, vy, wz]``, wrench ``[fx, fy, tz]``; spatial pose ``[x, y, z, rotation vector]``,
-twist ``[v, w]``, wrench ``[f, tau]``, all world-aligned at their point.
+twist ``[v, w]``, wrench ``[f, tau]``, all world-aligned at their point. A point grasp's
+pose is its point alone (``[x, y]`` / ``[x, y, z]``): its frame has the world's axes (no
+orientation), its twist and wrench are a velocity and a force.
 
 Example (a planar device pose; quaternions are ``[x, y, z, w]``)::
 
@@ -56,7 +58,10 @@ def quaternion(rotation: np.ndarray) -> np.ndarray:
 
 
 def pose_rotation(pose: np.ndarray, task: TaskSpace) -> np.ndarray:
-    """Rotation matrix of a task pose (planar: about z by theta)."""
+    """Rotation matrix of a task pose (planar: about z by theta; a point grasp: the identity,
+    its pose has no orientation)."""
+    if task.point:
+        return np.eye(3)
     if task is TaskSpace.PLANAR:
         c, s = float(np.cos(pose[2])), float(np.sin(pose[2]))
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -66,7 +71,12 @@ def pose_rotation(pose: np.ndarray, task: TaskSpace) -> np.ndarray:
 def pose_transform(pose: np.ndarray, task: TaskSpace,
                    z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """``(translation (3,), quaternion [x, y, z, w])`` of a task pose; ``z`` (m): the height
-    of a planar pose (its plane), ignored for a spatial one."""
+    of a planar pose (its plane), ignored for a spatial one. A point grasp: its point and the
+    identity quaternion."""
+    if task.point:
+        t = np.array([float(pose[0]), float(pose[1]),
+                      float(z) if task.planar else float(pose[2])])
+        return t, np.array([0.0, 0.0, 0.0, 1.0])
     if task is TaskSpace.PLANAR:
         t = np.array([float(pose[0]), float(pose[1]), float(z)])
         half = 0.5 * float(pose[2])
@@ -76,10 +86,10 @@ def pose_transform(pose: np.ndarray, task: TaskSpace,
 
 def spatial(vector: np.ndarray, task: TaskSpace) -> np.ndarray:
     """A task twist or wrench as 6 entries ``[linear (3), angular (3)]``: planar
-    ``[a, b, c]`` -> ``[a, b, 0, 0, 0, c]``."""
-    if task is TaskSpace.PLANAR:
-        return np.array([vector[0], vector[1], 0.0, 0.0, 0.0, vector[2]], dtype=float)
-    return np.array(vector[0:6], dtype=float)
+    ``[a, b, c]`` -> ``[a, b, 0, 0, 0, c]``; a point grasp's force with zero torque."""
+    out = np.zeros(6)
+    out[list(task.frame_rows)] = np.asarray(vector, dtype=float)[:task.dim]
+    return out
 
 
 def wrench_in_frame(wrench: np.ndarray, rotation: np.ndarray, task: TaskSpace) -> np.ndarray:

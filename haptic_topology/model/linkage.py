@@ -18,7 +18,7 @@ YAML layout (``config/linkages/table1_planar3.yaml`` is the paper's Table I)::
 
     linkage:
       name: table1_planar3
-      task: planar              # planar | spatial
+      task: planar              # planar | spatial | planar_point | spatial_point
       gravity: [0.0, 0.0, 0.0]  # m/s^2, world frame
       links:
         - {name: link1, joint: revolute, length: 0.042, mass: 3.0, inertia: 0.015}
@@ -76,7 +76,7 @@ from haptic_topology.validate import (
     check_keys,
     load_yaml,
 )
-from haptic_topology.vocabulary import TaskSpace
+from haptic_topology.vocabulary import TASK_NAMES, TaskSpace
 
 _LOG = logging.getLogger(__name__)
 
@@ -151,7 +151,7 @@ _LINK_KEYS = ('name', 'joint', 'length', 'mass', 'com', 'inertia', 'axis', 'orig
 
 def _inertia_matrix(value: Any, task: TaskSpace, where: str) -> np.ndarray:
     """Parse a link inertia about its COM and check it is symmetric positive definite."""
-    if task is TaskSpace.PLANAR and isinstance(value, (int, float)) and not isinstance(
+    if task.planar and isinstance(value, (int, float)) and not isinstance(
             value, bool):
         izz = as_float(value, where, lo=0.0, lo_open=True, error=LinkageError)
         # Only Izz acts in planar motion; the others are set equal so the tensor is valid.
@@ -163,7 +163,7 @@ def _inertia_matrix(value: Any, task: TaskSpace, where: str) -> np.ndarray:
             raise LinkageError(f'{where}: expected a 3x3 matrix, got {len(rows)} rows')
         inertia = np.array(rows)
     else:
-        expected = ('a positive number (Izz) or ' if task is TaskSpace.PLANAR else '') + \
+        expected = ('a positive number (Izz) or ' if task.planar else '') + \
             '[ixx, iyy, izz], [ixx, iyy, izz, ixy, ixz, iyz] or a 3x3 list'
         if not isinstance(value, list) or len(value) not in (3, 6):
             raise LinkageError(f'{where}: expected {expected}, got {value!r}')
@@ -191,9 +191,9 @@ def _parse_link(raw: Any, i: int, task: TaskSpace, where: str) -> LinkSpec:
     com = (as_vector(raw['com'], f'{w}.com', 3, error=LinkageError) if 'com' in raw
            else np.array([length / 2.0, 0.0, 0.0]))
     inertia = _inertia_matrix(raw['inertia'], task, f'{w}.inertia')
-    if task is TaskSpace.PLANAR and com[2] != 0.0:
+    if task.planar and com[2] != 0.0:
         raise LinkageError(f'{w}.com: z must be 0 for a planar linkage, got {com[2]}')
-    default_axis = [1.0, 0.0, 0.0] if (task is TaskSpace.PLANAR
+    default_axis = [1.0, 0.0, 0.0] if (task.planar
                                        and joint is JointType.PRISMATIC) else [0.0, 0.0, 1.0]
     axis = as_vector(raw.get('axis', default_axis), f'{w}.axis', 3, error=LinkageError)
     norm = float(np.linalg.norm(axis))
@@ -302,8 +302,8 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
                      optional=('name', 'task', 'gravity', 'links', 'grasp', 'constraints',
                                'urdf', 'locked_joints', 'loops'), error=LinkageError)
     name = as_str(raw.get('name', Path(source).stem), f'{where}.name', error=LinkageError)
-    task = TaskSpace(as_str(raw.get('task', 'planar'), f'{where}.task',
-                            ('planar', 'spatial'), error=LinkageError))
+    task = TaskSpace(as_str(raw.get('task', 'planar'), f'{where}.task', TASK_NAMES,
+                            error=LinkageError))
     gravity = as_vector(raw.get('gravity', [0.0, 0.0, 0.0]), f'{where}.gravity', 3,
                         error=LinkageError)
     grasp = check_keys(raw.get('grasp', {}), f'{where}.grasp', optional=('link', 'point'),
@@ -347,7 +347,7 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise LinkageError(f'{where}.links: duplicate link names {sorted(dup)}')
-    if task is TaskSpace.PLANAR:
+    if task.planar:
         _check_planar(links, str(urdf_path) if urdf_path is not None else f'{where}.links')
     grasp_link = wanted_grasp if wanted_grasp is not None else names[-1]
     if grasp_link not in names:
@@ -355,7 +355,7 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
                            f'of: {", ".join(names)})')
     point = (as_vector(grasp['point'], f'{where}.grasp.point', 3, error=LinkageError)
              if 'point' in grasp else links[names.index(grasp_link)].com.copy())
-    if task is TaskSpace.PLANAR and urdf_path is None and point[2] != 0.0:
+    if task.planar and urdf_path is None and point[2] != 0.0:
         raise LinkageError(f'{where}.grasp.point: z must be 0 for a planar linkage')
     constraints = _parse_constraints(raw.get('constraints', {}), f'{where}.constraints',
                                      reach(links, grasp_link, point))
@@ -404,7 +404,7 @@ def to_dict(linkage: Linkage) -> dict[str, Any]:
         entry: dict[str, Any] = {
             'name': link.name, 'joint': link.joint.value, 'length': link.length,
             'mass': link.mass, 'com': link.com.tolist()}
-        planar = linkage.task is TaskSpace.PLANAR
+        planar = linkage.task.planar
         if planar and np.array_equal(link.inertia, np.eye(3) * link.inertia[2, 2]):
             entry['inertia'] = float(link.inertia[2, 2])
         else:
@@ -447,7 +447,7 @@ def serial_chain_dict(n: int, task: TaskSpace = TaskSpace.PLANAR, length: float 
     for i in range(n):
         entry: dict[str, Any] = {'name': f'link{i + 1}', 'joint': 'revolute', 'length': length,
                                  'mass': mass}
-        if task is TaskSpace.PLANAR:
+        if task.planar:
             entry['inertia'] = inertia
         else:
             entry['inertia'] = [1e-6 + mass * 1e-4, inertia, inertia]

@@ -118,16 +118,16 @@ def parse_loops(raw: Any, where: str, task: TaskSpace,
                                'different links (or a link and the world)')
         kind = LoopKind(as_str(e['kind'], f'{w}.kind', tuple(k.value for k in LoopKind),
                                error=LinkageError))
-        if kind is LoopKind.PIN and task is TaskSpace.SPATIAL:
+        if kind is LoopKind.PIN and not task.planar:
             raise LinkageError(f'{w}.kind: pin closes a planar loop; a spatial linkage takes '
                                'revolute (5 equations) or spherical (3)')
-        if kind is LoopKind.REVOLUTE and task is TaskSpace.PLANAR:
+        if kind is LoopKind.REVOLUTE and task.planar:
             raise LinkageError(f'{w}.kind: revolute closes a spatial loop; a planar linkage '
                                'takes pin (2 equations)')
         point = as_vector(e['point'], f'{w}.point', 3, error=LinkageError)
         to_point = as_vector(e.get('to_point', [0.0, 0.0, 0.0]), f'{w}.to_point', 3,
                              error=LinkageError)
-        if task is TaskSpace.PLANAR and (point[2] != 0.0 or to_point[2] != 0.0):
+        if task.planar and (point[2] != 0.0 or to_point[2] != 0.0):
             raise LinkageError(f'{w}: point and to_point must have z = 0 on a planar linkage')
         axis = to_axis = None
         if kind is LoopKind.REVOLUTE:

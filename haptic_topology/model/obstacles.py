@@ -124,7 +124,7 @@ def _names(task: TaskSpace) -> str:
 
 def _point(value: Any, where: str, task: TaskSpace) -> np.ndarray:
     """A world point or direction: planar ``[x, y]`` or ``[x, y, 0]``, spatial ``[x, y, z]``."""
-    if task is TaskSpace.SPATIAL:
+    if not task.planar:
         return as_vector(value, where, 3)
     v = as_vector(value, where)
     if len(v) not in (2, 3):
@@ -140,7 +140,7 @@ def _unit(value: Any, where: str, task: TaskSpace) -> np.ndarray:
     norm = float(np.linalg.norm(v))
     if norm <= EPS:
         raise ConfigError(f'{where}: expected a nonzero vector (length > {EPS}), got '
-                          f'{v[:2 if task is TaskSpace.PLANAR else 3].tolist()}')
+                          f'{v[:2 if task.planar else 3].tolist()}')
     return v / norm
 
 
@@ -186,8 +186,10 @@ def obstacles_from_config(raw: Any, where: str, task: TaskSpace) -> tuple[Obstac
 
     ``where`` is the path of the list, e.g. ``'fig.yaml: scenario.contacts.obstacles'``; item
     ``i`` is reported as ``f'{where}[{i}]'``. Names must be unique. Raises
-    :class:`~haptic_topology.errors.ConfigError`.
+    :class:`~haptic_topology.errors.ConfigError`. A point grasp's linkage takes the
+    obstacles of its space (``planar_point``: the planar ones).
     """
+    task = task.rigid
     if not isinstance(raw, list):
         raise ConfigError(f'{where}: expected a list of obstacles, got {type(raw).__name__}')
     out: list[Obstacle] = []

@@ -51,7 +51,6 @@ from haptic_topology.model import frames
 from haptic_topology.model.linkage import JointType, Linkage, LinkSpec, reach
 from haptic_topology.model.loops import WORLD
 from haptic_topology.model.urdf_import import UrdfJoint, UrdfSource, parse_urdf, read_urdf
-from haptic_topology.vocabulary import TaskSpace
 
 #: Name of the generated URDF's root link (``<linkage name>_base_link`` if a link has it).
 ROOT_LINK = 'base_link'
@@ -135,7 +134,7 @@ def linkage_urdf(linkage: Linkage, radius: float | None = None) -> str:
         f'{linkage.name}, grasped on {linkage.grasp_link} at {linkage.grasp_point.tolist()} '
         'in its frame). Each link frame sits at the joint that moves it; inertials about the '
         'COM. '))
-    if linkage.task is TaskSpace.PLANAR:   # load_linkage reads a bare URDF back as planar
+    if linkage.task.planar:   # load_linkage reads a bare URDF back as planar
         ET.SubElement(robot, 'haptic_topology', task='planar')
     material = ET.SubElement(robot, 'material', name='haptic_topology_link')
     ET.SubElement(material, 'color', rgba='0.2 0.4 0.9 1.0')

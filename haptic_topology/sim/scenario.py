@@ -13,6 +13,9 @@ Layout (``config/scenarios/fig6.yaml``)::
       gravity: [0, 0, 0]                         # m/s^2, world; default: the linkage's
       grasp: {link: link2, point: [0.02, 0, 0]}  # optional: held elsewhere than the linkage
                                                  # file says (point m, default the COM)
+      task: planar_point                         # optional: held through a pin (planar_point)
+                                                 # or ball joint (spatial_point), or rigidly
+                                                 # (planar, spatial); default the linkage's
       device:
         offset: [0.005, 0.003, 0.0]              # initial device pose - VT hand pose
         mass: [1, 1, 1]                          # diagonal of M_d (eq. 9)
@@ -63,7 +66,7 @@ from haptic_topology.validate import (
     check_keys,
     load_yaml,
 )
-from haptic_topology.vocabulary import ControlMode, TaskSpace
+from haptic_topology.vocabulary import TASK_NAMES, ControlMode, TaskSpace
 
 
 @dataclass(frozen=True)
@@ -91,9 +94,13 @@ class Scenario:
 
     def with_linkage(self, linkage: Linkage, q0: np.ndarray | None = None) -> Scenario:
         """Same scenario on another linkage, starting at ``q0`` (rad / m, one per joint;
-        default the scenario's). Refused (:class:`~haptic_topology.errors.ConfigError`) when
+        default the scenario's; a point-grasp scenario holds a rigid linkage of its space at
+        the point too). Refused (:class:`~haptic_topology.errors.ConfigError`) when
         the scenario's ``q0`` or a nonzero ``dq0`` does not fit the linkage's joints and no
         ``q0`` is given: a state made up for it would start the hand anywhere."""
+        if (self.linkage.task.point and not linkage.task.point
+                and linkage.task.rigid is self.linkage.task.rigid):
+            linkage = replace(linkage, task=self.linkage.task)  # held as the scenario holds it
         if linkage.task is not self.linkage.task:
             raise ConfigError(f'{linkage.source}: linkage.task is {linkage.task.value}, the '
                               f'scenario {self.name} needs {self.linkage.task.value}')
@@ -152,8 +159,8 @@ def load_scenario(name_or_path: str) -> Scenario:
     top = check_keys(doc, src, required=('scenario',))
     w = f'{src}: scenario'
     raw = check_keys(top['scenario'], w, required=('linkage', 'q0', 'duration'), optional=(
-        'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'grasp', 'device', 'user',
-        'control', 'lmi', 've', 'contacts'))
+        'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'grasp', 'task', 'device',
+        'user', 'control', 'lmi', 've', 'contacts'))
     link_ref = as_str(raw['linkage'], f'{w}.linkage')
     link_path = Path(link_ref)
     if not link_path.is_absolute() and (path.parent / link_path).is_file():
@@ -164,10 +171,17 @@ def load_scenario(name_or_path: str) -> Scenario:
     if 'grasp' in raw:      # the linkage held elsewhere than its file says
         grasp = check_keys(raw['grasp'], f'{w}.grasp', required=('link',), optional=('point',))
         point = as_vector(grasp['point'], f'{w}.grasp.point', 3) if 'point' in grasp else None
-        if point is not None and linkage.task is TaskSpace.PLANAR and point[2] != 0.0:
+        if point is not None and linkage.task.planar and point[2] != 0.0:
             raise ConfigError(f'{w}.grasp.point: z must be 0 for a planar linkage')
         link = as_str(grasp['link'], f'{w}.grasp.link', linkage.link_names)
         linkage = linkage.with_grasp(link, point)
+    if 'task' in raw:       # the linkage held rigidly or at a point (a pin or ball joint)
+        task = TaskSpace(as_str(raw['task'], f'{w}.task', TASK_NAMES))
+        if task.rigid is not linkage.task.rigid:
+            allowed = (linkage.task.rigid.value, linkage.task.point_grasp.value)
+            raise ConfigError(f'{w}.task: linkage {linkage.name} is {linkage.task.value}, so '
+                              f'expected {" or ".join(allowed)}, got {task.value!r}')
+        linkage = replace(linkage, task=task)
     d, m = linkage.dof, linkage.task.dim
     q0 = as_angles(raw['q0'], f'{w}.q0', d)
     dq0 = as_angles(raw.get('dq0', [0.0] * d), f'{w}.dq0', d)
