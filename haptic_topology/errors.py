@@ -19,6 +19,12 @@ class LinkageError(ConfigError):
     """A linkage description (YAML or URDF) fails validation."""
 
 
+class AxesError(ConfigError):
+    """A scenario's task needs a device axis (a force along or torque about a world axis) that
+    the device backend does not actuate or sense: refused at configure, before anything moves
+    (``haptic-topology`` exits with status 2)."""
+
+
 class BagError(HapticTopologyError):
     """A bag is missing, corrupt, truncated or holds unexpected message types."""
 

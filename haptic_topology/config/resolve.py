@@ -96,10 +96,55 @@ def _device_rate(s: DeviceDriverSettings, sc: Scenario, clock: Clock) -> tuple[f
     return s.rate_hz, 1.0 / s.rate_hz, round(1e9 / s.rate_hz)
 
 
+def check_device_axes(sc: Scenario, backend: str, options: dict[str, Any]) -> None:
+    """Refuse the scenario ``sc`` on the backend called ``backend`` (with its parsed
+    ``options``) when its task needs an axis the device does not actuate or sense
+    (:meth:`~haptic_topology.device.backend.DeviceBackend.axes`): one line naming both and,
+    for a rigid grasp, the point-grasp scenario to use instead
+    (:class:`~haptic_topology.errors.AxesError`)."""
+    from haptic_topology.device.backend import backend_class, check_axes
+    check_axes(sc.linkage.task, backend_class(backend).axes(options), sc.name, backend,
+               None if sc.linkage.task.point else _point_alternative(sc))
+
+
+def run_backend(params: Path, backend: str | None, items: Sequence[str]
+                ) -> tuple[str, dict[str, Any]]:
+    """The backend name and parsed ``backend_options`` a run's ``device_driver`` will have:
+    ``backend`` (``run --backend``) or the last ``-p device_driver:backend:=...`` item, else
+    the params file's ``device_driver`` section (default ``sim_maglev``); the options
+    likewise. For :func:`check_device_axes` before anything starts."""
+    from haptic_topology.validate import load_yaml
+    found: dict[str, Any] = {}
+    for section, body in load_yaml(params).items():
+        if isinstance(section, str) and section.strip().rsplit('/', 1)[-1] == 'device_driver':
+            values = body.get('ros__parameters') if isinstance(body, dict) else None
+            if isinstance(values, dict):
+                found.update({k: values[k] for k in ('backend', 'backend_options')
+                              if k in values})
+    for item in items:
+        target, _, value = item.partition(':=')
+        node, _, name = target.rpartition(':')
+        if node == 'device_driver' and name in ('backend', 'backend_options'):
+            found[name] = value
+    name = backend or str(found.get('backend', 'sim_maglev'))
+    return name, parse_backend_options(str(found.get('backend_options', '') or ''))
+
+
+def _point_alternative(sc: Scenario) -> str:
+    """``<name>_point`` when such a scenario exists, else how to write one."""
+    from haptic_topology.paths import resolve_config
+    try:
+        resolve_config(f'{sc.name}_point', 'scenarios')
+    except ConfigError:
+        return f'a point grasp (scenario.task: {sc.linkage.task.point_grasp.value})'
+    return f'{sc.name}_point'
+
+
 def resolve_device_driver(s: DeviceDriverSettings, sc: Scenario) -> DeviceDriverConfig:
     """``device_driver``'s configuration: ``rate_hz`` 0.0 -> 1/dt (with ``clock: lockstep``
     any other value than 1/dt is refused), ``wrench_limit`` [0.0] -> the scenario's,
-    ``watchdog_damping`` of one value -> every axis, ``backend_options`` parsed."""
+    ``watchdog_damping`` of one value -> every axis, ``backend_options`` parsed; a task the
+    backend's device cannot render is refused (:func:`check_device_axes`)."""
     m = sc.linkage.task.dim
     clock = Clock.parse(s.clock)
     rate, period, period_ns = _device_rate(s, sc, clock)
@@ -118,9 +163,11 @@ def resolve_device_driver(s: DeviceDriverSettings, sc: Scenario) -> DeviceDriver
                           f' numbers >= 0, got {list(s.watchdog_damping)}')
     watchdog = WatchdogConfig(s.watchdog_timeout, s.watchdog_ramp,
                               WatchdogFallback.parse(s.watchdog_fallback), damping)
+    options = parse_backend_options(s.backend_options)
+    check_device_axes(sc, s.backend, options)
     return DeviceDriverConfig(
         settings=s, scenario=sc, backend=s.backend,
-        backend_options=parse_backend_options(s.backend_options), clock=clock, rate_hz=rate,
+        backend_options=options, clock=clock, rate_hz=rate,
         period=period, period_ns=period_ns, wrench_limit=limit, watchdog=watchdog,
         takeover_after=s.takeover_after, min_subscribers=s.min_subscribers,
         lockstep_warn_after=s.lockstep_warn_after,

@@ -44,6 +44,7 @@ import importlib
 import importlib.metadata as md
 import pickle
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
 
@@ -51,8 +52,8 @@ import numpy as np
 
 from haptic_topology.device.maglev import DeviceParams, MaglevModel, PositionSensor
 from haptic_topology.device.users import UserModel, user_from_config
-from haptic_topology.errors import ConfigError, DeviceError
-from haptic_topology.vocabulary import DeviceStatus, TaskSpace
+from haptic_topology.errors import AxesError, ConfigError, DeviceError
+from haptic_topology.vocabulary import ALL_AXES, Axis, DeviceStatus, TaskSpace, axes_text
 
 #: Entry point group through which other distributions can add backends.
 ENTRY_POINT_GROUP = 'haptic_topology.device_backends'
@@ -74,8 +75,46 @@ class BackendConfig:
     source: str = ''
 
 
-#: Task dimension -> its name in :attr:`DeviceBackend.hardware_id` (3 planar, 6 spatial).
-_TASK_NAMES = {t.dim: t.value for t in TaskSpace}
+#: Task dimension -> its name in :attr:`DeviceBackend.hardware_id` (3 planar, 6 spatial; a
+#: backend that knows its task, as the simulated maglev, names it itself).
+_TASK_NAMES = {t.dim: t.value for t in (TaskSpace.PLANAR, TaskSpace.SPATIAL)}
+
+
+@dataclass(frozen=True)
+class DeviceAxes:
+    """What a device senses and actuates, as world axes
+    (:class:`~haptic_topology.vocabulary.Axis`: a translation x, y, z, or a rotation about
+    one): ``sensed``, the axes whose motion it measures; ``actuated``, those along which it
+    applies force or about which it applies torque. A 3-axis force device (most desktop
+    devices) actuates x, y, z; a planar maglev x, y and rz; a 6-DOF maglev all six."""
+
+    sensed: frozenset[Axis]
+    actuated: frozenset[Axis]
+
+
+#: A device that senses and actuates every axis (the simulated maglevs).
+ALL_DEVICE_AXES = DeviceAxes(ALL_AXES, ALL_AXES)
+#: A 3-axis force device: it senses and actuates translations only.
+TRANSLATION_AXES = DeviceAxes(frozenset((Axis.X, Axis.Y, Axis.Z)),
+                              frozenset((Axis.X, Axis.Y, Axis.Z)))
+
+
+def check_axes(task: TaskSpace, axes: DeviceAxes, scenario: str, device: str,
+               alternative: str | None = None) -> None:
+    """Refuse (:class:`~haptic_topology.errors.AxesError`, one line naming both) a task that
+    needs an axis the device does not actuate or sense (:attr:`TaskSpace.axes`): a torque
+    the controller asks for would otherwise be dropped without a word. ``alternative``: what
+    to use instead (e.g. the point-grasp scenario ``fig8_point``), added to the message.
+
+    Example: ``scenario fig8 needs torque about z; device force3 actuates x, y, z forces
+    only: use fig8_point``."""
+    hint = f': use {alternative}' if alternative else ''
+    for what, have in (('actuates', axes.actuated), ('senses', axes.sensed)):
+        missing = [a for a in task.axes if a not in have]
+        if missing:
+            need = axes_text(frozenset(missing))
+            raise AxesError(f'scenario {scenario} needs {need}; device {device} {what} '
+                            f'{axes_text(have)} only{hint}')
 
 
 class DeviceReading(NamedTuple):
@@ -110,6 +149,17 @@ class DeviceBackend(ABC):
     #: Whether the backend uses rclpy itself (a node of its own in the driver's process): then
     #: it cannot run in the loop process (``loop_process``), which imports no rclpy.
     needs_ros: ClassVar[bool] = False
+
+    @classmethod
+    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
+        """The axes the device senses and actuates (:class:`DeviceAxes`) with the backend
+        options ``options`` (the driver's ``backend_options``, parsed). The driver refuses a
+        scenario whose task needs an axis it lacks before it configures the backend
+        (:func:`check_axes`). Default: every axis, i.e. whatever the task needs; a backend
+        of a device that lacks axes (a 3-axis force device: :data:`TRANSLATION_AXES`) must
+        override it."""
+        del options
+        return ALL_DEVICE_AXES
 
     @abstractmethod
     def configure(self, config: BackendConfig) -> None:
@@ -203,6 +253,19 @@ class SimMaglevBackend(DeviceBackend):
     """
 
     name = 'sim_maglev'
+
+    @classmethod
+    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
+        """The simulated maglev renders any task: it senses and actuates every axis."""
+        del options
+        return ALL_DEVICE_AXES
+
+    @property
+    def hardware_id(self) -> str:
+        """``'sim_maglev <task>'`` once configured (e.g. ``'sim_maglev planar_point'``)."""
+        if self._model is None:
+            return self.name
+        return f'{self.name} {self._model.params.task.value}'
 
     def __init__(self) -> None:
         self._model: MaglevModel | None = None

@@ -1,5 +1,6 @@
 """Device backend test doubles, selected as ``backend:=fake_backend:CircleBackend`` (or
-``fake_backend:FaultBackend``, the simulated maglev with a fault switch, at the end).
+``fake_backend:FaultBackend``, the simulated maglev with a fault switch, and
+``fake_backend:ForceOnlyBackend``, a 3-axis force device, at the end).
 
 They live only in ``test/`` (on PYTHONPATH for the node processes) and are plain subclasses
 of :class:`~haptic_topology.device.backend.DeviceBackend`: selecting one needs no change in the
@@ -13,11 +14,15 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from haptic_topology.device.backend import (
+    TRANSLATION_AXES,
     BackendConfig,
+    DeviceAxes,
     DeviceBackend,
     DeviceReading,
     SimMaglevBackend,
@@ -176,3 +181,18 @@ class CallLogBackend(SimMaglevBackend):
     def cleanup(self) -> None:
         self._note('cleanup')
         super().cleanup()
+
+
+class ForceOnlyBackend(SimMaglevBackend):
+    """A 3-axis force device (most desktop haptic devices): it senses and actuates the three
+    translations only (:data:`~haptic_topology.device.backend.TRANSLATION_AXES`). Selected as
+    ``fake_backend:ForceOnlyBackend``; a scenario with a rigid grasp is refused at configure
+    (its torques have no actuator), a ``spatial_point`` or ``planar_point`` one runs on the
+    simulated maglev underneath."""
+
+    name = 'force3_test_double'
+
+    @classmethod
+    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
+        del options
+        return TRANSLATION_AXES
