@@ -4,11 +4,11 @@ Starts the graph in one of four layouts (``--layout``): ``hosted`` (default): ``
 ``ve_sim`` and ``device_driver``, which hosts ``lmi_controller`` (``device_driver.
 host_controller``) and runs the 1 kHz cycle in its loop process, a child without rclpy
 (``device_driver.loop_process``); ``thread``: the same with the cycle in a loop thread of the
-driver's process (``loop_process: false``); ``separate``: the four nodes as
-four processes, the state -> command hop over DDS; ``composed``: all four in one process on
-one executor (``--composed`` is short for it; the driver hosts the controller). All with
-the params file (default ``config/haptic_topology.yaml``) plus ``scenario``, ``clock``
-(``wall`` or ``lockstep``), the controller's ``mode``, the recorder's ``output``,
+driver's process (``loop_process: false``); ``separate``: the four nodes as four processes,
+the state -> command hop over DDS; ``composed``: all four in one process on one executor
+(``--composed`` is short for it; the driver hosts the controller). All with the params file
+(default ``config/haptic_topology.yaml``) plus ``scenario``, ``clock`` (``wall`` or
+``lockstep``), the controller's ``mode``, the recorder's ``output``,
 ``device_driver.min_subscribers = 2`` (controller and recorder must see the device before it
 engages, so the bag holds the whole run) and ``device_driver.run_duration``. It waits on what
 ROS tools see (:mod:`haptic_topology.bringup.watch`), never on log lines: the device driver
@@ -18,12 +18,11 @@ state publisher included) reports its readers matched
 (:func:`~haptic_topology.bringup.watch.loop_readers`), and each subscription of the loop's
 inputs its writers (:func:`~haptic_topology.bringup.watch.loop_writers`); the run is over
 when the driver's lifecycle state is ``inactive`` (it deactivates itself after
-``run_duration`` from engagement). Then it stops
-the device, controller, VE and the recorder with SIGINT (SIGTERM, then SIGKILL, after a
-timeout each), reads the bag back as a stream (memory flat in the run's length) and writes
-``trace.parquet`` (``--csv``: also ``trace.csv``), ``plot.png`` and ``summary.json`` next to
-the bag's files, and prints the drift summary (as ``simulate``) and
-the loop figures. Several ``--mode`` options run one after the other. While the loop runs,
+``run_duration`` from engagement). Then it stops the device, controller, VE and the recorder
+with SIGINT (SIGTERM, then SIGKILL, after a timeout each), reads the bag back as a stream in a
+process of its own (:mod:`haptic_topology.bringup.analysis`) and writes ``trace.parquet``
+(``--csv``: also ``trace.csv``), ``plot.png`` and ``summary.json`` next to the bag's files,
+and prints the drift summary (as ``simulate``) and the loop figures. Several ``--mode`` options run one after the other. While the loop runs,
 ``--loop-cpu auto`` (the default for the hosted layout on the wall clock) keeps a CPU for the
 loop process whenever other software keeps the machine busy
 (:mod:`haptic_topology.bringup.partition`).
@@ -31,8 +30,7 @@ loop process whenever other software keeps the machine busy
 ``--foxglove [PORT]`` also starts ``foxglove_bridge`` (first; the device starts once it
 serves): the live topics on the Foxglove WebSocket protocol at ``ws://127.0.0.1:PORT``
 (default 8765; ``--foxglove-host`` for another address), for Foxglove or Lichtblick without a
-ROS install, under either subprotocol name (docs/foxglove.md; layout:
-``docs/foxglove_layout.json``).
+ROS install, under either subprotocol name (docs/foxglove.md; ``docs/foxglove_layout.json``).
 
 The processes inherit the environment (``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE``).
 Their logs are kept in ``<bag>/logs/``. One run at a time uses a ROS domain on one machine

@@ -102,7 +102,8 @@ TRANSLATION_AXES = DeviceAxes(frozenset((Axis.X, Axis.Y, Axis.Z)),
 def check_axes(task: TaskSpace, axes: DeviceAxes, scenario: str, device: str,
                alternative: str | None = None) -> None:
     """Refuse (:class:`~haptic_topology.errors.AxesError`, one line naming both) a task that
-    needs an axis the device does not actuate or sense (:attr:`TaskSpace.axes`): a torque
+    needs an axis the device does not actuate or sense
+    (:attr:`~haptic_topology.vocabulary.TaskSpace.axes`): a torque
     the controller asks for would otherwise be dropped without a word. ``alternative``: what
     to use instead (e.g. the point-grasp scenario ``fig8_point``), added to the message.
 

@@ -1,4 +1,5 @@
-"""Poses, twists and their arithmetic in the task spaces of :class:`TaskSpace`.
+"""Poses, twists and their arithmetic in the task spaces of
+:class:`~haptic_topology.vocabulary.TaskSpace`.
 
 Planar pose ``[x, y, theta]`` (m, m, rad), twist ``[vx, vy, wz]``. Spatial pose
 ``[x, y, z, rx, ry, rz]`` with the orientation as a rotation vector (rad, world frame), twist
