@@ -22,10 +22,10 @@ when the driver's lifecycle state is ``inactive`` (it deactivates itself after
 with SIGINT (SIGTERM, then SIGKILL, after a timeout each), reads the bag back as a stream in a
 process of its own (:mod:`haptic_topology.bringup.analysis`) and writes ``trace.parquet``
 (``--csv``: also ``trace.csv``), ``plot.png`` and ``summary.json`` next to the bag's files,
-and prints the drift summary (as ``simulate``) and the loop figures. Several ``--mode`` options run one after the other. While the loop runs,
-``--loop-cpu auto`` (the default for the hosted layout on the wall clock) keeps a CPU for the
-loop process whenever other software keeps the machine busy
-(:mod:`haptic_topology.bringup.partition`).
+and prints the drift summary (as ``simulate``) and the loop figures. Several ``--mode``
+options run one after the other. While the loop runs, ``--loop-cpu auto`` (the default for
+the hosted layout on the wall clock) keeps a CPU for the loop process whenever other software
+keeps the machine busy (:mod:`haptic_topology.bringup.partition`).
 
 ``--foxglove [PORT]`` also starts ``foxglove_bridge`` (first; the device starts once it
 serves): the live topics on the Foxglove WebSocket protocol at ``ws://127.0.0.1:PORT``
