@@ -53,6 +53,7 @@ IMPORT_KEYS = {
 NO_ROSDEP_KEY = {
     'foxglove': 'foxglove-sdk',     # the optional foxglove_bridge node
     'numba': 'numba (PyPI',         # python3-numba: Debian, Ubuntu bionic/focal only
+    'pyarrow': 'pyarrow (PyPI',     # Apache Arrow: not in Ubuntu noble's archive
 }
 #: Declared dependencies that no import shows, and where they are used.
 NOT_IMPORTED = {
