@@ -7,7 +7,7 @@ from __future__ import annotations
 import importlib
 import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Container, Iterable, Mapping
 from typing import Any
 
 from rosbags.rosbag2.errors import ReaderError
@@ -70,14 +70,15 @@ def _update_seq(data: Any) -> int:
 
 
 class Publishers:
-    """One publisher per topic of the items (QoS from the bag), under ``namespace``, by
-    ``node`` or, for a topic in ``nodes`` (name without the leading slash), by that node."""
+    """One publisher per topic of ``topics`` (topic -> type; QoS from the bag), under
+    ``namespace``, by ``node`` or, for a topic in ``nodes`` (name without the leading slash),
+    by that node."""
 
-    def __init__(self, node: Any, bag: Bag, items: Sequence[Item], namespace: str = '',
+    def __init__(self, node: Any, bag: Bag, topics: Mapping[str, str], namespace: str = '',
                  nodes: Mapping[str, Any] | None = None) -> None:
         channels = read_channels(bag)
         self.pubs: dict[str, Any] = {}
-        for topic, msgtype in {it.topic: it.msgtype for it in items}.items():
+        for topic, msgtype in topics.items():
             name = topic if not namespace or topic == '/diagnostics' else (
                 namespace.rstrip('/') + '/' + topic.lstrip('/'))
             qos = _qos_profile(channels.get(topic, {}).get('metadata', {}), topic)
@@ -106,12 +107,12 @@ class Publishers:
         return sorted(t for t, pub in self.pubs.items() if not pub.wait_for_all_acked(
             Duration(seconds=max(deadline - time.monotonic(), 0.0))))
 
-    def publish(self, items: Sequence[Item], rate: float, loop: bool = False,
+    def publish(self, items: Iterable[Item], span: float, rate: float, loop: bool = False,
                 stop: threading.Event | None = None) -> ReplayStats:
-        """Publish ``items`` at their times / ``rate`` (again and again with ``loop``)."""
+        """Publish ``items`` at their times / ``rate`` (again and again with ``loop``: each
+        round iterates ``items`` anew); ``span``: the last item's time (s)."""
         stats = ReplayStats()
         start = time.perf_counter()
-        span = items[-1].t if items else 0.0
         rounds = 0
         while True:
             base = start + rounds * (span / rate + 1e-3)
@@ -122,7 +123,7 @@ class Publishers:
                 if stop is not None and stop.is_set():
                     break
                 self.pubs[it.topic].publish(it.data)
-                stats.late_ms.append(1e3 * (time.perf_counter() - due))
+                stats.late_ms.add(1e3 * (time.perf_counter() - due))
                 stats.published[it.topic] = stats.published.get(it.topic, 0) + 1
             rounds += 1
             if not loop or (stop is not None and stop.is_set()):
@@ -131,8 +132,8 @@ class Publishers:
         return stats
 
 
-    def publish_lockstep(self, items: Sequence[Item], answered: threading.Condition,
-                         done: dict[int, Any], acked: dict[int, int], timeout: float = 0.3,
+    def publish_lockstep(self, items: Iterable[Item], answered: threading.Condition,
+                         done: Container[int], acked: dict[int, int], timeout: float = 0.3,
                          retries: int = 3) -> ReplayStats:
         """Publish ``items`` in order, each only once the previous one was taken: a state
         once it was answered (``done``), an update once the controller acknowledged it
@@ -159,6 +160,7 @@ class Publishers:
                         pub.publish(it.data)
                         if answered.wait_for(taken, timeout):
                             break
+                    acked.pop(useq, None)   # (kept small: one entry per update in flight)
             else:
                 seq = it.seq
 

@@ -60,17 +60,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from haptic_topology.bag.controller_check import CheckResult, CommandCheck, controller_plan
 from haptic_topology.bag.reader import (
     open_bag,
 )
 from haptic_topology.bag.replay import (
     COMMAND,
     DEFAULT_TOLERANCE,
-    CheckResult,
     ReplayStats,
-    controller_plan,
     left_out,
     plan,
 )
@@ -97,10 +94,10 @@ def replay(bag_path: str | Path, rate: float = 1.0, topics: Sequence[str] | None
     items = plan(bag, topics, start_offset)
     spinner = _spinner('haptic_replay')
     try:
-        pubs = Publishers(spinner.node, bag, items, namespace)
+        pubs = Publishers(spinner.node, bag, items.topics, namespace)
         if wait_subscribers > 0:
             pubs.wait_for_subscribers(pubs.pubs, wait_subscribers)
-        stats = pubs.publish(items, rate, loop, stop)
+        stats = pubs.publish(items, items.span, rate, loop, stop)
         stats.unacknowledged = pubs.wait_acked()
         stats.left_out = [] if topics else sorted(left_out(bag))
         return stats
@@ -128,7 +125,7 @@ def check_controller(bag_path: str | Path, params: Path,
             f'mode:={cp.mode}', '-p', 'ack_updates:=true', '-r', f'__ns:={ns}']
     if cp.graph_id:             # the recorded graph's (none: the default graph)
         argv[-2:-2] = ['-p', f'graph_id:={cp.graph_id}']
-    live: dict[int, Any] = {}
+    check = CommandCheck(cp)
     # The controller takes updates from the VE of its graph only and states from its driver
     # (nodes named ve_sim and device_driver in its namespace): the check plays both parts.
     spinner = _spinner('ve_sim', ns)
@@ -150,7 +147,7 @@ def check_controller(bag_path: str | Path, params: Path,
 
             def keep(msg: Any) -> None:
                 with answered:
-                    live.setdefault(int(msg.state_seq), (int(msg.mode), np.array(msg.wrench)))
+                    check.answer(int(msg.state_seq), int(msg.mode), msg.wrench)
                     answered.notify_all()
 
             qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -167,7 +164,7 @@ def check_controller(bag_path: str | Path, params: Path,
             from std_msgs.msg import UInt64
 
             spinner.node.create_subscription(UInt64, f'{ns}/{TOPIC_LMI_ACK}', ack, QOS_LMI)
-            pubs = Publishers(spinner.node, bag, cp.items, ns, {TOPIC_STATE: driver.node})
+            pubs = Publishers(spinner.node, bag, cp.topics, ns, {TOPIC_STATE: driver.node})
             deadline = time.monotonic() + startup_timeout
             while sub.get_publisher_count() == 0 and time.monotonic() < deadline:
                 if proc.poll() is not None:
@@ -175,7 +172,7 @@ def check_controller(bag_path: str | Path, params: Path,
                                       f'{log.read_text(errors="replace")[-800:]}')
                 time.sleep(0.05)
             pubs.wait_for_subscribers(pubs.pubs, max(deadline - time.monotonic(), 0.1))
-            stats = pubs.publish_lockstep(cp.items, answered, live, acked)
+            stats = pubs.publish_lockstep(cp.items(), answered, check, acked)
         finally:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
@@ -186,20 +183,7 @@ def check_controller(bag_path: str | Path, params: Path,
                     proc.wait()
             spinner.close()
             driver.close()
-    diffs: dict[int, float] = {}
-    missing: list[int] = []
-    for seq, cmd in sorted(cp.commands.items()):
-        got = live.get(seq)
-        if got is None:
-            missing.append(seq)
-            continue
-        rec = np.array(cmd.wrench, dtype=float)
-        mode_diff = 0.0 if got[0] == int(cmd.mode) else math.inf
-        diffs[seq] = max(float(np.max(np.abs(rec - got[1]), initial=0.0))
-                         if rec.shape == got[1].shape else math.inf, mode_diff)
-    return CheckResult(len(diffs), len(cp.commands), len(live), len(missing),
-                       max(diffs.values(), default=math.inf), tolerance, cp.mode, scenario,
-                       stats, diffs, missing)
+    return check.result(tolerance, scenario, stats)
 
 
 def run(args: argparse.Namespace) -> int:
