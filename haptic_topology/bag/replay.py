@@ -124,7 +124,7 @@ class Plan:
     """The messages of a plain replay, in time order (equal times in file order), read from
     the bag each time the plan is iterated: only the messages of a window as long as the
     bag's largest step back in receive time are in memory (none for a bag written in time
-    order, as the recorder writes it)."""
+    order; a few ms of messages for our recorder's)."""
 
     bag: Bag
     #: Topic -> type of the topics published (those with a message from the start on).

@@ -103,8 +103,9 @@ ARRAY_BYTES_PER_STATE = 120
 def test_memory_is_flat_in_the_bag_s_length(tmp_path: Path) -> None:
     """4 times the states: the same peak of memory, but for the check's compact arrays
     (``ARRAY_BYTES_PER_STATE``). Plain replay's plan holds no message beyond the window of
-    its reorder buffer (none here), the check's plan and comparison none at all; a bag of
-    a 15-minute run (900,000 states) was 2-3 GB when they held every message."""
+    its reorder buffer (none here: written in time order), the check's plan and comparison
+    none at all; a bag of a 15-minute run (900,000 states) was 2-3 GB when they held every
+    message."""
     n = 1000
     write_bag(tmp_path / 'n', n)
     write_bag(tmp_path / 'n4', 4 * n)
