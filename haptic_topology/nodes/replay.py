@@ -28,10 +28,9 @@ the recorded ones state by state. What the controller needs to reproduce a comma
   updates (in the bag's order, the VE's publishing order) up to that one before the state
   (:func:`~haptic_topology.bag.controller_check.controller_plan`). A bag recorded before
   that field existed is planned from ``update_age``, which grows from command to command
-  while the
-  controller uses the same update: ``header.stamp - update_age`` is when it received its
-  newest one, and before the first state of each such group every update the VE had
-  published (its header stamp) by then is applied, at least the next one.
+  while the controller uses the same update: ``header.stamp - update_age`` is when it
+  received its newest one, and before the first state of each such group every update the
+  VE had published (its header stamp) by then is applied, at least the next one.
 
 Only commands whose state is in the bag are compared (the recorder may have joined after
 the device started).
