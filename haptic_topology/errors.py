@@ -74,6 +74,11 @@ class WaitTimeout(HapticTopologyError):
     """Something the graph should have done within a deadline did not happen."""
 
 
+class TransitionRefused(WaitTimeout):
+    """A lifecycle node answered a transition (configure, activate, ...) with failure: its
+    reason is in its ``/diagnostics`` status, at ERROR."""
+
+
 class BringupError(HapticTopologyError):
     """A node of the graph failed to start, or the loop never closed."""
 
@@ -81,3 +86,13 @@ class BringupError(HapticTopologyError):
 class SimulationError(HapticTopologyError):
     """The virtual environment's state left what it can model (e.g. it is no longer finite:
     the integration diverged)."""
+
+
+def error_line(exc: BaseException, where: str) -> str:
+    """The one line reported for ``exc``, raised in ``where`` (e.g. ``'network: activate()'``):
+    a package error's own message (it names what it received and what it expected), else
+    ``<where> raised <type>: <text>`` (a bug in code of another's, such as a device
+    backend's)."""
+    if isinstance(exc, HapticTopologyError):
+        return str(exc)
+    return f'{where} raised {type(exc).__name__}: {exc}'

@@ -257,6 +257,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     ``logs/loop_cpu.json``).
     """
     from haptic_topology.bringup.partition import Partitioner
+    from haptic_topology.bringup.startup import FAULT_WAIT, device_line, start_driver
     from haptic_topology.bringup.watch import (
         DEVICE_STATUS,
         GraphWatcher,
@@ -264,7 +265,6 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
         loop_writers,
     )
     from haptic_topology.errors import WaitTimeout
-
     if layout not in LAYOUTS:
         raise ConfigError(f'--layout: expected one of {", ".join(LAYOUTS)}, got {layout!r}')
     if bag.exists():
@@ -346,8 +346,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             watch.wait(lambda: watch.readers_matched(writers, loop_clock), startup_timeout,
                        lambda: 'subscriptions matched to their writers: '
                        + '; '.join(watch.unmatched_readers(writers, loop_clock)))
-            for transition in ('configure', 'activate'):
-                watch.change_state('device_driver', transition, startup_timeout)
+            start_driver(watch, startup_timeout, bag / 'logs')    # there after the stop
             started = watch.wait_lifecycle('device_driver', ('active', 'inactive'),
                                            startup_timeout, poll=0.2)
             # The loop process ends with the run: the driver has waited for it by then.
@@ -362,6 +361,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             limit = startup_timeout + (duration + 10.0 if clock == 'wall'
                                        else max(60.0, 30.0 * duration))
             try:
+                print(device_line(watch, FAULT_WAIT), flush=True)
                 ended = watch.wait_lifecycle('device_driver', ('inactive',), limit)
             finally:
                 usage.stop()

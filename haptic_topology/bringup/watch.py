@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from haptic_topology.bringup.options import FOXGLOVE_NODE, NODES
-from haptic_topology.errors import WaitTimeout
+from haptic_topology.errors import TransitionRefused, WaitTimeout
 from haptic_topology.vocabulary import (
     TOPIC_COMMAND,
     TOPIC_HAND_INPUTS,
@@ -34,6 +34,10 @@ RECORDER_STATUS = 'recorder: bag'
 DEVICE_STATUS = 'device_driver: loop'
 VE_STATUS = 've_sim: loop'
 CONTROLLER_STATUS = 'lmi_controller: loop'
+
+
+#: ``DiagnosticStatus.ERROR``.
+ERROR = 2
 
 
 #: Node names of a graph's processes (in the root namespace): a reader of a loop topic under
@@ -158,6 +162,9 @@ class GraphWatcher:
         #: The graph watched (None: any): statuses naming another ``graph_id`` are not read.
         self.graph_id = graph_id
         self.status: dict[str, dict[str, str]] = {}
+        #: Per status name: the newest report's level (0 OK, 1 WARN, 2 ERROR, 3 STALE),
+        #: message and hardware_id.
+        self.report: dict[str, tuple[int, str, str]] = {}
         #: Topics whose recorded counts stop growing once the loop has stopped (the hand
         #: inputs a little after the states: the controller flushes its last partial batch).
         self.settle_topics = (TOPIC_STATE, TOPIC_COMMAND,
@@ -204,6 +211,8 @@ class GraphWatcher:
                                               and k.endswith(self.settle_topics)})
                 del self._recorder_counts[:-SETTLE_REPORTS]
             self.status[st.name] = values
+            level = st.level[0] if isinstance(st.level, bytes) else int(st.level)
+            self.report[st.name] = (level, str(st.message), str(st.hardware_id))
 
     def spin(self, seconds: float) -> None:
         self.executor.spin_once(timeout_sec=seconds)
@@ -395,9 +404,20 @@ class GraphWatcher:
             future = client.call_async(req)
             self.wait(future.done, timeout, f'{node}: {transition}')
             if not future.result().success:
-                raise WaitTimeout(f'{node}: transition {transition} failed')
+                raise TransitionRefused(f'{node}: transition {transition} failed')
         finally:
             self.node.destroy_client(client)
+
+    def error_message(self, name: str, timeout: float) -> str:
+        """The message of status ``name`` once it reports ERROR (a node that refused a
+        transition publishes its reason so), without a leading ``fault:``; '' when it has not
+        within ``timeout`` s."""
+        try:
+            self.wait(lambda: self.report.get(name, (0, '', ''))[0] == ERROR, timeout,
+                      f'{name} at ERROR')
+        except WaitTimeout:
+            return ''
+        return self.report[name][1].removeprefix('fault: ')
 
     def lifecycle_state(self, node: str, timeout: float = 2.0) -> str:
         """The label of ``node``'s lifecycle state ('' when its service does not answer)."""

@@ -52,7 +52,7 @@ import numpy as np
 
 from haptic_topology.device.maglev import DeviceParams, MaglevModel, PositionSensor
 from haptic_topology.device.users import UserModel, user_from_config
-from haptic_topology.errors import AxesError, ConfigError, DeviceError
+from haptic_topology.errors import AxesError, ConfigError, DeviceError, error_line
 from haptic_topology.vocabulary import ALL_AXES, Axis, DeviceStatus, TaskSpace, axes_text
 
 #: Entry point group through which other distributions can add backends.
@@ -388,6 +388,18 @@ def zero_and_release(backend: DeviceBackend, dim: int) -> list[str]:
     return problems
 
 
+def activate_backend(backend: DeviceBackend, dim: int) -> None:
+    """``backend.activate()``; when it raises, the device is zeroed and released
+    (:func:`zero_and_release`, ``dim`` components) and a
+    :class:`~haptic_topology.errors.DeviceError` is raised with the backend's reason
+    (:func:`~haptic_topology.errors.error_line`) and whatever went wrong releasing it."""
+    try:
+        backend.activate()
+    except Exception as exc:            # a backend's own code: its reason is the fault
+        raise DeviceError('; '.join([error_line(exc, f'{backend.name}: activate()'),
+                                     *zero_and_release(backend, dim)])) from exc
+
+
 def _import_class(spec: str) -> Any:
     module_name, _, attr = spec.partition(':')
     try:
@@ -422,6 +434,12 @@ def backend_class(name: str) -> type[DeviceBackend]:
     return cls
 
 
-def create_backend(name: str) -> DeviceBackend:
-    """An unconfigured instance of the backend called ``name``."""
-    return backend_class(name)()
+def create_backend(name: str, lockstep: bool = False) -> DeviceBackend:
+    """An unconfigured instance of the backend called ``name``; ``lockstep``: for a driver
+    on the simulated clock, which a device on its own clock cannot follow (refused)."""
+    backend = backend_class(name)()
+    if lockstep and not backend.lockstep:
+        raise DeviceError(f'backend {name}: the device runs on its own clock, so clock: '
+                          'lockstep cannot pace it (expected clock: wall, or a backend that '
+                          'advances only when read: sim_maglev)')
+    return backend

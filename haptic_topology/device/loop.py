@@ -66,7 +66,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from haptic_topology.device.backend import DeviceBackend, DeviceReading
+from haptic_topology.device.backend import DeviceBackend, DeviceReading, activate_backend
 from haptic_topology.device.maglev import saturate
 from haptic_topology.device.watchdog import CommandWatchdog
 from haptic_topology.vocabulary import ControlMode, DeviceStatus, device_status
@@ -127,6 +127,12 @@ class DeviceTick(NamedTuple):
 
 class DeviceLoop:
     """Engagement, the clamp/watchdog/clamp pipeline and loop statistics of one device."""
+
+    def activate(self) -> None:
+        """Activate the configured backend; on failure the device is zeroed and released and
+        :class:`~haptic_topology.errors.DeviceError` says why
+        (:func:`~haptic_topology.device.backend.activate_backend`)."""
+        activate_backend(self.backend, self.limit.size)
 
     def __init__(self, backend: DeviceBackend, limit: np.ndarray, watchdog: CommandWatchdog,
                  period: float, takeover_after: float = TAKEOVER_AFTER) -> None:

@@ -9,13 +9,19 @@ taken from the node's ring when :class:`UpdateTiming` says) and a
 :class:`~haptic_topology.device.runner.LoopRunner` whose outbox is the cycle ring
 (:class:`RingOutbox`). Its loop, ``_Child.run``:
 
-1. activate the device, apply the LMI updates that came while it started, freeze the
-   collector's view of everything built so far, start the deadline grid;
+1. activate the device and write a first status (the node's activation waits for it),
+   apply the LMI updates that came while it started, freeze the collector's view of
+   everything built so far, start the deadline grid;
 2. each cycle: the gap before the deadline (``_Child.gap``: the node's requests, and the
    updates that fit), then the cycle (read -> controller -> write, its record into the ring);
 3. until asked to stop (a request, SIGTERM, its parent's death) or the run's end; then, in a
    ``finally`` that every way out of 1 and 2 takes, zero wrench and release the device, and a
    final status.
+
+A backend that raises (at ``configure``, when the child starts, or later) ends the child
+with its message in the final status's ``error``
+(:func:`~haptic_topology.errors.error_line`) and the traceback on stderr (the
+driver's log).
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ from haptic_topology.device.records import CycleCodec, payloads, put_bytes
 from haptic_topology.device.runner import LoopRunner, Published
 from haptic_topology.device.shm_ring import ShmRing
 from haptic_topology.device.watchdog import CommandWatchdog
+from haptic_topology.errors import error_line
 from haptic_topology.processes import stacks_on_signal
 
 #: Wall clock: the least an LMI update is taken to cost to apply (s): its decoding and
@@ -187,8 +194,17 @@ class _Child:
         m = spec.limit.size
         self.mem = LoopRings.attach(spec.segments, m, spec.dof)
         rings = self.mem.rings
-        self.backend = create_backend(spec.backend)
-        self.backend.configure(spec.backend_config)
+        #: Why the child failed (the backend's own message), in its final status for the node.
+        self.error = ''
+        name = spec.backend
+        try:
+            self.backend = create_backend(spec.backend)
+            name = self.backend.name
+            self.backend.configure(spec.backend_config)
+        except Exception as exc:        # the backend's own code: its reason goes to the node
+            last_words(self.mem, spec.generation, error_line(exc, f'{name}: configure()'))
+            self.mem.close()
+            raise
         try:
             if spec.carry is not None:          # where the previous activation's child left it
                 self.backend.resume(spec.carry)
@@ -206,8 +222,10 @@ class _Child:
             self.runner.pacer.use_period_buffer(arrays['periods'].array,
                                                 arrays['lateness'].array)
             self.device.use_round_trip_buffer(arrays['round_trips'].array)
-        except BaseException:
+        except BaseException as exc:
+            last_words(self.mem, spec.generation, error_line(exc, f'{name}: start'))
             self.backend.cleanup()
+            self.mem.close()
             raise
         self.notices: list[str] = []
         self.stop = False
@@ -277,7 +295,7 @@ class _Child:
                   'health': list(HEALTH_MESSAGES[c.guard.health(loop_now)]),
                   'finished': r.finished, 'lockstep_timeouts': r.lockstep_timeouts,
                   'rings': self.mem.counts(),
-                  'generation': self.spec.generation, 'final': final,
+                  'generation': self.spec.generation, 'final': final, 'error': self.error,
                   'carry': None if carry is None else base64.b64encode(carry).decode(),
                   'notices': self.notices[-50:]}
         data = json.dumps(status).encode()
@@ -300,7 +318,12 @@ class _Child:
             if self.stop:               # asked before it began: the device is not enabled
                 return 0
             activated = True
-            self.backend.activate()
+            try:
+                self.backend.activate()
+            except Exception as exc:
+                self.error = error_line(exc, f'{self.backend.name}: activate()')
+                raise
+            self.report()       # the first status: the device is active (the node waits)
             # The updates that came while this process started (the VE's keep-alives, up to
             # the ring's capacity), before the first deadline: in the first gap between two
             # cycles their copy and re-syncs overran it (5 ms with 3 links, 35 ms with 100).
@@ -323,6 +346,9 @@ class _Child:
                 if k % GC_EVERY == 0:
                     gc.collect(1)
                 self.report()
+        except Exception as exc:
+            self.error = self.error or error_line(exc, f'{self.backend.name}: the loop')
+            raise
         finally:
             if activated:
                 self.notices.extend(zero_and_release(self.backend, s.limit.size))
@@ -335,6 +361,17 @@ class _Child:
             self.device.use_round_trip_buffer(np.zeros(RTT_KEEP))
             self.mem.close()
         return 0
+
+
+def last_words(mem: LoopRings, generation: int, error: str) -> None:
+    """The final status of a child that failed before its loop could report: ``error`` (the
+    node's :meth:`~haptic_topology.device.loop_process.LoopProcess.wait_started` raises it)."""
+    status = {'generation': generation, 'final': True, 'finished': False, 'error': error,
+              'notices': []}
+    data = json.dumps(status).encode()
+    if len(data) > STATUS_BYTES:
+        data = json.dumps(dict(status, error=error[:STATUS_BYTES // 2])).encode()
+    put_bytes(mem.rings['status'], data, 'status')
 
 
 def child_main() -> int:

@@ -1,5 +1,8 @@
 """The hosted 1 kHz loop in a process of its own: no GIL shared with ROS on the deadline path.
 
+(One module of ~520 lines on purpose: the node's side of the loop process, its start, stop
+and exchange with the child, described once, below.)
+
 With ``loop_process: true`` the hosted ``device_driver`` (the ROS node: lifecycle,
 parameters, topics, diagnostics) does not step the loop in a thread of its own process. At
 activation it starts a child, ``python -m haptic_topology.device.loop_child``, which imports
@@ -37,7 +40,10 @@ and LMI updates applied when :class:`~haptic_topology.device.loop_child.UpdateTi
 applying them at the start of the next cycle would do).
 
 Lifetimes: the node creates the rings when the driver is configured (a ``/dev/shm`` without
-room fails there) and unlinks them at cleanup. An activation starts a child; a deactivation
+room fails there) and unlinks them at cleanup. An activation starts a child and waits for
+its first status, written once the backend is configured and activated
+(:meth:`LoopProcess.wait_started`); a child that cannot open the device writes a final status
+with ``error``, the backend's own message, which fails the activation. A deactivation
 stops it: a stop request, then, if the child has not exited within :data:`STOP_TIMEOUT`
 (or could not be asked: its control ring full), SIGTERM, then, after :data:`TERM_TIMEOUT`,
 SIGKILL. The child turns a stop request, SIGTERM and its parent's death
@@ -65,6 +71,7 @@ collector's view and automatic collection is off; a young-generation collection 
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import os
 import pickle
@@ -295,8 +302,31 @@ class LoopProcess:
             return
         self._poll_status()             # its last status: did it finish its run?
         if not self.finished:
+            why = self.status.get('error') or 'device output lost'
             self.error = DeviceError(f'loop process {proc.pid} exited with code '
-                                     f'{proc.returncode}: device output lost')
+                                     f'{proc.returncode}: {why}')
+
+    def wait_started(self, timeout: float = START_TIMEOUT) -> None:
+        """Block until the child has configured and activated the device (its first status);
+        raise :class:`~haptic_topology.errors.DeviceError` with the backend's own reason when
+        it could not (its final status's ``error``), and when it ended without one or has
+        not reported within ``timeout`` s (the caller stops it). The driver's activation
+        waits here, so a device that cannot be opened fails the lifecycle transition."""
+        proc, deadline = self._proc, time.monotonic() + timeout
+        assert proc is not None, 'LoopProcess.wait_started: not started'
+        while True:
+            ended = proc.poll() is not None     # then its last status is in the ring
+            self._poll_status()
+            if self.status.get('error'):
+                raise DeviceError(str(self.status['error']))
+            if self.status.get('generation') == self.generation:
+                return                  # in its loop (or stopped before it began)
+            if ended or time.monotonic() > deadline:
+                raise DeviceError(f'loop process {proc.pid} ' + (
+                    f'exited with code {proc.returncode} before it opened the device' if ended
+                    else f'had not opened the device {timeout:g} s after its start'))
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(0.01)
 
     # -- requests --------------------------------------------------------------------------------
     def _ring(self, name: str) -> Any:

@@ -62,7 +62,7 @@ from haptic_topology.device.backend import DeviceBackend, create_backend, zero_a
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, hardware_id
 from haptic_topology.device.runner import LOCKSTEP_RUNS_ONCE
 from haptic_topology.device.watchdog import CommandWatchdog
-from haptic_topology.errors import DeviceError, HapticTopologyError
+from haptic_topology.errors import DeviceError, error_line
 from haptic_topology.model.frames import DEVICE_BASE
 from haptic_topology.nodes.convert import GraphFilter, RejectCounter, ns_to_stamp
 from haptic_topology.nodes.diagnostics import PublisherWatch, diagnostics, matched, monotonic
@@ -134,11 +134,7 @@ class DeviceDriver(LifecycleNode):
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         c = self.cfg
         try:
-            self.backend = create_backend(c.backend)
-            if self.lockstep and not self.backend.lockstep:
-                raise DeviceError(f'backend {c.backend}: the device runs on its own clock, '
-                                  'so clock: lockstep cannot pace it (expected clock: wall, '
-                                  'or a backend that advances only when read: sim_maglev)')
+            self.backend = create_backend(c.backend, self.lockstep)
             self.in_child = self.hosted is not None and in_child(self)
             if self.hosted is not None and c.settings.loop_process and not self.in_child:
                 self.get_logger().warn(f'loop_process: backend {c.backend} uses rclpy itself, '
@@ -149,10 +145,11 @@ class DeviceDriver(LifecycleNode):
                                        CommandWatchdog(c.watchdog, c.task_dim), c.period,
                                        c.takeover_after)
             self.layout = driver_layout(self, self.hosted)
-        except HapticTopologyError as exc:
+        except Exception as exc:    # a backend's own code too: the fault
+            why = error_line(exc, f'{getattr(self.backend, "name", c.backend)}: configure()')
             # Not configured: diagnostics report the backend parameter, not a half-made backend.
             self.loop = self.backend = None
-            return self.fail(str(exc))
+            return self.fail(why)
         return SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -160,12 +157,11 @@ class DeviceDriver(LifecycleNode):
         if self.lockstep and self._ran:
             return self.fail(LOCKSTEP_RUNS_ONCE)
         try:
-            if not self.in_child:
-                self.backend.activate()
-        except DeviceError as exc:
-            return self.fail('; '.join([str(exc), *zero_and_release(self.backend,
-                                                                    self.cfg.task_dim)]))
-        self.layout.start()
+            if self.loop is not None:       # else the loop process opens the device
+                self.loop.activate()
+            self.layout.start()     # a loop process opens the device: it raises here
+        except DeviceError as exc:      # the device is zeroed and released
+            return self.fail(str(exc))
         self._active = self._ran = True
         c = self.cfg
         where = self.layout.where() if isinstance(self.layout, HostedLoop) else ''
@@ -190,9 +186,11 @@ class DeviceDriver(LifecycleNode):
         return SUCCESS
 
     def fail(self, text: str) -> TransitionCallbackReturn:
-        """Record and log the fault ``text`` (reported in diagnostics)."""
+        """Record and log the fault ``text`` and publish it in diagnostics now (ERROR; the
+        bringup reports a failed transition with it)."""
         self.fault = text
         self.get_logger().error(text)
+        self._publish_diagnostics()
         return FAILURE
 
     def end_run(self) -> None:

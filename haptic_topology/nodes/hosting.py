@@ -111,7 +111,11 @@ class HostedLoop:
 
     def start(self) -> None:
         """Start the outbox thread (if not running) and the loop thread, with the driver's
-        real-time settings, and the executor timer of :meth:`check`."""
+        real-time settings, and the executor timer of :meth:`check`. With the loop process,
+        return once it has opened the device; raise
+        :class:`~haptic_topology.errors.DeviceError` with the backend's reason when it could
+        not (:meth:`~haptic_topology.device.loop_process.LoopProcess.wait_started`; the child
+        has zeroed and released the device and ended)."""
         s = self.driver.cfg.settings
         # A loop thread must get the GIL back within a fraction of its period when it wakes;
         # CPython lets a thread keep it for up to the switch interval (5 ms). With the loop
@@ -135,6 +139,12 @@ class HostedLoop:
                                                       s.timer_slack_ns))
 
         self.runner.start(on_start=on_start)
+        if self.process is not None:
+            try:    # the child opens the device: its failure is the activation's
+                self.process.wait_started()
+            except DeviceError:
+                self.runner.stop()
+                raise
         self._timer = self.driver.create_timer(0.02, self.check)
 
     def where(self) -> str:

@@ -275,7 +275,8 @@ def test_bad_params_file_refuses_to_start(tmp_path: Path) -> None:
 
 
 def test_run_command_composed(tmp_path: Path) -> None:
-    """``haptic-topology run --composed``: one process, bag, summary, loop figures."""
+    """``haptic-topology run --composed``: one process, the device it started, bag, summary,
+    loop figures."""
     bag = tmp_path / 'composed'
     proc = subprocess.run(
         [sys.executable, '-m', 'haptic_topology.cli', 'run', 'fig8', '--mode', 'penalty',
@@ -284,6 +285,9 @@ def test_run_command_composed(tmp_path: Path) -> None:
     out = (proc.stdout + proc.stderr).decode(errors='replace')
     assert proc.returncode == 0, out
     assert 'final [mm]' in out and 'rtt p50 [ms]' in out
+    assert '
+device: backend sim_maglev, sim_maglev planar
+' in out, out
     assert (bag / 'metadata.yaml').is_file() and (bag / 'trace.parquet').is_file()
     run = read_graph_bag(bag, 'fig8', 3)
     assert run.trace.t[-1] >= 0.9

@@ -196,3 +196,23 @@ class ForceOnlyBackend(SimMaglevBackend):
     def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
         del options
         return TRANSLATION_AXES
+
+
+class RefusingBackend(SimMaglevBackend):
+    """The simulated maglev whose ``configure`` raises, selected as
+    ``fake_backend:RefusingBackend``: with ``backend_options`` ``{refuse: device}`` a
+    :class:`DeviceError` with its own one-line reason (what a backend is asked to raise),
+    with ``{refuse: bug}`` a ``RuntimeError`` (a backend's own bug)."""
+
+    name = 'refusing_test_double'
+    #: The reason given with ``refuse: device``.
+    REASON = 'refusing_test_double: backend_options.unit: no unit 7 on this bus (test)'
+
+    def configure(self, config: BackendConfig) -> None:
+        refuse = config.options.get('refuse')
+        if refuse == 'device':
+            raise DeviceError(self.REASON)
+        if refuse == 'bug':
+            raise RuntimeError('index 7 out of range (test)')
+        super().configure(BackendConfig(config.params, config.initial_pose, config.user, {},
+                                        config.source))
