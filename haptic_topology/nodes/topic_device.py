@@ -5,12 +5,20 @@ It plays a haptic device whose vendor driver publishes ``geometry_msgs/PoseStamp
 ``TwistStamped`` (and, with ``wrench_topic``, the hand's force as a ``WrenchStamped``) and
 takes ``WrenchStamped`` commands: the physics are the ``sim_maglev`` backend's (eq. 9 with the
 scenario's device and simulated user, starting at the VT hand pose at ``q0`` plus the device
-offset, parked until the first non-zero command), run at its own clock (1 / scenario dt
+offset), run at its own clock (1 / scenario dt
 unless ``--rate-hz``) by a :class:`~haptic_topology.device.pacing.DeadlinePacer` in a loop
 thread. ``--options`` takes the same mapping as the driver's ``backend_options`` (topics,
 ``axes``, ``origin``, ``scale``, ``force_scale``, ``torque_scale``, ``qos``, ``command_qos``,
 :mod:`haptic_topology.device.topic_mapping`): the player publishes in the device frame and
 units those options describe, so the backend's mapping is exercised both ways.
+
+The device is parked until a driver engages it. With ``wrench_topic`` that is the first
+non-zero command (the controller sees the hand's wrench on that topic and answers it).
+Without it the hand's wrench is never published, as on a device without a force sensor, so
+a controller has nothing to answer before the device moves: the simulated hand then pushes
+the device from the first command on (the driver commands zero while it idles), and the
+controller answers the motion. It prints one line when it serves (what, where) and one
+with its counters when it stops.
 
 Per cycle it applies the newest command, mapped to the task, clamped to the scenario's
 wrench limit (a real device saturates too), or zero when it is older than
@@ -41,9 +49,9 @@ from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 
-from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
-from haptic_topology.device.maglev import saturate
+from haptic_topology.device.backend import BackendConfig
 from haptic_topology.device.pacing import DeadlinePacer
+from haptic_topology.device.player import DevicePlayer
 from haptic_topology.device.topic_mapping import TopicOptions, parse_topic_options
 from haptic_topology.errors import HapticTopologyError
 from haptic_topology.nodes.dds_env import localhost_discovery_default
@@ -55,6 +63,9 @@ from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS
 
 #: ``/diagnostics`` status name of the player.
 STATUS_NAME = 'topic_device: device'
+#: The counters of the line printed at the end.
+STOP_COUNTERS = ('cycles', 'commands', 'nonzero_commands', 'nonfinite_commands',
+                 'timeout_cycles', 'max_abs_command', 'engaged')
 #: Frame of the player's messages when ``frame_id`` is not given.
 DEVICE_FRAME = 'topic_device_base'
 
@@ -75,13 +86,11 @@ class TopicDevice:
         self.node = node
         self.opts = opts
         self.mapping = opts.mapping
-        self.limit = np.asarray(sc.device.wrench_limit, dtype=float)
-        self.sim = SimMaglevBackend()
-        self.sim.configure(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), {},
-                                         sc.source))
-        self.sim.activate()
+        self.player = DevicePlayer(BackendConfig(sc.device, initial_device_pose(sc),
+                                                 dict(sc.user), {}, sc.source),
+                                   round(1e9 * command_timeout), bool(opts.wrench_topic))
+        self.limit = self.player.limit
         self.period = 1.0 / rate_hz if rate_hz else sc.dt
-        self.timeout_ns = round(1e9 * command_timeout)
         self.frame = opts.frame_id or DEVICE_FRAME
         qos = topic_qos(opts.qos)
         self.pose_pub = node.create_publisher(PoseStamped, opts.pose_topic, qos)
@@ -96,19 +105,11 @@ class TopicDevice:
         self._pose, self._twist, self._wrench = PoseStamped(), TwistStamped(), WrenchStamped()
         for msg in (self._pose, self._twist, self._wrench):
             msg.header.frame_id = self.frame
-        # newest command: (arrival ns, task wrench or None when not finite)
-        self._cmd: tuple[int, np.ndarray | None] | None = None
         self.cmd_t: list[int] = []
         self.cmd_raw: list[list[float]] = []
         self.cmd_task: list[list[float]] = []
-        self.commands = 0
-        self.nonfinite_commands = 0
         self.frame_mismatches = 0
-        self.nonzero_commands = 0
-        self.max_abs_command = np.zeros(self.limit.size)
-        self.cycles = 0
-        self.timeout_cycles = 0
-        self.engaged = False
+        self.name = f'{sc.name} ({sc.linkage.task.value})'
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name='topic_device', daemon=True)
 
@@ -121,42 +122,19 @@ class TopicDevice:
         f, t = msg.wrench.force, msg.wrench.torque
         raw = [f.x, f.y, f.z, t.x, t.y, t.z]
         u = self.mapping.task_command((f.x, f.y, f.z), (t.x, t.y, t.z))
-        self.commands += 1
         if msg.header.frame_id != self.frame:
             self.frame_mismatches += 1
-        if u is None:
-            self.nonfinite_commands += 1
-        else:
-            np.maximum(self.max_abs_command, np.abs(u), out=self.max_abs_command)
-            if np.any(u != 0.0):
-                self.nonzero_commands += 1
         self.cmd_t.append(now)
         self.cmd_raw.append(raw)
         self.cmd_task.append([math.nan] * self.limit.size if u is None else u.tolist())
-        self._cmd = (now, u)
+        self.player.command(now, u)
 
     # -- the device's own loop (its thread) --------------------------------------------------
     def _run(self) -> None:
         pacer = DeadlinePacer(self.period)
-        zero = np.zeros(self.limit.size)
         while not self._stop.is_set():
             tick = pacer.wait()
-            now = time.monotonic_ns()
-            cmd = self._cmd
-            u = zero
-            if cmd is not None and cmd[1] is not None and now - cmd[0] <= self.timeout_ns:
-                u = saturate(cmd[1], self.limit)[0]
-            elif cmd is not None:
-                self.timeout_cycles += 1
-            if not self.engaged and np.any(u != 0.0):
-                self.engaged = True
-            dt = min(tick.dt, 20.0 * self.period)
-            if self.engaged:
-                self.sim.write(u)
-                reading = self.sim.read(dt)
-            else:
-                reading = self.sim.idle(dt)
-            self.cycles += 1
+            reading = self.player.cycle(time.monotonic_ns(), min(tick.dt, 20.0 * self.period))
             self._publish(reading.pose, reading.twist, reading.hand_wrench)
 
     def _publish(self, pose: np.ndarray, twist: np.ndarray, hand: np.ndarray) -> None:
@@ -171,23 +149,38 @@ class TopicDevice:
         """The counters (module doc); ``last_command``: the newest command received (task
         values, ``nan`` where not finite) and ``last_command_ns`` its arrival (monotonic ns,
         -1 before the first)."""
-        last = self._cmd
+        p = self.player
+        last = p.newest
         if last is None:
             text = ''
         elif last[1] is None:
             text = ' '.join(['nan'] * self.limit.size)
         else:
             text = ' '.join(repr(float(v)) for v in last[1])
-        return {'commands': str(self.commands), 'last_command': text,
+        return {'commands': str(p.commands), 'last_command': text,
                 'last_command_ns': str(-1 if last is None else last[0]),
-                'nonfinite_commands': str(self.nonfinite_commands),
-                'nonzero_commands': str(self.nonzero_commands),
+                'nonfinite_commands': str(p.nonfinite_commands),
+                'nonzero_commands': str(p.nonzero_commands),
                 'frame_mismatches': str(self.frame_mismatches),
-                'max_abs_command': ' '.join(f'{v:.6g}' for v in self.max_abs_command),
-                'engaged': str(self.engaged).lower(), 'cycles': str(self.cycles),
-                'timeout_cycles': str(self.timeout_cycles),
+                'max_abs_command': ' '.join(f'{v:.6g}' for v in p.max_abs_command),
+                'engaged': str(p.engaged).lower(), 'cycles': str(p.cycles),
+                'timeout_cycles': str(p.timeout_cycles),
                 'pose_subscribers': str(self.pose_pub.get_subscription_count()),
                 'command_publishers': str(self.node.count_publishers(self.opts.command_topic))}
+
+    def serving(self) -> str:
+        """The line printed at the start: what it serves, on which topics."""
+        o = self.opts
+        return (f'topic_device: {self.name} at {1.0 / self.period:g} Hz: pose on {o.pose_topic}, '
+                f'twist on {o.twist_topic}, commands from {o.command_topic}; ' + (
+                    f'hand wrench on {o.wrench_topic}; parked until a non-zero command'
+                    if o.wrench_topic else 'no wrench_topic: the hand wrench is not published; '
+                    'the simulated hand pushes the device from the first command on'))
+
+    def stopped(self) -> str:
+        """The line printed at the end: the counters."""
+        v = self.values()
+        return 'topic_device: stopped: ' + ', '.join(f'{k} {v[k]}' for k in STOP_COUNTERS)
 
     def _publish_status(self) -> None:
         self.diag_pub.publish(diagnostics(self.node, STATUS_NAME, self.values(),
@@ -202,12 +195,14 @@ class TopicDevice:
             np.savez(record, cmd_t=np.array(self.cmd_t, dtype=np.int64),
                      cmd_raw=np.array(self.cmd_raw, dtype=float).reshape(-1, 6),
                      cmd_task=np.array(self.cmd_task, dtype=float).reshape(-1, m),
-                     limit=self.limit, cycles=self.cycles, timeout_cycles=self.timeout_cycles,
+                     limit=self.limit, cycles=self.player.cycles,
+                     timeout_cycles=self.player.timeout_cycles,
                      frame_mismatches=self.frame_mismatches, pid=os.getpid())
 
 
 def _parse(argv: Sequence[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='topic_device', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='topic_device', description='The simulated maglev as a '
+                                     'device with a ROS 2 driver, for the ros_topics backend.')
     parser.add_argument('--scenario', required=True, help='scenario name or YAML file')
     parser.add_argument('--options', required=True,
                         help="the ros_topics backend_options (YAML mapping), e.g. '{pose_topic: "
@@ -218,7 +213,8 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
                         help='device clock (Hz; default 1 / the scenario dt)')
     parser.add_argument('--record', type=Path, default=None,
                         help='write every command received to this .npz at exit')
-    parser.add_argument('--node-name', default='topic_device')
+    parser.add_argument('--node-name', default='topic_device',
+                        help='ROS node name (default topic_device)')
     return parser.parse_args(list(argv))
 
 
@@ -242,10 +238,12 @@ def main(args: Sequence[str] | None = None) -> int:
     node = rclpy.create_node(ns.node_name)
     device = TopicDevice(node, ns.scenario, opts, 1e-3 * ns.command_timeout_ms, ns.rate_hz)
     device.start()
+    print(device.serving(), flush=True)
     try:
         spin([node], 'events')
     finally:
         device.close(ns.record)
+        print(device.stopped(), flush=True)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
