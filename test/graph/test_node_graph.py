@@ -285,9 +285,7 @@ def test_run_command_composed(tmp_path: Path) -> None:
     out = (proc.stdout + proc.stderr).decode(errors='replace')
     assert proc.returncode == 0, out
     assert 'final [mm]' in out and 'rtt p50 [ms]' in out
-    assert '
-device: backend sim_maglev, sim_maglev planar
-' in out, out
+    assert '\ndevice: backend sim_maglev, sim_maglev planar\n' in out, out
     assert (bag / 'metadata.yaml').is_file() and (bag / 'trace.parquet').is_file()
     run = read_graph_bag(bag, 'fig8', 3)
     assert run.trace.t[-1] >= 0.9
