@@ -88,6 +88,32 @@ def test_example_refuses_bad_options_naming_the_field(example_installed: Path) -
             be.configure(BackendConfig(sc.device, initial_device_pose(sc), {}, options))
 
 
+def test_example_simulates_a_hand_that_pushes_unless_told_not_to(
+        example_installed: Path) -> None:
+    """``hand: scenario`` (default): fig8's user (0.4 N along x) pushes the handle, which
+    moves along +x and measures exactly that push; ``hand: none``: it stays where it
+    started."""
+    import numpy as np
+
+    sc = load_scenario('fig8')
+    start = initial_device_pose(sc)
+    for options, moves in (({}, True), ({'hand': 'none'}, False)):
+        be = create_backend(EXAMPLE_NAME)
+        be.configure(BackendConfig(sc.device, start, dict(sc.user), options))
+        be.activate()
+        be.write(np.zeros(start.size))
+        for _ in range(100):
+            reading = be.read(sc.dt)
+        push = np.array(sc.user['wrench'], dtype=float)
+        assert bool(reading.pose[0] > start[0]) is moves, (options, reading.pose, start)
+        np.testing.assert_array_equal(reading.hand_wrench, push if moves else 0.0 * push)
+        be.deactivate()
+    with pytest.raises(DeviceError, match="backend_options.hand: expected one of scenario, "
+                                          "none, got 'left'"):
+        create_backend(EXAMPLE_NAME).configure(BackendConfig(sc.device, start, dict(sc.user),
+                                                             {'hand': 'left'}))
+
+
 SUBJECTS = {
     'sim_maglev': Subject('sim_maglev', Applied),
     'sim_maglev_spatial': Subject('sim_maglev', Applied, scenario='spatial_arm4'),
