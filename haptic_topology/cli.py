@@ -114,6 +114,8 @@ COMMANDS: tuple[Command, ...] = (
     Command('device-server', "serve the simulated maglev over UDP (the network backend's "
             'protocol) at its own clock, in this process', device_server_command.add_arguments,
             device_server_command.run),
+    Command('device-key', 'write a new random pre-shared key for an authenticated device link '
+            '(mode 0600)', device_server_command.add_key_arguments, device_server_command.run_key),
     Command('bag', 'bag tools: info, repair (a bag whose recorder was killed)',
             bag_command.add_arguments, bag_command.run),
 )

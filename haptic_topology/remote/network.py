@@ -53,7 +53,17 @@ Options (``backend_options``; every one optional):
 * ``command_ttl_ms`` (20, >= 0.001): validity of each command at the device after it arrived;
 * ``connect_timeout_ms`` (2000): how long ``activate`` waits for the first state;
 * ``wait_ms`` (0, in [0, 1]): how long ``read`` may wait for the state answering the command
-  just written (0: never waits).
+  just written (0: never waits);
+* ``key_file`` (none): the link's pre-shared key (:mod:`haptic_topology.remote.auth`, the same
+  key as the device server's ``--key-file``): every packet carries a MAC, and whatever fails
+  it, is addressed to another client session or comes from a device session left behind is
+  counted (``rejected_mac``, ``rejected_wrong_key``, ``rejected_unauthenticated``,
+  ``rejected_replay``) and dropped. Each command is addressed to the device session of the
+  newest state while that is not stale, else to none (the device then takes it as idle);
+* ``trusted_network`` (false): allow a ``host`` other than loopback without ``key_file``.
+  Without either, such a ``host`` is refused.
+
+The diagnostics value ``network_link`` and ``hardware_id`` say which mode the link runs in.
 
 Bad options are refused with a :class:`~haptic_topology.errors.DeviceError` naming the
 option and what is expected (``network: backend_options.port: expected an integer port in
@@ -72,7 +82,8 @@ from typing import Any
 import numpy as np
 
 from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
-from haptic_topology.errors import DeviceError
+from haptic_topology.errors import ConfigError, DeviceError
+from haptic_topology.remote.auth import LinkKey, link_mode, load_key, require_key_off_loopback
 from haptic_topology.remote.protocol import (
     DEFAULT_PORT,
     CommandFlags,
@@ -80,6 +91,7 @@ from haptic_topology.remote.protocol import (
     MalformedCounts,
     PacketType,
     ProtocolError,
+    Rejected,
     ServerStatus,
     SessionFollower,
     SessionVerdict,
@@ -94,6 +106,7 @@ from haptic_topology.vocabulary import DeviceStatus
 DEFAULTS: dict[str, Any] = {
     'host': '127.0.0.1', 'port': DEFAULT_PORT, 'local_host': '', 'local_port': 0,
     'stale_ms': 10.0, 'command_ttl_ms': 20.0, 'connect_timeout_ms': 2000.0, 'wait_ms': 0.0,
+    'key_file': '', 'trusted_network': False,
 }
 _FAULT = int(DeviceStatus.FAULT)
 _PASS_BITS = int(DeviceStatus.WORKSPACE_LIMIT | DeviceStatus.SATURATED)
@@ -155,6 +168,8 @@ class NetworkBackend(DeviceBackend):
         self._stale = False
         self.peer = ''
         self.server_session = 0
+        self.key: LinkKey | None = None
+        self.link = ''
         self._follower = SessionFollower(1.0)
         self.malformed = MalformedCounts()
         self._rtt = np.zeros(RTT_KEEP)
@@ -189,6 +204,14 @@ class NetworkBackend(DeviceBackend):
         self.ttl_us = max(1, round(1e3 * ttl_ms))
         self.connect_timeout = 1e-3 * _number(opts, 'connect_timeout_ms', 1.0, 600_000.0)
         self.wait = 1e-3 * _number(opts, 'wait_ms', 0.0, 1.0)
+        key_file = _text(opts, 'key_file')
+        trusted = opts.get('trusted_network', False)
+        if not isinstance(trusted, bool):
+            raise _option_error('trusted_network', 'true or false', trusted)
+        try:
+            self.key = load_key(key_file) if key_file else None
+        except ConfigError as exc:
+            raise DeviceError(f'network: backend_options.key_file: {exc}') from None
         try:
             infos = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_DGRAM)
         except (socket.gaierror, UnicodeError) as exc:
@@ -200,10 +223,17 @@ class NetworkBackend(DeviceBackend):
         ip, port = str(sockaddr[0]), int(sockaddr[1])
         self._peer = (ip, port)
         self.peer = f'[{ip}]:{port}' if family == socket.AF_INET6 else f'{ip}:{port}'
+        try:
+            require_key_off_loopback(f'network: backend_options.host {self.host}', ip, self.key,
+                                     trusted, 'backend_options key_file',
+                                     'backend_options trusted_network: true')
+        except ConfigError as exc:
+            raise DeviceError(str(exc)) from None
+        self.link = link_mode(self.key, trusted)
         self._m = config.params.task.dim
         self._initial_pose = np.array(config.initial_pose, dtype=float)
         self._zero = np.zeros(self._m)
-        self._follower = SessionFollower(self.stale_ns * 1e-9)
+        self._follower = SessionFollower(self.stale_ns * 1e-9, remember_all=self.key is not None)
         self._state = None
 
     def task_dim(self) -> int:
@@ -217,7 +247,8 @@ class NetworkBackend(DeviceBackend):
             return self.name
         dev = 'planar' if self._m == 3 else 'spatial'
         sess = f', server session {self.server_session:08x}' if self.server_session else ''
-        return f'{self.name} {self.peer} {dev}{sess}'
+        auth = 'authenticated' if self.key is not None else 'unauthenticated'
+        return f'{self.name} {self.peer} {dev}, {auth} link{sess}'
 
     def fault_reason(self) -> str:
         return self._reason or f'{self.name}: the device reports a fault'
@@ -256,7 +287,11 @@ class NetworkBackend(DeviceBackend):
         if self.malformed.total:
             got += ', refused: ' + '; '.join(
                 f'{r.value} x{n} ({self.malformed.last[r]})'
-                for r, n in self.malformed.counts.items() if n)
+                for r, n in self.malformed.counts.items() if n and isinstance(r, Malformed))
+        if self.malformed.rejected:
+            got += ', rejected by the link: ' + '; '.join(
+                f'{r.value} x{n} ({self.malformed.last[r]})'
+                for r, n in self.malformed.counts.items() if n and isinstance(r, Rejected))
         if self.foreign_source:
             got += f', {self.foreign_source} from other addresses'
         if self.send_errors:
@@ -354,8 +389,14 @@ class NetworkBackend(DeviceBackend):
     def _command(self, wrench: np.ndarray, flags: CommandFlags) -> bytes:
         st = self._state
         echo_seq, echo_stamp = (st.seq, st.stamp_ns) if st is not None else (0, 0)
-        return encode_command(self._session, self._seq, self._clock_ns(), echo_seq, echo_stamp,
-                              flags, self.ttl_us, wrench.tolist())
+        now_ns = self._clock_ns()
+        if self.key is None:
+            return encode_command(self._session, self._seq, now_ns, echo_seq, echo_stamp,
+                                  flags, self.ttl_us, wrench.tolist())
+        # addressed to the device session of a fresh state only (module doc)
+        peer = st.session if st is not None and now_ns - self._state_ns <= self.stale_ns else 0
+        return encode_command(self._session, self._seq, now_ns, echo_seq, echo_stamp, flags,
+                              self.ttl_us, wrench.tolist(), self.key, peer)
 
     def _send(self, wrench: np.ndarray, flags: CommandFlags) -> None:
         self._seq += 1
@@ -400,11 +441,17 @@ class NetworkBackend(DeviceBackend):
                 self.foreign_source += 1
                 continue
             try:
-                st = decode(view[:n], self._m, PacketType.STATE)
+                st = decode(view[:n], self._m, PacketType.STATE, self.key)
             except ProtocolError as err:
                 self.malformed.add(err)
                 continue
             assert isinstance(st, State)
+            if self.key is not None and (st.peer_session != self._session
+                                         or st.session in self._follower.retired):
+                self.malformed.reject(Rejected.REPLAY, f'a state of device session '
+                                      f'{st.session:08x} to client session '
+                                      f'{st.peer_session:08x}, this is {self._session:08x}')
+                continue
             now_ns = self._clock_ns()
             now = now_ns * 1e-9
             verdict = self._follower.take(st.session, st.seq, now)
@@ -428,7 +475,8 @@ class NetworkBackend(DeviceBackend):
                'late': f['late'], 'too_old': f['too_old'], 'lost': f['lost'],
                'foreign_session': f['foreign'], 'foreign_source': self.foreign_source,
                'server_sessions': self._follower.sessions,
-               'malformed': self.malformed.total, 'commands_sent': self.commands_sent,
+               'malformed': self.malformed.total, 'rejected': self.malformed.rejected,
+               'commands_sent': self.commands_sent,
                'send_errors': self.send_errors, 'recv_errors': self.recv_errors,
                'nonfinite_writes': self.nonfinite_writes, 'stale_cycles': self.stale_cycles,
                'stale_onsets': self.stale_onsets, 'timeout_cycles': self.timeout_cycles,
@@ -448,6 +496,7 @@ class NetworkBackend(DeviceBackend):
     def values(self) -> dict[str, str]:
         """Counters and round trip as diagnostics key/values."""
         out = {f'network_{k}': str(v) for k, v in self.counters().items()}
+        out['network_link'] = self.link
         rtt = self.round_trip()
         out.update({f'network_round_trip_{k}_ms': f'{1e3 * v:.3f}' for k, v in rtt.items()})
         return out

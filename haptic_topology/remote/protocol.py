@@ -8,8 +8,8 @@ A device controller on its own real-time computer (the paper's maglev had one) a
 ``device_driver`` of this package talk over UDP: the driver's
 :class:`~haptic_topology.remote.network.NetworkBackend` sends one COMMAND per device cycle,
 the device (here :mod:`haptic_topology.remote.server`, the simulated maglev served at its own
-1 kHz clock) answers every one of its own cycles with a STATE. No ROS, no rclpy: ``struct``
-and ``zlib`` only.
+1 kHz clock) answers every one of its own cycles with a STATE. No ROS, no rclpy: ``struct``,
+``zlib`` and, for an authenticated link, ``hashlib`` only.
 
 **Layout.** Little-endian, no padding between fields, fixed size for a given packet type and
 task dimension ``m`` (3 planar, 6 spatial). Units SI; frames and vector layouts as the
@@ -88,6 +88,32 @@ the newest is *new* (the gap before it counts as ``lost``); the same ``seq`` aga
 a newer one; it leaves ``lost``); older than the tracker's window (1024) is ``too_old``. Only
 new packets are used: a receiver acts on the newest, never goes back.
 
+**Authenticated link** (both sides configured with the same pre-shared key,
+:mod:`haptic_topology.remote.auth`): ``version`` = 2 and the CRC32 is replaced by a trailer
+of 24 bytes (COMMAND 104 / 128 bytes, STATE 184 / 280):
+
+======  =====  ==============  =================================================================
+offset  bytes  type            field
+======  =====  ==============  =================================================================
+n-24    4      uint32          ``peer_session``: the receiver's session this packet is sent to
+                               (0: not known yet, or a monitor copy)
+n-20    4      uint32          ``key_id``: id of the key (:func:`~haptic_topology.remote.auth.
+                               key_id_of`)
+n-16    16     bytes           ``mac``: ``hashlib.blake2b(data[:n-16], key=key,
+                               digest_size=16)``, over header, body, peer_session and key_id
+======  =====  ==============  =================================================================
+
+The receiver checks the MAC before it reads anything else of the datagram; a failure is
+counted ``rejected_unauthenticated`` (a version-1 packet), ``rejected_wrong_key`` (another key
+id) or ``rejected_mac`` (forged or corrupted). A receiver with a key takes no version-1
+packet, one without a key no version-2 packet (``version``). Replays: within a session a
+packet sent again is not newer than the newest taken (``duplicate``, ``late``,
+``too_old``); a packet addressed to another session of the receiver (recorded before the
+receiver restarted) and a packet of a sender session the receiver has left behind (ended,
+or taken over by a newer one) are counted ``rejected_replay``. A device takes a COMMAND
+addressed to ``peer_session`` 0 (a client that knows no state of this device yet) as an idle
+one: it never applies its wrench.
+
 Example (checked by
 ``test/unit/remote/test_device_network.py``): a tracker that receives seqs 1, 2, 5, 3,
 3, 2, 6 has taken 4 new packets (1, 2, 5, 6), 1 late (3), 2 duplicates (the second 3, the
@@ -97,6 +123,7 @@ second 2) and counts 1 lost (4; 3 arrived late).
 from __future__ import annotations
 
 import enum
+import hmac
 import math
 import secrets
 import struct
@@ -107,10 +134,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from haptic_topology.errors import DeviceError
+from haptic_topology.remote.auth import TAG_SIZE, LinkKey
 from haptic_topology.vocabulary import DeviceStatus
 
 MAGIC = b'HTDP'
+#: ``version`` of an unauthenticated packet (CRC32 trailer).
 VERSION = 1
+#: ``version`` of an authenticated packet (MAC trailer).
+VERSION_AUTH = 2
 #: UDP port of ``haptic-topology device-server`` and of the ``network`` backend by default.
 DEFAULT_PORT = 47001
 #: Task dimensions the protocol carries (planar, spatial).
@@ -120,6 +151,10 @@ DIMS = (3, 6)
 _HEADER_FMT = '4sBBHB3xIQQQQ'
 HEADER = struct.Struct('<' + _HEADER_FMT)
 _CRC = struct.Struct('<I')
+#: The authenticated trailer before the tag: peer_session, key_id.
+_AUTH = struct.Struct('<II')
+#: Bytes a trailer adds after the body: CRC32 (version 1) or peer, key id, tag (version 2).
+TRAILER = {False: _CRC.size, True: _AUTH.size + TAG_SIZE}
 #: Largest value of a uint64 field.
 U64_MAX = 2**64 - 1
 
@@ -176,27 +211,44 @@ class Malformed(enum.Enum):
     NON_FINITE = 'non_finite'
 
 
+class Rejected(enum.Enum):
+    """Why an authenticated receiver refused a datagram (module doc, "Authenticated link");
+    the value names the counter ``rejected_<value>``."""
+
+    #: The tag does not match the contents: forged or corrupted.
+    MAC = 'mac'
+    #: The packet was made with another key (its key id is not the receiver's).
+    WRONG_KEY = 'wrong_key'
+    #: A version-1 packet (no MAC) at a receiver with a key.
+    UNAUTHENTICATED = 'unauthenticated'
+    #: A valid tag, but addressed to another session of the receiver, or of a sender session
+    #: the receiver has left behind: recorded earlier and sent again.
+    REPLAY = 'replay'
+
+
 class ProtocolError(DeviceError):
     """A datagram that is not a valid packet (``reason``), or values that cannot be sent."""
 
-    def __init__(self, reason: Malformed, message: str) -> None:
+    def __init__(self, reason: Malformed | Rejected, message: str) -> None:
         super().__init__(message)
         self.reason = reason
 
 
-def command_size(m: int) -> int:
-    """Bytes of a COMMAND for task dimension ``m`` (84 for 3, 108 for 6)."""
-    return HEADER.size + 8 + 8 * m + _CRC.size
+def command_size(m: int, auth: bool = False) -> int:
+    """Bytes of a COMMAND for task dimension ``m`` (84 for 3, 108 for 6; authenticated 104,
+    128)."""
+    return HEADER.size + 8 + 8 * m + TRAILER[auth]
 
 
-def state_size(m: int) -> int:
-    """Bytes of a STATE for task dimension ``m`` (164 for 3, 260 for 6)."""
-    return HEADER.size + 16 + 32 * m + _CRC.size
+def state_size(m: int, auth: bool = False) -> int:
+    """Bytes of a STATE for task dimension ``m`` (164 for 3, 260 for 6; authenticated 184,
+    280)."""
+    return HEADER.size + 16 + 32 * m + TRAILER[auth]
 
 
-def packet_size(ptype: PacketType, m: int) -> int:
-    """Bytes of a packet of type ``ptype`` for task dimension ``m``."""
-    return command_size(m) if ptype is PacketType.COMMAND else state_size(m)
+def packet_size(ptype: PacketType, m: int, auth: bool = False) -> int:
+    """Bytes of a packet of type ``ptype`` for task dimension ``m`` (``auth``: version 2)."""
+    return command_size(m, auth) if ptype is PacketType.COMMAND else state_size(m, auth)
 
 
 def new_session() -> int:
@@ -216,6 +268,8 @@ class Command:
     flags: CommandFlags
     ttl_us: int
     wrench: np.ndarray
+    #: Authenticated only: the receiver's session this was sent to (0: none known yet).
+    peer_session: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -233,6 +287,8 @@ class State:
     twist: np.ndarray
     hand_wrench: np.ndarray
     applied_wrench: np.ndarray
+    #: Authenticated only: the receiver's session this was sent to (0: none, a monitor copy).
+    peer_session: int = 0
 
 
 _COMMAND_STRUCTS = {m: struct.Struct(f'<{_HEADER_FMT}I4x{m}d') for m in DIMS}
@@ -257,13 +313,21 @@ def _finite(values: Sequence[float], what: str) -> None:
                         'numbers are sent')
 
 
-def _seal(struct_: struct.Struct, fields: tuple[object, ...]) -> bytes:
+def _seal(struct_: struct.Struct, fields: tuple[object, ...], key: LinkKey | None,
+          peer_session: int) -> bytes:
     body = struct_.pack(*fields)
-    return body + _CRC.pack(zlib.crc32(body))
+    if key is None:
+        return body + _CRC.pack(zlib.crc32(body))
+    if not 0 <= peer_session < 2**32:
+        raise ProtocolError(Malformed.FIELD, f'peer_session must be in [0, 2^32 - 1], got '
+                            f'{peer_session}')
+    body += _AUTH.pack(peer_session, key.key_id)
+    return body + key.tag(body)
 
 
 def _header_fields(ptype: PacketType, flags: int, m: int, session: int, seq: int,
-                   stamp_ns: int, echo_seq: int, echo_stamp_ns: int) -> tuple[object, ...]:
+                   stamp_ns: int, echo_seq: int, echo_stamp_ns: int,
+                   key: LinkKey | None) -> tuple[object, ...]:
     if not 1 <= session < 2**32:
         raise ProtocolError(Malformed.FIELD, f'session must be in [1, 2^32 - 1], got {session}')
     if not 1 <= seq <= U64_MAX:
@@ -271,15 +335,16 @@ def _header_fields(ptype: PacketType, flags: int, m: int, session: int, seq: int
     _check_u64('stamp_ns', stamp_ns)
     _check_u64('echo_seq', echo_seq)
     _check_u64('echo_stamp_ns', echo_stamp_ns)
-    return (MAGIC, VERSION, int(ptype), flags, m, session, seq, stamp_ns, echo_seq,
-            echo_stamp_ns)
+    return (MAGIC, VERSION if key is None else VERSION_AUTH, int(ptype), flags, m, session, seq,
+            stamp_ns, echo_seq, echo_stamp_ns)
 
 
 def encode_command(session: int, seq: int, stamp_ns: int, echo_seq: int, echo_stamp_ns: int,
-                   flags: CommandFlags, ttl_us: int, wrench: Sequence[float] | np.ndarray
-                   ) -> bytes:
+                   flags: CommandFlags, ttl_us: int, wrench: Sequence[float] | np.ndarray,
+                   key: LinkKey | None = None, peer_session: int = 0) -> bytes:
     """A COMMAND datagram; refuses (:class:`ProtocolError`) non-finite values, a wrench of
-    another size than 3 or 6, out-of-range integers, unknown flags."""
+    another size than 3 or 6, out-of-range integers, unknown flags. With ``key``: version 2,
+    addressed to the device's ``peer_session`` (0: not known yet), MAC-tagged."""
     w = [float(v) for v in wrench]
     _check_dim(len(w))
     _finite(w, 'wrench')
@@ -288,16 +353,18 @@ def encode_command(session: int, seq: int, stamp_ns: int, echo_seq: int, echo_st
     if not 1 <= ttl_us < 2**32:
         raise ProtocolError(Malformed.FIELD, f'ttl_us must be in [1, 2^32 - 1], got {ttl_us}')
     head = _header_fields(PacketType.COMMAND, int(flags), len(w), session, seq, stamp_ns,
-                          echo_seq, echo_stamp_ns)
-    return _seal(_COMMAND_STRUCTS[len(w)], (*head, ttl_us, *w))
+                          echo_seq, echo_stamp_ns, key)
+    return _seal(_COMMAND_STRUCTS[len(w)], (*head, ttl_us, *w), key, peer_session)
 
 
 def encode_state(session: int, seq: int, stamp_ns: int, echo_seq: int, echo_stamp_ns: int,
                  status: int, applied_seq: int, pose: Sequence[float] | np.ndarray,
                  twist: Sequence[float] | np.ndarray, hand_wrench: Sequence[float] | np.ndarray,
-                 applied_wrench: Sequence[float] | np.ndarray) -> bytes:
+                 applied_wrench: Sequence[float] | np.ndarray, key: LinkKey | None = None,
+                 peer_session: int = 0) -> bytes:
     """A STATE datagram; refuses (:class:`ProtocolError`) non-finite values, vectors of
-    unequal or wrong size, unknown status bits, out-of-range integers."""
+    unequal or wrong size, unknown status bits, out-of-range integers. With ``key``: version
+    2, addressed to the client's ``peer_session`` (0: a monitor copy), MAC-tagged."""
     vectors = [[float(v) for v in vec] for vec in (pose, twist, hand_wrench, applied_wrench)]
     m = len(vectors[0])
     _check_dim(m)
@@ -311,27 +378,55 @@ def encode_state(session: int, seq: int, stamp_ns: int, echo_seq: int, echo_stam
                             f'{STATUS_MASK:#x})')
     _check_u64('applied_seq', applied_seq)
     head = _header_fields(PacketType.STATE, 0, m, session, seq, stamp_ns, echo_seq,
-                          echo_stamp_ns)
+                          echo_stamp_ns, key)
     return _seal(_STATE_STRUCTS[m], (*head, int(status), applied_seq, *vectors[0],
-                                     *vectors[1], *vectors[2], *vectors[3]))
+                                     *vectors[1], *vectors[2], *vectors[3]), key, peer_session)
+
+
+def _verify(data: bytes | bytearray | memoryview, n: int, key: LinkKey) -> int:
+    """Check the tag of an authenticated datagram before anything of it is read; its
+    ``peer_session``. Only to name the refusal are magic, version and key id looked at."""
+    if n < HEADER.size + TRAILER[True]:
+        raise ProtocolError(Malformed.SIZE, f'datagram of {n} bytes: shorter than a header and '
+                            f'an authenticated trailer ({HEADER.size + TRAILER[True]} bytes)')
+    view = memoryview(data)
+    if hmac.compare_digest(key.tag(view[:n - TAG_SIZE]), view[n - TAG_SIZE:n]):
+        return int(_AUTH.unpack_from(data, n - TRAILER[True])[0])
+    if bytes(view[:4]) == MAGIC and view[4] == VERSION:
+        raise ProtocolError(Rejected.UNAUTHENTICATED, 'an unauthenticated (version 1) packet: '
+                            'this receiver has a key and takes only authenticated ones')
+    key_id = _AUTH.unpack_from(data, n - TRAILER[True])[1]
+    if key_id != key.key_id:
+        raise ProtocolError(Rejected.WRONG_KEY, f'made with key id {key_id:08x}, this '
+                            f'receiver\'s key is {key.key_id:08x}: another key')
+    raise ProtocolError(Rejected.MAC, 'the MAC does not match the contents: forged or '
+                        'corrupted')
 
 
 def decode(data: bytes | bytearray | memoryview, m: int | None = None,
-           expect: PacketType | None = None) -> Command | State:
+           expect: PacketType | None = None, key: LinkKey | None = None) -> Command | State:
     """The packet in ``data``; ``m``: the receiver's task dimension (None: any of 3, 6);
-    ``expect``: the only type the receiver takes (None: both). Raises :class:`ProtocolError`
-    naming what is wrong (module doc, "Refused packets")."""
+    ``expect``: the only type the receiver takes (None: both); ``key``: the link's key (then
+    only authenticated packets, the MAC verified first). Raises :class:`ProtocolError`
+    naming what is wrong (module doc, "Refused packets", "Authenticated link")."""
     n = len(data)
-    if n < HEADER.size + _CRC.size:
+    auth = key is not None
+    peer = 0
+    if key is not None:
+        peer = _verify(data, n, key)
+    elif n < HEADER.size + _CRC.size:
         raise ProtocolError(Malformed.SIZE, f'datagram of {n} bytes: shorter than a header '
                             f'and CRC ({HEADER.size + _CRC.size} bytes)')
     (magic, version, ptype_raw, flags, dim, session, seq, stamp_ns, echo_seq,
      echo_stamp_ns) = HEADER.unpack_from(data)
     if magic != MAGIC:
         raise ProtocolError(Malformed.MAGIC, f'magic {bytes(magic)!r}, expected {MAGIC!r}')
-    if version != VERSION:
+    want_version = VERSION_AUTH if auth else VERSION
+    if version != want_version:
+        hint = (': an authenticated packet, but this receiver has no key (key_file / '
+                '--key-file)' if version == VERSION_AUTH else '')
         raise ProtocolError(Malformed.VERSION, f'protocol version {version}, expected '
-                            f'{VERSION}')
+                            f'{want_version}{hint}')
     if ptype_raw not in (1, 2):
         raise ProtocolError(Malformed.TYPE, f'packet type {ptype_raw}, expected 1 (COMMAND) '
                             'or 2 (STATE)')
@@ -342,15 +437,16 @@ def decode(data: bytes | bytearray | memoryview, m: int | None = None,
     if dim not in DIMS or (m is not None and dim != m):
         want = f'{m}' if m is not None else '3 or 6'
         raise ProtocolError(Malformed.DIM, f'task dimension m = {dim}, expected {want}')
-    size = packet_size(ptype, dim)
+    size = packet_size(ptype, dim, auth)
     if n != size:
         raise ProtocolError(Malformed.SIZE, f'{ptype.name} of m = {dim} must be {size} bytes, '
                             f'got {n}')
-    crc = zlib.crc32(memoryview(data)[:n - _CRC.size])
-    (sent_crc,) = _CRC.unpack_from(data, n - _CRC.size)
-    if crc != sent_crc:
-        raise ProtocolError(Malformed.CRC, f'CRC32 {sent_crc:#010x} does not match the '
-                            f'contents ({crc:#010x}): corrupted')
+    if not auth:
+        crc = zlib.crc32(memoryview(data)[:n - _CRC.size])
+        (sent_crc,) = _CRC.unpack_from(data, n - _CRC.size)
+        if crc != sent_crc:
+            raise ProtocolError(Malformed.CRC, f'CRC32 {sent_crc:#010x} does not match the '
+                                f'contents ({crc:#010x}): corrupted')
     if session == 0 or seq == 0:
         raise ProtocolError(Malformed.FIELD, f'session {session} and seq {seq} must be >= 1')
     if ptype is PacketType.COMMAND:
@@ -363,7 +459,7 @@ def decode(data: bytes | bytearray | memoryview, m: int | None = None,
         wrench = fields[11:]
         _finite(wrench, 'wrench')
         return Command(session, seq, stamp_ns, echo_seq, echo_stamp_ns, CommandFlags(flags),
-                       ttl_us, np.array(wrench))
+                       ttl_us, np.array(wrench), peer)
     fields = _STATE_STRUCTS[dim].unpack_from(data)
     if flags:
         raise ProtocolError(Malformed.FIELD, f'STATE flags must be 0, got {flags:#x}')
@@ -374,7 +470,7 @@ def decode(data: bytes | bytearray | memoryview, m: int | None = None,
     _finite(values, 'state values')
     a = np.array(values)
     return State(session, seq, stamp_ns, echo_seq, echo_stamp_ns, status, applied_seq,
-                 a[:dim], a[dim:2 * dim], a[2 * dim:3 * dim], a[3 * dim:])
+                 a[:dim], a[dim:2 * dim], a[2 * dim:3 * dim], a[3 * dim:], peer)
 
 
 # -- receiving: sequence numbers and sessions ----------------------------------------------------
@@ -446,14 +542,22 @@ class SessionFollower:
     takes over once the followed one has been silent ``takeover_after`` s (a restarted peer
     draws a new session id), else its packets are refused (``foreign``). A session that
     ended (:meth:`end`) is never followed again (``ended``). Each followed session has its own
-    :class:`SeqTracker`; the counts of earlier sessions are kept in ``previous``."""
+    :class:`SeqTracker`; the counts of earlier sessions are kept in ``previous``.
+
+    ``remember_all`` (an authenticated link): every session followed and left behind (ended,
+    or taken over by a newer one) is kept in ``retired`` and never followed again, so a
+    recorded packet of an earlier session is refused whenever it comes (its packets are
+    counted in ``ended``; the receiver counts them as replays)."""
 
     _ENDED_KEPT = 16
 
-    def __init__(self, takeover_after: float) -> None:
+    def __init__(self, takeover_after: float, remember_all: bool = False) -> None:
         if not takeover_after > 0.0:
             raise ValueError(f'takeover_after must be > 0 s, got {takeover_after}')
         self.takeover_after = takeover_after
+        self.remember_all = remember_all
+        #: Sessions left behind (``remember_all``): never followed again.
+        self.retired: set[int] = set()
         self.session = 0
         self.tracker = SeqTracker()
         self.previous = SeqTracker()   # counters summed over the sessions before this one
@@ -468,7 +572,7 @@ class SessionFollower:
         new session when it may take over (counted in ``sessions``)."""
         if session == self.session:
             return SessionVerdict.CURRENT
-        if session in self._ended:
+        if session in self._ended or session in self.retired:
             self.ended_packets += 1
             return SessionVerdict.ENDED
         if self.session and now - self.heard < self.takeover_after:
@@ -506,6 +610,8 @@ class SessionFollower:
         self.heard = -math.inf
 
     def _retire(self) -> None:
+        if self.remember_all and self.session:
+            self.retired.add(self.session)
         t, p = self.tracker, self.previous
         p.new += t.new
         p.duplicate += t.duplicate
@@ -524,20 +630,34 @@ class SessionFollower:
 
 
 class MalformedCounts:
-    """Refused datagrams per :class:`Malformed` reason, and the newest message of each."""
+    """Refused datagrams per :class:`Malformed` and :class:`Rejected` reason, and the newest
+    message of each."""
 
     def __init__(self) -> None:
-        self.counts = dict.fromkeys(Malformed, 0)
-        self.last: dict[Malformed, str] = {}
+        self.counts: dict[Malformed | Rejected, int] = dict.fromkeys([*Malformed, *Rejected], 0)
+        self.last: dict[Malformed | Rejected, str] = {}
 
     def add(self, err: ProtocolError) -> None:
         self.counts[err.reason] += 1
         self.last[err.reason] = str(err)
 
+    def reject(self, reason: Rejected, message: str) -> None:
+        """Count a refusal found after decoding (a replay)."""
+        self.counts[reason] += 1
+        self.last[reason] = message
+
     @property
     def total(self) -> int:
-        return sum(self.counts.values())
+        """Malformed datagrams (every :class:`Malformed` reason)."""
+        return sum(n for r, n in self.counts.items() if isinstance(r, Malformed))
+
+    @property
+    def rejected(self) -> int:
+        """Datagrams refused by the authenticated link (every :class:`Rejected` reason)."""
+        return sum(n for r, n in self.counts.items() if isinstance(r, Rejected))
 
     def values(self, prefix: str = 'malformed_') -> dict[str, int]:
-        """``{prefix + reason: count}`` for every reason."""
-        return {f'{prefix}{r.value}': n for r, n in self.counts.items()}
+        """``{prefix + reason: count}`` for every :class:`Malformed` reason and
+        ``{'rejected_' + reason: count}`` for every :class:`Rejected` one."""
+        return {f'{prefix if isinstance(r, Malformed) else "rejected_"}{r.value}': n
+                for r, n in self.counts.items()}

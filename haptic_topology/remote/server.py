@@ -17,7 +17,11 @@ Per cycle (:meth:`DeviceServer.cycle`):
    a COMMAND of another client session while the followed one is alive (it sent a new
    command within ``takeover_after``) is counted ``foreign``; a duplicate, late or reordered
    one (its seq is not newer than the newest taken) is counted and dropped; the newest
-   remaining command is held, with its arrival time;
+   remaining command is held, with its arrival time. With a key (``ServerConfig.key``, an
+   authenticated link) a datagram whose MAC does not verify is refused before it is read
+   (``rejected_mac``, ``rejected_wrong_key``, ``rejected_unauthenticated``), and so is a
+   command addressed to another device session or of a client session left behind
+   (``rejected_replay``); a command addressed to no device session yet is taken as idle;
 2. the output: the held command, clamped to the scenario's wrench limit, if it is *engaged*
    (flag ``ENGAGED``) and younger than ``command_timeout`` and than its own ``ttl_us``; else
    zero. Zero because the held command is too old is ``COMMAND_TIMEOUT`` (status bit, counted
@@ -45,7 +49,7 @@ import math
 import socket
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -55,13 +59,16 @@ from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
 from haptic_topology.device.maglev import saturate
 from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.errors import ConfigError, DeviceError
+from haptic_topology.remote.auth import LinkKey, link_mode, require_key_off_loopback
 from haptic_topology.remote.protocol import (
     DEFAULT_PORT,
     Command,
     CommandFlags,
+    Malformed,
     MalformedCounts,
     PacketType,
     ProtocolError,
+    Rejected,
     ServerStatus,
     SessionFollower,
     SessionVerdict,
@@ -89,7 +96,8 @@ class ServerConfig:
     session is followed; ``forget_after`` (s): silence after which no more states are sent
     to the client; ``duration`` (s, 0: until stopped); ``log_cycles``: cycles kept in the
     applied-wrench log (0: no log); ``monitor``: ``(host, port)`` that gets a copy of every
-    cycle's STATE (None: none)."""
+    cycle's STATE (None: none); ``key``: the link's pre-shared key (None: unauthenticated,
+    only on a loopback address unless ``trusted_network``)."""
 
     host: str = '127.0.0.1'
     port: int = DEFAULT_PORT
@@ -100,6 +108,8 @@ class ServerConfig:
     duration: float = 0.0
     log_cycles: int = 0
     monitor: tuple[str, int] | None = None
+    key: LinkKey | None = None
+    trusted_network: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
@@ -144,6 +154,12 @@ class DeviceServer:
             raise DeviceError(f'device-server: cannot resolve host {cfg.host!r} ({exc})'
                               ) from None
         family, _, _, _, sockaddr = infos[0]
+        require_key_off_loopback(f'device-server: serving on {cfg.host}', str(sockaddr[0]),
+                                 cfg.key, cfg.trusted_network, '--key-file PATH',
+                                 '--trusted-network')
+        self.key = cfg.key
+        #: The link's mode in the summary: authenticated or not, and why not.
+        self.link = link_mode(cfg.key, cfg.trusted_network)
         sock = socket.socket(family, socket.SOCK_DGRAM)
         try:
             sock.bind(sockaddr)
@@ -156,7 +172,7 @@ class DeviceServer:
         bound = sock.getsockname()
         self.host, self.port = str(bound[0]), int(bound[1])
         self.session = new_session()
-        self.follower = SessionFollower(cfg.takeover_after)
+        self.follower = SessionFollower(cfg.takeover_after, remember_all=cfg.key is not None)
         self.malformed = MalformedCounts()
         self._buf = bytearray(2048)
         self._cmd: Command | None = None
@@ -252,19 +268,21 @@ class DeviceServer:
         client = self._client
         if client is not None and now_ns * 1e-9 - self.follower.heard <= self.cfg.forget_after:
             self._state_seq += 1
-            if self._send(client, self._state_seq, now_ns, echo_seq, echo_stamp, values):
+            if self._send(client, self._state_seq, now_ns, echo_seq, echo_stamp, values,
+                          self.follower.session):
                 self.states_sent += 1
         if self._monitor_addr is not None:
             self._monitor_seq += 1
             self._send(self._monitor_addr, self._monitor_seq, now_ns, echo_seq, echo_stamp,
-                       values)
+                       values, 0)
 
     def _send(self, addr: tuple[object, ...], seq: int, now_ns: int, echo_seq: int,
               echo_stamp: int, values: tuple[int, int, np.ndarray, np.ndarray, np.ndarray,
-                                             np.ndarray]) -> bool:
+                                             np.ndarray], peer: int) -> bool:
         assert self.sock is not None
         try:
-            data = encode_state(self.session, seq, now_ns, echo_seq, echo_stamp, *values)
+            data = encode_state(self.session, seq, now_ns, echo_seq, echo_stamp, *values,
+                                key=self.key, peer_session=peer)
         except ProtocolError as err:     # a non-finite state is never sent: the client goes
             self.encode_errors += 1      # stale and its driver writes zero
             self.last_error = str(err)
@@ -297,11 +315,14 @@ class DeviceServer:
                 return
             self.datagrams += 1
             try:
-                cmd = decode(view[:n], self.m, PacketType.COMMAND)
+                got = decode(view[:n], self.m, PacketType.COMMAND, self.key)
             except ProtocolError as err:
                 self.malformed.add(err)
                 continue
-            assert isinstance(cmd, Command)
+            assert isinstance(got, Command)
+            cmd = got if self.key is None else self._addressed(got)
+            if cmd is None:
+                continue
             verdict = follower.take(cmd.session, cmd.seq, now)
             if verdict is None:
                 continue
@@ -317,6 +338,23 @@ class DeviceServer:
             self._cmd = cmd
             self._cmd_ns = now_ns
             self.commands += 1
+
+    def _addressed(self, cmd: Command) -> Command | None:
+        """An authenticated command, refused as a replay when addressed to another session of
+        this device or of a client session left behind (not a copy of its release), and
+        made idle when addressed to no session yet (module doc of the protocol)."""
+        if cmd.peer_session not in (0, self.session):
+            self.malformed.reject(Rejected.REPLAY, f'a command addressed to device session '
+                                  f'{cmd.peer_session:08x}, this is {self.session:08x}: '
+                                  'recorded before this device started')
+            return None
+        if cmd.session in self.follower.retired and not cmd.flags & _RELEASE:
+            self.malformed.reject(Rejected.REPLAY, f'a command of client session '
+                                  f'{cmd.session:08x}, which this device has left behind')
+            return None
+        if cmd.peer_session == 0 and cmd.flags & _ENGAGED:
+            return replace(cmd, flags=cmd.flags & ~CommandFlags.ENGAGED)
+        return cmd
 
     # -- running -----------------------------------------------------------------------------
     def serve(self, stop: Callable[[], bool]) -> None:
@@ -351,22 +389,29 @@ class DeviceServer:
                'malformed': self.malformed.total, 'client_sessions': self.follower.sessions,
                'releases': self.releases, 'command_timeouts': self.command_timeouts,
                'timeout_cycles': self.timeout_cycles, 'states_sent': self.states_sent,
-               'send_errors': self.send_errors, 'encode_errors': self.encode_errors}
+               'send_errors': self.send_errors, 'encode_errors': self.encode_errors,
+               'authenticated': int(self.key is not None),
+               'rejected': self.malformed.rejected}
         out.update(self.malformed.values())
         return out
 
     def summary_line(self) -> str:
         """The counters in one line (printed at shutdown)."""
         c = self.counters()
-        reasons = ', '.join(f'{r.value} {n}' for r, n in self.malformed.counts.items() if n)
+        bad = ', '.join(f'{r.value} {n}' for r, n in self.malformed.counts.items()
+                        if n and isinstance(r, Malformed))
+        rej = ', '.join(f'{r.value} {n}' for r, n in self.malformed.counts.items()
+                        if n and isinstance(r, Rejected))
         return (f'device-server {self.host}:{self.port}: {c["cycles"]} cycles '
                 f'({c["missed_deadlines"]} missed deadlines); {c["commands"]} commands, applied '
                 f'in {c["applied_cycles"]} cycles ({c["clamped_cycles"]} clamped); refused '
-                f'{c["malformed"]} malformed{f" ({reasons})" if reasons else ""}, '
+                f'{c["malformed"]} malformed{f" ({bad})" if bad else ""}, '
+                f'{c["rejected"]} by the link{f" ({rej})" if rej else ""}, '
                 f'{c["duplicate"]} duplicate, {c["late"]} late, {c["too_old"]} too old, '
                 f'{c["foreign"]} foreign; {c["lost"]} lost; {c["command_timeouts"]} command '
                 f'timeouts ({c["timeout_cycles"]} cycles at zero); {c["client_sessions"]} '
-                f'client sessions, {c["releases"]} releases; {c["states_sent"]} states sent')
+                f'client sessions, {c["releases"]} releases; {c["states_sent"]} states sent; '
+                f'link {self.link}')
 
     def write_log(self, path: Path) -> None:
         """The applied-wrench log as CSV: ``t_ns`` (the cycle's monotonic time, ns: the

@@ -14,6 +14,14 @@ status``) and ``--summary PATH`` (JSON of the counters) are written at shutdown.
 ``--monitor HOST:PORT``: a copy of every cycle's STATE goes there (an observer of what the
 device applies, e.g. a test).
 
+``--key-file PATH``: the link's pre-shared key (:mod:`haptic_topology.remote.auth`; the
+driver's ``backend_options`` ``key_file`` names a copy of the same file): every packet is
+authenticated and whatever fails the MAC is counted and dropped. Serving on an address other
+than loopback without a key is refused unless ``--trusted-network`` is given. The ready file
+and the output line say which (``link``).
+
+``haptic-topology device-key PATH`` writes a new random key to ``PATH`` (mode 0600).
+
 Also runnable as ``python -m haptic_topology.remote.server_command``.
 """
 
@@ -101,6 +109,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='write the counters here at shutdown (JSON)')
     parser.add_argument('--monitor', type=_address, metavar='HOST:PORT',
                         help='send a copy of every cycle\'s STATE here (an observer)')
+    parser.add_argument('--key-file', type=Path, metavar='PATH',
+                        help='pre-shared key of the link (hex, mode 0600; `haptic-topology '
+                        'device-key PATH` makes one): every packet carries a MAC')
+    parser.add_argument('--trusted-network', action='store_true',
+                        help='serve without a key on an address other than loopback (anyone '
+                        'who can reach the port can then move the device)')
+
+
+def add_key_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('path', type=Path, help='file to create (refused if it exists)')
+
+
+def run_key(args: argparse.Namespace) -> int:
+    """``haptic-topology device-key PATH``: a new random key, mode 0600."""
+    from haptic_topology.remote.auth import write_key
+
+    key = write_key(args.path)
+    print(f'device-key: wrote a new key to {args.path} (mode 0600, key id {key.key_id:08x}); '
+          'copy it to the other computer with the same mode', flush=True)
+    return 0
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -115,11 +143,17 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.sim.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
+    key = None
+    if args.key_file is not None:
+        from haptic_topology.remote.auth import load_key
+
+        key = load_key(args.key_file)
     cfg = ServerConfig(host=args.host, port=args.port, rate_hz=args.rate_hz,
                        command_timeout=1e-3 * args.command_timeout_ms,
                        takeover_after=1e-3 * args.takeover_after_ms,
                        forget_after=1e-3 * args.forget_after_ms, duration=args.duration,
-                       log_cycles=args.log_cycles if args.log else 0, monitor=args.monitor)
+                       log_cycles=args.log_cycles if args.log else 0, monitor=args.monitor,
+                       key=key, trusted_network=args.trusted_network)
     server = DeviceServer(scenario, cfg)
     stop = False
 
@@ -133,9 +167,11 @@ def run(args: argparse.Namespace) -> int:
         if args.ready_file:
             _write_atomic(args.ready_file, json.dumps({
                 'host': server.host, 'port': server.port, 'pid': os.getpid(),
-                'session': server.session, 'task_dim': server.m, 'period': server.period}))
+                'session': server.session, 'task_dim': server.m, 'period': server.period,
+                'link': server.link}))
         print(f'device-server: serving {scenario.name} (m = {server.m}) on '
-              f'{server.host}:{server.port} at {1.0 / server.period:g} Hz', flush=True)
+              f'{server.host}:{server.port} at {1.0 / server.period:g} Hz, link '
+              f'{server.link}', flush=True)
         server.serve(lambda: stop)
     finally:
         server.close()

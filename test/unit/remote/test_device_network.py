@@ -499,7 +499,10 @@ def _read_until(be: NetworkBackend, pose0: float, timeout: float = 10.0) -> Devi
     ({'host': 'no-such-host.invalid'}, "backend_options.host: cannot resolve "
      "'no-such-host.invalid'"),
     ({'prot': 1}, "backend_options: unknown option 'prot' (expected some of: command_ttl_ms, "
-     'connect_timeout_ms, host, local_host, local_port, port, stale_ms, wait_ms)'),
+     'connect_timeout_ms, host, key_file, local_host, local_port, port, stale_ms, '
+     'trusted_network, wait_ms)'),
+    ({'trusted_network': 'yes'}, "backend_options.trusted_network: expected true or false, "
+     "got 'yes'"),
 ])
 def test_backend_options_are_checked(options: dict[str, object], text: str) -> None:
     with pytest.raises(DeviceError, match=re.escape(text)):
@@ -515,7 +518,7 @@ def test_selected_by_module_class_and_configured_from_the_driver_parameter() -> 
     opts = parse_backend_options('{host: 127.0.0.1, port: 47001, stale_ms: 20, '
                                  'command_ttl_ms: 15.5, wait_ms: 0.2}')
     be.configure(_config(opts))
-    assert be.hardware_id == 'network 127.0.0.1:47001 planar'
+    assert be.hardware_id == 'network 127.0.0.1:47001 planar, unauthenticated link'
 
 
 def test_lifecycle_without_a_device_and_before_activate() -> None:
@@ -528,7 +531,7 @@ def test_lifecycle_without_a_device_and_before_activate() -> None:
     port = silent.getsockname()[1]
     try:
         be.configure(_config({'port': port, 'connect_timeout_ms': 50}))
-        assert be.hardware_id == f'network 127.0.0.1:{port} planar'
+        assert be.hardware_id == f'network 127.0.0.1:{port} planar, unauthenticated link'
         for call in (lambda: be.read(0.001), lambda: be.write(np.zeros(3)),
                      lambda: be.idle(0.001)):
             with pytest.raises(DeviceError, match=r'before activate\(\)'):
@@ -573,8 +576,8 @@ def test_backend_takes_only_the_newest_valid_state_and_counts_the_rest() -> None
     be = _activated(dev, clock)
     stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
-        assert be.hardware_id == (f'network 127.0.0.1:{dev.port} planar, server session '
-                                  f'{dev.session:08x}')
+        assert be.hardware_id == (f'network 127.0.0.1:{dev.port} planar, unauthenticated '
+                                  f'link, server session {dev.session:08x}')
         bad = bytearray(dev.state([0.5, 0.0, 0.0]))                 # seq 2, corrupted
         bad[70] ^= 0x20
         dev.send(bytes(bad))
