@@ -35,6 +35,9 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    beside the loop and the recorder.
 7. Memory: one hosted run of ``--memory-duration`` s (default 150) and each process's
    resident set growth after its first minute (``run``'s ``rss_growth_kb_s_<process>``).
+8. The authenticated device link (``bench/link_auth.py``): the MAC's cost per packet, and the
+   ``network`` backend's loop against ``device-server`` without and with a key,
+   ``LINK_DURATION`` s each (at most ``--loop-duration``), side by side.
 
 Then a table of every figure beside its goal (issues 11 and 26). Run: ``make bench`` (about
 26 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
@@ -64,10 +67,14 @@ sys.path.insert(0, str(BENCH))
 
 import core_costs  # noqa: E402
 import floor  # noqa: E402
+import link_auth  # noqa: E402
 import recorder_load  # noqa: E402
 from chain_scenario import write_chain_scenario  # noqa: E402
 
 from haptic_topology.vocabulary import TaskSpace  # noqa: E402
+
+#: Seconds of each ``network`` backend loop run of section 8 (without and with the MAC).
+LINK_DURATION = 10.0
 
 #: Links of the chain whose VE runs live beside the loop and the recorder (issue 26, item 5).
 CHAIN_LIVE = 100
@@ -358,6 +365,10 @@ def run(loop_duration: float, recorder_duration: float,
         print(f'== recorder at {factor:g}x the graph rate, {recorder_duration:g} s ...',
               flush=True)
         res[f'recorder_{factor:g}x'] = recorder_load.run(recorder_duration, factor)
+    duration = min(LINK_DURATION, loop_duration)
+    print(f'== device link: MAC per packet; network backend loop without and with a key, '
+          f'{duration:g} s each ...', flush=True)
+    res['link_auth'] = link_auth.run(duration)
     return res
 
 
@@ -588,6 +599,8 @@ def table(res: dict[str, Any]) -> str:
     for name, r in res['simulate_speed'].items():
         lines.append(f'simulate {name}: {r["duration_s"]:g} s simulated in {r["wall_s"]:.3f} '
                      f's, fastest of {OFFLINE_RUNS} ({r["realtime_factor"]:.1f}x real time)')
+    if 'link_auth' in res:
+        lines.extend(link_auth.table(res['link_auth']))
     return '\n'.join(lines)
 
 

@@ -37,8 +37,10 @@
 #       stopped, down. DDS stays inside ${P}lab (the environment's setup, as a plain `run`;
 #       HT_DDS_PROFILE does not apply). Bag to $OUT (default
 #       bags/two_hosts_device_<scenario>_<delay>ms_<time>), plus link.json,
-#       device_server.json (the server's counters), device_server.log and
-#       device_server_cpu.json (its CPU time).
+#       device_server.json (the server's counters), device_server.log,
+#       device_server_log.csv (the wrench it applied, per cycle) and device_server_cpu.json
+#       (its CPU time). The link is authenticated with a new key (HT_DEVICE_KEY); with
+#       HT_FORGER=1 a forger in ${P}lab sends forged and replayed commands (forger.json).
 #   scripts/two_hosts.sh exec lab|ve CMD ...  a command in a namespace, with the DDS setup
 # Without root, every command except `check` prints one line saying it needs root and exits
 # 0 (skipped), so an unprivileged CI job passes; `check` exits 1.
@@ -51,7 +53,10 @@
 # (default 0: the namespaces are a network of their own), HAPTIC_VENV (default .venv);
 # run-device: HT_DEVICE_PORT (47001), HT_DEVICE_OPTIONS (more backend_options, e.g.
 # 'stale_ms: 20'), HT_DEVICE_PRIORITY (SCHED_FIFO priority of the server, 0: normal),
-# HT_PARAMS (params file to copy, default config/haptic_topology.yaml).
+# HT_PARAMS (params file to copy, default config/haptic_topology.yaml), HT_DEVICE_KEY (the
+# link's key file; default: a new one in the state dir; `none`: an unauthenticated link
+# with --trusted-network), HT_FORGER (1: scripts/link_forger.py runs in ${P}lab during the
+# run, forging commands to the device; its counts go to forger.json).
 set -euo pipefail
 
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -247,17 +252,31 @@ cmd_run_device() {
     trap cmd_down EXIT
     trap 'exit 130' INT TERM
     cmd_up "$delay_ms"
-    rm -f "$STATE/device_ready.json" "$STATE/device_server.json" "$STATE/device_server_cpu.json"
+    rm -f "$STATE/device_ready.json" "$STATE/device_server.json" "$STATE/device_server_cpu.json" \
+        "$STATE/device_server_log.csv" "$STATE/forger.json"
+    local key=${HT_DEVICE_KEY:-} auth=()
+    if [[ $key == none ]]; then
+        auth=(--trusted-network); key=''
+    else
+        if [[ -z $key ]]; then
+            key=$STATE/device.key
+            rm -f "$key"
+            "$VENV/bin/haptic-topology" device-key "$key" >/dev/null
+        fi
+        auth=(--key-file "$key")
+    fi
     "$PY" - "${HT_PARAMS:-$REPO/config/haptic_topology.yaml}" "$STATE/params.yaml" "$VE_IP" \
-        "$port" "${HT_DEVICE_OPTIONS:-}" <<'PYEOF'
+        "$port" "${HT_DEVICE_OPTIONS:-}" "$key" <<'PYEOF'
 import sys
 import yaml
-src, dst, host, port, extra = sys.argv[1:]
+src, dst, host, port, extra, key = sys.argv[1:]
 with open(src, encoding='utf-8') as f:
     params = yaml.safe_load(f)
 p = params.setdefault('device_driver', {}).setdefault('ros__parameters', {})
 p['backend'] = 'network'
-p['backend_options'] = '{host: %s, port: %s%s}' % (host, port, ', ' + extra if extra else '')
+auth = f'key_file: {key}' if key else 'trusted_network: true'
+p['backend_options'] = '{host: %s, port: %s, %s%s}' % (host, port, auth,
+                                                       ', ' + extra if extra else '')
 with open(dst, 'w', encoding='utf-8') as f:
     yaml.safe_dump(params, f, sort_keys=False)
 PYEOF
@@ -266,7 +285,7 @@ PYEOF
     setsid ip netns exec "$NS_VE" "${rt[@]}" "$VENV/bin/haptic-topology" device-server \
         --scenario "$scenario" --host "$VE_IP" --port "$port" \
         --ready-file "$STATE/device_ready.json" --summary "$STATE/device_server.json" \
-        >"$STATE/device_server.log" 2>&1 &
+        --log "$STATE/device_server_log.csv" "${auth[@]}" >"$STATE/device_server.log" 2>&1 &
     local dpid=$! i
     for i in $(seq 300); do
         [[ -s $STATE/device_ready.json ]] && break
@@ -275,10 +294,20 @@ PYEOF
         sleep 0.1
     done
     [[ -s $STATE/device_ready.json ]] || die "device-server did not serve within 30 s"
-    echo "$PROG: device-server on $NS_VE $VE_IP:$port (pid $dpid)"
+    echo "$PROG: device-server on $NS_VE $VE_IP:$port (pid $dpid), link" \
+        "$("$PY" -c 'import json, sys; print(json.load(open(sys.argv[1]))["link"])' \
+        "$STATE/device_ready.json")"
+    local fpid=''
+    if [[ ${HT_FORGER:-0} == 1 ]]; then
+        setsid ip netns exec "$NS_LAB" "$PY" "$REPO/scripts/link_forger.py" --iface lab0 \
+            --device "$VE_IP:$port" --out "$STATE/forger.json" >"$STATE/forger.log" 2>&1 &
+        fpid=$!
+        echo "$PROG: a forger on the link in $NS_LAB (pid $fpid)"
+    fi
     local status=0
     ip netns exec "$NS_LAB" "$VENV/bin/haptic-topology" run "$scenario" --out "$out" \
         --params "$STATE/params.yaml" "$@" || status=$?
+    [[ -n $fpid ]] && stop_pid "$fpid"
     # The server's CPU time (utime + stime, clock ticks) and age, before it stops.
     awk -v hz="$(getconf CLK_TCK)" -v up="$(cut -d' ' -f1 /proc/uptime)" \
         '{ printf "{\"cpu_s\": %.2f, \"wall_s\": %.2f}\n", ($14 + $15) / hz, up - $22 / hz }' \
@@ -289,7 +318,8 @@ PYEOF
     if [[ -d $out ]]; then
         local f
         cp "$STATE/link.json" "$out/link.json" 2>/dev/null || true
-        for f in device_server.json device_server.log device_server_cpu.json; do
+        for f in device_server.json device_server.log device_server_cpu.json \
+                device_server_log.csv forger.json; do
             cp "$STATE/$f" "$out/" 2>/dev/null || true
         done
         echo "$PROG: link counters: $out/link.json, device server: $out/device_server.json"

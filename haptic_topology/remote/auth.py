@@ -2,7 +2,7 @@
 
 The device protocol (:mod:`haptic_topology.remote.protocol`) carries, when both sides have a
 key, a keyed MAC on every packet: BLAKE2b (RFC 7693) in its keyed mode with a 16-byte tag,
-from the standard library's :mod:`hashlib`. BLAKE2b is a MAC by itself when given a key (no
+from the standard library's ``hashlib``. BLAKE2b is a MAC by itself when given a key (no
 HMAC construction around it) and costs about a fifth of HMAC-SHA256 per packet in CPython,
 which matters on the driver's 1 kHz deadline path.
 
@@ -79,8 +79,9 @@ class LinkKey:
 
 
 def load_key(path: str | os.PathLike[str]) -> LinkKey:
-    """The key in the file ``path`` (module doc); :class:`ConfigError` naming the file when it
-    is missing, readable or writable by others than its owner, or not 32 to 64 bytes of hex."""
+    """The key in the file ``path`` (module doc); :class:`~haptic_topology.errors.ConfigError`
+    naming the file when it is missing, readable or writable by others than its owner, or
+    not 32 to 64 bytes of hex."""
     p = Path(path)
     try:
         st = p.stat()
@@ -144,8 +145,9 @@ def link_mode(key: LinkKey | None, trusted_network: bool) -> str:
 
 def require_key_off_loopback(who: str, ip: str, key: LinkKey | None, trusted_network: bool,
                              key_option: str, trusted_option: str) -> None:
-    """Refuse (:class:`ConfigError`) a link on the non-loopback address ``ip`` with no key,
-    unless ``trusted_network``; the message names the options that fix it."""
+    """Refuse (:class:`~haptic_topology.errors.ConfigError`) a link on the non-loopback
+    address ``ip`` with no key, unless ``trusted_network``; the message names the options
+    that fix it."""
     if key is None and not trusted_network and not is_loopback(ip):
         raise ConfigError(
             f'{who}: {ip} is not a loopback address and no key is configured: any host that '

@@ -1,5 +1,8 @@
 """The ``network`` device backend: a device controller on another computer, over UDP.
 
+(One module of ~510 lines on purpose: the options, the lifecycle, the per-cycle path and the
+counters of the client side share its state and are read together.)
+
 :class:`NetworkBackend` is the client side of :mod:`haptic_topology.remote.protocol`, inside
 ``device_driver``: each :meth:`~NetworkBackend.write` sends one COMMAND datagram, each
 :meth:`~NetworkBackend.read` takes the STATE datagrams that have arrived, without blocking,

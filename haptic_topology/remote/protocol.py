@@ -97,8 +97,7 @@ offset  bytes  type            field
 ======  =====  ==============  =================================================================
 n-24    4      uint32          ``peer_session``: the receiver's session this packet is sent to
                                (0: not known yet, or a monitor copy)
-n-20    4      uint32          ``key_id``: id of the key (:func:`~haptic_topology.remote.auth.
-                               key_id_of`)
+n-20    4      uint32          ``key_id``: id of the key (``auth.key_id_of``)
 n-16    16     bytes           ``mac``: ``hashlib.blake2b(data[:n-16], key=key,
                                digest_size=16)``, over header, body, peer_session and key_id
 ======  =====  ==============  =================================================================
