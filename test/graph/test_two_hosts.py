@@ -227,13 +227,18 @@ def test_ve_in_another_namespace_behind_a_delayed_link(prefix: str, tmp_path: Pa
 def test_device_server_in_another_namespace_behind_a_lossy_link(prefix: str,
                                                                 tmp_path: Path) -> None:
     """The network backend across the namespace pair (issue 15, item 2): the device server in
-    the far namespace behind 1 ms +-20 % with 1 % frame loss, the graph in the near one."""
+    the far namespace behind 1 ms +-20 % with 1 % frame loss, the graph in the near one, the
+    link authenticated with a key, and a forger on the link (issue 60) that sees every
+    command and sends forged ones with the driver's session and next seq, and replays: the
+    device applied none of them."""
+    from network_harness import read_log
+
     from haptic_topology.sim.scenario import load_scenario
     from haptic_topology.sim.trace_io import read_trace
 
     bag = tmp_path / 'bag'
     env = dict(os.environ, HT_PREFIX=prefix, HT_STATE=str(tmp_path / 'state'), OUT=str(bag),
-               HT_LOSS='0.01')
+               HT_LOSS='0.01', HT_FORGER='1')
     done = _script(['run-device', 'fig8', '1', '--duration', '2', '--no-plot'], env, bag)
     assert not {ns for ns in _namespaces() if ns.startswith(prefix)}, 'namespaces left'
     assert done.returncode == 0, done.stdout[-6000:]
@@ -251,6 +256,20 @@ def test_device_server_in_another_namespace_behind_a_lossy_link(prefix: str,
     server = json.loads((bag / 'device_server.json').read_text())
     assert server['commands'] > 0 and server['states_sent'] > 0
     assert server['malformed'] == 0 and server['client_sessions'] == 1
+
+    # The forger saw the commands and sent its forgeries; the device refused each kind
+    # (at most what was sent: the link loses some) and never applied the forged wrench.
+    assert server['authenticated'] == 1
+    assert 'link authenticated (BLAKE2b-128' in (bag / 'device_server.log').read_text()
+    forger = json.loads((bag / 'forger.json').read_text())
+    sent = forger['sent']
+    assert forger['seen'] > 0 and min(sent.values()) > 0, forger
+    for reason, kind in (('unauthenticated', 'unauthenticated'), ('wrong_key', 'own_key'),
+                         ('mac', 'tampered')):
+        assert 1 <= server[f'rejected_{reason}'] <= sent[kind], (reason, server, sent)
+    _, _, seq, u, _ = read_log(bag / 'device_server_log.csv')
+    assert np.count_nonzero(seq) > 0
+    assert not np.any(np.all(np.isclose(u, forger['wrench']), axis=1))
 
     link = json.loads((bag / 'link.json').read_text())
     if link['stage'] == 'delay_bridge':
