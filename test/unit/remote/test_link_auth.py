@@ -132,6 +132,19 @@ def test_key_file_must_be_private_and_hex(tmp_path: Path) -> None:
         write_key(tmp_path / 'new.key')
 
 
+def test_device_key_command_writes_a_private_key(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from haptic_topology import cli
+
+    path = tmp_path / 'device.key'
+    assert cli.main(['device-key', str(path)]) == 0
+    key = load_key(path)
+    assert path.stat().st_mode & 0o777 == 0o600
+    assert f'key id {key.key_id:08x}' in capsys.readouterr().out
+    assert cli.main(['device-key', str(path)]) != 0          # never overwrites a key
+    assert load_key(path).key == key.key
+
+
 def _config(options: dict[str, object]) -> BackendConfig:
     sc = load_scenario('fig8')
     return BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user), options, sc.source)
