@@ -13,9 +13,9 @@ used. Wall clock only: a lock-step run needs a device that waits for the driver,
 device on its own clock does not.
 
 **Per cycle** (the driver's 1 kHz deadline path): ``write`` is one ``struct`` pack, one CRC32
-(with a key: one keyed BLAKE2b) and one non-blocking ``sendto``; ``read`` drains the socket with non-blocking ``recvfrom_into``
-until it is empty (``wait_ms`` > 0: then waits at most that long for the state that answers
-the command just written). Nothing else blocks.
+(with a key: one keyed BLAKE2b) and one non-blocking ``sendto``; ``read`` drains the socket
+with non-blocking ``recvfrom_into`` until it is empty (``wait_ms`` > 0: then waits at most
+that long for the state that answers the command just written). Nothing else blocks.
 
 **Never a bad value on.** A datagram that is not a valid STATE of the device's session
 (:func:`~haptic_topology.remote.protocol.decode`: size, magic, version, type, task dimension,
