@@ -9,7 +9,8 @@ session and the NEXT seq, a COMMAND with the wrench :data:`WRENCH`:
 * ``own_key``: an authenticated packet made with a key of its own;
 * ``tampered``: the seen packet, seq and wrench changed, its MAC and key id kept;
 
-and ``replayed``: every seen packet again, unchanged, 100 ms later. On SIGINT/SIGTERM (or
+and ``replayed``: every seen packet again, unchanged, 100 ms later. Its own packets (from
+its socket's port) it does not take as seen. On SIGINT/SIGTERM (or
 after ``--duration``) it writes ``{"seen", "sent": {kind: n}, "wrench"}`` to ``--out``. Used by
 ``scripts/two_hosts.sh run-device`` with ``HT_FORGER=1``; the device must apply none of it.
 """
@@ -37,15 +38,17 @@ ETH_P_IP = 0x0800
 REPLAY_AFTER = 0.1
 
 
-def _udp_payload(frame: bytes, port: int) -> bytes | None:
-    """The UDP payload of an Ethernet/IPv4 frame sent to ``port``, else None."""
+def _udp_payload(frame: bytes, port: int, own_port: int) -> bytes | None:
+    """The UDP payload of an Ethernet/IPv4 frame sent to ``port`` from another port than
+    ``own_port`` (not one of the forger's own), else None."""
     if len(frame) < 42 or struct.unpack_from('!H', frame, 12)[0] != ETH_P_IP:
         return None
     ihl = (frame[14] & 0x0F) * 4
     if frame[23] != socket.IPPROTO_UDP:
         return None
     udp = 14 + ihl
-    if struct.unpack_from('!H', frame, udp + 2)[0] != port:
+    src, dst = struct.unpack_from('!HH', frame, udp)
+    if dst != port or src == own_port:
         return None
     return frame[udp + 8:]
 
@@ -62,6 +65,8 @@ def main() -> int:
     sniff = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x0003))
     sniff.bind((a.iface, 0))
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    out.bind(('0.0.0.0', 0))
+    own_port = out.getsockname()[1]
     own = LinkKey(secrets.token_bytes(32))
     sent = dict.fromkeys(('unauthenticated', 'own_key', 'tampered', 'replayed'), 0)
     seen = 0
@@ -86,7 +91,7 @@ def main() -> int:
 
     while not stop and time.monotonic() < end:
         if select.select([sniff], [], [], 0.01)[0]:
-            data = _udp_payload(sniff.recv(4096), port)
+            data = _udp_payload(sniff.recv(4096), port, own_port)
             if data is not None and len(data) >= P.HEADER.size and data[:4] == P.MAGIC \
                     and data[5] == int(P.PacketType.COMMAND) and data[8] == 3:
                 seen += 1
