@@ -32,6 +32,18 @@ def config_dir() -> Path:
     return source
 
 
+def config_names(kind: str) -> list[str]:
+    """The names of the shipped ``config/<kind>/*.yaml`` files (``kind``: ``scenarios`` or
+    ``linkages``), sorted: what :func:`resolve_config` takes as a name."""
+    return sorted(f.stem for f in (config_dir() / kind).glob('*.yaml'))
+
+
+def scenario_help(what: str = 'a scenario YAML file') -> str:
+    """The ``--help`` text of a scenario argument: every shipped scenario's name, or
+    ``what``."""
+    return f'scenario name ({", ".join(config_names("scenarios"))}) or {what}'
+
+
 def resolve_config(name: str, kind: str) -> Path:
     """A config file given as a path, or by name from ``config/<kind>/<name>.yaml``.
 
@@ -43,7 +55,7 @@ def resolve_config(name: str, kind: str) -> Path:
     candidate = config_dir() / kind / f'{name}.yaml'
     if candidate.is_file():
         return candidate
-    known = sorted(f.stem for f in (config_dir() / kind).glob('*.yaml'))
+    known = config_names(kind)
     raise ConfigError(f'{name}: no such file, and no {kind[:-1]} of that name (known: '
                       f'{", ".join(known) or "none"})')
 

@@ -6,13 +6,17 @@ Each INPUT is a bag of the node graph (a rosbag2 directory or ``.mcap`` file, re
 directory). For each it
 prints one row of the drift table (the columns of ``simulate``: final, max and RMS distance
 between the device and the VT grasp point, time constrained, time at the workspace limit)
-and one row of loop health (bags only: fraction of states answered before the next one,
-from the bag and from the device driver's diagnostics; round trip p50/p99; the device's
-period p50/p99 and its standard deviation, from the state stamps). It writes into DIR:
+with, when an input has obstacles, its deepest penetration and time in contact
+(:func:`~haptic_topology.sim.trace.format_summary`), and one row of the loop-health table
+``run`` prints too (:data:`LOOP_COLUMNS`: bags only but for the periods; fraction of states
+answered before the next one, from the device driver's diagnostics and from the bag; round
+trip p50/p99; the device's period p50/p99 and its standard deviation and the states missing,
+from the state stamps). It writes into DIR:
 
 * ``<label>.png``: the Fig. 6 / Fig. 8 style figure of each input (linkage, hand paths,
-  drift, constraints; the linkage comes from the scenario named in the run);
-* ``comparison.png`` with two or more inputs: the drift of each over time;
+  drift, constraints, and for a run with obstacles the obstacles and the contact panel; the
+  linkage and the obstacles come from the scenario named in the run, see :func:`run_figure`);
+* ``comparison.png`` with two or more inputs only: the drift of each over time;
 * ``summary.json``: ``{"runs": [...]}``, one object per input with the drift fields of
   ``simulate`` (``final_distance_m``, ``max_distance_m``, ``rms_distance_m``,
   ``constrained_time_s``, ...), ``label``, ``input``, ``source`` (graph/simulate) and, for
@@ -193,33 +197,59 @@ def load_run(path: str | Path, plot: bool = True) -> Run:
     return Run(label_of(p), p, rows.trace or head, _summary(summary, p), period.result())
 
 
-def _linkage_of(run: Run) -> Any:
-    ref = run.meta.get('scenario_ref') or run.meta.get('scenario')
-    if not ref:
-        return None
-    try:
-        from haptic_topology.sim.scenario import load_scenario
+def run_figure(r: Run) -> Any:
+    """The figure of ``r`` (``<label>.png``, module doc; the caller closes it): the linkage
+    and obstacles of the scenario named in its metadata (a bag's ``custom_data.scenario``, a
+    trace's ``scenario``; the linkage of a trace's ``linkage_file`` when it ran on another,
+    also named in the title), none of those it cannot load."""
+    from haptic_topology.model.linkage import load_linkage
+    from haptic_topology.sim.plots import trace_figure
+    from haptic_topology.sim.scenario import load_scenario
+    from haptic_topology.sim.trace import run_name
 
-        return load_scenario(str(ref)).linkage
+    ref = str(r.meta.get('scenario_ref') or r.meta.get('scenario') or '')
+    other = str(r.meta.get('linkage_file', ''))
+    linkage: Linkage | None = None
+    obstacles: tuple[Any, ...] = ()
+    try:
+        if ref:
+            sc = load_scenario(ref)
+            linkage = sc.linkage
+            obstacles = tuple(sc.contacts.obstacles) if sc.contacts else ()
     except ConfigError:
-        return None
+        pass
+    try:
+        if other:
+            linkage = load_linkage(other)
+    except ConfigError:
+        linkage = None
+    name = f' ({run_name(str(r.meta.get("scenario", "")), other)})' if other else ''
+    return trace_figure(r.plot, linkage, f'{r.label}{name}: final drift '
+                        f'{r.summary["final_distance_m"] * 1e3:.2f} mm, max '
+                        f'{r.summary["max_distance_m"] * 1e3:.2f} mm', obstacles)
+
+
+#: The loop-health table of ``run`` and ``analyze`` (:func:`format_loop_health`), in order:
+#: the ``summary.json`` key of each figure, its column, scale and format. The device
+#: driver's own answered fraction and round trip (its last ``/diagnostics``), the bag's
+#: answered fraction, and the device period from the states' stamps in the bag.
+LOOP_COLUMNS = (('device_answered_fraction', 'answered, device [%]', 100.0, '{:.2f}'),
+                ('bag_answered_fraction', 'answered, bag [%]', 100.0, '{:.2f}'),
+                ('device_round_trip_p50_ms', 'rtt p50 [ms]', 1.0, '{:.3f}'),
+                ('device_round_trip_p99_ms', 'rtt p99 [ms]', 1.0, '{:.3f}'),
+                ('bag_period_p50_ms', 'period p50 [ms]', 1.0, '{:.3f}'),
+                ('bag_period_p99_ms', 'period p99 [ms]', 1.0, '{:.3f}'),
+                ('bag_period_std_ms', 'period std [ms]', 1.0, '{:.3f}'),
+                ('bag_missing_states', 'missing states', 1.0, '{:.0f}'))
 
 
 def format_loop_health(runs: list[tuple[str, dict[str, Any]]]) -> str:
-    """Loop health table, one row per ``(label, figures)`` (a trace of ``simulate`` has
-    periods only)."""
-    cols = [('bag_answered_fraction', 'answered, bag [%]', 100.0, '{:.2f}'),
-            ('device_answered_fraction', 'answered, device [%]', 100.0, '{:.2f}'),
-            ('device_round_trip_p50_ms', 'rtt p50 [ms]', 1.0, '{:.3f}'),
-            ('device_round_trip_p99_ms', 'rtt p99 [ms]', 1.0, '{:.3f}'),
-            ('bag_period_p50_ms', 'period p50 [ms]', 1.0, '{:.3f}'),
-            ('bag_period_p99_ms', 'period p99 [ms]', 1.0, '{:.3f}'),
-            ('bag_period_std_ms', 'period std [ms]', 1.0, '{:.3f}'),
-            ('bag_missing_states', 'missing states', 1.0, '{:.0f}')]
-    cells = [['run'] + [c[1] for c in cols]]
+    """The loop-health table (:data:`LOOP_COLUMNS`), one row per ``(label, figures)``; a
+    figure missing or not finite is ``-`` (a trace of ``simulate`` has periods only)."""
+    cells = [['run'] + [c[1] for c in LOOP_COLUMNS]]
     for label, figures in runs:
         row = [label]
-        for key, _, scale, fmt in cols:
+        for key, _, scale, fmt in LOOP_COLUMNS:
             v = figures.get(key)
             ok = isinstance(v, (int, float)) and math.isfinite(v)
             row.append(fmt.format(float(v) * scale) if ok else '-')  # type: ignore[arg-type]
@@ -290,11 +320,11 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
             row['foreign_publishers'] = dict(r.foreign_publishers)
         rows.append(row)
         if plots:
-            from haptic_topology.sim.plots import plot_trace
+            import matplotlib.pyplot as plt
 
-            plot_trace(r.plot, out / f'{r.label}.png', _linkage_of(r),
-                       title=f'{r.label}: final drift {summary["final_distance_m"] * 1e3:.2f} '
-                       f'mm, max {summary["max_distance_m"] * 1e3:.2f} mm')
+            fig = run_figure(r)
+            fig.savefig(out / f'{r.label}.png', dpi=110)
+            plt.close(fig)
             runs.append(r)
     if plots and len(runs) > 1:
         plot_comparison(runs, out / 'comparison.png')

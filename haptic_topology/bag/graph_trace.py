@@ -73,8 +73,8 @@ from haptic_topology.sim.trace_io import CHUNK_ROWS
 from haptic_topology.sim.trace_stats import TraceSink
 from haptic_topology.vocabulary import ControlMode
 
-__all__ = ['GRAPH_TYPES', 'MAX_SEQ_GAP', 'PATH_TOPIC', 'GraphRun', 'format_loop',
-           'read_graph_bag', 'stream_graph_bag']
+__all__ = ['GRAPH_TYPES', 'MAX_SEQ_GAP', 'PATH_TOPIC', 'GraphRun', 'read_graph_bag',
+           'stream_graph_bag']
 
 _DEVICE_STATUS = DEVICE_STATUS
 #: Topic suffix -> type the graph publishes on it (a bag without any of them is foreign);
@@ -378,22 +378,3 @@ def loop_figures(index: BagIndex, in_time: int, pairs: int) -> dict[str, float]:
     out['ve_update_rate_hz'] = index.update_rate_hz
     return out
 
-
-def format_loop(rows: list[tuple[str, dict[str, float]]]) -> str:
-    """A small table of loop figures, one row per run label."""
-    cols = [('device_answered_fraction', 'answered [%]', 100.0, '{:.2f}'),
-            ('bag_answered_fraction', 'answered, bag [%]', 100.0, '{:.2f}'),
-            ('device_round_trip_p50_ms', 'rtt p50 [ms]', 1.0, '{:.3f}'),
-            ('device_round_trip_p99_ms', 'rtt p99 [ms]', 1.0, '{:.3f}'),
-            ('device_period_p99_ms', 'period p99 [ms]', 1.0, '{:.3f}'),
-            ('bag_states', 'states', 1.0, '{:.0f}')]
-    head = ['run'] + [c[1] for c in cols]
-    cells = [head]
-    for label, fig in rows:
-        cells.append([label] + [fmt.format(fig.get(k, math.nan) * scale)
-                                for k, _, scale, fmt in cols])
-    widths = [max(len(r[i]) for r in cells) for i in range(len(head))]
-    lines = ['  '.join(c.ljust(widths[i]) if i == 0 else c.rjust(widths[i])
-                       for i, c in enumerate(r)) for r in cells]
-    lines.insert(1, '  '.join('-' * w for w in widths))
-    return '\n'.join(lines)

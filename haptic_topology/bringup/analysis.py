@@ -47,7 +47,7 @@ def analyse(job: AnalysisJob) -> dict[str, Any]:
     bag, sc = job.bag, job.sc
     traces = (bag / 'trace.parquet',) + ((bag / 'trace.csv',) if job.csv else ())
     result = reduce_bag(bag, sc.name, sc.lmi_dof, sc.linkage.task.dim, sc.linkage,
-                        traces, plot=job.plot)
+                        traces, periods=True, plot=job.plot)
     summary = dict(result.summary, **{k: v for k, v in result.loop.items()})
     summary['layout'] = job.layout
     summary['skipped_messages'] = dict(result.skipped)
@@ -80,7 +80,7 @@ def analyse(job: AnalysisJob) -> dict[str, Any]:
         from haptic_topology.sim.plots import plot_trace
 
         plot_trace(result.plot, bag / 'plot.png', sc.linkage,
-                   title=f'{sc.name} {job.mode} (ROS graph)',
+                   title=f'{sc.label} {job.mode} (ROS graph)',
                    obstacles=sc.contacts.obstacles if sc.contacts else ())
         print(f'plot: {bag / "plot.png"}', flush=True)
     out = {'summary': summary, 'loop': result.loop}

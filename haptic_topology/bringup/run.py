@@ -65,6 +65,7 @@ from haptic_topology.bringup.options import (
 )
 from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import BringupError, ConfigError
+from haptic_topology.paths import scenario_help
 from haptic_topology.processes import STOP_TIMEOUT, RunUsage, terminate
 from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE, Clock
 
@@ -131,7 +132,7 @@ def environment_domain() -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('scenario', help='scenario name (fig6, fig8) or a scenario YAML file')
+    parser.add_argument('scenario', help=scenario_help())
     parser.add_argument('--mode', action='append', choices=LAW_MODES,
                         help="control law (repeat to run several); default: the scenario's")
     parser.add_argument('--duration', type=float,
@@ -440,7 +441,7 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
                params: Path, scenario_ref: str, layout: str, overrides: list[str],
                loop_cpu_auto: bool) -> int:
     """:func:`run`'s runs, one per mode, on the domain it has claimed."""
-    from haptic_topology.bag.graph_trace import format_loop
+    from haptic_topology.bag.analyze import format_loop_health
     from haptic_topology.bringup.analysis import AnalysisJob, analyse_in_child
     from haptic_topology.sim.trace import format_summary
 
@@ -465,5 +466,5 @@ def _run_modes(args: argparse.Namespace, sc: Scenario, modes: list[str], duratio
     print()
     print(format_summary(summaries))
     print()
-    print(format_loop(loops))
+    print(format_loop_health(loops))
     return 0

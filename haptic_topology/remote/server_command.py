@@ -37,6 +37,7 @@ from pathlib import Path
 from types import FrameType
 
 from haptic_topology.errors import HapticTopologyError
+from haptic_topology.paths import scenario_help
 from haptic_topology.remote.protocol import DEFAULT_PORT
 
 #: Cycles kept in the ``--log`` by default (10 min at 1 kHz).
@@ -77,8 +78,8 @@ def _address(text: str) -> tuple[str, int]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--scenario', required=True,
-                        help='scenario name (fig6, fig8, ...) or YAML file: device model, '
-                        'limits, initial pose and simulated user')
+                        help=scenario_help('a YAML file') + ': device model, limits, initial '
+                        'pose and simulated user')
     parser.add_argument('--host', default='127.0.0.1',
                         help='address to serve on (default 127.0.0.1; 0.0.0.0: every IPv4 '
                         'interface)')

@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from haptic_topology.paths import scenario_help
 from haptic_topology.vocabulary import LAW_MODES
 
 if TYPE_CHECKING:
@@ -19,7 +20,7 @@ if TYPE_CHECKING:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('scenario', help='scenario name (fig6, fig8) or a scenario YAML file')
+    parser.add_argument('scenario', help=scenario_help())
     parser.add_argument('--mode', choices=LAW_MODES,
                         help='control law: eq. 14 (penalty) or eq. 10 (acceleration_only); '
                         "default: the scenario's")

@@ -41,7 +41,7 @@ from matplotlib.patches import Circle, Polygon
 from haptic_topology.model.build import build_model
 from haptic_topology.model.linkage import Linkage
 from haptic_topology.model.obstacles import Obstacle, ObstacleKind
-from haptic_topology.sim.trace import Trace
+from haptic_topology.sim.trace import Trace, run_name
 
 
 def _joint_points(linkage: Linkage, q: np.ndarray) -> np.ndarray:
@@ -163,7 +163,8 @@ def _constraint_panel(ax: plt.Axes, trace: Trace, linkage: Linkage | None) -> No
 
 def _finish(fig: plt.Figure, trace: Trace, title: str | None) -> None:
     summary = trace.summary()
-    fig.suptitle(title or f'{summary["scenario"]} - {summary["mode"]}: final drift '
+    name = run_name(str(summary['scenario']), str(trace.meta.get('linkage_file', '')))
+    fig.suptitle(title or f'{name} - {summary["mode"]}: final drift '
                  f'{summary["final_distance_m"] * 1000:.2f} mm, max '
                  f'{summary["max_distance_m"] * 1000:.2f} mm')
     fig.tight_layout()

@@ -57,6 +57,7 @@ from haptic_topology.dynamics.loops import LoopClosures, check_assembled
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage, load_linkage
 from haptic_topology.paths import resolve_config
+from haptic_topology.sim.trace import run_name
 from haptic_topology.sim.ve import VeSettings
 from haptic_topology.validate import (
     as_angles,
@@ -91,13 +92,27 @@ class Scenario:
     source: str
     #: Obstacles and contact model; None: a VE without objects (F_env = 0).
     contacts: ContactSettings | None = None
+    #: The linkage file :meth:`with_linkage` put in place of the scenario's own linkage
+    #: (absolute; a linkage of no file: its name); empty: the scenario's own.
+    linkage_file: str = ''
+
+    @property
+    def label(self) -> str:
+        """The run's name in plot titles (:func:`~haptic_topology.sim.trace.run_name`):
+        ``fig8``, or ``fig8 on my_arm.urdf`` on another linkage."""
+        return run_name(self.name, self.linkage_file)
 
     def with_linkage(self, linkage: Linkage, q0: np.ndarray | None = None) -> Scenario:
         """Same scenario on another linkage, starting at ``q0`` (rad / m, one per joint;
         default the scenario's; a point-grasp scenario holds a rigid linkage of its space at
-        the point too). Refused (:class:`~haptic_topology.errors.ConfigError`) when
+        the point too); another linkage than the scenario's is named in :attr:`linkage_file`.
+        Refused (:class:`~haptic_topology.errors.ConfigError`) when
         the scenario's ``q0`` or a nonzero ``dq0`` does not fit the linkage's joints and no
         ``q0`` is given: a state made up for it would start the hand anywhere."""
+        linkage_file = self.linkage_file
+        if linkage is not self.linkage:
+            source = Path(linkage.source)
+            linkage_file = str(source.resolve()) if source.is_file() else linkage.name
         if (self.linkage.task.point and not linkage.task.point
                 and linkage.task.rigid is self.linkage.task.rigid):
             linkage = replace(linkage, task=self.linkage.task)  # held as the scenario holds it
@@ -123,7 +138,8 @@ class Scenario:
         if self.contacts is not None:
             self.contacts.shapes(linkage)       # the per-link choices must fit it
         check_start(linkage, np.asarray(q0, dtype=float), dq0, 'scenario')
-        return replace(self, linkage=linkage, q0=np.array(q0, dtype=float), dq0=dq0)
+        return replace(self, linkage=linkage, q0=np.array(q0, dtype=float), dq0=dq0,
+                       linkage_file=linkage_file)
 
     @property
     def lmi_dof(self) -> int:

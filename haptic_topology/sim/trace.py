@@ -17,6 +17,10 @@ work on the VT plus their elastic energy minus at the start, see
 :mod:`haptic_topology.dynamics.contacts`). The last two are what the VE reports with each LMI
 update (:func:`contact_depth`), held until the next one (:meth:`Trace.hold_contacts`), in the
 offline simulation as in a recorded run, so both summaries sample contact alike.
+
+A run of a scenario on another linkage than its own (``simulate --linkage``) has the
+linkage's file in ``meta['linkage_file']`` (absolute path; a linkage of no file: its name),
+and its plots are titled ``<scenario> on <file name>`` (:func:`run_name`).
 """
 
 from __future__ import annotations
@@ -35,6 +39,12 @@ VECTORS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'applied', '
 SCALARS = ('constraint_count', 'lmi_constraint_count', 'status')
 CONTACT_FLOATS = ('penetration', 'contact_energy')
 _VECTORS, _SCALARS, _CONTACT_FLOATS = VECTORS, SCALARS, CONTACT_FLOATS
+
+
+def run_name(scenario: str, linkage_file: str = '') -> str:
+    """What a plot's title calls a run: the scenario's name, and ``on <file name>`` when it
+    ran on the linkage ``linkage_file`` in place of its own (e.g. ``fig8 on my_arm.urdf``)."""
+    return f'{scenario} on {Path(linkage_file).name}' if linkage_file else scenario
 
 
 def contact_depth(gaps: np.ndarray) -> float:
@@ -281,8 +291,15 @@ class SummaryStats:
             strict=True)))
 
 
+#: The contact columns of :func:`format_summary`: in a table with a run with obstacles only.
+CONTACT_COLUMNS = (('max_penetration_m', 'max penetration [mm]', '{:.3f}'),
+                   ('contact_time_s', 'in contact [s]', '{:.3f}'))
+
+
 def format_summary(rows: list[dict[str, Any]]) -> str:
-    """A fixed-width table of summaries (one row per run)."""
+    """A fixed-width table of summaries (one row per run): the drift columns, and when a
+    run of the table has obstacles (its ``max_penetration_m`` is not None) the deepest
+    penetration and the time in contact (:data:`CONTACT_COLUMNS`; ``-`` for a run without)."""
     cols = [('scenario', 'scenario', '{}'), ('mode', 'mode', '{}'),
             ('final_distance_m', 'final [mm]', '{:.3f}'), ('max_distance_m', 'max [mm]',
                                                            '{:.3f}'),
@@ -290,11 +307,14 @@ def format_summary(rows: list[dict[str, Any]]) -> str:
             ('constrained_time_s', 'constrained [s]', '{:.3f}'),
             ('workspace_limit_time_s', 'at limit [s]', '{:.3f}'),
             ('first_limit_s', 'first at limit [s]', '{:.3f}')]
+    if any(r.get('max_penetration_m') is not None for r in rows):
+        cols += CONTACT_COLUMNS
     cells = [[title for _, title, _ in cols]]
+    contact = {key for key, _, _ in CONTACT_COLUMNS}
     for r in rows:
         line = []
         for key, _, fmt in cols:
-            v = r.get(key, '')
+            v = r.get(key, None if key in contact else '')
             if key.endswith('_m') and isinstance(v, float):
                 v = v * 1000.0
             line.append('-' if v is None else fmt.format(v) if v != '' else '')

@@ -289,6 +289,22 @@ def test_run_command_composed(tmp_path: Path) -> None:
     assert (bag / 'metadata.yaml').is_file() and (bag / 'trace.parquet').is_file()
     run = read_graph_bag(bag, 'fig8', 3)
     assert run.trace.t[-1] >= 0.9
+    # ``analyze`` of the bag prints the loop table run printed: the same columns, in the
+    # same order, and the same figures.
+    done = subprocess.run(
+        [sys.executable, '-m', 'haptic_topology.cli', 'analyze', str(bag), '--out',
+         str(tmp_path / 'analysis'), '--no-plot'], capture_output=True, timeout=90)
+    assert done.returncode == 0, done.stderr.decode(errors='replace')
+
+    def loop_table(text: str, label: str) -> tuple[list[str], list[str]]:
+        lines = text.split('\n')
+        head = max(i for i, line in enumerate(lines) if line.startswith('run '))
+        row = next(line for line in lines[head:] if line.startswith(label))
+        return [c.strip() for c in lines[head].split('  ') if c.strip()], \
+            row[len(label):].split()
+
+    assert loop_table(out, 'fig8 penalty') == loop_table(
+        done.stdout.decode(errors='replace'), 'composed')
 
 
 def test_run_command_with_a_scenario_file(tmp_path: Path) -> None:

@@ -117,3 +117,16 @@ def test_a_second_run_on_a_claimed_domain_refuses_in_one_line(
     finally:
         os.close(fd)
     os.close(claim_domain(domain))          # released: the next run gets it
+
+
+@pytest.mark.parametrize('command', ['run', 'simulate', 'device-server'])
+def test_help_lists_every_shipped_scenario(command: str) -> None:
+    """``--help`` of a command taking a scenario names every file of ``config/scenarios``
+    (the command reference, docs/cli.md, is this text)."""
+    names = sorted(p.stem for p in (Path(cli.__file__).parents[1] / 'config' / 'scenarios')
+                   .glob('*.yaml'))
+    assert len(names) > 2
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == '_SubParsersAction')
+    text = ' '.join(sub.choices[command].format_help().split())
+    assert f'scenario name ({", ".join(names)}) or ' in text
