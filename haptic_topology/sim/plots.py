@@ -22,6 +22,10 @@ planar half-planes as their boundary line with the obstacle side hatched, segmen
 lines, discs as hatched circles; spatial spheres as circles in each projection (planes and
 boxes are not drawn). The linkage panels widen their view to show them; the zoomed hand panels
 keep theirs, so an obstacle away from the hand is not shown there.
+
+The title, unless given: ``<run> - <mode>: final drift ... mm, max ... mm``, the run named by
+:func:`~haptic_topology.sim.trace.run_name` (the scenario, and the linkage it ran on when not
+its own: ``fig8 on my_arm.urdf``).
 """
 
 from __future__ import annotations

@@ -3,8 +3,10 @@
 Each test runs a documented command of the reference bag (``bags/reference_fig8``) or of the
 installed package as the pages write it, and compares its output with the block the page
 quotes: exactly where the output is deterministic (the controller check, ``analyze``'s tables
-of a recorded bag and of ``simulate``, an error line), counts, names and files where it is
-not (how long a replay took). Together well under a minute.
+of a recorded bag and of ``simulate``, ``simulate`` of a contact scenario, an error line),
+counts, names and files where it is not (how long a replay took), and the column names of
+the tables a live run prints (``make demo`` in the README and getting_started.md). Together
+about a minute.
 """
 
 from __future__ import annotations
@@ -29,9 +31,9 @@ _FENCE = re.compile(r'^```(?P<lang>[a-z]*)\n(?P<body>.*?)^```', re.S | re.M)
 
 
 def quoted(page: str, marker: str, lang: str = '') -> list[str]:
-    """The lines of the fenced block (of language ``lang``) on ``docs/<page>`` that holds
-    ``marker``; the test fails if there is none or more than one."""
-    text = (DOCS / page).read_text(encoding='utf-8')
+    """The lines of the fenced block (of language ``lang``) on ``docs/<page>`` (the README:
+    ``README.md``) that holds ``marker``; the test fails if there is none or more than one."""
+    text = (REPO / page if page == 'README.md' else DOCS / page).read_text(encoding='utf-8')
     blocks = [m.group('body') for m in _FENCE.finditer(text)
               if m.group('lang') == lang and marker in m.group('body')]
     assert len(blocks) == 1, f'docs/{page}: {len(blocks)} ```{lang} blocks hold {marker!r}'
@@ -39,9 +41,10 @@ def quoted(page: str, marker: str, lang: str = '') -> list[str]:
 
 
 def command(line: str) -> list[str]:
-    """A documented ``haptic-topology ...`` line (comment stripped) as arguments."""
+    """A documented ``haptic-topology ...`` line (or ``.venv/bin/haptic-topology ...``;
+    comment stripped) as arguments."""
     args = shlex.split(line.split('#', 1)[0])
-    assert args[0] == 'haptic-topology', line
+    assert args[0] in ('haptic-topology', '.venv/bin/haptic-topology'), line
     return [str(CLI), *args[1:]]
 
 
@@ -142,3 +145,48 @@ def test_info_lists_the_message_types_the_docs_name(tmp_path: Path) -> None:
     named = re.findall(r'`([A-Z]\w+)`', paragraph.group(1))
     assert len(set(listed)) == len(listed) and set(listed) == set(named)
     assert set(listed) == {p.stem for p in (REPO / 'msg_schemas' / 'msg').glob('*.msg')}
+
+
+def columns(header: str) -> list[str]:
+    """The column names of a table's header line (columns are two or more spaces apart)."""
+    return [c for c in re.split(r'\s{2,}', header.strip()) if c]
+
+
+def test_a_contact_scenario_prints_the_contact_columns_the_docs_quote(tmp_path: Path) -> None:
+    """``simulate wall`` (configuration.md) is deterministic: its table, every figure, with
+    the deepest penetration and the time in contact, and the files it names."""
+    line = next(c for c in quoted('configuration.md', 'simulate wall', 'sh')
+                if 'simulate wall' in c)
+    want = quoted('configuration.md', 'max penetration [mm]')
+    got = run(command(line), tmp_path).stdout.rstrip('\n').split('\n')
+    assert got == want
+    assert columns(want[0])[-2:] == ['max penetration [mm]', 'in contact [s]']
+
+
+@pytest.mark.parametrize('page', ['README.md', 'getting_started.md'])
+def test_the_run_tables_the_docs_quote_have_the_columns_run_prints(page: str) -> None:
+    """A run's figures depend on the machine, its columns do not: the drift and loop-health
+    tables the pages quote of ``make demo`` have the columns ``run`` prints, in its order."""
+    from haptic_topology.bag.analyze import format_loop_health
+    from haptic_topology.sim.trace import format_summary
+
+    block = quoted(page, 'running fig8 (penalty)')
+    drift = next(b for b in block if b.startswith('scenario '))
+    loop = next(b for b in block if b.startswith('run '))
+    assert columns(drift) == columns(format_summary([]).split('\n')[0])
+    assert columns(loop) == columns(format_loop_health([]).split('\n')[0])
+    rows = [b for b in block if b.startswith('fig8 ')]
+    assert len(rows) == 4       # two runs in each table
+    # A figure in each column; the loop table's run label ('fig8 penalty') is two words.
+    assert [len(r.split()) for r in rows] == [len(columns(drift))] * 2 + [
+        len(columns(loop)) + 1] * 2
+
+
+def test_the_loop_columns_recording_md_lists_are_the_table_and_the_summary_keys() -> None:
+    """recording.md's table of the loop-health columns: the names ``run`` and ``analyze``
+    print, in order, with the ``summary.json`` key of each."""
+    from haptic_topology.bag.analyze import LOOP_COLUMNS
+
+    text = (DOCS / 'recording.md').read_text(encoding='utf-8')
+    rows = re.findall(r'^\| ([^|`]+) \| `(\w+)` \| [^|]+ \|$', text, re.M)
+    assert rows == [(name, key) for key, name, _, _ in LOOP_COLUMNS]
