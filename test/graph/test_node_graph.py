@@ -307,6 +307,35 @@ def test_run_command_composed(tmp_path: Path) -> None:
         done.stdout.decode(errors='replace'), 'composed')
 
 
+def test_run_of_a_contact_scenario_prints_and_draws_its_contacts(tmp_path: Path) -> None:
+    """``haptic-topology run wall`` (lock-step): its drift table has the deepest penetration
+    and the time in contact of its summary, and ``analyze``'s figure of its bag draws the
+    wall, as the run's own plot does."""
+    import matplotlib.pyplot as plt
+
+    from haptic_topology.bag.analyze import load_run, run_figure
+
+    bag = tmp_path / 'wall'
+    proc = subprocess.run(
+        [sys.executable, '-m', 'haptic_topology.cli', 'run', 'wall', '--clock', 'lockstep',
+         '--duration', '0.5', '--no-plot', '--out', str(bag)], capture_output=True, timeout=120)
+    out = proc.stdout.decode(errors='replace')
+    assert proc.returncode == 0, out + proc.stderr.decode(errors='replace')
+    summary = json.loads((bag / 'summary.json').read_text())
+    assert summary['max_penetration_m'] > 0.0
+    lines = out.split('\n')
+    head = next(i for i, line in enumerate(lines) if line.startswith('scenario '))
+    assert lines[head].endswith('max penetration [mm]  in contact [s]')
+    assert lines[head + 2].split()[-2:] == [f'{summary["max_penetration_m"] * 1e3:.3f}',
+                                            f'{summary["contact_time_s"]:.3f}']
+    fig = run_figure(load_run(bag))
+    try:
+        labels = fig.axes[0].get_legend_handles_labels()[1]
+        assert 'wall (half-plane)' in labels
+    finally:
+        plt.close(fig)
+
+
 def test_run_command_with_a_scenario_file(tmp_path: Path) -> None:
     """``haptic-topology run FILE``: a scenario file of a name no built-in scenario has runs
     and is analysed against its own linkage; the summary has every process's CPU and
