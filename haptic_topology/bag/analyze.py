@@ -167,17 +167,18 @@ def load_run(path: str | Path, plot: bool = True) -> Run:
     if _is_bag(p):
         scenario = _scenario_of_bag(p)
         name = Path(scenario).stem if scenario else ''
-        dof = task_dim = None
+        dof = task_dim = linkage = None
         if scenario:
             try:
                 from haptic_topology.sim.scenario import load_scenario
 
                 sc = load_scenario(scenario)
                 dof, task_dim, name = sc.lmi_dof, sc.linkage.task.dim, sc.name
+                linkage = sc.linkage
             except ConfigError:
                 pass
         size = sum(f.stat().st_size for f in ([p] if p.is_file() else p.glob('*.mcap')))
-        run = reduce_bag(p, name, dof, task_dim, periods=True, plot=plot,
+        run = reduce_bag(p, name, dof, task_dim, linkage, periods=True, plot=plot,
                          progress=_ProgressLine(p.name, size))
         if scenario:
             run.plot.meta.setdefault('scenario_ref', scenario)

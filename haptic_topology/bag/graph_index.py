@@ -26,7 +26,7 @@ from haptic_topology import vocabulary as vocab
 from haptic_topology.bag.reader import Bag, BagMessage, Progress, decoder, iter_messages
 from haptic_topology.control.admission import UpdateAdmission, UpdateFields
 from haptic_topology.dynamics import LinkageDynamics
-from haptic_topology.errors import BagError, MessageError
+from haptic_topology.errors import BagError, HapticTopologyError, MessageError
 from haptic_topology.messages.check import (
     GraphFilter,
     array,
@@ -94,6 +94,8 @@ class Column:
 class BagIndex:
     """What the second pass needs (module doc). Rows are the run's states in seq order."""
 
+    #: The run's task (:func:`bag_task`) and its dimension.
+    task: TaskSpace
     m: int
     dof: int
     contacts: bool
@@ -177,6 +179,36 @@ def admission(scenario: str, m: int, dof: int, linkage: Linkage | None) -> Updat
     return UpdateAdmission(dyn)
 
 
+def bag_task(bag: Bag, m: int, linkage: Linkage | None) -> TaskSpace:
+    """The task of the run in ``bag`` whose messages have ``task_dim`` ``m``, from what says
+    it, in this order: ``linkage`` (the caller's scenario) when its task has dimension m; the
+    linkage of the scenario the bag's metadata names (the recorder's
+    ``custom_data.scenario``, when it loads); the only task of dimension m (2:
+    ``planar_point``, 6: ``spatial``). Dimension 3 is ``planar`` or ``spatial_point``: a bag
+    with neither is refused (:class:`~haptic_topology.errors.BagError`) rather than read with
+    a guess. A dimension of no task (a foreign bag's): the rigid task of its size (its
+    messages fail the task_dim checks)."""
+    if linkage is not None and linkage.task.dim == m:
+        return linkage.task
+    custom = (bag.metadata or {}).get('custom_data') or {}
+    custom = custom if isinstance(custom, dict) else {}
+    tasks = [t for t in TaskSpace if t.dim == m]
+    if len(tasks) > 1 and custom.get('scenario'):
+        try:
+            task = load_scenario(str(custom['scenario'])).linkage.task
+        except HapticTopologyError:
+            task = None
+        if task is not None and task.dim == m:
+            return task
+    if len(tasks) == 1:
+        return tasks[0]
+    if tasks:
+        raise BagError(f'{bag.path}: task_dim {m} is {" or ".join(t.value for t in tasks)} '
+                       'and nothing tells which: metadata.yaml names no scenario that loads '
+                       '(custom_data.scenario)')
+    return TaskSpace.for_dim(m)
+
+
 def foreign_seqs(seqs: np.ndarray, running: np.ndarray) -> np.ndarray:
     """Mask of the states outside the run among ``seqs`` (sorted, unique): groups split at
     gaps larger than MAX_SEQ_GAP; the run is the largest group with a running state (the
@@ -208,9 +240,8 @@ def _update_rate(t: np.ndarray, rows: np.ndarray) -> float:
 class _Pass:
     """The first pass's state (module doc)."""
 
-    def __init__(self, m: int, dof: int, admit: UpdateAdmission) -> None:
-        self.m, self.dof, self.admit = m, dof, admit
-        self.task = TaskSpace.PLANAR if m == TaskSpace.PLANAR.dim else TaskSpace.SPATIAL
+    def __init__(self, task: TaskSpace, m: int, dof: int, admit: UpdateAdmission) -> None:
+        self.m, self.dof, self.admit, self.task = m, dof, admit, task
         self.skips: dict[str, dict[str, int]] = {p: {} for p in PHASES}
         self.s_seq, self.s_run, self.s_stamp = (Column(np.int64), Column(np.bool_),
                                                 Column(np.float64))
@@ -290,7 +321,9 @@ def index_bag(bag: Bag, scenario: str, dof: int | None, task_dim: int | None,
         task_dim = task_dim if task_dim is not None else _most_common(dims)
         dof = dof if dof is not None else _most_common(dofs)
     m = task_dim
-    run = _Pass(m, dof, admission(scenario, m, dof, linkage))
+    if linkage is None and scenario:
+        linkage = load_scenario(scenario).linkage
+    run = _Pass(bag_task(bag, m, linkage), m, dof, admission(scenario, m, dof, linkage))
     diags: dict[str, dict[str, str]] = {}
     publishers: dict[str, set[str]] = {}    # foreign publisher -> topics (nodes' reports)
     followed: set[int] = set()     # controller ids the device driver reported following
@@ -444,7 +477,7 @@ def _resolve(bag: Bag, run: _Pass, followed: set[int]) -> BagIndex:
         for key, v in run.skips[phase].items():
             skipped[key] = skipped.get(key, 0) + v
     return BagIndex(
-        m=run.m, dof=run.dof, contacts=run.contacts, mode=mode, seqs=rows_seq,
+        task=run.task, m=run.m, dof=run.dof, contacts=run.contacts, mode=mode, seqs=rows_seq,
         command=command, paths=paths, followed=followed, t0=t0,
         known_rows=known_rows, known_t=known_t, known_pose=run.u_pose.array()[pick],
         known_q=run.u_q.array()[pick], known_count=run.u_count.array()[pick],

@@ -32,6 +32,11 @@ Messages are decoded with the definitions stored in the bag where they differ fr
 current ones (:func:`~haptic_topology.bag.reader.bag_typestore`): bags recorded before
 ``DeviceCommand.controller_id`` existed read as before.
 
+The run's task (the trace's ``meta['task']``: which entries are translations, what the drift
+measures) is the scenario's, given or named in the bag's metadata; of the task_dim alone only
+where one task has it (:func:`~haptic_topology.bag.graph_index.bag_task`: 3 is ``planar`` or
+``spatial_point``, and such a bag is refused rather than guessed).
+
 Loop figures: the device driver's own counts from its last ``/diagnostics`` status
 (answered fraction, round trip p50/p99), and an estimate from the bag alone: the fraction of
 states k whose command was computed (``DeviceCommand.header.stamp``) before state k+1 was
@@ -167,7 +172,7 @@ def stream_graph_bag(path: str | Path, sinks: list[TraceSink], scenario: str = '
     template = Trace.empty(0, index.m, index.dof, index.contacts,
                            mode=_MODE_LABELS.get(index.mode, str(index.mode)),
                            scenario=scenario, dt=0.001, source='graph', bag=str(bag.path),
-                           truncated=index.truncated)
+                           truncated=index.truncated, task=index.task.value)
     n = int(index.seqs.size)
     for sink in sinks:
         sink.begin(template, n)

@@ -131,7 +131,7 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     step(0.0)
     n = int(round(sc.duration / sc.dt)) + 1
     trace = Trace.empty(n, task.dim, dyn.dof, sc.contacts is not None, mode=mode.label,
-                        scenario=sc.name, dt=sc.dt,
+                        scenario=sc.name, dt=sc.dt, task=task.value,
                         **({'linkage_file': sc.linkage_file} if sc.linkage_file else {}))
     vt_pose = dyn.hand_pose(ve.q)
     inputs = 0

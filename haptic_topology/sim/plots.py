@@ -1,14 +1,16 @@
 """Plots in the style of the paper's Fig. 6 / Fig. 8 (matplotlib, Agg backend, PNG files).
 
-Planar (task dim 3), four panels. (a): the linkage drawn at a few instants (Fig. 4 style) when
-its model is given, with the hand paths. (b): the hand trajectory on the device ('HD') and in
-the VE ('VE') in the x-y plane. (c): device-VT distance over time. (d): number of directions
-of topological constraint over time, with the intervals the device spent at a workspace limit.
+Planar (tasks ``planar`` and ``planar_point``), four panels. (a): the linkage drawn at a few
+instants (Fig. 4 style) when its model is given, with the hand paths. (b): the hand trajectory
+on the device ('HD') and in the VE ('VE') in the x-y plane. (c): device-VT distance over time.
+(d): number of directions of topological constraint over time, with the intervals the device
+spent at a workspace limit.
 
-Spatial (task dim 6), six panels: the linkage (joint origins, grasp point marked) with the hand
-paths projected on the world x-y and x-z planes, the hand paths alone in both projections,
-the drift over time (translational distance, mm, and the orientation error
-``|log3(R_vt R_h^T)|``, deg), and the constraint count with the workspace-limit intervals.
+Spatial (tasks ``spatial`` and ``spatial_point``), six panels: the linkage (joint origins,
+grasp point marked) with the hand paths projected on the world x-y and x-z planes, the hand
+paths alone in both projections, the drift over time (translational distance, mm, and for
+``spatial`` the orientation error ``|log3(R_vt R_h^T)|``, deg; a point grasp has no
+orientation), and the constraint count with the workspace-limit intervals.
 
 A run with obstacles (``trace.has_contacts``) gets one more panel, a full-width bottom row:
 the translational components of ``F_env`` (the environment's contact wrench rendered at the
@@ -108,7 +110,7 @@ def trace_figure(trace: Trace, linkage: Linkage | None = None, title: str | None
                  obstacles: Sequence[Obstacle] = ()) -> plt.Figure:
     """The figure :func:`plot_trace` writes (see module doc); the caller closes it
     (``plt.close(fig)``)."""
-    if trace.task_dim == 6:
+    if not trace.task.planar:
         return _plot_spatial(trace, linkage, title, obstacles)
     t = trace.t
     dev = trace.columns['device_pose']
@@ -236,7 +238,7 @@ def _forces_panel(ax: plt.Axes, trace: Trace, name: str, others: list[plt.Axes])
     and the penetration (mm, right axis) over time; shades the contact intervals here and in
     the time-axis panels ``others``."""
     t = trace.t
-    n = 2 if trace.task_dim == 3 else 3
+    n = trace.task.translation_rows.stop
     env = trace.columns['env_wrench']
     depth = trace.columns['penetration']
     intervals = contact_intervals(t, depth)
@@ -404,14 +406,17 @@ def _plot_spatial(trace: Trace, linkage: Linkage | None, title: str | None,
     ax.plot(t, trace.distance() * 1000.0, color='tab:purple', label='translation [mm]')
     ax.set_xlabel('t [s]')
     ax.set_ylabel('device - VT distance [mm]')
-    rot = np.full(len(trace), np.nan)
-    ok = np.all(np.isfinite(vt[:, 3:6]), axis=1) & np.all(np.isfinite(dev[:, 3:6]), axis=1)
-    for k in np.nonzero(ok)[0]:
-        rot[k] = np.linalg.norm(pin.log3(pin.exp3(vt[k, 3:6]) @ pin.exp3(dev[k, 3:6]).T))
-    twin = ax.twinx()
-    twin.plot(t, np.degrees(rot), color='tab:gray', ls=':', label='orientation [deg]')
-    twin.set_ylabel('device - VT orientation error [deg]')
-    lines = ax.get_lines() + twin.get_lines()
+    lines = ax.get_lines()
+    if trace.task.rotation_dim:     # a point grasp (spatial_point) has no orientation
+        rot = np.full(len(trace), np.nan)
+        ok = (np.all(np.isfinite(vt[:, 3:6]), axis=1)
+              & np.all(np.isfinite(dev[:, 3:6]), axis=1))
+        for k in np.nonzero(ok)[0]:
+            rot[k] = np.linalg.norm(pin.log3(pin.exp3(vt[k, 3:6]) @ pin.exp3(dev[k, 3:6]).T))
+        twin = ax.twinx()
+        twin.plot(t, np.degrees(rot), color='tab:gray', ls=':', label='orientation [deg]')
+        twin.set_ylabel('device - VT orientation error [deg]')
+        lines += twin.get_lines()
     ax.legend(lines, [str(ln.get_label()) for ln in lines], loc='upper left')
     ax.set_title('(e) drift')
     ax.grid(alpha=0.3)

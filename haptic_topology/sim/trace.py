@@ -10,6 +10,12 @@ recorded run; ``lmi_constraint_count`` is the controller's at every cycle.
 Drift (the paper's Fig. 6 / Fig. 8 measure): the translational distance (m) between the
 device and the VT's grasp point in the VE at the same instant.
 
+The task (``meta['task']``, a :class:`~haptic_topology.vocabulary.TaskSpace` value) says
+which entries of the m-vectors are translations: x, y of ``planar`` (m = 3) and
+``planar_point`` (m = 2), x, y, z of ``spatial`` (m = 6) and ``spatial_point`` (m = 3).
+Traces written before point grasps existed carry no task: theirs is the rigid task of their
+dimension (3 planar, 6 spatial).
+
 A run with obstacles (``meta['contacts']``) has three more columns: ``env_wrench`` (``F_env``
 of eqs. 10 and 14 as the controller rendered it, m entries, every cycle), ``penetration`` (m,
 the deepest contact of the VE's linkage, 0 when none) and ``contact_energy`` (J, the contacts'
@@ -31,6 +37,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from haptic_topology.vocabulary import TaskSpace
 
 #: Columns of m entries per row (m: the task dimension), of single integers, and of single
 #: floats of a run with contacts; ``q`` has ``dof`` entries per row.
@@ -133,9 +141,19 @@ class Trace:
     def task_dim(self) -> int:
         return int(self.meta['task_dim'])
 
+    @property
+    def task(self) -> TaskSpace:
+        """The run's task (module doc): ``meta['task']``, else the rigid task of the trace's
+        dimension (``planar_point`` for m = 2, the only task of that size)."""
+        name = self.meta.get('task')
+        if name is not None:
+            return TaskSpace(name)
+        m = self.task_dim
+        return TaskSpace.PLANAR_POINT if m == TaskSpace.PLANAR_POINT.dim else TaskSpace.for_dim(m)
+
     def distance(self) -> np.ndarray:
         """Device - VT hand distance, translational part (m), per row."""
-        rows = slice(0, 2) if self.task_dim == 3 else slice(0, 3)
+        rows = self.task.translation_rows
         diff = self.columns['device_pose'][:, rows] - self.columns['vt_pose'][:, rows]
         return np.linalg.norm(diff, axis=1)
 

@@ -3,7 +3,7 @@
 A trace file holds one row per device cycle, in the columns of
 :meth:`~haptic_topology.sim.trace.Trace.header`
 (``t``, ``seq``, ``device_pose_0``, ..., ``status``; floats as float64, ``seq`` and the counts
-as int64) and the trace's metadata (``mode``, ``scenario``, ``task_dim``, ``dof``, ...):
+as int64) and the trace's metadata (``mode``, ``scenario``, ``task_dim``, ``task``, ``dof``, ...):
 
 * Parquet: the metadata is the JSON text of the schema's key ``haptic_topology``; one row
   group per chunk written (:data:`CHUNK_ROWS` rows). Open it with
@@ -32,6 +32,7 @@ import numpy as np
 
 from haptic_topology.errors import ConfigError
 from haptic_topology.sim.trace import CONTACT_FLOATS, SCALARS, VECTORS, Trace
+from haptic_topology.vocabulary import TASK_NAMES, TaskSpace
 
 #: Rows per chunk (Parquet row group) when a trace is written or read in pieces.
 CHUNK_ROWS = 65_536
@@ -136,6 +137,11 @@ def empty_trace(meta: dict[str, Any], rows: int = 0) -> Trace:
         raise ConfigError('trace metadata: expected the integers task_dim and dof, got '
                           f'{meta!r}') from None
     contacts = bool(meta.pop('contacts', False))
+    task = meta.get('task')
+    if task is not None and (task not in TASK_NAMES or TaskSpace(task).dim != m):
+        raise ConfigError(f'trace metadata: task must be a task of dimension task_dim = {m} '
+                          f'({", ".join(t.value for t in TaskSpace if t.dim == m) or "none"}),'
+                          f' got {task!r}')
     return Trace.empty(rows, m, dof, contacts, **meta)
 
 

@@ -141,10 +141,10 @@ def _series(chunk: Trace) -> list[np.ndarray]:
     """The time series the plots draw whose extremes a bucket keeps."""
     out = [chunk.distance()]
     if chunk.has_contacts:
-        n = 2 if chunk.task_dim == 3 else 3
+        rows = chunk.task.translation_rows
         env = chunk.columns['env_wrench']
-        out += [env[:, i] for i in range(n)]
-        out += [np.linalg.norm(chunk.columns[c][:, :n], axis=1)
+        out += [env[:, i] for i in range(rows.stop)]
+        out += [np.linalg.norm(chunk.columns[c][:, rows], axis=1)
                 for c in ('env_wrench', 'applied', 'hand_wrench')]
         out.append(chunk.columns['penetration'])
     return out
