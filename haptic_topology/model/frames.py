@@ -7,7 +7,8 @@ The one place for frame names. The TF tree ``ve_sim`` publishes on ``/tf``::
      +- <root link>              the URDF's root link (identity; left out when it is <world>)
      |   +- <link i> ...         one frame per URDF link, at its joint (parent -> child per
      |        +- vt_hand         URDF joint); vt_hand: the grasp point on the grasped link
-     |                           (the link's axes), where J_h and F_pc act
+     |                           (the link's axes; a point grasp's: the world's), where J_h
+     |                           and F_pc act
      +- device_base              the device's base (identity: the device's poses are in the
          +- device               VE's world coordinates); device: the device handle's pose
 

@@ -23,7 +23,9 @@ branches: a gripper's fingers) stand at the linkage YAML's ``locked_joints`` pos
 :class:`LinkFrames` is the workspace (Pinocchio model and data of that URDF, as
 ``model``/``data`` elsewhere) that turns joint positions into the transforms of ``/tf``:
 world -> root link, parent -> child link for every URDF joint (as ``robot_state_publisher``
-would), and grasped link -> ``vt_hand`` (the grasp point). No rclpy here.
+would), and grasped link -> ``vt_hand`` (the grasp point, in the link's axes; a point grasp's
+``vt_hand`` has the world's axes: the hand holds a point, which has no orientation). No rclpy
+here.
 
 Example (Table I, q = 0: link 3's frame sits at x = l1 + l2)::
 
@@ -273,7 +275,8 @@ class LinkFrames:
 
     ``edges`` lists ``(parent, child)`` of every transform :meth:`transforms` returns, in
     its row order: ``world -> root link`` (left out when the root link is ``world``), one per
-    URDF joint (fixed ones included), then ``grasped link -> vt_hand``.
+    URDF joint (fixed ones included), then ``grasped link -> vt_hand`` (for a point grasp
+    turned back to the world's axes).
     """
 
     def __init__(self, description: RobotDescription, world: str = frames.WORLD) -> None:
@@ -308,6 +311,9 @@ class LinkFrames:
         self._out[:, 6] = 1.0
         self._out[-1, 0:3] = d.linkage.grasp_point
         self._first = 0 if d.root_link == world else 1
+        #: A point grasp: the grasped link's frame, whose world rotation vt_hand undoes.
+        self._grasp_frame = (self.model.getFrameId(d.linkage.grasp_link, body)
+                             if d.linkage.task.point else None)
 
     def _set(self, q: np.ndarray) -> None:
         """The model's q from the linkage's ``q`` and the locked positions."""
@@ -333,6 +339,8 @@ class LinkFrames:
             rel = omf[p].actInv(omf[c])
             out[row, 0:3] = rel.translation
             out[row, 3:7] = pin.Quaternion(rel.rotation).coeffs()
+        if self._grasp_frame is not None:
+            out[-1, 3:7] = pin.Quaternion(omf[self._grasp_frame].rotation.T).coeffs()
         return out
 
     def link_placement(self, q: np.ndarray, link: str) -> pin.SE3:

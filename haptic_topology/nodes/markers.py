@@ -1,7 +1,8 @@
 """The linkage as markers (``visualization_msgs/MarkerArray``): links, grasp point, the closing
-joints of a closed chain, device ghost, constraint directions and wrenches, from the VE's state
-and the newest device and coupling samples (:class:`DeviceSample`, :class:`CouplingSample`).
-Used by :class:`~haptic_topology.nodes.viz.RobotViz`."""
+joints of a closed chain, device ghost (a box with the device's orientation; a ball for a
+point grasp, which has none), constraint directions and wrenches, from the VE's state and the
+newest device and coupling samples (:class:`DeviceSample`, :class:`CouplingSample`). Used by
+:class:`~haptic_topology.nodes.viz.RobotViz`."""
 
 from __future__ import annotations
 
@@ -138,7 +139,9 @@ def linkage_markers(dyn: LinkageDynamics, q: np.ndarray, device: DeviceSample | 
         markers.markers.append(closing)
     dev_point = None
     if device is not None:
-        ghost = marker(2, 'device', Marker.CUBE, (0.9, 0.2, 0.2), DEVICE_SIZE, alpha=0.5)
+        # A point grasp's device pose is a point: a ball, which shows no orientation.
+        ghost = marker(2, 'device', Marker.SPHERE if task.point else Marker.CUBE,
+                       (0.9, 0.2, 0.2), DEVICE_SIZE, alpha=0.5)
         t, quat = frames.pose_transform(device.pose, task, float(hand[2]))
         dev_point = t
         ghost.pose.position = _point(t)

@@ -13,7 +13,8 @@ Frames and what each header names: :mod:`haptic_topology.model.frames`. Topics (
 * ``haptic/joint_states`` (``sensor_msgs/JointState``): named after the URDF's joints (the
   chain's, then locked side-branch joints at their positions, zero velocity);
 * ``haptic/markers``: in the world frame: the linkage as a line through its joints, the VT
-  grasp point, the device as a translucent box with its orientation (the device ghost), an
+  grasp point, the device as a translucent box with its orientation (the device ghost; a
+  translucent ball for a point grasp, whose device pose is a point), an
   arrow :data:`~haptic_topology.nodes.markers.ARROW_LENGTH` long (times the penalty weight)
   along each direction of topological constraint ``n_tc`` (eq. 13) at the grasp point
   (deleted while not constrained), and force arrows
@@ -29,7 +30,10 @@ Frames and what each header names: :mod:`haptic_topology.model.frames`. Topics (
   coupling one that of its ``HandInputs`` sample, expressed in the VT hand's axes at that
   sample (the VE's state after it).
 
-A planar task has no z: the device is drawn in the plane of the grasp point.
+A planar task has no z: the device is drawn in the plane of the grasp point. A point grasp
+(``planar_point``, ``spatial_point``) has no orientation: ``vt_hand`` and ``device`` keep the
+world's axes, the pose mirrors carry the identity quaternion, the twists no angular velocity
+and the wrenches no torque.
 """
 
 from __future__ import annotations
@@ -128,6 +132,11 @@ class RobotViz:
         self.coupling_wrench = _stamped(WrenchStamped, frames.VT_HAND)
         self._markers: dict[tuple[str, int], Marker] = {}     # linkage_markers' own
 
+    def _hand_rotation(self, link: np.ndarray) -> np.ndarray:
+        """The ``vt_hand`` frame's rotation in the world: the grasped link's (``link``), the
+        identity for a point grasp (the world's axes, as on ``/tf``)."""
+        return np.eye(3) if self.task.point else link
+
     def plane_z(self, q: np.ndarray) -> float:
         """Height (m) of the grasp point: the plane a planar device pose is drawn in."""
         return float(self.dyn.hand_placement(q).translation[2])
@@ -146,7 +155,7 @@ class RobotViz:
         js.velocity = np.concatenate([dq, self._zeros]).tolist()
         hand = self.dyn.hand_placement(q)
         _set_pose(self.vt_pose, stamp, np.asarray(hand.translation),
-                  frames.quaternion(hand.rotation))
+                  frames.quaternion(self._hand_rotation(hand.rotation)))
         _set_twist(self.vt_twist, stamp, frames.spatial(self.dyn.hand_twist(q, dq), self.task))
         return self.tf_ve, js, self.vt_pose, self.vt_twist
 
@@ -173,7 +182,7 @@ class RobotViz:
 
     def coupling(self, sample: CouplingSample) -> WrenchStamped:
         """``F_pc`` in the ``vt_hand`` frame at the VE state after its sample."""
-        rot = self.dyn.hand_placement(sample.q).rotation
+        rot = self._hand_rotation(self.dyn.hand_placement(sample.q).rotation)
         _set_wrench(self.coupling_wrench, sample.stamp,
                     frames.wrench_in_frame(sample.wrench, rot, self.task))
         return self.coupling_wrench

@@ -1,14 +1,24 @@
 """linkage_markers filling its markers of the previous call again (``kept``) gives the same
-messages as building them afresh, whatever changed between the calls."""
+messages as building them afresh, whatever changed between the calls; a point grasp drawn as a
+point (no orientation), a rigid one with its axes."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from builtin_interfaces.msg import Time
 from visualization_msgs.msg import Marker
 
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
-from haptic_topology.nodes.markers import CouplingSample, DeviceSample, linkage_markers
+from haptic_topology.model import frames
+from haptic_topology.model.urdf import robot_description
+from haptic_topology.nodes.markers import (
+    FORCE_SCALE,
+    CouplingSample,
+    DeviceSample,
+    linkage_markers,
+)
+from haptic_topology.nodes.viz import RobotViz
 from haptic_topology.sim.lockstep import virtual_environment
 from haptic_topology.sim.scenario import load_scenario
 
@@ -53,3 +63,69 @@ def test_a_closed_chain_draws_its_closing_joints() -> None:
     serial = linkage_markers(LinkageDynamics(load_scenario('fig8').linkage),
                              np.zeros(3), None, None, ve.snapshot(seq=0), 'world', Time())
     assert 'loops' not in [mk.ns for mk in serial.markers]
+
+
+@pytest.mark.parametrize('name', ['fig8_point', 'spatial_arm4_point'])
+def test_a_point_grasp_is_drawn_as_a_point_without_orientation(name: str) -> None:
+    """A point grasp holds a point: the device ghost is a ball with the identity orientation
+    at the device's point (a planar one in the grasp point's plane), ``vt_hand`` on /tf and
+    the VT hand's pose mirror have the world's axes at the grasp point, the force arrows
+    are the forces (no torque row), the coupling wrench is in world axes."""
+    sc = load_scenario(name)
+    task = sc.linkage.task
+    assert task.point
+    ve = virtual_environment(sc)
+    dyn = LinkageDynamics(sc.linkage)
+    q = ve.q + 0.3
+    hand = dyn.hand_placement(q)
+    assert not np.allclose(hand.rotation, np.eye(3))     # the link itself is turned
+    m = task.dim
+    pose = np.asarray(dyn.hand_pose(q)) + 0.01
+    f_h = np.arange(1.0, m + 1.0)
+    stamp = Time(sec=3)
+    device = DeviceSample(stamp, pose, np.zeros(m), f_h, -f_h, None)
+    markers = linkage_markers(dyn, q, device, None, ve.snapshot(seq=0), 'world', stamp)
+    (ghost,) = [mk for mk in markers.markers if mk.ns == 'device']
+    assert ghost.type == Marker.SPHERE
+    o, p = ghost.pose.orientation, ghost.pose.position
+    assert [o.x, o.y, o.z, o.w] == [0.0, 0.0, 0.0, 1.0]
+    z = float(hand.translation[2]) if task.planar else float(pose[2])
+    np.testing.assert_array_equal([p.x, p.y, p.z], [pose[0], pose[1], z])
+    (arrow,) = [mk for mk in markers.markers if mk.ns == 'F_h']
+    start, end = ([pt.x, pt.y, pt.z] for pt in arrow.points)
+    force = np.zeros(3)
+    force[:m] = FORCE_SCALE * f_h
+    np.testing.assert_allclose(np.subtract(end, start), force, rtol=0.0, atol=1e-15)
+
+    rv = RobotViz(robot_description(sc.linkage), LinkageDynamics(sc.linkage), 'world')
+    _, _, vt_pose, vt_twist = rv.ve(q, np.ones(sc.linkage.dof), stamp)
+    o, p = vt_pose.pose.orientation, vt_pose.pose.position
+    assert [o.x, o.y, o.z, o.w] == [0.0, 0.0, 0.0, 1.0]
+    np.testing.assert_allclose([p.x, p.y, p.z], hand.translation, rtol=0.0, atol=1e-15)
+    w = vt_twist.twist.angular
+    assert [w.x, w.y, w.z] == [0.0, 0.0, 0.0]
+    tf_hand = rv.frames.link_placement(q, 'vt_hand')
+    np.testing.assert_allclose(tf_hand.rotation, np.eye(3), rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(tf_hand.translation, hand.translation, rtol=0.0, atol=1e-12)
+    f_pc = np.arange(1.0, m + 1.0)
+    wrench = rv.coupling(CouplingSample(stamp, f_pc, q)).wrench
+    got = [wrench.force.x, wrench.force.y, wrench.force.z, wrench.torque.x, wrench.torque.y,
+           wrench.torque.z]
+    np.testing.assert_array_equal(got, frames.spatial(f_pc, task))
+
+
+def test_a_rigid_grasp_keeps_the_link_axes() -> None:
+    """The same pictures of a rigid grasp: a box with the device's orientation, ``vt_hand``
+    in the grasped link's axes."""
+    sc = load_scenario('fig8')
+    dyn = LinkageDynamics(sc.linkage)
+    ve = virtual_environment(sc)
+    q = ve.q + 0.3
+    device = DeviceSample(Time(), np.array([0.05, 0.01, 0.4]), np.zeros(3), np.zeros(3))
+    markers = linkage_markers(dyn, q, device, None, ve.snapshot(seq=0), 'world', Time())
+    (ghost,) = [mk for mk in markers.markers if mk.ns == 'device']
+    assert ghost.type == Marker.CUBE
+    assert ghost.pose.orientation.z == pytest.approx(np.sin(0.2), abs=1e-15)
+    rv = RobotViz(robot_description(sc.linkage), LinkageDynamics(sc.linkage), 'world')
+    np.testing.assert_allclose(rv.frames.link_placement(q, 'vt_hand').rotation,
+                               dyn.hand_placement(q).rotation, rtol=0.0, atol=1e-12)
