@@ -148,7 +148,9 @@ def test_a_failing_source_is_an_error_too(tmp_path: Path) -> None:
     source.fail = RuntimeError('take failed')
     _wait(lambda: thread.error is not None, 'the error')
     assert str(thread.error) == 'take failed'
-    assert thread.counting_error is source.fail     # the counting stopped with it
+    # The counting loop, which comes next in the thread, stops at the source's next failure.
+    _wait(lambda: thread.counting_error is not None, 'the counting stopped')
+    assert thread.counting_error is source.fail
     assert thread.stop(20.0)
     assert thread.unwritten(source.taken) == source.taken - thread.written_at_error == 0
 
