@@ -106,6 +106,8 @@ class HostedLoop:
         # The loop thread's percentiles (a minute of periods, the round trips), sorted off the
         # executor thread, as the loop process's are (loop_process.SortedFigures).
         self._figures = SortedFigures(self._sorted, STATUS_PERIOD)
+        #: An ended loop thread's figures, and its counts (cycles, round trips) they are of.
+        self._final: tuple[tuple[int, int], dict[str, str]] | None = None
         self._problems: list[str] = []      # real-time settings refused (loop thread)
         self._timer: Any = None
 
@@ -206,7 +208,13 @@ class HostedLoop:
             return {**self.runner.device_values(), 'controller_id': str(CONTROLLER_ID)}
         running = self.thread.running
         out = self.thread.device_values(percentiles=not running)
-        out.update(self._figures.read() if running else self._sorted())
+        if running:
+            out.update(self._figures.read())
+        else:       # an ended loop's: sorted once, not again at every diagnostics tick
+            ended = (self.thread.pacer.cycles, self.thread.cycle.device.round_trips[1])
+            if self._final is None or self._final[0] != ended:
+                self._final = (ended, self._sorted())
+            out.update(self._final[1])
         return {**out, 'controller_id': str(CONTROLLER_ID)}
 
     def _sorted(self) -> dict[str, str]:
