@@ -15,6 +15,7 @@ import numpy as np
 
 from haptic_topology.control.laws import ControlGains, stable_hold
 from haptic_topology.control.lmi import LmiModel, LmiSnapshot, LmiSync, LocalModel
+from haptic_topology.control.passivity import EnergyAccount, PassivityConfig
 from haptic_topology.vocabulary import ControlMode, TaskSpace
 
 
@@ -54,11 +55,14 @@ class PreparedUpdate:
 
 
 class HapticController:
-    """Eq. 14 / eq. 10 on top of the LMI, for a device of inertia ``M_d`` (eq. 9)."""
+    """Eq. 14 / eq. 10 on top of the LMI, for a device of inertia ``M_d`` (eq. 9), with its
+    energy account and passivity controller (``passivity``, for the nominal device period
+    ``period``, s; :mod:`haptic_topology.control.passivity`)."""
 
     def __init__(self, task: TaskSpace, mode: ControlMode, gains: ControlGains,
                  device_mass: np.ndarray, device_christoffel: np.ndarray,
-                 lmi_model: LmiModel = LmiModel.EQ17, vt_coupling: bool = True) -> None:
+                 lmi_model: LmiModel = LmiModel.EQ17, vt_coupling: bool = True,
+                 passivity: PassivityConfig | None = None, period: float = 1e-3) -> None:
         m = task.dim
         for name, arr, shape in (('device_mass', device_mass, (m, m)),
                                  ('device_christoffel', device_christoffel, (m, m)),
@@ -69,8 +73,9 @@ class HapticController:
             raise ValueError('gains.b_d and gains.k_d (eq. 4) must be zero: the controller '
                              'renders the VT with b_d = k_d = 0, as the paper does')
         # Imported here, as in LocalModel.__init__: loading the compiled code costs ~1 s.
-        from haptic_topology.control.compiled import task_force_step, task_law
-        self._law, self._force_step = task_law, task_force_step
+        from haptic_topology.control.compiled import task_force_step
+        from haptic_topology.control.energy import task_law_energy
+        self._law, self._force_step = task_law_energy, task_force_step
         self.task = task
         self._rot = task.rotation_dim
         self.mode = mode
@@ -82,6 +87,8 @@ class HapticController:
         #: Longest LMI step (s) this model integrates stably (see ``_stable_dt``).
         self.stable_dt = math.inf
         self._ml = np.zeros((m, m))           # M_d Lambda_h^-1 at the newest re-sync
+        #: Energy at the device port and the passivity controller.
+        self.energy = EnergyAccount(m, passivity or PassivityConfig(), period, self.m_d)
 
     def __getstate__(self) -> dict[str, object]:
         # A compiled function pickles by value and compiles again where it is unpickled
@@ -91,9 +98,10 @@ class HapticController:
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:
-        from haptic_topology.control.compiled import task_force_step, task_law
+        from haptic_topology.control.compiled import task_force_step
+        from haptic_topology.control.energy import task_law_energy
         self.__dict__.update(state)
-        self._law, self._force_step = task_law, task_force_step
+        self._law, self._force_step = task_law_energy, task_force_step
 
     def prepare(self, snap: LmiSnapshot) -> PreparedUpdate:
         """What :meth:`update` computes from ``snap`` alone (the LMI's matrices, eqs. 17-19,
@@ -139,22 +147,25 @@ class HapticController:
 
         ``dt`` is the measured time (s) since the previous answered state. Before the first
         LMI update there is no model of the VT: the answer is zero force (mode ZERO). The
-        arithmetic (LMI step, eqs. 10 and 13-16) is compiled
-        (:mod:`haptic_topology.control.compiled`).
+        arithmetic (LMI step, eqs. 10 and 13-16, the energy account and the passivity
+        controller) is compiled (:mod:`haptic_topology.control.compiled`,
+        :mod:`haptic_topology.control.energy`).
         """
         m = self.task.dim
         lmi = self.lmi
         if not lmi.synced:
+            self.energy.break_period()
             zero = np.zeros(m)
             return CycleOutput(zero, zero, zero, x_h.copy(), xd_h.copy(), 0, ControlMode.ZERO)
         lmi.advance(seq, dt)
         g = self.gains
         f_env = lmi.env_wrench
         u, f_pc, f_vt = np.empty(m), np.empty(m), np.empty(m)
+        en = self.energy
         self._law(self._rot, int(self.mode), self.vt_coupling, self._ml, self.m_d, self.c_d,
                   lmi.projector,
                   g.k_pc, g.b_pc, g.k_tc, g.b_tc, lmi.x_vt, lmi.xd_vt, x_h, xd_h, f_h, f_env,
-                  u, f_pc, f_vt)
+                  u, f_pc, f_vt, en.limit, dt, en.params, en.state)
         lmi.record_input(seq, f_vt)
         return CycleOutput(u, f_pc, f_vt, lmi.x_vt.copy(), lmi.xd_vt.copy(),
                            lmi.constraint_count, self.mode, f_env.copy())

@@ -108,6 +108,7 @@ class ControllerLoop:
         self.max_dt = max_dt
         self.max_jump = max_jump
         self.limit = np.asarray(limit, dtype=float)
+        controller.energy.set_limit(self.limit)
         self.update_period = update_period
         m = controller.task.dim
         self._vt_seq = np.zeros(_VT_KEEP, dtype=np.int64)
@@ -149,6 +150,7 @@ class ControllerLoop:
             # Not engaged (start-up, or a restarted driver): answer "alive" (zero wrench; our
             # mode once synced, which engages it) and integrate nothing.
             self._saw_idle = True
+            self.ctrl.energy.break_period()
             mode = self.ctrl.mode if self.ctrl.lmi.synced else ControlMode.ZERO
             zero = np.zeros(self.ctrl.task.dim)
             return Answer(s.seq, CycleOutput(zero, zero, zero, s.pose, s.twist, 0, mode), None,
@@ -189,6 +191,8 @@ class ControllerLoop:
         self._vt[slot, 1] = out.vt_twist
         if scale < 1.0:
             out = out._replace(wrench=scaled_wrench(out.wrench, scale, self.limit))
+            self.ctrl.energy.scaled(scale, out.wrench)
+        self.ctrl.energy.note(now)
         hand = None
         if out.mode is not ControlMode.ZERO:
             hand = self._hand_input(loop_seq, s, out, scale)
@@ -314,4 +318,5 @@ class ControllerLoop:
             'resync_jump_max': f'{self.resync_jump_max:.4g}',
             've_restarts': str(self.ve_restarts),
             'device_sessions': str(self.device_sessions),
+            **self.ctrl.energy.values(),
         }

@@ -150,6 +150,10 @@ class DeviceBackend(ABC):
     #: Whether the backend uses rclpy itself (a node of its own in the driver's process): then
     #: it cannot run in the loop process (``loop_process``), which imports no rclpy.
     needs_ros: ClassVar[bool] = False
+    #: Whether the device is a simulation (the passivity controller of the hosted
+    #: ``lmi_controller`` is on by default for a device that is not,
+    #: :mod:`haptic_topology.control.passivity`). False: a real device, or one that may be.
+    simulated: ClassVar[bool] = False
 
     @classmethod
     def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
@@ -254,6 +258,7 @@ class SimMaglevBackend(DeviceBackend):
     """
 
     name = 'sim_maglev'
+    simulated = True
 
     @classmethod
     def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:

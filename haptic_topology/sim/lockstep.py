@@ -33,6 +33,7 @@ from haptic_topology.control.controller import HapticController
 from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.control.loop import Answer, ControllerLoop
+from haptic_topology.control.passivity import PassivityConfig
 from haptic_topology.control.safety import SyncGuard, SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
 from haptic_topology.device.hosted import HostedCycle
@@ -54,11 +55,13 @@ def build_controller_loop(sc: Scenario, mode: ControlMode,
                           guard: SyncGuardConfig | None = None, max_dt: float = MAX_DT,
                           max_jump: float = RESYNC_MAX_JUMP,
                           update_period: int | None = None,
-                          gains: ControlGains | None = None) -> ControllerLoop:
+                          gains: ControlGains | None = None,
+                          passivity: PassivityConfig | None = None) -> ControllerLoop:
     """The controller-side loop of scenario ``sc`` (what ``lmi_controller`` builds);
-    ``gains``: default the scenario's."""
+    ``gains``: default the scenario's; ``passivity``: default the scenario's, else off."""
     ctrl = HapticController(sc.linkage.task, mode, gains or sc.gains, sc.device.mass,
-                            sc.device.christoffel, sc.lmi_model, sc.vt_coupling)
+                            sc.device.christoffel, sc.lmi_model, sc.vt_coupling,
+                            passivity or sc.passivity, sc.dt)
     return ControllerLoop(ctrl, SyncGuard(guard or SyncGuardConfig(), sc.dt), sc.dt, max_dt,
                           max_jump, sc.device.wrench_limit, update_period)
 
@@ -104,8 +107,15 @@ class SimStep:
 
 
 def simulate(scenario: Scenario, mode: ControlMode | None = None,
-             observer: Callable[[SimStep], None] | None = None) -> Trace:
-    """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace.
+             observer: Callable[[SimStep], None] | None = None,
+             passivity: PassivityConfig | None = None,
+             gains: ControlGains | None = None) -> Trace:
+    """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace, with
+    the controller's energy account in its columns (:data:`~haptic_topology.sim.trace.
+    ENERGY_FLOATS`) and its final figures in ``meta['energy_account']``
+    (:meth:`~haptic_topology.control.passivity.EnergyAccount.summary`). ``passivity``: the
+    passivity controller (default: the scenario's, else off); ``gains``: default the
+    scenario's.
 
     ``observer``: called once per step, after the VE took the step's hand input and before
     the trace records the step, with a :class:`SimStep` (for figures the trace does not hold,
@@ -116,7 +126,9 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     ve = virtual_environment(sc)
     dyn = ve.dyn
     cycle = HostedCycle(build_device_loop(sc),
-                        build_controller_loop(sc, mode, update_period=sc.update_period))
+                        build_controller_loop(sc, mode, update_period=sc.update_period,
+                                              gains=gains, passivity=passivity))
+    account = cycle.controller.ctrl.energy
     first = ve.snapshot(seq=0)
     cycle.offer_update(first)
     step_ns = period_ns(sc.dt)
@@ -131,7 +143,7 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     step(0.0)
     n = int(round(sc.duration / sc.dt)) + 1
     trace = Trace.empty(n, task.dim, dyn.dof, sc.contacts is not None, mode=mode.label,
-                        scenario=sc.name, dt=sc.dt, task=task.value,
+                        scenario=sc.name, dt=sc.dt, task=task.value, energy=True,
                         **({'linkage_file': sc.linkage_file} if sc.linkage_file else {}))
     vt_pose = dyn.hand_pose(ve.q)
     inputs = 0
@@ -158,6 +170,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
                      hand_wrench=r.hand_wrench, command=ans.out.wrench, applied=tick.applied,
                      vt_pose=vt_pose, lmi_pose=ans.out.vt_pose, q=ve.q,
                      lmi_constraint_count=ans.out.constraint_count, status=int(tick.status))
+        trace.record(k, t=t, port_work=account.work, passivity_observer=account.observer,
+                     passivity_damping=account.damping)
         if ve.contacts is not None:
             trace.record_env_wrench(k, ans.out.env_wrench)
         if hand is not None and inputs % sc.update_period == 0:
@@ -172,6 +186,7 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     if ve.contacts is not None:
         rows, depth, energy = zip(*contact_rows, strict=True)
         trace.hold_contacts(np.array(rows, dtype=int), list(depth), list(energy))
+    trace.meta['energy_account'] = account.summary()
     return trace
 
 

@@ -24,6 +24,8 @@ Layout (``config/scenarios/fig6.yaml``)::
         wrench_limit: [10, 10, 1]                # |u| per axis (N, N m)
       user: {type: constant_wrench, wrench: [0.4, 0, 0]}
       control: {k_pc: [...], b_pc: [...], k_tc: 10, b_tc: 7}
+      passivity: {enabled: true, velocity_floor: 0.001, window: 1.0}  # optional: the
+                                                 # passivity controller (default: off)
       lmi: {model: eq17, update_period: 1}       # device cycles per LMI update
       ve: {internal_step: 0.001, vt_coupling: true}      # RK4 step (s)
       contacts:                                  # optional: obstacles (eqs. 1, 17, F_env)
@@ -35,7 +37,9 @@ This module reads the top level; each block is parsed by its owner:
 :func:`~haptic_topology.device.maglev.device_from_config` (``device``),
 :func:`~haptic_topology.device.users.user_from_config` (``user``),
 :meth:`ControlGains.from_config <haptic_topology.control.laws.ControlGains.from_config>`
-(``control``), :class:`~haptic_topology.control.lmi.LmiSettings` (``lmi``),
+(``control``), :meth:`PassivityConfig.from_config
+<haptic_topology.control.passivity.PassivityConfig.from_config>` (``passivity``),
+:class:`~haptic_topology.control.lmi.LmiSettings` (``lmi``),
 :class:`~haptic_topology.sim.ve.VeSettings` (``ve``),
 :class:`~haptic_topology.dynamics.contacts.ContactSettings` (``contacts``).
 """
@@ -50,6 +54,7 @@ import numpy as np
 
 from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiModel, LmiSettings
+from haptic_topology.control.passivity import PassivityConfig
 from haptic_topology.device.maglev import DeviceParams, device_from_config
 from haptic_topology.device.users import user_from_config
 from haptic_topology.dynamics.contacts import ContactSettings
@@ -95,6 +100,9 @@ class Scenario:
     #: The linkage file :meth:`with_linkage` put in place of the scenario's own linkage
     #: (absolute; a linkage of no file: its name); empty: the scenario's own.
     linkage_file: str = ''
+    #: The passivity controller's settings (``passivity``); None: none in the file (off in
+    #: ``simulate``, the backend's default in the graph).
+    passivity: PassivityConfig | None = None
 
     @property
     def label(self) -> str:
@@ -176,7 +184,7 @@ def load_scenario(name_or_path: str) -> Scenario:
     w = f'{src}: scenario'
     raw = check_keys(top['scenario'], w, required=('linkage', 'q0', 'duration'), optional=(
         'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'grasp', 'task', 'device',
-        'user', 'control', 'lmi', 've', 'contacts'))
+        'user', 'control', 'lmi', 've', 'contacts', 'passivity'))
     link_ref = as_str(raw['linkage'], f'{w}.linkage')
     link_path = Path(link_ref)
     if not link_path.is_absolute() and (path.parent / link_path).is_file():
@@ -223,10 +231,12 @@ def load_scenario(name_or_path: str) -> Scenario:
     name = as_str(raw.get('name', path.stem), f'{w}.name')
     contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage)
                 if 'contacts' in raw else None)
+    passivity = (PassivityConfig.from_config(raw['passivity'], f'{w}.passivity')
+                 if 'passivity' in raw else None)
     check_start(linkage, q0, dq0, w)
     return Scenario(name, linkage, q0, dq0, duration, dt, mode, device, offset, dict(user),
                     gains, lmi.model, lmi.update_period, ve.internal_step, ve.vt_coupling, src,
-                    contacts)
+                    contacts, passivity=passivity)
 
 
 def check_start(linkage: Linkage, q0: np.ndarray, dq0: np.ndarray, where: str) -> None:

@@ -46,6 +46,11 @@ VECTORS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'applied', '
            'lmi_pose')
 SCALARS = ('constraint_count', 'lmi_constraint_count', 'status')
 CONTACT_FLOATS = ('penetration', 'contact_energy')
+#: Single floats of a run that carries its controller's energy account (``meta['energy']``,
+#: :mod:`haptic_topology.control.passivity`): the work the controller put into the device
+#: port (J), the passivity observer (J) and the passivity controller's damping (N s/m), each
+#: after the row's state.
+ENERGY_FLOATS = ('port_work', 'passivity_observer', 'passivity_damping')
 _VECTORS, _SCALARS, _CONTACT_FLOATS = VECTORS, SCALARS, CONTACT_FLOATS
 
 
@@ -80,6 +85,9 @@ class Trace:
             cols['env_wrench'] = np.full((n, m), np.nan)
             for name in _CONTACT_FLOATS:
                 cols[name] = np.full(n, np.nan)
+        if meta.get('energy'):
+            for name in ENERGY_FLOATS:
+                cols[name] = np.full(n, np.nan)
         meta = dict(meta, task_dim=m, dof=dof)
         if contacts:
             meta['contacts'] = True
@@ -88,6 +96,11 @@ class Trace:
     @property
     def has_contacts(self) -> bool:
         return bool(self.meta.get('contacts'))
+
+    @property
+    def has_energy(self) -> bool:
+        """Whether the trace carries the controller's energy account (:data:`ENERGY_FLOATS`)."""
+        return bool(self.meta.get('energy'))
 
     def record_env_wrench(self, k: int, env_wrench: np.ndarray | None) -> None:
         """Row ``k``'s ``F_env`` as the controller rendered it (None: zero)."""
@@ -189,6 +202,8 @@ class Trace:
         names += list(_SCALARS)
         if self.has_contacts:
             names += [f'env_wrench_{i}' for i in range(m)] + list(_CONTACT_FLOATS)
+        if self.has_energy:
+            names += list(ENERGY_FLOATS)
         return names
 
     def to_csv(self, path: str | Path) -> None:
@@ -235,9 +250,59 @@ class SummaryStats:
         self.inside: list[np.ndarray] = []
         self.max_energy: float | None = None
         self.last_energy: float | None = None
+        self._t_last = math.nan               # the previous chunk's last time (s)
+        self.port_work: np.ndarray | None = None
+        self.hand_work = 0.0
+        self.observer_min = math.inf
+        self.observer_last = math.nan
+        self.pc_rows = 0
+        self.pc_first: float | None = None
+
+    def _add_energy(self, chunk: Trace) -> None:
+        """The trace's work integral: row k's ``applied`` (held over the period that ends at
+        row k) times its twist and period, ``sum u v dT`` (J), per axis; the hand's likewise;
+        with the controller's account (``has_energy``) its observer and controller."""
+        t = np.concatenate([[self._t_last], chunk.t])
+        dt = np.diff(t)
+        if chunk.t.size:
+            self._t_last = float(chunk.t[-1])
+        v = chunk.columns['device_twist']
+        power = chunk.columns['applied'] * v
+        ok = np.isfinite(dt) & np.all(np.isfinite(power), axis=1)
+        work = (power[ok] * dt[ok, None]).sum(axis=0)
+        self.port_work = work if self.port_work is None else self.port_work + work
+        hand = chunk.columns['hand_wrench'] * v
+        okh = np.isfinite(dt) & np.all(np.isfinite(hand), axis=1)
+        self.hand_work += float((hand[okh] * dt[okh, None]).sum())
+        if not chunk.has_energy:
+            return
+        obs = chunk.columns['passivity_observer']
+        known = obs[np.isfinite(obs)]
+        if known.size:
+            self.observer_min = min(self.observer_min, float(known.min()))
+            self.observer_last = float(known[-1])
+        acted = np.nonzero(chunk.columns['passivity_damping'] > 0.0)[0]
+        self.pc_rows += int(acted.size)
+        if self.pc_first is None and acted.size:
+            self.pc_first = float(chunk.t[acted[0]])
+
+    def energy_result(self, t0: float) -> dict[str, Any]:
+        """The energy figures (J; times s from ``t0``) of :meth:`result`."""
+        axis = self.port_work if self.port_work is not None else np.zeros(0)
+        out: dict[str, Any] = {'port_work_j': float(axis.sum()),
+                               'port_work_axis_j': [float(w) for w in axis],
+                               'hand_work_j': self.hand_work}
+        if math.isfinite(self.observer_min):
+            out.update({'passivity_observer_min_j': self.observer_min,
+                        'passivity_observer_final_j': self.observer_last,
+                        'passivity_rows': self.pc_rows,
+                        'passivity_first_s': (None if self.pc_first is None
+                                              else self.pc_first - t0)})
+        return out
 
     def add(self, chunk: Trace) -> None:
         """The next rows of the trace."""
+        self._add_energy(chunk)
         dist = chunk.distance()
         ok = np.isfinite(dist)
         self.dist.append(dist[ok])
@@ -292,7 +357,10 @@ class SummaryStats:
             'first_limit_s': (float(self.first_limit - t[0]) if self.first_limit is not None
                               else None),
             'max_abs_wrench': self.max_wrench if self.wrench_rows else 0.0,
+            **self.energy_result(float(t[0])),
         }
+        if 'energy_account' in meta:        # the controller's own account (simulate)
+            out['energy_account'] = meta['energy_account']
         keys = ('max_penetration_m', 'rms_penetration_m', 'contact_time_s',
                 'energy_injected_j', 'energy_dissipated_j')
         if not (self.contacts or meta.get('contacts')):

@@ -31,7 +31,7 @@ from typing import IO, Any
 import numpy as np
 
 from haptic_topology.errors import ConfigError
-from haptic_topology.sim.trace import CONTACT_FLOATS, SCALARS, VECTORS, Trace
+from haptic_topology.sim.trace import CONTACT_FLOATS, ENERGY_FLOATS, SCALARS, VECTORS, Trace
 from haptic_topology.vocabulary import TASK_NAMES, TaskSpace
 
 #: Rows per chunk (Parquet row group) when a trace is written or read in pieces.
@@ -52,6 +52,8 @@ def _blocks(trace: Trace) -> list[tuple[str, np.ndarray]]:
     if trace.has_contacts:
         out += [(f'env_wrench_{i}', trace.columns['env_wrench'][:, i]) for i in range(m)]
         out += [(name, trace.columns[name]) for name in CONTACT_FLOATS]
+    if trace.has_energy:
+        out += [(name, trace.columns[name]) for name in ENERGY_FLOATS]
     return out
 
 
@@ -160,6 +162,9 @@ def _from_table(meta: dict[str, Any], header: list[str], table: np.ndarray) -> T
     if contacts:
         trace.columns['env_wrench'] = table[:, [col[f'env_wrench_{i}'] for i in range(m)]]
         for name in CONTACT_FLOATS:
+            trace.columns[name] = table[:, col[name]]
+    if trace.has_energy:
+        for name in ENERGY_FLOATS:
             trace.columns[name] = table[:, col[name]]
     return trace
 

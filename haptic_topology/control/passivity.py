@@ -1,0 +1,216 @@
+"""Energy at the device port and time-domain passivity (Hannaford & Ryu) of the control law.
+
+Every :class:`~haptic_topology.control.controller.HapticController` keeps an
+:class:`EnergyAccount`: once per answered device state it adds up, over the period that has
+just ended, the energy its command put into the device port, per axis, in total and per part
+of the command, and the passivity observer. The arithmetic is compiled
+(:mod:`haptic_topology.control.energy`, in the same call as the law of eq. 14 / eq. 10), so the
+offline simulation, the lock-step graph and the wall-clock loop account alike.
+
+**Sign convention.** *Work* ``W = sum_k u_(k-1) . (x_k (-) x_(k-1))`` (J) is the energy the
+controller puts into the device: the wrench it commanded for a period (clamped to the
+device's wrench limit, as the device applies it) times the displacement over that period,
+i.e. ``sum F v dT`` with ``v dT`` measured as a displacement, which is the exact work of a
+wrench held over the period. Positive work drives the device. The device's own damping
+``C_d`` of eq. 9 dissipates ``D = sum dx . C_d v``. The **passivity observer** is
+``E = D - (W - W_hand)``: the energy the law's feedback has taken from the device port since
+the run began, the work of the ``hand`` part ``W_hand`` left out (below). A passive law keeps
+``E >= 0`` (less what its springs store, which starts at zero).
+
+**Parts** of a command (their work adds up to ``W`` while no clamp cuts the command):
+``penalty`` ``M_d P (k_tc e + b_tc edot)`` (eq. 13), ``coordination`` ``M_d L F_pc``
+(eqs. 10, 15-16), ``contacts`` ``M_d L F_env``, ``damping`` ``C_d xd_h`` (eq. 10's
+compensation of the device damping), ``hand`` ``(M_d L - I) F_h`` (eq. 10's inertia
+shaping) and ``passivity`` (the controller below; its work is <= 0).
+
+**Passivity controller** (:class:`PassivityConfig`, off unless configured): Hannaford & Ryu's
+one-port controller at the controller's rate, for the sampled loop with the LMI. It watches the
+*windowed observer* ``E_w``: the sum of the newest ``window`` seconds of the observer's
+increments (older dissipated energy is forgotten, so the law cannot stay passive on credit
+earned long ago). The hand part is left out of the observer: it is a
+feed-forward of the measured hand wrench that makes the device's inertia feel like the VT's
+(eq. 10): the energy it moves goes to and comes back from the device's kinetic energy while the
+user accelerates a VT lighter than the device, so counting it would damp the rendering itself;
+the energy a sampled, delayed or too stiff law *generates* is in the feedback parts (penalty,
+coordination, contacts, damping). When ``E_w < 0`` it adds the damping ``-alpha xd_h`` to the
+command held over the next period, with ``alpha = -E_w / (dT max(|xd_h|^2, v_floor^2))`` (the
+floor keeps ``alpha`` finite at rest), at most ``damping_max`` and at most ``limit_i /
+|xd_h_i|`` on every axis (the added wrench never exceeds the wrench limit). It acts on the
+total observer of the port, not per axis: energy the law moves between axes is not generated.
+The observer counts the command as the device applies it one period later, so the energy the
+damping dissipates is measured, not assumed; the delay of a VE update (the LMI's 100 or 25 Hz)
+and of two hosts lies inside the controller's one-port, which is what the observer watches.
+See ``docs/concepts/control.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from haptic_topology.errors import ConfigError
+from haptic_topology.validate import as_float, check_keys
+
+#: Names of the parts of a command, in the account's order (module doc).
+PARTS = ('penalty', 'coordination', 'contacts', 'damping', 'hand', 'passivity')
+_N_PARTS = len(PARTS)
+# The state vector's head (haptic_topology.control.energy).
+_HAVE, _WORK, _DISSIPATED, _OBSERVER, _WINDOWED, _ALPHA, _ACTED, _PEAK, _MINIMUM, _RING = (
+    range(10))
+_HEAD = 10
+
+
+@dataclass(frozen=True)
+class PassivityConfig:
+    """The passivity controller's settings (module doc). ``enabled``; ``velocity_floor``
+    (m/s or rad/s): the floor of ``|xd_h|`` in ``alpha``; ``damping_max`` (N s/m, N m s/rad;
+    None: the device's smallest inertia over the period, ``min eig(M_d) / dT``, half of
+    what a held damper on that inertia stands); ``window`` (s; 0: never forget)."""
+
+    enabled: bool = False
+    velocity_floor: float = 1e-3
+    damping_max: float | None = None
+    window: float = 1.0
+
+    @classmethod
+    def from_config(cls, raw: Any, where: str, default_enabled: bool = False
+                    ) -> PassivityConfig:
+        """A ``passivity:`` block: ``enabled`` (bool), ``velocity_floor`` (> 0),
+        ``damping_max`` (> 0), ``window`` (s, >= 0); None: the defaults."""
+        if raw is None:
+            return cls(enabled=default_enabled)
+        c = check_keys(raw, where, optional=('enabled', 'velocity_floor', 'damping_max',
+                                             'window'))
+        enabled = c.get('enabled', default_enabled)
+        if not isinstance(enabled, bool):
+            raise ConfigError(f'{where}.enabled: expected true or false, got {enabled!r}')
+        dmax = c.get('damping_max')
+        return cls(enabled=enabled,
+                   velocity_floor=as_float(c.get('velocity_floor', 1e-3),
+                                           f'{where}.velocity_floor', lo=1e-9),
+                   damping_max=(None if dmax is None
+                                else as_float(dmax, f'{where}.damping_max', lo=1e-9)),
+                   window=as_float(c.get('window', 1.0), f'{where}.window', lo=0.0))
+
+
+class EnergyAccount:
+    """The energy account and passivity controller of one controller (module doc), for a
+    task of dimension ``m``, nominal period ``dt`` (s) and device inertia ``mass`` (m x m).
+
+    ``params`` and ``state`` are the arrays :func:`~haptic_topology.control.energy.account`
+    works on; ``limit`` the wrench limit (N, N m; inf until :meth:`set_limit`)."""
+
+    def __init__(self, m: int, config: PassivityConfig, dt: float, mass: np.ndarray) -> None:
+        self.m = m
+        self.config = config
+        window = int(round(config.window / dt)) if config.window > 0.0 and dt > 0.0 else 0
+        dmax = config.damping_max
+        if dmax is None:
+            low = float(np.linalg.eigvalsh(0.5 * (mass + mass.T)).min())
+            dmax = low / dt if dt > 0.0 else math.inf
+        self.params = np.array([1.0 if config.enabled else 0.0, config.velocity_floor ** 2,
+                                dmax, float(window)])
+        self.limit = np.full(m, np.inf)
+        self.state = np.zeros(_HEAD + 3 * m + _N_PARTS + _N_PARTS * m + window)
+        self.first_acted: float | None = None      # loop time (s) the PC first acted
+        self.last_acted: float | None = None
+
+    def set_limit(self, limit: np.ndarray) -> None:
+        """The device's wrench limit (N, N m, m values): commands are accounted clamped."""
+        self.limit = np.array(limit, dtype=float)
+
+    # -- what the loop tells the account ------------------------------------------------------
+    def break_period(self) -> None:
+        """No command of the law was held over the period now running (an unsynced or idle
+        cycle): the next state starts a new period, this one is not accounted."""
+        self.state[_HAVE] = 0.0
+
+    def scaled(self, scale: float, sent: np.ndarray) -> None:
+        """The loop sent ``sent`` (``scale`` times the law's command, the sync guard's fade)
+        in place of the command accounted."""
+        m = self.m
+        s = self.state
+        s[_HEAD + m:_HEAD + 2 * m] = np.clip(sent, -self.limit, self.limit)
+        at = _HEAD + 3 * m + _N_PARTS
+        s[at:at + _N_PARTS * m] *= scale
+
+    def note(self, now: float) -> None:
+        """After a cycle at loop time ``now`` (s): when the passivity controller acted."""
+        if self.state[_ALPHA] > 0.0:
+            if self.first_acted is None:
+                self.first_acted = now
+            self.last_acted = now
+
+    # -- figures ------------------------------------------------------------------------------
+    @property
+    def work(self) -> float:
+        """W (J): energy the controller put into the device port (module doc)."""
+        return float(self.state[_WORK])
+
+    @property
+    def work_axis(self) -> np.ndarray:
+        """W per task axis (J; m values)."""
+        m = self.m
+        return self.state[_HEAD + 2 * m:_HEAD + 3 * m].copy()
+
+    @property
+    def work_parts(self) -> dict[str, float]:
+        """W per part of the command (J; :data:`PARTS`)."""
+        at = _HEAD + 3 * self.m
+        return dict(zip(PARTS, (float(v) for v in self.state[at:at + _N_PARTS]), strict=True))
+
+    @property
+    def dissipated(self) -> float:
+        """D (J): energy the device damping ``C_d`` dissipated."""
+        return float(self.state[_DISSIPATED])
+
+    @property
+    def observer(self) -> float:
+        """E = D - W + W_hand (J), the passivity observer."""
+        return float(self.state[_OBSERVER])
+
+    @property
+    def windowed(self) -> float:
+        """E_w (J): the observer over the newest window (the controller's)."""
+        return float(self.state[_WINDOWED])
+
+    @property
+    def damping(self) -> float:
+        """alpha (N s/m, N m s/rad) added to the newest command (0: none)."""
+        return float(self.state[_ALPHA])
+
+    def summary(self) -> dict[str, Any]:
+        """The account's figures for ``summary.json`` (J, N s/m, s of loop time)."""
+        s = self.state
+        return {
+            'port_work_j': self.work,
+            'port_work_axis_j': [float(v) for v in self.work_axis],
+            'port_work_parts_j': self.work_parts,
+            'device_damping_dissipated_j': self.dissipated,
+            'passivity_observer_j': self.observer,
+            'passivity_observer_min_j': float(s[_MINIMUM]),
+            'passivity_controller': bool(self.params[0]),
+            'passivity_cycles': int(s[_ACTED]),
+            'passivity_dissipated_j': -self.work_parts['passivity'],
+            'passivity_damping_max': float(s[_PEAK]),
+            'passivity_first_s': self.first_acted,
+            'passivity_last_s': self.last_acted,
+        }
+
+    def values(self) -> dict[str, str]:
+        """Diagnostics key/values (the live channel)."""
+        s = self.state
+        return {
+            'port_work_j': f'{self.work:.6g}',
+            'port_work_axis_j': ' '.join(f'{v:.4g}' for v in self.work_axis),
+            **{f'work_{k}_j': f'{v:.4g}' for k, v in self.work_parts.items()},
+            'passivity_observer_j': f'{self.observer:.6g}',
+            'passivity_observer_min_j': f'{float(s[_MINIMUM]):.6g}',
+            'passivity_windowed_j': f'{self.windowed:.6g}',
+            'passivity_controller': 'on' if self.params[0] else 'off',
+            'passivity_cycles': str(int(s[_ACTED])),
+            'passivity_damping': f'{self.damping:.4g}',
+        }

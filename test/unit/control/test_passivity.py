@@ -1,0 +1,127 @@
+"""The energy account and the passivity controller (haptic_topology.control.passivity, .energy)
+against what holds independently of them: the Colgate-Schenkel passivity bound of a sampled
+virtual wall, the work integral of a simulated run's trace, the passivity controller holding
+an unstable penalty passive.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from haptic_topology.control.compiled import PENALTY, ZERO
+from haptic_topology.control.passivity import EnergyAccount, PassivityConfig
+
+T = 1e-3          # s, the device period of every scenario
+
+
+def wall_observer_min(k: float, b_wall: float, b_device: float, v: float = 0.05,
+                      n: int = 2000) -> float:
+    """The lowest observer value (J) of a one-axis device of damping ``b_device`` (N s/m)
+    against the sampled virtual wall ``u_j = -K x_j - B (x_j - x_(j-1)) / T`` (zero-order hold,
+    backward difference: Colgate & Schenkel's), the device moved with a velocity constant over
+    each period and alternating in sign, ``+v, -v, ...`` (m/s), from ``x = 0``.
+
+    The excitation is the worst case of the bound: a velocity constant over each period is
+    the input whose energy the sampled wall misjudges most (the held force lags the motion by
+    up to a period), and the alternation makes every product ``v_(j-1) v_j`` of the
+    backward-difference damping negative and brings ``x`` back to 0 every second period, so
+    neither term of ``b > K T / 2 + |B|`` is hidden behind stored energy."""
+    account = EnergyAccount(1, PassivityConfig(window=0.0), T, np.eye(1))
+    c_d = np.array([[b_device]])
+    zero1 = np.zeros(1)
+    ml = np.zeros((1, 1))
+    x_prev = x = 0.0
+    v_prev = 0.0
+    lowest = 0.0
+    for j in range(n):
+        # the state at the start of period j: its pose, and the twist the device reports,
+        # the velocity of the period that ended (a velocity sensor of the held velocity)
+        u = np.array([-k * x - b_wall * (x - x_prev) / T])
+        account_step(account, c_d, ml, np.array([x]), np.array([v_prev]), zero1, u)
+        lowest = min(lowest, account.observer)
+        vj = v if j % 2 == 0 else -v
+        x_prev, x, v_prev = x, x + vj * T, vj
+    return lowest
+
+
+def account_step(account: EnergyAccount, c_d: np.ndarray, ml: np.ndarray, x: np.ndarray,
+                 xd: np.ndarray, zero: np.ndarray, u: np.ndarray, mode: int = PENALTY) -> None:
+    from haptic_topology.control.energy import account as step
+    step(0, mode, ml, c_d, x, xd, zero, zero, zero, u, account.limit, T, account.params,
+         account.state)
+
+
+def boundary(k: float, b_wall: float) -> float:
+    """The smallest device damping (N s/m) that keeps the observer >= 0, by bisection."""
+    lo, hi = 0.0, 10.0 * (k * T / 2.0 + b_wall) + 1.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if wall_observer_min(k, b_wall, mid) >= 0.0:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+@pytest.mark.parametrize('b_wall', [0.0, 2.0])
+def test_swept_boundary_is_colgate_schenkel(b_wall: float) -> None:
+    """Over a decade of K the boundary in device damping lies within 10 % of
+    ``K T / 2 + |B|`` (Colgate & Schenkel 1997)."""
+    for k in (2e3, 5e3, 1e4, 2e4):
+        expected = k * T / 2.0 + abs(b_wall)
+        found = boundary(k, b_wall)
+        assert found == pytest.approx(expected, rel=0.10), (k, b_wall, found, expected)
+
+
+def test_observer_sign_convention() -> None:
+    """A pure damper held over the period (u = -c v) takes energy: the observer grows by
+    c v^2 T a period; a negative damper gives it: the work is positive, the observer falls."""
+    for c, sign in ((5.0, 1.0), (-5.0, -1.0)):
+        account = EnergyAccount(1, PassivityConfig(), T, np.eye(1))
+        zero, ml, c_d = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1))
+        x, v = 0.0, 0.1
+        for _ in range(11):
+            account_step(account, c_d, ml, np.array([x]), np.array([v]), zero,
+                         np.array([-c * v]))
+            x += v * T
+        assert account.work == pytest.approx(-sign * 10 * abs(c) * v * v * T, rel=1e-12)
+        assert account.observer == pytest.approx(-account.work, rel=1e-12)
+        assert account.work_parts['penalty'] == pytest.approx(account.work, rel=1e-12)
+
+
+def test_passivity_controller_dissipates_the_deficit() -> None:
+    """With the controller on, a deficit of the observer is answered by the damping that
+    dissipates it over the next period: alpha = -E / (T v^2), capped by the wrench limit."""
+    account = EnergyAccount(1, PassivityConfig(enabled=True, window=0.0), T, np.eye(1))
+    account.set_limit(np.array([10.0]))
+    zero, ml, c_d = np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1))
+    v = 0.1
+    account_step(account, c_d, ml, np.array([0.0]), np.array([v]), zero, np.array([2.0]))
+    # the held 2 N over a period moving at v: work 2 v T, observer -2 v T
+    u = np.array([0.0])
+    account_step(account, c_d, ml, np.array([v * T]), np.array([v]), zero, u)
+    assert account.observer == pytest.approx(-2.0 * v * T, rel=1e-12)
+    alpha = 2.0 * v * T / (T * v * v)
+    assert account.damping == pytest.approx(alpha, rel=1e-12)
+    assert u[0] == pytest.approx(-alpha * v, rel=1e-12)
+    account_step(account, c_d, ml, np.array([2 * v * T]), np.array([v]), zero, np.zeros(1))
+    assert account.observer == pytest.approx(0.0, abs=1e-15)
+    assert account.summary()['passivity_cycles'] >= 1
+    # the cap: the added damping never exceeds the wrench limit
+    account_step(account, c_d, ml, np.array([2 * v * T]), np.array([v]), zero, np.zeros(1))
+    big = np.array([0.0])
+    account.state[4] = -1.0                 # a deficit of 1 J in the window
+    account_step(account, c_d, ml, np.array([2 * v * T]), np.array([v]), zero, big)
+    assert big[0] == pytest.approx(-10.0, rel=1e-12)
+
+
+def test_zero_mode_accounts_nothing() -> None:
+    """Mode ZERO: no part of the command, no work, whatever the device does."""
+    account = EnergyAccount(2, PassivityConfig(enabled=True), T, np.eye(2))
+    zero, ml, c_d = np.zeros(2), np.eye(2), np.zeros((2, 2))
+    for j in range(5):
+        account_step(account, c_d, ml, np.array([0.01 * j, 0.0]), np.array([10.0, 0.0]),
+                     zero, np.zeros(2), mode=ZERO)
+    assert account.work == 0.0 and account.observer == 0.0
+    assert set(account.work_parts.values()) == {0.0}
