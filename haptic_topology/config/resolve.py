@@ -13,7 +13,7 @@ from __future__ import annotations
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -29,6 +29,7 @@ from haptic_topology.config.settings import (
     parse_backend_options,
 )
 from haptic_topology.control.laws import ControlGains, check_gain
+from haptic_topology.control.passivity import PassivityConfig
 from haptic_topology.control.safety import SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig
 from haptic_topology.device.watchdog import WatchdogConfig, WatchdogFallback
@@ -194,6 +195,21 @@ class ControllerConfig:
     wrench_limit: np.ndarray
     executor: str
     sched_priority: int
+    #: The passivity controller's settings (``passivity`` on/off, or the scenario's block).
+    passivity: PassivityConfig | None = None
+    #: ``passivity: auto`` without a scenario block: on once hosted by a real device's
+    #: driver (:meth:`~haptic_topology.control.passivity.EnergyAccount.enable`).
+    passivity_auto: bool = False
+
+
+def resolve_passivity(setting: str, sc: Scenario) -> tuple[PassivityConfig, bool]:
+    """The passivity controller of ``lmi_controller``'s parameter ``passivity`` (``on``,
+    ``off``, ``auto``) and scenario ``sc``: its settings, and whether ``auto`` leaves the
+    choice to the backend (no ``passivity`` block in the scenario)."""
+    base = sc.passivity or PassivityConfig()
+    if setting == 'auto':
+        return base, sc.passivity is None
+    return replace(base, enabled=setting == 'on'), False
 
 
 def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> ControllerConfig:
@@ -210,12 +226,13 @@ def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> Controller
         guard = SyncGuardConfig(s.stale_after, s.degrade_after, s.resync_ramp)
     except ConfigError as exc:
         raise ConfigError(f'lmi_controller: parameters: {exc}') from None
+    passivity, auto = resolve_passivity(s.passivity, sc)
     return ControllerConfig(
         settings=s, scenario=sc, mode=mode, gains=sc.gains.with_penalty(k_tc, b_tc),
         guard=guard, clock=Clock.parse(s.clock), cycle_time=sc.dt, max_dt=s.max_dt,
         resync_max_jump=s.resync_max_jump, lockstep_wait=s.lockstep_wait,
         wrench_limit=sc.device.wrench_limit.copy(), executor=s.executor,
-        sched_priority=s.sched_priority)
+        sched_priority=s.sched_priority, passivity=passivity, passivity_auto=auto)
 
 
 # -- ve_sim ------------------------------------------------------------------------------------

@@ -118,6 +118,10 @@ class EnergyAccount:
         self.first_acted: float | None = None      # loop time (s) the PC first acted
         self.last_acted: float | None = None
 
+    def enable(self, on: bool) -> None:
+        """Switch the passivity controller on or off (between two cycles)."""
+        self.params[0] = 1.0 if on else 0.0
+
     def set_limit(self, limit: np.ndarray) -> None:
         """The device's wrench limit (N, N m, m values): commands are accounted clamped."""
         self.limit = np.array(limit, dtype=float)

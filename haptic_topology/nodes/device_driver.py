@@ -144,6 +144,9 @@ class DeviceDriver(LifecycleNode):
                 self.loop = DeviceLoop(self.backend, c.wrench_limit,
                                        CommandWatchdog(c.watchdog, c.task_dim), c.period,
                                        c.takeover_after)
+            if self.hosted is not None and self.hosted.cfg.passivity_auto:
+                # lmi_controller's passivity: auto: on for a device that is not simulated
+                self.hosted.loop.ctrl.energy.enable(not self.backend.simulated)
             self.layout = driver_layout(self, self.hosted)
         except Exception as exc:    # a backend's own code too: the fault
             why = error_line(exc, f'{getattr(self.backend, "name", c.backend)}: configure()')

@@ -105,7 +105,8 @@ class LmiController(Node):
         self.cfg = c = resolve_lmi_controller(s, sc)
         lockstep = c.clock is Clock.LOCKSTEP
         self.loop = build_controller_loop(sc, c.mode, c.guard, c.max_dt, c.resync_max_jump,
-                                          sc.update_period if lockstep else None, c.gains)
+                                          sc.update_period if lockstep else None, c.gains,
+                                          c.passivity)
         self.port = ControllerPort(self.loop, sc.update_period, sc.linkage.task.dim, sc.dt,
                                    lockstep, c.lockstep_wait)
         self.flush_period = self.port.flush_period
