@@ -34,7 +34,8 @@ PART_PENALTY, PART_COORDINATION, PART_CONTACTS, PART_DAMPING, PART_HAND, PART_PA
     range(N_PARTS))
 HAVE, WORK, DISSIPATED, OBSERVER, WINDOWED, ALPHA, ACTED, ALPHA_PEAK, MINIMUM, RING_AT = range(10)
 HEAD = 10
-#: params: PC on (1/0), |v|^2 floor ((m/s)^2), damping cap (N s/m), window (cycles, 0: none).
+#: params: PC on (1/0), the floor of the squared speed ((m/s)^2), damping cap (N s/m),
+#: window (cycles, 0: none).
 P_ENABLED, P_V2_FLOOR, P_ALPHA_MAX, P_WINDOW = range(4)
 
 

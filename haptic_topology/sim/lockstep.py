@@ -111,8 +111,9 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
              passivity: PassivityConfig | None = None,
              gains: ControlGains | None = None) -> Trace:
     """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace, with
-    the controller's energy account in its columns (:data:`~haptic_topology.sim.trace.
-    ENERGY_FLOATS`) and its final figures in ``meta['energy_account']``
+    the controller's energy account in its columns
+    (:data:`~haptic_topology.sim.trace.ENERGY_FLOATS`) and its final figures in
+    ``meta['energy_account']``
     (:meth:`~haptic_topology.control.passivity.EnergyAccount.summary`). ``passivity``: the
     passivity controller (default: the scenario's, else off); ``gains``: default the
     scenario's.
