@@ -165,7 +165,7 @@ class HapticController:
         self._law(self._rot, int(self.mode), self.vt_coupling, self._ml, self.m_d, self.c_d,
                   lmi.projector,
                   g.k_pc, g.b_pc, g.k_tc, g.b_tc, lmi.x_vt, lmi.xd_vt, x_h, xd_h, f_h, f_env,
-                  u, f_pc, f_vt, en.limit, dt, en.params, en.state)
+                  u, f_pc, f_vt, dt, en.state)
         lmi.record_input(seq, f_vt)
         return CycleOutput(u, f_pc, f_vt, lmi.x_vt.copy(), lmi.xd_vt.copy(),
                            lmi.constraint_count, self.mode, f_env.copy())

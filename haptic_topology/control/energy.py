@@ -34,20 +34,21 @@ PART_PENALTY, PART_COORDINATION, PART_CONTACTS, PART_DAMPING, PART_HAND, PART_PA
     range(N_PARTS))
 HAVE, WORK, DISSIPATED, OBSERVER, WINDOWED, ALPHA, ACTED, ALPHA_PEAK, MINIMUM, RING_AT = range(10)
 HEAD = 10
-#: params: PC on (1/0), the floor of the squared speed ((m/s)^2), damping cap (N s/m),
-#: window (cycles, 0: none).
-P_ENABLED, P_V2_FLOOR, P_ALPHA_MAX, P_WINDOW = range(4)
+#: The parameters after the head: PC on (1/0), the floor of the squared speed ((m/s)^2),
+#: damping cap (N s/m), window (cycles, 0: none); then the wrench limit (m values).
+P_ENABLED, P_V2_FLOOR, P_ALPHA_MAX, P_WINDOW = range(HEAD, HEAD + 4)
+#: Where the limit starts; the m-vectors and parts follow it (EnergyAccount's layout).
+LIMIT = HEAD + 4
 
 
-@njit(void(int64, int64, MAT, MAT, VEC, VEC, VEC, VEC, VEC, VEC, VEC, float64, VEC, VEC),
-      cache=True)
+@njit(void(int64, int64, MAT, MAT, VEC, VEC, VEC, VEC, VEC, VEC, float64, VEC), cache=True)
 def account(rotation_dim: int, mode: int, ml: np.ndarray, c_d: np.ndarray, x_h: np.ndarray,
             xd_h: np.ndarray, f_h: np.ndarray, f_env: np.ndarray, f_pc: np.ndarray,
-            u: np.ndarray, limit: np.ndarray, dt: float, params: np.ndarray,
-            state: np.ndarray) -> None:
+            u: np.ndarray, dt: float, state: np.ndarray) -> None:
     """Account for the period that ends at this state (pose ``x_h``, twist ``xd_h``) and for
-    the command ``u`` of the law (``mode``), in place on ``state``; with the passivity
-    controller on (``params``) add its damping ``-alpha xd_h`` to ``u``.
+    the command ``u`` of the law (``mode``), in place on ``state`` (which holds the
+    parameters and the wrench ``limit`` too: one array to pass); with the passivity
+    controller on add its damping ``-alpha xd_h`` to ``u``.
 
     1. observer: ``dW = u_prev . dx`` (``u_prev``: the previous command clamped to ``limit``,
        ``dx = x_h (-) x_prev``), per axis, per part and in total; ``dD = dx . C_d xd_h``;
@@ -64,13 +65,15 @@ def account(rotation_dim: int, mode: int, ml: np.ndarray, c_d: np.ndarray, x_h: 
     ``ml`` ``M_d Lambda_h^-1``, ``c_d`` ``C_d`` (m x m), ``f_h``, ``f_env``, ``f_pc`` the
     law's inputs (m), ``dt`` (s) the period the command will be held for."""
     m = x_h.size
-    n_ring = int(params[P_WINDOW])
-    prev_x = state[HEAD:HEAD + m]
-    prev_u = state[HEAD + m:HEAD + 2 * m]
-    axis = state[HEAD + 2 * m:HEAD + 3 * m]
-    parts = state[HEAD + 3 * m:HEAD + 3 * m + N_PARTS]
-    prev_parts = state[HEAD + 3 * m + N_PARTS:HEAD + 3 * m + N_PARTS + N_PARTS * m]
-    ring = state[HEAD + 3 * m + N_PARTS + N_PARTS * m:]
+    n_ring = int(state[P_WINDOW])
+    limit = state[LIMIT:LIMIT + m]
+    at = LIMIT + m
+    prev_x = state[at:at + m]
+    prev_u = state[at + m:at + 2 * m]
+    axis = state[at + 2 * m:at + 3 * m]
+    parts = state[at + 3 * m:at + 3 * m + N_PARTS]
+    prev_parts = state[at + 3 * m + N_PARTS:at + 3 * m + N_PARTS + N_PARTS * m]
+    ring = state[at + 3 * m + N_PARTS + N_PARTS * m:]
     if state[HAVE] > 0.0:
         dx = np.empty(m)
         task_pose_difference(x_h, prev_x, rotation_dim, dx)
@@ -98,19 +101,19 @@ def account(rotation_dim: int, mode: int, ml: np.ndarray, c_d: np.ndarray, x_h: 
         state[OBSERVER] += fb
         state[MINIMUM] = min(state[MINIMUM], state[OBSERVER])
         if n_ring > 0:
-            at = int(state[RING_AT])
-            state[WINDOWED] += fb - ring[at]
-            ring[at] = fb
-            state[RING_AT] = (at + 1) % n_ring
+            r = int(state[RING_AT])
+            state[WINDOWED] += fb - ring[r]
+            ring[r] = fb
+            state[RING_AT] = (r + 1) % n_ring
         else:
             state[WINDOWED] += fb
     alpha = 0.0
-    if params[P_ENABLED] > 0.0 and mode != ZERO and state[WINDOWED] < 0.0 and dt > 0.0:
+    if state[P_ENABLED] > 0.0 and mode != ZERO and state[WINDOWED] < 0.0 and dt > 0.0:
         v2 = 0.0
         for i in range(m):
             v2 += xd_h[i] * xd_h[i]
-        alpha = -state[WINDOWED] / (dt * max(v2, params[P_V2_FLOOR]))
-        alpha = min(alpha, params[P_ALPHA_MAX])
+        alpha = -state[WINDOWED] / (dt * max(v2, state[P_V2_FLOOR]))
+        alpha = min(alpha, state[P_ALPHA_MAX])
         for i in range(m):
             if abs(xd_h[i]) * alpha > limit[i]:
                 alpha = limit[i] / abs(xd_h[i])
@@ -148,17 +151,15 @@ def account(rotation_dim: int, mode: int, ml: np.ndarray, c_d: np.ndarray, x_h: 
 
 
 @njit(void(int64, int64, boolean, MAT, MAT, MAT, MAT, VEC, VEC, float64, float64,
-           VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC, float64, VEC, VEC), cache=True)
+           VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC, VEC, float64, VEC), cache=True)
 def task_law_energy(rotation_dim: int, mode: int, vt_coupling: bool, ml: np.ndarray,
                     m_d: np.ndarray, c_d: np.ndarray, projector: np.ndarray, k_pc: np.ndarray,
                     b_pc: np.ndarray, k_tc: float, b_tc: float, x_vt: np.ndarray,
                     xd_vt: np.ndarray, x_h: np.ndarray, xd_h: np.ndarray, f_h: np.ndarray,
                     f_env: np.ndarray, u: np.ndarray, f_pc: np.ndarray, f_vt: np.ndarray,
-                    limit: np.ndarray, dt: float, params: np.ndarray,
-                    state: np.ndarray) -> None:
+                    dt: float, state: np.ndarray) -> None:
     """:func:`~haptic_topology.control.compiled.task_law` (the same ``u``, ``f_pc``,
     ``f_vt``), then :func:`account` of its command, in one call."""
     task_law(rotation_dim, mode, vt_coupling, ml, m_d, c_d, projector, k_pc, b_pc, k_tc, b_tc,
              x_vt, xd_vt, x_h, xd_h, f_h, f_env, u, f_pc, f_vt)
-    account(rotation_dim, mode, ml, c_d, x_h, xd_h, f_h, f_env, f_pc, u, limit, dt, params,
-            state)
+    account(rotation_dim, mode, ml, c_d, x_h, xd_h, f_h, f_env, f_pc, u, dt, state)

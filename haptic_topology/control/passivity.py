@@ -61,6 +61,7 @@ _N_PARTS = len(PARTS)
 _HAVE, _WORK, _DISSIPATED, _OBSERVER, _WINDOWED, _ALPHA, _ACTED, _PEAK, _MINIMUM, _RING = (
     range(10))
 _HEAD = 10
+_PARAMS = 4             # after the head: PC on, |v|^2 floor, damping cap, window; the limit
 
 
 @dataclass(frozen=True)
@@ -100,8 +101,10 @@ class EnergyAccount:
     """The energy account and passivity controller of one controller (module doc), for a
     task of dimension ``m``, nominal period ``dt`` (s) and device inertia ``mass`` (m x m).
 
-    ``params`` and ``state`` are the arrays :func:`~haptic_topology.control.energy.account`
-    works on; ``limit`` the wrench limit (N, N m; inf until :meth:`set_limit`)."""
+    ``state`` is the one array :func:`~haptic_topology.control.energy.account` works on: a
+    head of figures, the parameters (:attr:`params`), the wrench limit (:attr:`limit`; N,
+    N m, inf until :meth:`set_limit`), the previous pose and command, the work per axis and
+    per part, the previous command's parts, the window's ring."""
 
     def __init__(self, m: int, config: PassivityConfig, dt: float, mass: np.ndarray) -> None:
         self.m = m
@@ -111,12 +114,24 @@ class EnergyAccount:
         if dmax is None:
             low = float(np.linalg.eigvalsh(0.5 * (mass + mass.T)).min())
             dmax = low / dt if dt > 0.0 else math.inf
-        self.params = np.array([1.0 if config.enabled else 0.0, config.velocity_floor ** 2,
-                                dmax, float(window)])
-        self.limit = np.full(m, np.inf)
-        self.state = np.zeros(_HEAD + 3 * m + _N_PARTS + _N_PARTS * m + window)
+        self._at = _HEAD + _PARAMS + m          # where the previous pose starts
+        self.state = np.zeros(self._at + 3 * m + _N_PARTS + _N_PARTS * m + window)
+        self.params[:] = (1.0 if config.enabled else 0.0, config.velocity_floor ** 2, dmax,
+                          float(window))
+        self.limit[:] = np.inf
         self.first_acted: float | None = None      # loop time (s) the PC first acted
         self.last_acted: float | None = None
+
+    @property
+    def params(self) -> np.ndarray:
+        """The parameters in :attr:`state` (a view): PC on (1/0), the floor of ``|v|^2``,
+        the damping cap, the window (cycles)."""
+        return self.state[_HEAD:_HEAD + _PARAMS]
+
+    @property
+    def limit(self) -> np.ndarray:
+        """The wrench limit in :attr:`state` (a view; N, N m)."""
+        return self.state[_HEAD + _PARAMS:_HEAD + _PARAMS + self.m]
 
     def enable(self, on: bool) -> None:
         """Switch the passivity controller on or off (between two cycles)."""
@@ -124,7 +139,7 @@ class EnergyAccount:
 
     def set_limit(self, limit: np.ndarray) -> None:
         """The device's wrench limit (N, N m, m values): commands are accounted clamped."""
-        self.limit = np.array(limit, dtype=float)
+        self.limit[:] = np.asarray(limit, dtype=float)
 
     # -- what the loop tells the account ------------------------------------------------------
     def break_period(self) -> None:
@@ -137,8 +152,8 @@ class EnergyAccount:
         in place of the command accounted."""
         m = self.m
         s = self.state
-        s[_HEAD + m:_HEAD + 2 * m] = np.clip(sent, -self.limit, self.limit)
-        at = _HEAD + 3 * m + _N_PARTS
+        s[self._at + m:self._at + 2 * m] = np.clip(sent, -self.limit, self.limit)
+        at = self._at + 3 * m + _N_PARTS
         s[at:at + _N_PARTS * m] *= scale
 
     def note(self, now: float) -> None:
@@ -158,12 +173,12 @@ class EnergyAccount:
     def work_axis(self) -> np.ndarray:
         """W per task axis (J; m values)."""
         m = self.m
-        return self.state[_HEAD + 2 * m:_HEAD + 3 * m].copy()
+        return self.state[self._at + 2 * m:self._at + 3 * m].copy()
 
     @property
     def work_parts(self) -> dict[str, float]:
         """W per part of the command (J; :data:`PARTS`)."""
-        at = _HEAD + 3 * self.m
+        at = self._at + 3 * self.m
         return dict(zip(PARTS, (float(v) for v in self.state[at:at + _N_PARTS]), strict=True))
 
     @property

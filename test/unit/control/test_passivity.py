@@ -48,8 +48,7 @@ def wall_observer_min(k: float, b_wall: float, b_device: float, v: float = 0.05,
 def account_step(account: EnergyAccount, c_d: np.ndarray, ml: np.ndarray, x: np.ndarray,
                  xd: np.ndarray, zero: np.ndarray, u: np.ndarray, mode: int = PENALTY) -> None:
     from haptic_topology.control.energy import account as step
-    step(0, mode, ml, c_d, x, xd, zero, zero, zero, u, account.limit, T, account.params,
-         account.state)
+    step(0, mode, ml, c_d, x, xd, zero, zero, zero, u, T, account.state)
 
 
 def boundary(k: float, b_wall: float) -> float:
