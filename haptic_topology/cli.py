@@ -25,6 +25,7 @@ from haptic_topology.errors import AxesError, HapticTopologyError
 from haptic_topology.processes import stacks_on_signal
 from haptic_topology.remote import server_command as device_server_command
 from haptic_topology.sim import command as simulate_command
+from haptic_topology.sim import zwidth_command
 
 
 def _replay(args: argparse.Namespace) -> int:
@@ -105,6 +106,9 @@ COMMANDS: tuple[Command, ...] = (
             _info),
     Command('simulate', 'offline lock-step simulation of a scenario: trace, plot, summary',
             simulate_command.add_arguments, simulate_command.run),
+    Command('zwidth', 'Z-width maps of the penalty: k_tc x b_tc swept under eq. 14, passive / '
+            'stable / unstable, with and without the passivity controller',
+            zwidth_command.add_arguments, zwidth_command.run),
     Command('run', 'start the ROS 2 node graph (device, controller, VE, recorder): bag, '
             'summary, loop figures', run_command.add_arguments, run_command.run),
     Command('replay', "publish a bag's messages with their recorded timing; or check the "
