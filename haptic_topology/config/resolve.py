@@ -212,6 +212,23 @@ def resolve_passivity(setting: str, sc: Scenario) -> tuple[PassivityConfig, bool
     return replace(base, enabled=setting == 'on'), False
 
 
+def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None
+                   ) -> str | None:
+    """Why ``c``'s penalty gains lie outside the Z-width map of its scenario (at the
+    scenario's LMI update period, with the passivity controller as configured), naming the
+    gain and the bound; None inside, or without a map. ``maps``: default the shipped ones
+    (``config/zwidth.json``, written by ``haptic-topology zwidth``). A warning, not a refusal:
+    the edge of the map is for probing on purpose."""
+    from haptic_topology.paths import config_dir
+    from haptic_topology.sim.zwidth import load_maps, outside_map
+
+    if maps is None:
+        maps = load_maps(config_dir() / 'zwidth.json')
+    on = c.passivity is not None and c.passivity.enabled
+    return outside_map(maps, c.scenario.name, c.scenario.update_period, on, c.gains.k_tc,
+                       c.gains.b_tc)
+
+
 def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> ControllerConfig:
     """``lmi_controller``'s configuration: ``mode``/``k_tc``/``b_tc`` None -> the scenario's
     (a scenario built in code, not loaded, is checked here against the same range)."""

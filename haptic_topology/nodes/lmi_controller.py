@@ -48,7 +48,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import UInt64
 
 from haptic_topology.config import node_params
-from haptic_topology.config.resolve import resolve_lmi_controller
+from haptic_topology.config.resolve import resolve_lmi_controller, zwidth_warning
 from haptic_topology.config.settings import LmiControllerSettings, scenario_defaults
 from haptic_topology.control.admission import UpdateAdmission
 from haptic_topology.control.batch import HandBatch
@@ -103,6 +103,8 @@ class LmiController(Node):
         s = declare_settings(self, LmiControllerSettings,
                                     scenario_defaults(LmiControllerSettings, sc))
         self.cfg = c = resolve_lmi_controller(s, sc)
+        for line in filter(None, [zwidth_warning(c)]):    # outside the map: warn, not refuse
+            self.get_logger().warn(line)
         lockstep = c.clock is Clock.LOCKSTEP
         self.loop = build_controller_loop(sc, c.mode, c.guard, c.max_dt, c.resync_max_jump,
                                           sc.update_period if lockstep else None, c.gains,
