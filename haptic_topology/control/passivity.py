@@ -124,13 +124,13 @@ class EnergyAccount:
 
     @property
     def params(self) -> np.ndarray:
-        """The parameters in :attr:`state` (a view): PC on (1/0), the floor of ``|v|^2``,
+        """The parameters in ``state`` (a view): PC on (1/0), the floor of ``|v|^2``,
         the damping cap, the window (cycles)."""
         return self.state[_HEAD:_HEAD + _PARAMS]
 
     @property
     def limit(self) -> np.ndarray:
-        """The wrench limit in :attr:`state` (a view; N, N m)."""
+        """The wrench limit in ``state`` (a view; N, N m)."""
         return self.state[_HEAD + _PARAMS:_HEAD + _PARAMS + self.m]
 
     def enable(self, on: bool) -> None:

@@ -117,14 +117,16 @@ def margin(m: dict[str, Any]) -> float:
     return best
 
 
-def passive_bound(m: dict[str, Any], b_tc: float) -> float | None:
-    """The largest ``k_tc`` of map ``m`` up to which every run is passive, at the grid's
-    ``b_tc`` nearest ``b_tc`` (None: none is)."""
+def passive_bound(m: dict[str, Any], b_tc: float, accept: tuple[str, ...] = (PASSIVE,)
+                  ) -> float | None:
+    """The largest ``k_tc`` of map ``m`` up to which every run is passive (``accept``: the
+    verdicts that count), at the grid's ``b_tc`` nearest ``b_tc`` (None: not even the
+    smallest)."""
     bs = sorted({p['b_tc'] for p in m['points']})
     b = min(bs, key=lambda v: abs(v - b_tc))
     best = None
     for p in sorted((p for p in m['points'] if p['b_tc'] == b), key=lambda p: p['k_tc']):
-        if p['verdict'] != PASSIVE:
+        if p['verdict'] not in accept:
             break
         best = p['k_tc']
     return best
@@ -133,23 +135,22 @@ def passive_bound(m: dict[str, Any], b_tc: float) -> float | None:
 def outside_map(maps: list[dict[str, Any]], scenario: str, update_period: int,
                 passivity: bool, k_tc: float, b_tc: float) -> str | None:
     """Why ``k_tc`` lies outside the Z-width map of ``scenario`` (the map at the same update
-    period and passivity controller, among ``maps``), naming the gain and the bound; None
-    when it lies inside or no map fits."""
+    period and passivity controller, among ``maps``): beyond the largest ``k_tc`` up to which
+    the map's runs are stable (passive or not) at the nearest ``b_tc``. Names the gain and
+    the bounds (stable, and passive); None when it lies inside or no map fits."""
     for m in maps:
         if (m['scenario'], m['update_period'], m['passivity']) != (
                 scenario, update_period, passivity):
             continue
-        bound = passive_bound(m, b_tc)
-        if bound is None:
-            return (f'k_tc = {k_tc:g} N/(m kg) is outside the Z-width map of scenario '
-                    f'{scenario} (b_tc = {b_tc:g}, LMI at {m["rate_hz"]:g} Hz, passivity '
-                    f'controller {"on" if passivity else "off"}): no k_tc of the map is passive')
-        if k_tc > bound:
-            return (f'k_tc = {k_tc:g} N/(m kg) is outside the Z-width map of scenario '
-                    f'{scenario} (b_tc = {b_tc:g}, LMI at {m["rate_hz"]:g} Hz, passivity '
-                    f'controller {"on" if passivity else "off"}): passive up to k_tc = '
-                    f'{bound:g}')
-        return None
+        stable = passive_bound(m, b_tc, (PASSIVE, STABLE))
+        if stable is not None and k_tc <= stable:
+            return None
+        passive = passive_bound(m, b_tc)
+        return (f'k_tc = {k_tc:g} N/(m kg) is outside the Z-width map of scenario '
+                f'{scenario} (b_tc = {b_tc:g}, LMI at {m["rate_hz"]:g} Hz, passivity '
+                f'controller {"on" if passivity else "off"}): stable up to k_tc = '
+                f'{"(none)" if stable is None else format(stable, "g")}, passive up to '
+                f'{"(none)" if passive is None else format(passive, "g")}')
     return None
 
 

@@ -33,12 +33,14 @@ def test_margin_and_bound() -> None:
 def test_outside_map_names_the_gain_and_the_bound() -> None:
     maps = [MAP]
     assert outside_map(maps, 'fig6', 1, False, 40.0, 7.0) is None
-    msg = outside_map(maps, 'fig6', 1, False, 100.0, 7.0)
-    assert msg == ('k_tc = 100 N/(m kg) is outside the Z-width map of scenario fig6 '
-                   '(b_tc = 7, LMI at 1000 Hz, passivity controller off): passive up to '
-                   'k_tc = 40')
-    # nearest b_tc of the grid: 1 -> 0, where only k_tc = 10 is passive
-    assert 'passive up to k_tc = 10' in str(outside_map(maps, 'fig6', 1, False, 20.0, 1.0))
+    assert outside_map(maps, 'fig6', 1, False, 640.0, 7.0) is None     # stable up to 640
+    msg = outside_map(maps, 'fig6', 1, False, 1000.0, 7.0)
+    assert msg == ('k_tc = 1000 N/(m kg) is outside the Z-width map of scenario fig6 '
+                   '(b_tc = 7, LMI at 1000 Hz, passivity controller off): stable up to '
+                   'k_tc = 640, passive up to 40')
+    # nearest b_tc of the grid: 1 -> 0, where only k_tc = 10 is stable (and passive)
+    assert str(outside_map(maps, 'fig6', 1, False, 20.0, 1.0)).endswith(
+        'stable up to k_tc = 10, passive up to 10')
     # another rate, controller or scenario: no map, no warning
     assert outside_map(maps, 'fig6', 10, False, 1e5, 7.0) is None
     assert outside_map(maps, 'fig6', 1, True, 1e5, 7.0) is None
@@ -53,7 +55,7 @@ def test_configure_warns_outside_the_map() -> None:
     assert c.gains.k_tc == 1000.0
     warning = zwidth_warning(c, [MAP])
     assert warning is not None and warning.startswith('k_tc = 1000 N/(m kg) is outside')
-    assert warning.endswith('passive up to k_tc = 40')
+    assert warning.endswith('stable up to k_tc = 640, passive up to 40')
     c = resolve_lmi_controller(LmiControllerSettings(scenario='fig6'), sc)
     assert zwidth_warning(c, [MAP]) is None
 
