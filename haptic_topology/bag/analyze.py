@@ -345,7 +345,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """The ``analyze`` subcommand (see module doc)."""
-    from haptic_topology.sim.trace import format_summary
+    from haptic_topology.sim.trace import format_energy, format_summary
 
     rows = analyze(list(args.inputs), args.out, not args.no_plot)
     # The first column shows the run's label (same width as the header 'scenario').
@@ -353,6 +353,8 @@ def run(args: argparse.Namespace) -> int:
         'scenario', 'run     ', 1))
     print()
     print(format_loop_health([(r['label'], r) for r in rows]))
+    print()
+    print(format_energy([(r['label'], r) for r in rows]))
     truncated = [r['label'] for r in rows if r['truncated']]
     if truncated:
         print(f'\nnote: {", ".join(truncated)} ended early (recorder killed?); read up to '

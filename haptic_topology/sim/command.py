@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.sim.lockstep import simulate
     from haptic_topology.sim.plots import plot_trace
     from haptic_topology.sim.scenario import load_scenario
-    from haptic_topology.sim.trace import format_summary
+    from haptic_topology.sim.trace import format_energy, format_summary
     from haptic_topology.sim.trace_io import write_trace
     from haptic_topology.vocabulary import ControlMode
 
@@ -93,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
     summary['linkage'] = scenario.linkage.name
     (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n', encoding='utf-8')
     print(format_summary([summary]))
+    print()
+    print(format_energy([(scenario.name, summary)]))
     print(f'wrote {", ".join(str(p) for p in traces)}, {out / "plot.png"}, '
           f'{out / "summary.json"}')
     return 0

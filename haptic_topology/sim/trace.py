@@ -413,3 +413,33 @@ def format_summary(rows: list[dict[str, Any]]) -> str:
         if i == 0:
             out.append('  '.join('-' * wd for wd in widths))
     return '\n'.join(out)
+
+
+#: The columns of :func:`format_energy`: summary key, title, scale, format.
+ENERGY_COLUMNS = (('port_work_j', 'port work [mJ]', 1e3, '{:.3f}'),
+                  ('hand_work_j', 'hand work [mJ]', 1e3, '{:.3f}'),
+                  ('passivity_observer_min_j', 'observer min [mJ]', 1e3, '{:.3f}'),
+                  ('passivity_observer_final_j', 'observer end [mJ]', 1e3, '{:.3f}'),
+                  ('passivity_rows', 'passivity ctrl [cycles]', 1.0, '{:.0f}'))
+
+
+def format_energy(rows: list[tuple[str, dict[str, Any]]]) -> str:
+    """The energy table of summaries, one row per ``(label, summary)``: the trace's work
+    integral at the device port and the hand's (J shown as mJ), and, for a run that carries
+    its controller's account (``simulate``), the passivity observer's lowest and last value
+    and the cycles the passivity controller acted (``-`` for a run without)."""
+    cells = [['run'] + [c[1] for c in ENERGY_COLUMNS]]
+    for label, r in rows:
+        line = [label]
+        for key, _, scale, fmt in ENERGY_COLUMNS:
+            v = r.get(key)
+            line.append('-' if v is None else fmt.format(scale * v))
+        cells.append(line)
+    widths = [max(len(c[i]) for c in cells) for i in range(len(cells[0]))]
+    out = []
+    for i, c in enumerate(cells):
+        out.append('  '.join(s.ljust(widths[j]) if j == 0 else s.rjust(widths[j])
+                             for j, s in enumerate(c)))
+        if i == 0:
+            out.append('  '.join('-' * w for w in widths))
+    return '\n'.join(out)
