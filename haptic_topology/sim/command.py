@@ -1,7 +1,8 @@
 """``haptic-topology simulate SCENARIO --mode penalty|acceleration_only --out DIR``.
 
 Runs the offline lock-step simulation and writes ``trace.parquet`` (``--csv``: also
-``trace.csv``), ``plot.png`` and ``summary.json`` into DIR, and prints the summary table.
+``trace.csv``), ``plot.png``, ``energy.png`` (:mod:`haptic_topology.sim.energy_plots`) and
+``summary.json`` into DIR, and prints the summary and energy tables.
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     """Simulate, write the outputs, print the table; errors surface as HapticTopologyError."""
     # Imported here so that `haptic-topology --help` does not load Pinocchio and matplotlib.
     from haptic_topology.model.linkage import load_linkage
+    from haptic_topology.sim.energy_plots import plot_energy
     from haptic_topology.sim.lockstep import simulate
     from haptic_topology.sim.plots import plot_trace
     from haptic_topology.sim.scenario import load_scenario
@@ -89,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         write_trace(trace, path)
     plot_trace(trace, out / 'plot.png', scenario.linkage,
                obstacles=scenario.contacts.obstacles if scenario.contacts else ())
+    plot_energy(trace, out / 'energy.png')
     summary = trace.summary()
     summary['linkage'] = scenario.linkage.name
     (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n', encoding='utf-8')
@@ -96,5 +99,5 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(format_energy([(scenario.name, summary)]))
     print(f'wrote {", ".join(str(p) for p in traces)}, {out / "plot.png"}, '
-          f'{out / "summary.json"}')
+          f'{out / "energy.png"}, {out / "summary.json"}')
     return 0

@@ -77,3 +77,23 @@ def test_passivity_controller_holds_an_unstable_penalty() -> None:
     assert e_on[-1] > 0.0
     assert e_on.min() > e_off.min()
     assert s_on['max_distance_m'] <= stable['max_distance_m'] * (1.0 + 1e-9)
+
+
+def test_energy_figure_draws_the_work_integral_and_the_observer() -> None:
+    """energy.png of simulate: the total port work drawn is the trace's work integral (mJ);
+    a run with its controller's account has the observer panel and the damping's twin."""
+    import matplotlib.pyplot as plt
+
+    from haptic_topology.sim.energy_plots import energy_figure
+
+    trace = simulate(replace(load_scenario('fig6'), duration=0.3))
+    fig = energy_figure(trace)
+    try:
+        assert len(fig.axes) == 3
+        total = next(ln for ln in fig.axes[0].get_lines() if ln.get_label() == 'port, total')
+        np.testing.assert_allclose(total.get_ydata(), 1e3 * work_integral(trace), rtol=0.0,
+                                   atol=1e-9)
+        observer = fig.axes[1].get_lines()[0].get_ydata()
+        np.testing.assert_array_equal(observer, 1e3 * trace.columns['passivity_observer'])
+    finally:
+        plt.close(fig)
