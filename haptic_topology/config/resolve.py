@@ -203,13 +203,13 @@ class ControllerConfig:
 
 
 def resolve_passivity(setting: str, sc: Scenario) -> tuple[PassivityConfig, bool]:
-    """The passivity controller of ``lmi_controller``'s parameter ``passivity`` (``on``,
-    ``off``, ``auto``) and scenario ``sc``: its settings, and whether ``auto`` leaves the
-    choice to the backend (no ``passivity`` block in the scenario)."""
+    """The passivity controller of ``lmi_controller``'s parameter ``passivity``
+    (``enabled``, ``disabled``, ``auto``) and scenario ``sc``: its settings, and whether
+    ``auto`` leaves the choice to the backend (no ``passivity`` block in the scenario)."""
     base = sc.passivity or PassivityConfig()
     if setting == 'auto':
         return base, sc.passivity is None
-    return replace(base, enabled=setting == 'on'), False
+    return replace(base, enabled=setting == 'enabled'), False
 
 
 def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None

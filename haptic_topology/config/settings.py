@@ -394,9 +394,10 @@ class LmiControllerSettings(NodeSettings):
                                  lo=0.01, hi=600.0)
     passivity: str = param(
         'auto', 'passivity controller of the law (time-domain passivity, Hannaford & Ryu; '
-        "haptic_topology.control.passivity): on, off, or auto: the scenario's passivity block "
-        'if it has one, else on when hosted by a device_driver whose backend is not a '
-        'simulation, else off', choices=('auto', 'on', 'off'))
+        "haptic_topology.control.passivity): enabled, disabled, or auto: the scenario's "
+        'passivity block if it has one, else enabled when hosted by a device_driver whose '
+        'backend is not a simulation, else disabled (not on/off: YAML reads those as '
+        'booleans)', choices=('auto', 'enabled', 'disabled'))
     ack_updates: bool = param(False, 'publish the seq of every LMI update taken on '
                               'haptic/lmi/ack (std_msgs/UInt64), after it was taken: replay '
                               '--check-controller sends the next state only then')

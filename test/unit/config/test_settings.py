@@ -86,7 +86,7 @@ EXPECTED: dict[type[NodeSettings], list[tuple[str, Any, float | None, float | No
         ('resync_ramp', 0.2, 1e-3, 10.0, None, True),
         ('clock', 'wall', None, None, ('wall', 'lockstep'), True),
         ('lockstep_wait', 60.0, 0.01, 600.0, None, True),
-        ('passivity', 'auto', None, None, ('auto', 'on', 'off'), True),
+        ('passivity', 'auto', None, None, ('auto', 'enabled', 'disabled'), True),
         ('ack_updates', False, None, None, None, True)],
     VeSimSettings: [*_COMMON,
         ('nice', 5, 0, 19, None, True),

@@ -127,16 +127,17 @@ def test_zero_mode_accounts_nothing() -> None:
 
 
 def test_passivity_setting_and_backends() -> None:
-    """``lmi_controller``'s ``passivity``: on/off as set; auto leaves it to the backend when
-    the scenario has no ``passivity`` block (the hosting driver switches it on for a device
-    that is not simulated); the simulated maglev says it is one, a backend by default not."""
+    """``lmi_controller``'s ``passivity``: enabled/disabled as set; auto leaves it to the
+    backend when the scenario has no ``passivity`` block (the hosting driver switches it on
+    for a device that is not simulated); the simulated maglev says it is one, a backend by
+    default not."""
     from haptic_topology.config.resolve import resolve_passivity
     from haptic_topology.device.backend import DeviceBackend, backend_class
     from haptic_topology.sim.scenario import load_scenario
 
     sc = load_scenario('fig6')
-    assert resolve_passivity('on', sc) == (PassivityConfig(enabled=True), False)
-    assert resolve_passivity('off', sc) == (PassivityConfig(enabled=False), False)
+    assert resolve_passivity('enabled', sc) == (PassivityConfig(enabled=True), False)
+    assert resolve_passivity('disabled', sc) == (PassivityConfig(enabled=False), False)
     assert resolve_passivity('auto', sc) == (PassivityConfig(enabled=False), True)
     assert backend_class('sim_maglev').simulated and not DeviceBackend.simulated
     assert not backend_class('network').simulated
