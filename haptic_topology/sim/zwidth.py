@@ -36,8 +36,9 @@ from haptic_topology.sim.scenario import Scenario
 
 #: The observer's lowest value (J) a passive run may reach (the issue's threshold).
 E_TOL = 1e-3
-#: Factors of the scenario's k_tc and b_tc the sweep runs (1: the defaults).
+#: Factors of the scenario's k_tc the sweep runs (1: the default).
 K_FACTORS = (1.0, 4.0, 16.0, 64.0, 256.0)
+#: Factors of the scenario's b_tc the sweep runs (1: the default; 0: no penalty damping).
 B_FACTORS = (0.0, 1.0, 4.0)
 #: LMI update periods (device cycles) swept at 1 kHz: 100 Hz and 25 Hz.
 UPDATE_PERIODS = (10, 40)

@@ -73,7 +73,7 @@ def test_contact_runs_print_penetration_and_contact_time(
     contact; beside a run without obstacles those are ``-``; a table of runs without
     obstacles has no such columns."""
     wall = tmp_path / 'wall'
-    head, rule, line, _ = _simulate(capsys, 'wall', '--duration', '0.5', '--out', str(wall))
+    head, rule, line = _simulate(capsys, 'wall', '--duration', '0.5', '--out', str(wall))[:3]
     summary = json.loads((wall / 'summary.json').read_text())
     assert summary['max_penetration_m'] > 0.0 and summary['contact_time_s'] > 0.0
     assert head.split()[-6:] == ['max', 'penetration', '[mm]', 'in', 'contact', '[s]']
