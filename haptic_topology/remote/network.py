@@ -257,6 +257,17 @@ class NetworkBackend(DeviceBackend):
         return self._reason or f'{self.name}: the device reports a fault'
 
     # -- lifecycle ---------------------------------------------------------------------------
+    def preflight(self, config: BackendConfig) -> None:
+        """The connection check of :meth:`activate` (idle commands, never engaged, until the
+        first valid STATE or ``connect_timeout_ms``), then the release of :meth:`deactivate`:
+        the server ends this session at once and follows the run's next one."""
+        self.configure(config)
+        try:
+            self.activate()
+        finally:
+            self.deactivate()
+            self.cleanup()
+
     def activate(self) -> None:
         m = self.task_dim()
         if self._sock is not None:

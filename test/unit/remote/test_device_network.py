@@ -829,6 +829,37 @@ def test_backend_and_server_process_closed_loop(spawn: Callable[..., ServerProce
     assert f'{c["commands"]} commands' in res.output
 
 
+def test_preflight_reaches_the_server_releases_and_leaves_the_run_followed_at_once(
+        spawn: Callable[..., ServerProcess]) -> None:
+    """``run``'s preflight (:meth:`NetworkBackend.preflight`) against the server process: it
+    returns once a STATE came, never engages (the server applies nothing for it), and
+    releases, so the run's own session that follows at once is followed (not ``foreign``)
+    and its commands are applied; without a server it fails within its connect timeout
+    with the backend's line."""
+    server = spawn()
+    NetworkBackend().preflight(_config({'port': server.port, 'stale_ms': 200.0}))
+    be = NetworkBackend()
+    be.configure(_config({'port': server.port, 'stale_ms': 200.0}))
+    try:
+        be.activate()
+        _, sent, _ = _run_loop(be, 300)
+    finally:
+        be.deactivate()
+    res = server.stop()
+    assert res.returncode == 0, res.output
+    assert _check_applied(res.seq, res.u, sent) > 0
+    assert set(np.unique(res.session[res.seq > 0]).tolist()) == {be.session}
+    c = res.counters
+    assert c['client_sessions'] == 2 and c['releases'] == 2, c
+    assert c['foreign'] == c['malformed'] == 0, c
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        port = int(s.getsockname()[1])
+    with pytest.raises(DeviceError, match=rf'^network: no valid STATE from 127\.0\.0\.1:{port} '
+                       r'within 300 ms \(connect_timeout_ms\); received 0 datagrams'):
+        NetworkBackend().preflight(_config({'port': port, 'connect_timeout_ms': 300}))
+
+
 def test_server_process_clamps_and_zeroes_output_when_commands_stop(
         spawn: Callable[..., ServerProcess]) -> None:
     """A raw client (no driver clamping) commands (30 N, -25 N, 0.5 N m) until the server
