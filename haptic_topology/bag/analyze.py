@@ -264,10 +264,9 @@ def format_loop_health(runs: list[tuple[str, dict[str, Any]]]) -> str:
 
 def plot_comparison(runs: list[Run], path: Path) -> Path:
     """Drift over time of each run in one figure (PNG)."""
-    import matplotlib
-
-    matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+
+    from haptic_topology.sim.plots import save_figure
 
     fig, ax = plt.subplots(figsize=(10, 5))
     for r in runs:
@@ -279,10 +278,7 @@ def plot_comparison(runs: list[Run], path: Path) -> Path:
     ax.grid(alpha=0.3)
     ax.legend(loc='best')
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _unique_labels(labels: list[str]) -> list[str]:
@@ -321,11 +317,8 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
             row['foreign_publishers'] = dict(r.foreign_publishers)
         rows.append(row)
         if plots:
-            import matplotlib.pyplot as plt
-
-            fig = run_figure(r)
-            fig.savefig(out / f'{r.label}.png', dpi=110)
-            plt.close(fig)
+            from haptic_topology.sim.plots import save_figure
+            save_figure(run_figure(r), out / f'{r.label}.png')
             runs.append(r)
     if plots and len(runs) > 1:
         plot_comparison(runs, out / 'comparison.png')
