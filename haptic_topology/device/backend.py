@@ -75,9 +75,11 @@ class BackendConfig:
     source: str = ''
 
 
-#: Task dimension -> its name in :attr:`DeviceBackend.hardware_id` (3 planar, 6 spatial; a
-#: backend that knows its task, as the simulated maglev, names it itself).
-_TASK_NAMES = {t.dim: t.value for t in (TaskSpace.PLANAR, TaskSpace.SPATIAL)}
+#: Task dimension -> its name in :attr:`DeviceBackend.hardware_id` of a backend that does not
+#: say its task (:meth:`DeviceBackend.task`): only the dimensions one task has (2
+#: planar_point, 6 spatial); m = 3 is planar or spatial_point.
+_TASK_NAMES = {m: tasks[0].value for m in {t.dim for t in TaskSpace}
+               if len(tasks := [t for t in TaskSpace if t.dim == m]) == 1}
 
 
 @dataclass(frozen=True)
@@ -218,16 +220,28 @@ class DeviceBackend(ABC):
         return self.read(dt)
 
     def task_dim(self) -> int:
-        """m of the task vectors (3 planar, 6 spatial); valid after ``configure``."""
+        """m of the task vectors (3 planar, 6 spatial, 2 planar_point, 3 spatial_point);
+        valid after ``configure``."""
         raise DeviceError(f'{type(self).__name__} does not implement task_dim()')
+
+    def task(self) -> TaskSpace | None:
+        """The task the backend was configured for (``config.params.task`` of
+        :meth:`configure`), or None: before ``configure``, or a backend that does not keep
+        it. m alone does not tell it (3 is ``planar`` or ``spatial_point``). Default: None."""
+        return None
 
     @property
     def hardware_id(self) -> str:
         """The device this backend drives, as ``DiagnosticStatus.hardware_id`` of the driver's
-        diagnostics: ``'<name> <planar|spatial>'`` once configured (e.g. ``'sim_maglev
-        planar'``), ``'<name>'`` before. A backend of a real device overrides it with what
-        identifies the unit (model and serial number, port or address). Read from the
-        diagnostics thread at 1 Hz, never in the device cycle: return text, do no I/O."""
+        diagnostics: ``'<name> <task>'`` once configured (e.g. ``'sim_maglev planar'``,
+        ``'sim_maglev spatial_point'``; the task of :meth:`task`, else named from
+        :meth:`task_dim` where one task has that m, else ``'<m>-dof'``), ``'<name>'`` before.
+        A backend of a real device overrides it with what identifies the unit (model and
+        serial number, port or address). Read from the diagnostics thread at 1 Hz, never in
+        the device cycle: return text, do no I/O."""
+        task = self.task()
+        if task is not None:
+            return f'{self.name} {task.value}'
         try:
             dim = self.task_dim()
         except DeviceError:
@@ -270,12 +284,10 @@ class SimMaglevBackend(DeviceBackend):
         del options
         return ALL_DEVICE_AXES
 
-    @property
-    def hardware_id(self) -> str:
-        """``'sim_maglev <task>'`` once configured (e.g. ``'sim_maglev planar_point'``)."""
-        if self._model is None:
-            return self.name
-        return f'{self.name} {self._model.params.task.value}'
+    def task(self) -> TaskSpace | None:
+        """The scenario's task once configured (``hardware_id``: ``'sim_maglev <task>'``,
+        e.g. ``'sim_maglev planar_point'``)."""
+        return None if self._model is None else self._model.params.task
 
     def __init__(self) -> None:
         self._model: MaglevModel | None = None

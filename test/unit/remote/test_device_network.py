@@ -58,7 +58,7 @@ from haptic_topology.remote.network import NetworkBackend
 from haptic_topology.remote.server import DeviceServer, ServerConfig
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
-from haptic_topology.vocabulary import ControlMode, DeviceStatus
+from haptic_topology.vocabulary import ControlMode, DeviceStatus, TaskSpace
 
 PENALTY = int(ControlMode.PENALTY)
 FAULT = DeviceStatus.FAULT
@@ -1000,3 +1000,34 @@ def test_server_command_line(spawn: Callable[..., ServerProcess]) -> None:
     res = server.stop()
     assert res.returncode == 0 and res.counters['cycles'] >= 1
     assert res.counters['states_sent'] == 0            # no client: nothing sent
+
+
+@pytest.mark.parametrize('scenario', ['fig8_point', 'spatial_arm4_point'])
+def test_a_point_task_is_refused_its_packets_name_m_not_the_task(scenario: str) -> None:
+    """spatial_point has m = 3 as planar does: a device serving fig8 would answer a
+    spatial_arm4_point client with x, y, theta taken as x, y, z. The backend keeps the task
+    the scenario declares and refuses a point task at configure, in one line; a rigid task is
+    named by its declared task."""
+    task = load_scenario(scenario).linkage.task
+    be = NetworkBackend()
+    with pytest.raises(DeviceError, match=re.escape(
+            f'network: scenario task {task.value} (m = {task.dim}): the device protocol '
+            'carries the rigid tasks only (m = 3 planar, 6 spatial; its packets name m, not '
+            'the task, so a device serving another task of the same m could not be told '
+            'apart)')):
+        be.configure(_config({}, scenario))
+    assert be.task() is None and be.hardware_id == 'network'
+    be.configure(_config({}, 'spatial_arm4'))
+    assert be.task() is TaskSpace.SPATIAL
+    assert be.hardware_id == 'network 127.0.0.1:47001 spatial, unauthenticated link'
+
+
+def test_the_device_server_refuses_a_point_task() -> None:
+    """The server's side of the same rule: it would answer in packets of m = 3 that a planar
+    client takes for x, y, theta."""
+    with pytest.raises(DeviceError, match=re.escape(
+            'device-server: scenario spatial_arm4_point has task spatial_point (m = 3): the '
+            'device protocol carries the rigid tasks only (m = 3 planar, 6 spatial; its packets '
+            'name m, not the task)')):
+        DeviceServer(load_scenario('spatial_arm4_point'),
+                     ServerConfig(port=0, log_cycles=100_000), clock_ns=FakeClock())
