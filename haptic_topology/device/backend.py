@@ -168,8 +168,9 @@ class DeviceBackend(ABC):
         """Whether the device can be reached, asked on a fresh instance by ``haptic-topology
         run`` in its own process before it starts any node, so that an unreachable device
         fails the run at once with its own one-line reason (a
-        :class:`~haptic_topology.errors.DeviceError`) instead of after the graph's start. It must leave the device as it
-        found it (never enable an output) and release whatever it opened. Default: nothing
+        :class:`~haptic_topology.errors.DeviceError`) instead of after the graph's start.
+        It must leave the device as it found it (never enable an output) and release
+        whatever it opened. Default: nothing
         to check (a simulated device, or one whose check is its ``configure``)."""
         del config
 
