@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -59,6 +60,7 @@ import pinocchio as pin
 
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage
+from haptic_topology.model.meshes import MeshGeometry, load_mesh, resolve_mesh
 from haptic_topology.model.obstacles import (
     EPS,
     Obstacle,
@@ -81,6 +83,8 @@ from haptic_topology.validate import as_bool, as_float, check_keys
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
 _ROUND = (ObstacleKind.DISC, ObstacleKind.SPHERE)
+#: Obstacles a box or cylinder meets through coal (a mesh solid meets every obstacle so).
+_COAL = (ObstacleKind.BOX, ObstacleKind.MESH)
 #: Chains up to this many links take discs and spheres in scalar arithmetic.
 _SCALAR_LINKS = 8
 
@@ -117,8 +121,10 @@ class LinkSolid:
     """A URDF box or cylinder on link ``link`` (index), placed in the link's joint frame:
     ``kind`` ``box`` (``size``: half extents, m) or ``cylinder`` (``size``: radius, half
     length, m; axis along ``rotation[:, 2]``) at ``centre`` ((3,) m) with ``rotation``
-    (link_R_solid); in a planar task ``kind`` ``polygon``: its projection on the link's xy
-    plane, ``vertices`` (k x 3, z = 0, counter-clockwise, link frame)."""
+    (link_R_solid); ``kind`` ``mesh`` (spatial tasks): the convex hull of ``mesh`` (``size``:
+    its scale) with its frame at ``centre``, turned by ``rotation``; in a planar task ``kind``
+    ``polygon``: its projection on the link's xy plane, ``vertices`` (k x 3, z = 0,
+    counter-clockwise, link frame)."""
 
     link: int
     kind: str
@@ -126,6 +132,7 @@ class LinkSolid:
     rotation: np.ndarray
     size: tuple[float, ...]
     vertices: np.ndarray | None = None
+    mesh: MeshGeometry | None = None
 
 
 LinkShape = LinkCapsule | LinkSolid
@@ -149,9 +156,11 @@ class ContactSettings:
     where: str = 'contacts'
 
     @classmethod
-    def from_config(cls, raw: Any, where: str, linkage: Linkage) -> ContactSettings:
+    def from_config(cls, raw: Any, where: str, linkage: Linkage, base: Path | None = None
+                    ) -> ContactSettings:
         """Parse the block (``where``: its path) and check it against ``linkage`` (link
-        names, collision shapes it can model: :meth:`capsules`)."""
+        names, collision shapes it can model: :meth:`capsules`); ``base``: the directory
+        of the scenario file (relative mesh obstacle files)."""
         c = check_keys(raw, where, required=('obstacles',), optional=(
             'stiffness', 'damping', 'friction', 'slip_velocity', 'margin', 'link_radius',
             'links', 'lmi_local'))
@@ -176,7 +185,8 @@ class ContactSettings:
                                   f'or collide: false')
             choices.append((name, as_float(s['radius'], f'{w}.radius', lo=0.0)
                             if collide else None))
-        obstacles = obstacles_from_config(c['obstacles'], f'{where}.obstacles', linkage.task)
+        obstacles = obstacles_from_config(c['obstacles'], f'{where}.obstacles', linkage.task,
+                                          base)
         settings = cls(params, obstacles, default, tuple(choices),
                        as_bool(c.get('lmi_local', True), f'{where}.lmi_local'), where)
         settings.shapes(linkage)
@@ -235,6 +245,13 @@ class ContactSettings:
                                if planar else
                                LinkSolid(i, 'box', centre, rot, tuple(half_extents.tolist())))
                     continue
+                if shape.kind == 'mesh' and not planar:
+                    where = f'{linkage.urdf_path}: link {shape.urdf_link!r} <mesh>'
+                    base = linkage.urdf_path.parent if linkage.urdf_path else None
+                    geometry = load_mesh(resolve_mesh(shape.mesh, base, where), (
+                        shape.size[0], shape.size[1], shape.size[2]), where)
+                    out.append(LinkSolid(i, 'mesh', centre, rot, shape.size, mesh=geometry))
+                    continue
                 if shape.kind == 'cylinder':
                     radius, half_length = shape.size[0], 0.5 * shape.size[1]
                     axis_z = abs(float(rot[2, 2]))
@@ -254,7 +271,8 @@ class ContactSettings:
                 raise ConfigError(
                     f'{w}: the URDF gives link {link.name!r} a {what} collision shape (on '
                     f'{shape.urdf_link!r}, {linkage.urdf_path}); contacts model spheres, '
-                    f'capsules, boxes and cylinders exactly and would have to approximate '
+                    f'capsules, boxes, cylinders and (spatial tasks) meshes exactly and '
+                    f'would have to approximate '
                     f'it: set links.{link.name}.radius (m) in this contacts block for a '
                     f'capsule along the link, or links.{link.name}.collide: false to leave '
                     f'the link out')
@@ -264,7 +282,10 @@ class ContactSettings:
 def _bounding_sphere(solid: LinkSolid, corners: np.ndarray | None
                      ) -> tuple[np.ndarray, float]:
     """A sphere around ``solid`` (link frame): centre (3,) m and radius m. A box or polygon:
-    around its corners' mean; a cylinder: around its centre, ``hypot(r, h)``."""
+    around its corners' mean; a cylinder: around its centre, ``hypot(r, h)``; a mesh: its
+    hull's sphere."""
+    if solid.mesh is not None:
+        return solid.centre + solid.rotation @ solid.mesh.centre, solid.mesh.radius
     if corners is None:
         return solid.centre, math.hypot(solid.size[0], solid.size[1])
     centre = corners.mean(axis=0)
@@ -281,6 +302,9 @@ def _lower_bound(obstacle: Obstacle, point: np.ndarray) -> float:
         return float(np.linalg.norm(point - obstacle.point)) - obstacle.radius
     if kind is ObstacleKind.SEGMENT:
         return capsule_gaps(obstacle, point, point, 0.0)[0][0]
+    if obstacle.mesh is not None:
+        centre = obstacle.rotation @ obstacle.mesh.centre + obstacle.point
+        return float(np.linalg.norm(point - centre)) - obstacle.mesh.radius
     return box_sdf(point, obstacle.point, obstacle.rotation, obstacle.half_extents)[0]
 
 
@@ -391,13 +415,13 @@ class ContactModel:
         # Solid candidates (after the capsules'), solid by solid, obstacle by obstacle; a pair
         # whose bounding-sphere distance is at least the query's limit is skipped (its gaps are
         # at least that). A box obstacle's coal query objects are made once.
-        self._pairs_of = [[(k, CoalPair(sol.kind, sol.size, ob)
-                            if ob.kind is ObstacleKind.BOX else None)
+        self._pairs_of = [[(k, CoalPair(sol.kind, sol.size, ob, sol.mesh)
+                            if ob.kind in _COAL or sol.mesh is not None else None)
                            for k, ob in enumerate(obstacles)] for sol in solids]
         self._plane_of = {k: (float(ob.normal @ ob.point), ob.normal.tolist())
                           for k, ob in enumerate(obstacles) if ob.kind in _PLANES}
         self._corners_local = [
-            None if sol.kind == 'cylinder' else sol.vertices if sol.vertices is not None
+            None if sol.kind in ('cylinder', 'mesh') else sol.vertices if sol.vertices is not None
             else box_vertices(sol.centre, sol.rotation, np.array(sol.size)) for sol in solids]
         self._bounds = [_bounding_sphere(sol, corners)
                         for sol, corners in zip(solids, self._corners_local, strict=True)]
@@ -535,6 +559,15 @@ class ContactModel:
                         placed = (rot @ sol.centre + origin, rot @ sol.rotation)
                     centre, rotation = placed
                 found: list[tuple[float, list[float], list[float]]]
+                if pair is not None and sol.mesh is not None:
+                    gap, point, normal = pair.gap(centre, rotation)
+                    if gap < limit:
+                        links.append(sol.link)
+                        obs.append(k)
+                        points.append(point.tolist())
+                        gaps.append(gap)
+                        normals.append(normal.tolist())
+                    continue
                 if ob.kind in _PLANES:
                     if local is not None:
                         world = local @ rot.T + origin

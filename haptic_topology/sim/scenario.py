@@ -221,7 +221,8 @@ def load_scenario(name_or_path: str) -> Scenario:
                           'VE integrates; expected eq17, or scenario.gravity: [0, 0, 0]')
     ve = VeSettings.from_config(raw.get('ve', {}), f'{w}.ve', dt)
     name = as_str(raw.get('name', path.stem), f'{w}.name')
-    contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage)
+    contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage,
+                                            path.parent)
                 if 'contacts' in raw else None)
     check_start(linkage, q0, dq0, w)
     return Scenario(name, linkage, q0, dq0, duration, dt, mode, device, offset, dict(user),
