@@ -42,6 +42,7 @@ This module reads the top level; each block is parsed by its owner:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -55,7 +56,8 @@ from haptic_topology.device.users import user_from_config
 from haptic_topology.dynamics.contacts import ContactSettings
 from haptic_topology.dynamics.loops import LoopClosures, check_assembled
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import Linkage, load_linkage
+from haptic_topology.model.linkage import Linkage, linkage_from_dict, load_linkage
+from haptic_topology.model.robots import ROBOT_PREFIX
 from haptic_topology.paths import resolve_config
 from haptic_topology.sim.trace import run_name
 from haptic_topology.sim.ve import VeSettings
@@ -167,6 +169,21 @@ class Scenario:
         return (self.gains.k_pc, self.gains.b_pc) if self.vt_coupling else None
 
 
+def _scenario_linkage(ref: Any, path: Path, w: str) -> Linkage:
+    """``scenario.linkage``: a linkage file (a path relative to the scenario, or a name in
+    ``config/linkages``), ``robot:NAME``, or the linkage document inline (a mapping, as under
+    a linkage file's ``linkage:``, e.g. ``{robot: panda, grasp: {link: panda_link4}}``)."""
+    if isinstance(ref, Mapping):
+        return linkage_from_dict({'linkage': dict(ref)}, str(path))
+    link_ref = as_str(ref, f'{w}.linkage')
+    if link_ref.startswith(ROBOT_PREFIX):
+        return load_linkage(link_ref)
+    link_path = Path(link_ref)
+    if not link_path.is_absolute() and (path.parent / link_path).is_file():
+        link_path = path.parent / link_path
+    return load_linkage(resolve_config(str(link_path), 'linkages'))
+
+
 def load_scenario(name_or_path: str) -> Scenario:
     """Load ``config/scenarios/<name>.yaml`` or a scenario file; errors name file and key."""
     path = resolve_config(name_or_path, 'scenarios')
@@ -177,11 +194,7 @@ def load_scenario(name_or_path: str) -> Scenario:
     raw = check_keys(top['scenario'], w, required=('linkage', 'q0', 'duration'), optional=(
         'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'grasp', 'task', 'device',
         'user', 'control', 'lmi', 've', 'contacts'))
-    link_ref = as_str(raw['linkage'], f'{w}.linkage')
-    link_path = Path(link_ref)
-    if not link_path.is_absolute() and (path.parent / link_path).is_file():
-        link_path = path.parent / link_path
-    linkage = load_linkage(resolve_config(str(link_path), 'linkages'))
+    linkage = _scenario_linkage(raw['linkage'], path, w)
     if 'gravity' in raw:
         linkage = replace(linkage, gravity=as_vector(raw['gravity'], f'{w}.gravity', 3))
     if 'grasp' in raw:      # the linkage held elsewhere than its file says
