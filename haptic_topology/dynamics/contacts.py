@@ -11,11 +11,14 @@ URDF takes the URDF's ``<collision>`` shapes instead, all modelled exactly: sphe
 capsules (``<capsule radius length>``, axis along the collision frame's z) as capsules, boxes
 and cylinders as solids (:mod:`haptic_topology.model.solids`; in a planar task a box, or a
 cylinder whose axis lies in the plane, as its projection, a convex polygon, and a cylinder
-along z as a disc); a URDF link without ``<collision>`` does not collide. A mesh, and in a
-planar task a cylinder tilted out of the plane (its projection has elliptic ends), cannot be
+along z as a disc), meshes (spatial tasks) as their convex hulls
+(:mod:`haptic_topology.model.meshes`: the file found through ``package://``, the ament index,
+``ROS_PACKAGE_PATH`` or the URDF's directory, and why the hull is the right shape for a
+penalty contact); a URDF link without ``<collision>`` does not collide. In a planar task a
+mesh, and a cylinder tilted out of the plane (its projection has elliptic ends), cannot be
 modelled without approximating it, so such a link is refused unless ``contacts.links.<name>``
 says what to do: ``radius: r`` (the default capsule along the link, also for YAML links) or
-``collide: false`` (the link does not collide).
+``collide: false`` (the link does not collide); both also replace a spatial link's meshes.
 A contact candidate is a point ``p_i`` on a capsule's axis with its signed gap ``g_i`` to an
 obstacle (m, negative: penetration depth ``delta_i = -g_i``) and the obstacle's normal ``n_i``
 (unit, world, from the obstacle towards the link). Against a half-plane or plane the
@@ -27,7 +30,9 @@ still passive). In a planar task the capsules are projected onto the xy plane (t
 obstacles extend along z). A solid's candidates are those of
 :func:`~haptic_topology.model.solids.solid_gaps` (a box's corners and a cylinder's deepest rim
 points against planes, the
-closest or deepest point against the other shapes), each at its own point of the solid.
+closest or deepest point against the other shapes), each at its own point of the solid; a
+mesh's candidate against every obstacle is the witness point of coal's signed distance
+between its hull and the obstacle (a plane as a half space, a mesh obstacle as its hull).
 
 **Contact model** (penalty with damping and regularized Coulomb friction), per candidate with
 ``delta_i > 0``, ``v_i = J_i qdot`` the velocity of the contact point (m/s, world)::
@@ -70,7 +75,6 @@ from haptic_topology.model.obstacles import (
 )
 from haptic_topology.model.solids import (
     CoalPair,
-    box_sdf,
     box_vertices,
     convex_hull_xy,
     cylinder_rims,
@@ -292,20 +296,27 @@ def _bounding_sphere(solid: LinkSolid, corners: np.ndarray | None
     return centre, float(np.max(np.linalg.norm(corners - centre, axis=1)))
 
 
-def _lower_bound(obstacle: Obstacle, point: np.ndarray) -> float:
-    """The signed distance (m) from ``point`` to ``obstacle``: less a solid's bounding radius,
-    a lower bound of the gaps of the solid around ``point`` (the distance is 1-Lipschitz)."""
+def _lower_bounds(obstacle: Obstacle, points: np.ndarray) -> np.ndarray:
+    """The signed distances (m) from ``points`` (n x 3) to ``obstacle`` (a box or mesh
+    obstacle: to the box around it): less a solid's bounding radius, a lower bound of the gaps
+    of the solid around each point (the distance is 1-Lipschitz)."""
     kind = obstacle.kind
     if kind in _PLANES:
-        return float(obstacle.normal @ (point - obstacle.point))
+        return points @ obstacle.normal - float(obstacle.normal @ obstacle.point)
     if kind in _ROUND:
-        return float(np.linalg.norm(point - obstacle.point)) - obstacle.radius
+        return np.linalg.norm(points - obstacle.point, axis=1) - obstacle.radius
     if kind is ObstacleKind.SEGMENT:
-        return capsule_gaps(obstacle, point, point, 0.0)[0][0]
+        d = obstacle.end - obstacle.point
+        t = np.clip((points - obstacle.point) @ d / float(d @ d), 0.0, 1.0)
+        return (np.linalg.norm(points - obstacle.point - t[:, None] * d, axis=1)
+                - obstacle.radius)
+    centre, half = obstacle.point, obstacle.half_extents
     if obstacle.mesh is not None:
-        centre = obstacle.rotation @ obstacle.mesh.centre + obstacle.point
-        return float(np.linalg.norm(point - centre)) - obstacle.mesh.radius
-    return box_sdf(point, obstacle.point, obstacle.rotation, obstacle.half_extents)[0]
+        centre = obstacle.rotation @ obstacle.mesh.box_centre + obstacle.point
+        half = obstacle.mesh.box_half
+    q = np.abs((points - centre) @ obstacle.rotation) - half
+    return (np.linalg.norm(np.maximum(q, 0.0), axis=1)
+            + np.minimum(q.max(axis=1), 0.0))
 
 
 @dataclass(frozen=True)
@@ -425,6 +436,25 @@ class ContactModel:
             else box_vertices(sol.centre, sol.rotation, np.array(sol.size)) for sol in solids]
         self._bounds = [_bounding_sphere(sol, corners)
                         for sol, corners in zip(solids, self._corners_local, strict=True)]
+        self._bound_radii = np.array([r for _, r in self._bounds], dtype=float)
+        rounds = [k for k, ob in enumerate(obstacles) if ob.kind in _ROUND]
+        boxes = [k for k, ob in enumerate(obstacles) if ob.kind in _COAL]
+        self._bound_groups = (planes, rounds, boxes,
+                              [k for k, ob in enumerate(obstacles) if ob.kind is
+                               ObstacleKind.SEGMENT])
+        self._round_bound = (np.array([obstacles[k].point for k in rounds]).reshape(-1, 3),
+                             np.array([obstacles[k].radius for k in rounds]))
+        self._box_bound = (
+            np.array([ob.point if ob.mesh is None else ob.rotation @ ob.mesh.box_centre
+                      + ob.point for ob in (obstacles[k] for k in boxes)]).reshape(-1, 3),
+            np.array([obstacles[k].rotation for k in boxes]).reshape(-1, 3, 3),
+            np.array([ob.half_extents if ob.mesh is None else ob.mesh.box_half
+                      for ob in (obstacles[k] for k in boxes)]).reshape(-1, 3))
+        self._bound_centres = np.array([c for c, _ in self._bounds], dtype=float).reshape(-1, 3)
+        # the joints carrying solids, and each solid's index among them
+        self._solid_joints = sorted({sol.link + 1 for sol in solids})
+        self._solid_slot = np.array([self._solid_joints.index(sol.link + 1) for sol in solids],
+                                    dtype=int)
 
     def _axes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World ends of every capsule's axis (n x 3 each) at ``q`` (forward kinematics;
@@ -524,6 +554,29 @@ class ContactModel:
             normals.append([vx / dist, vy / dist, vz / dist])
         return np.array(gaps), np.array(ss), np.array(normals)
 
+    def _pair_bounds(self, centres: np.ndarray) -> np.ndarray:
+        """Lower bounds (m) of the gaps of every solid (bounding spheres at ``centres``, s x
+        3, world) and obstacle, s x (obstacles): :func:`_lower_bounds` less the solids'
+        bounding radii, with planes, spheres and box-like obstacles (boxes, the boxes around
+        meshes) each in one array operation."""
+        out = np.empty((centres.shape[0], len(self.settings.obstacles)))
+        planes, rounds, boxes, others = self._bound_groups
+        if planes:
+            out[:, planes] = centres @ self._plane_n.T - self._plane_offset
+        if rounds:
+            centre, radius = self._round_bound
+            out[:, rounds] = (np.linalg.norm(centres[:, None, :] - centre[None], axis=2)
+                              - radius)
+        if boxes:
+            centre, rotation, half = self._box_bound
+            q = np.abs(np.einsum('sbj,bjk->sbk', centres[:, None, :] - centre[None],
+                                 rotation)) - half
+            out[:, boxes] = (np.linalg.norm(np.maximum(q, 0.0), axis=2)
+                             + np.minimum(q.max(axis=2), 0.0))
+        for k in others:
+            out[:, k] = _lower_bounds(self.settings.obstacles[k], centres)
+        return out - self._bound_radii[:, None]
+
     def _solid_hits(self, limit: float) -> tuple[list[int], list[int], list[list[float]],
                                                   list[float], list[list[float]]]:
         """The solid candidates with ``gap < limit`` (``limit >= 0``) at the placements of the
@@ -541,69 +594,76 @@ class ContactModel:
         normals: list[list[float]] = []
         oMi = self.data.oMi
         obstacles = self.settings.obstacles
-        for j, sol in enumerate(self._solids):
-            placement = oMi[sol.link + 1]
-            rot, origin = placement.rotation, placement.translation
-            bound_centre, bound_radius = self._bounds[j]
-            centre_b = rot @ bound_centre + origin
-            if self._planar:
-                centre_b[2] = 0.0
-            placed: tuple[np.ndarray, np.ndarray] | None = None
-            for k, pair in self._pairs_of[j]:
-                ob = obstacles[k]
-                if _lower_bound(ob, centre_b) - bound_radius >= limit:
-                    continue
-                local = self._corners_local[j]
-                if local is None or ob.kind not in _PLANES:
-                    if placed is None:
-                        placed = (rot @ sol.centre + origin, rot @ sol.rotation)
-                    centre, rotation = placed
-                found: list[tuple[float, list[float], list[float]]]
-                if pair is not None and sol.mesh is not None:
-                    gap, point, normal = pair.gap(centre, rotation)
-                    if gap < limit:
-                        links.append(sol.link)
-                        obs.append(k)
-                        points.append(point.tolist())
-                        gaps.append(gap)
-                        normals.append(normal.tolist())
-                    continue
-                if ob.kind in _PLANES:
-                    if local is not None:
-                        world = local @ rot.T + origin
-                        if self._planar:
-                            world[:, 2] = 0.0
-                    else:
-                        world = cylinder_rims(centre, rotation, sol.size[0], sol.size[1],
-                                              ob.normal)
-                    offset, normal_t = self._plane_of[k]
-                    world_t = world.tolist()
-                    for i, gap in enumerate((world @ ob.normal).tolist()):
-                        if gap - offset < limit:
-                            links.append(sol.link)
-                            obs.append(k)
-                            points.append(world_t[i])
-                            gaps.append(gap - offset)
-                            normals.append(normal_t)
-                    continue
-                if sol.kind == 'polygon':
-                    assert local is not None
+        if not obstacles:
+            return links, obs, points, gaps, normals
+        # every solid's bounding-sphere centre (world), one placement per link
+        rots = np.array([oMi[j].rotation for j in self._solid_joints])
+        origins = np.array([oMi[j].translation for j in self._solid_joints])
+        centres_b = (np.einsum('sij,sj->si', rots[self._solid_slot], self._bound_centres)
+                     + origins[self._solid_slot])
+        if self._planar:
+            centres_b[:, 2] = 0.0
+        # lower bounds of every pair's gaps (solid x obstacle), the bounding radii taken off;
+        # the pairs left, solid by solid, obstacle by obstacle
+        near = np.argwhere(self._pair_bounds(centres_b) < limit).tolist()
+        placed: tuple[np.ndarray, np.ndarray] | None = None
+        for n, (j, k) in enumerate(near):
+            sol, pair, ob = self._solids[j], self._pairs_of[j][k][1], obstacles[k]
+            slot = self._solid_slot[j]
+            rot, origin = rots[slot], origins[slot]
+            if n == 0 or near[n - 1][0] != j:
+                placed = None
+            local = self._corners_local[j]
+            if local is None or ob.kind not in _PLANES:
+                if placed is None:
+                    placed = (rot @ sol.centre + origin, rot @ sol.rotation)
+                centre, rotation = placed
+            found: list[tuple[float, list[float], list[float]]]
+            if pair is not None and sol.mesh is not None:
+                gap, point, normal = pair.gap(centre, rotation)
+                if gap < limit:
+                    links.append(sol.link)
+                    obs.append(k)
+                    points.append(point.tolist())
+                    gaps.append(gap)
+                    normals.append(normal.tolist())
+                continue
+            if ob.kind in _PLANES:
+                if local is not None:
                     world = local @ rot.T + origin
-                    a, b = ob.point, (ob.end if ob.kind is ObstacleKind.SEGMENT else ob.point)
-                    sd, px, py, nx, ny = polygon_segment_xy(
-                        [(x, y) for x, y, _ in world.tolist()],
-                        float(a[0]), float(a[1]), float(b[0]), float(b[1]))
-                    found = [(sd - ob.radius, [px, py, 0.0], [nx, ny, 0.0])]
+                    if self._planar:
+                        world[:, 2] = 0.0
                 else:
-                    found = [(gap, point.tolist(), normal.tolist()) for gap, point, normal
-                             in solid_gaps(ob, sol.kind, centre, rotation, sol.size, None, pair)]
-                for gap, point_t, normal_t in found:
-                    if gap < limit:
+                    world = cylinder_rims(centre, rotation, sol.size[0], sol.size[1],
+                                          ob.normal)
+                offset, normal_t = self._plane_of[k]
+                world_t = world.tolist()
+                for i, gap in enumerate((world @ ob.normal).tolist()):
+                    if gap - offset < limit:
                         links.append(sol.link)
                         obs.append(k)
-                        points.append(point_t)
-                        gaps.append(gap)
+                        points.append(world_t[i])
+                        gaps.append(gap - offset)
                         normals.append(normal_t)
+                continue
+            if sol.kind == 'polygon':
+                assert local is not None
+                world = local @ rot.T + origin
+                a, b = ob.point, (ob.end if ob.kind is ObstacleKind.SEGMENT else ob.point)
+                sd, px, py, nx, ny = polygon_segment_xy(
+                    [(x, y) for x, y, _ in world.tolist()],
+                    float(a[0]), float(a[1]), float(b[0]), float(b[1]))
+                found = [(sd - ob.radius, [px, py, 0.0], [nx, ny, 0.0])]
+            else:
+                found = [(gap, point.tolist(), normal.tolist()) for gap, point, normal
+                         in solid_gaps(ob, sol.kind, centre, rotation, sol.size, None, pair)]
+            for gap, point_t, normal_t in found:
+                if gap < limit:
+                    links.append(sol.link)
+                    obs.append(k)
+                    points.append(point_t)
+                    gaps.append(gap)
+                    normals.append(normal_t)
         return links, obs, points, gaps, normals
 
     def detect(self, q: np.ndarray, margin: float = 0.0,

@@ -52,8 +52,9 @@ FILE_URI = 'file://'
 class MeshGeometry:
     """A mesh as the contacts use it: ``path`` (the file read), ``scale`` (3,), its convex
     hull ``convex`` (a ``coal.Convex``, in the mesh's frame, scaled, m), the hull's
-    ``vertices`` (k x 3, m, mesh frame) and a sphere around them (``centre`` (3,) m, mesh
-    frame, and ``radius`` m)."""
+    ``vertices`` (k x 3, m, mesh frame), a sphere around them (``centre`` (3,) m, mesh
+    frame, and ``radius`` m) and their axis-aligned box in the mesh frame (``box_centre``
+    (3,) m and ``box_half`` (3,) m): bounds that skip far pairs without a coal query."""
 
     path: Path
     scale: tuple[float, float, float]
@@ -61,6 +62,8 @@ class MeshGeometry:
     vertices: np.ndarray
     centre: np.ndarray
     radius: float
+    box_centre: np.ndarray
+    box_half: np.ndarray
 
 
 def _search_path(name: str, rel: str) -> list[Path]:
@@ -169,7 +172,9 @@ def _load(path: str, size: int, mtime_ns: int, scale: tuple[float, float, float]
     vertices.setflags(write=False)
     centre = vertices.mean(axis=0)
     radius = float(np.max(np.linalg.norm(vertices - centre, axis=1)))
-    return MeshGeometry(Path(path), scale, convex, vertices, centre, radius)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    return MeshGeometry(Path(path), scale, convex, vertices, centre, radius, 0.5 * (lo + hi),
+                        0.5 * (hi - lo))
 
 
 #: GJK and EPA tolerance (m) of every coal query of the contacts: far below the contact

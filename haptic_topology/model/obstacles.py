@@ -1,13 +1,14 @@
 """Static obstacles of the virtual environment (VE) and their signed distance to a link.
 
-This is the VE's collision geometry for the contact terms of eq. 1: every link is a *capsule*
-(the set of points within ``radius`` of its axis segment ``p0 -> p1``) and every obstacle is
+This is the VE's collision geometry for the contact terms of eq. 1 for links that are
+*capsules* (the set of points within ``radius`` of its axis segment ``p0 -> p1``; the URDF's
+boxes, cylinders and meshes: :mod:`haptic_topology.model.solids`); every obstacle is
 static. :func:`capsule_gaps` returns candidate contacts ``(gap, s, normal)`` for one link and
 one obstacle; a penalty model turns the negative gaps into forces.
 
 Units and frames: SI (m, rad), everything in the world frame. A planar scenario lives in the
 xy plane with z = 0 (``half_plane``, ``segment``, ``disc``); a spatial one uses ``plane``,
-``sphere`` and ``box``.
+``sphere``, ``box`` and ``mesh``.
 
 Sign conventions:
 

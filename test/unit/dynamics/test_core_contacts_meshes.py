@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,8 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.model import Linkage, load_linkage
 from haptic_topology.model.meshes import resolve_mesh
 from haptic_topology.model.obstacles import obstacles_from_config
+from haptic_topology.sim.lockstep import simulate
+from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology.vocabulary import TaskSpace
 
@@ -302,3 +305,36 @@ def test_package_uris_resolve_through_ament_ros_package_path_and_the_urdf(
         f"w: mesh file 'package://pkg/meshes/b.stl' not found (looked in: "
         f"{tmp_path}/src/pkg/meshes/b.stl; AMENT_PREFIX_PATH unset; no Python distribution "
         f"'pkg'; {tmp_path}/ws/pkg/meshes/b.stl)")
+
+
+@pytest.mark.parametrize('name', ['panda_table', 'ur5_table'])
+def test_robots_touch_the_table_with_their_own_meshes(name: str) -> None:
+    """The shipped scenarios: the robot by name, every link's contact shape its URDF mesh (no
+    capsule), the mesh table installed with the scenarios; in 0.45 s the links reach the
+    table, within 1 mm, and the contacts inject no energy."""
+    sc = load_scenario(name)
+    assert sc.contacts is not None and sc.contacts.links == ()
+    kinds = {s.kind for s in sc.contacts.shapes(sc.linkage)}
+    assert 'mesh' in kinds and kinds <= {'mesh', 'box'}      # the Panda's fingers are boxes
+    table = sc.contacts.obstacles[0]
+    assert table.mesh is not None and table.mesh.path.name == 'box.stl'
+    s = simulate(replace(sc, duration=0.45)).summary()
+    assert s['contact_time_s'] > 0.0 and s['energy_injected_j'] == 0.0
+    assert 0.0 < s['max_penetration_m'] < 1e-3
+
+
+def test_setup_installs_the_meshes_the_scenarios_use(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``setup.py`` installs ``config/meshes/box.stl`` beside the scenarios that name it
+    (``../meshes/box.stl``), as ``test_launch_file`` reads setup.py's arguments."""
+    import runpy
+
+    import setuptools
+    root = Path(__file__).resolve().parents[3]
+    captured: dict[str, Any] = {}
+    monkeypatch.setattr(setuptools, 'setup', lambda **kw: captured.update(kw))
+    monkeypatch.chdir(root)
+    runpy.run_path(str(root / 'setup.py'))
+    installed = {src: dest for dest, files in captured['data_files'] for src in files}
+    assert installed['config/meshes/box.stl'] == 'share/haptic_topology/config/meshes'
+    assert installed['config/scenarios/panda_table.yaml'] == \
+        'share/haptic_topology/config/scenarios'
