@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from haptic_topology.dynamics import LinkageDynamics
@@ -24,6 +25,7 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.model import Linkage, load_linkage
 from haptic_topology.model.meshes import resolve_mesh
 from haptic_topology.model.obstacles import obstacles_from_config
+from haptic_topology.model.solids import CoalPair
 from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
@@ -338,3 +340,38 @@ def test_setup_installs_the_meshes_the_scenarios_use(monkeypatch: pytest.MonkeyP
     assert installed['config/meshes/box.stl'] == 'share/haptic_topology/config/meshes'
     assert installed['config/scenarios/panda_table.yaml'] == \
         'share/haptic_topology/config/scenarios'
+
+
+def test_culling_keeps_every_pair_within_the_limit() -> None:
+    """The UR5's shapes (meshes and a box) against the mesh table and the box of
+    ``ur5_table``: the candidates the model keeps below a limit are those of every pair
+    computed one by one (coal, no culling) that are below it, at configurations around the
+    start."""
+    sc = load_scenario('ur5_table')
+    assert sc.contacts is not None
+    dyn = LinkageDynamics(sc.linkage)
+    cm = ContactModel(dyn.model, sc.linkage, sc.contacts)
+    shapes = [s for s in sc.contacts.shapes(sc.linkage) if s.kind in ('mesh', 'box')]
+    data = dyn.model.createData()
+    rng = np.random.default_rng(7)
+    kept = 0
+    for _ in range(12):
+        q = sc.q0 + rng.uniform(-0.3, 0.3, sc.linkage.dof)
+        pin.forwardKinematics(dyn.model, data, q)
+        every = []
+        for sol in shapes:
+            placement = data.oMi[sol.link + 1]
+            centre = placement.rotation @ sol.centre + placement.translation
+            rotation = placement.rotation @ sol.rotation
+            for k, ob in enumerate(sc.contacts.obstacles):
+                pair = CoalPair(sol.kind, sol.size, ob, sol.mesh)
+                every.append((sol.link, k, pair.gap(centre, rotation)[0]))
+        for limit in (0.0, 0.01, 0.05):
+            cs = cm.detect(q, margin=limit, jacobians=False)
+            want = sorted((link, k, g) for link, k, g in every if g < limit)
+            got = sorted(zip(cs.links.tolist(), cs.obstacles.tolist(), cs.gaps.tolist(),
+                             strict=True))
+            assert [w[:2] for w in want] == [g[:2] for g in got], (q, limit)
+            np.testing.assert_allclose([g[2] for g in got], [w[2] for w in want], atol=1e-12)
+            kept += len(got)
+    assert kept > 0
