@@ -53,7 +53,7 @@ from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.hosted import HostedCycle, HostedStep
 from haptic_topology.device.loop import ns_to_seconds, period_ns
-from haptic_topology.device.pacing import DeadlinePacer, PacerFigures
+from haptic_topology.device.pacing import DeadlinePacer, PacerFigures, PacerTick
 from haptic_topology.errors import ConfigError
 from haptic_topology.vocabulary import ControlMode
 
@@ -324,7 +324,18 @@ class LoopRunner:
         with a fake clock). Returns what it published, or None (stopped while waiting)."""
         if self.cfg.lockstep and self.cycle.device.engaged:
             return self._lockstep_step()
-        tick = self.pacer.wait()
+        return self._released(self.pacer.wait())
+
+    def cycle_at(self, now: float) -> Published:
+        """One wall-clock cycle released by the device's own servo clock at ``now`` (s, the
+        pacer's clock; :meth:`DeadlinePacer.release
+        <haptic_topology.device.pacing.DeadlinePacer.release>`): as :meth:`cycle_once`
+        without waiting. The loop process calls it inside the device's callback."""
+        if self.cfg.lockstep:
+            raise ConfigError('a device whose servo loop is the clock cannot run lock-step')
+        return self._released(self.pacer.release(now))
+
+    def _released(self, tick: PacerTick) -> Published:
         if self.cycle.device.engaged:
             self.missed_deadlines += tick.missed
             self.max_missed_deadlines = max(self.max_missed_deadlines, tick.missed)
