@@ -2,28 +2,28 @@
 openhaptics``, with the unmodified PyPI package ``pyOpenHaptics`` (ctypes bindings of
 ``libHD.so``).
 
-**The library.** pyOpenHaptics loads ``CDLL("libHD.so")`` by its bare name when it is
-imported. This backend loads the library first, by path, with ``RTLD_GLOBAL``, so that the
-package's own load finds it: the path is the option ``library`` (``emulator``: the emulator
-that ``scripts/setup.sh`` builds into ``<venv>/lib/haptic_topology/libHD.so``), else the
-variable :data:`LIBRARY_ENV`, else ``libHD.so`` on the loader's path (OpenHaptics for Linux
-installs it in ``/usr/lib``; ``LD_LIBRARY_PATH`` adds directories). Without it, or without
-the package, :meth:`OpenHapticsBackend.check_host` refuses the run before anything starts
+**The library** (:mod:`~haptic_topology.device.openhaptics_hd`): the option ``library``
+(a path; ``emulator``: the emulator that ``scripts/setup.sh`` builds into
+``<venv>/lib/haptic_topology/libHD.so``), else the variable ``HAPTIC_TOPOLOGY_LIBHD``, else
+``libHD.so`` on the loader's path (OpenHaptics for Linux installs it in ``/usr/lib``;
+``LD_LIBRARY_PATH`` adds directories). Without it, or without the package,
+:meth:`OpenHapticsBackend.check_host` refuses the run before anything starts
 (:class:`~haptic_topology.errors.MissingLibraryError`, exit status 2), naming both and the
 variable.
 
 **The clock.** OpenHaptics' scheduler thread calls the servo callbacks at 1 kHz; that
-callback is the device's clock (:attr:`~haptic_topology.device.backend.DeviceBackend.drives_loop`):
-in the loop process each cycle runs inside it (:meth:`OpenHapticsBackend.run_clocked`):
-``hdBeginFrame`` (the device state is snapshot), the cycle (``write``: ``hdSetDoublev
-(HD_CURRENT_FORCE)``; ``read``: the transform, velocity and buttons of the frame; the
-controller), ``hdEndFrame`` (the force goes to the motors), then the loop's work between two
-cycles. The callback is this module's own (pyOpenHaptics' ``hd_callback`` wrapper ends the
-servo loop at the first error ``hdGetError`` reports): an error makes the reading a device
-fault (``DeviceStatus.FAULT``, the driver writes zero) and the loop goes on. Called from a
-loop that paces itself (the in-process layouts, the conformance checks), ``read`` exchanges
-one frame with the servo thread through ``hdScheduleSynchronous`` (it waits for the next
-servo tick, at most one period) and ``write`` keeps the force for it.
+callback is the device's clock
+(:attr:`~haptic_topology.device.backend.DeviceBackend.drives_loop`): in the loop process
+each cycle runs inside it (:meth:`OpenHapticsBackend.run_clocked`): ``hdBeginFrame`` (the
+device state is snapshot), the cycle (``write``: ``hdSetDoublev(HD_CURRENT_FORCE)``;
+``read``: the transform, velocity and buttons of the frame; the controller), ``hdEndFrame``
+(the force goes to the motors), then the loop's work between two cycles. The callback is
+this module's own (pyOpenHaptics' ``hd_callback`` wrapper ends the servo loop at the first
+error ``hdGetError`` reports): an error makes the reading a device fault
+(``DeviceStatus.FAULT``, the driver writes zero) and the loop goes on. Called from a loop
+that paces itself (the in-process layouts, the conformance checks), ``read`` exchanges one
+frame with the servo thread through ``hdScheduleSynchronous`` (it waits for the next servo
+tick, at most one period) and ``write`` keeps the force for it.
 
 **Frames and units.** OpenHaptics reports mm, mm/s and N in the device's axes: x right, y up,
 z toward the user. The option ``axes`` names the device axis of each task axis (signed:
@@ -45,13 +45,10 @@ from __future__ import annotations
 
 import ctypes
 import math
-import os
 import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -62,110 +59,32 @@ from haptic_topology.device.backend import (
     DeviceBackend,
     DeviceReading,
 )
-from haptic_topology.errors import DeviceError, MissingLibraryError
+from haptic_topology.device.openhaptics_hd import (
+    HD_CALIBRATION_NEEDS_UPDATE,
+    HD_CALIBRATION_OK,
+    HD_CALIBRATION_STYLE,
+    HD_CALLBACK_CONTINUE,
+    HD_CALLBACK_DONE,
+    HD_CURRENT_INKWELL_SWITCH,
+    HD_CURRENT_VELOCITY,
+    HD_DEVICE_SERIAL_NUMBER,
+    HD_FORCE_OUTPUT,
+    HD_INVALID_HANDLE,
+    HD_NOMINAL_MAX_FORCE,
+    HD_SUCCESS,
+    SERVO_HZ,
+    STALL,
+    HdLibrary,
+    error_text,
+    load_hd,
+)
+from haptic_topology.errors import DeviceError
 from haptic_topology.vocabulary import Axis, DeviceStatus, TaskSpace
 
-#: The Python package and its pin, the library, and the variable that points at the library.
-PACKAGE = 'pyOpenHaptics==1.0.1'
-LIBRARY = 'libHD.so'
-LIBRARY_ENV = 'HAPTIC_TOPOLOGY_LIBHD'
-#: Where ``scripts/setup.sh`` builds the emulator (``emulators/openhaptics/hd.c``).
-EMULATOR = Path(sys.prefix) / 'lib' / 'haptic_topology' / LIBRARY
-#: The servo loop's rate (Hz): OpenHaptics' scheduler default.
-SERVO_HZ = 1000
-#: A servo loop that has not called back for this long (s) has stopped.
-STALL = 1.0
-
-# OpenHaptics constants (hdDefines.h; pyOpenHaptics 1.0.1 has some of them wrong).
-HD_CALLBACK_DONE, HD_CALLBACK_CONTINUE = 0, 1
-HD_SUCCESS = 0
-HD_FORCE_OUTPUT = 0x4000
-HD_CURRENT_BUTTONS = 0x2000
-HD_CURRENT_INKWELL_SWITCH = 0x2002
-HD_CURRENT_VELOCITY = 0x2051
-HD_DEVICE_SERIAL_NUMBER = 0x2504
-HD_CALIBRATION_STYLE = 0x2555
-HD_NOMINAL_MAX_FORCE = 0x2603
-HD_CALIBRATION_OK = 0x5000
-HD_CALIBRATION_NEEDS_UPDATE = 0x5001
-HD_INVALID_HANDLE = 0xFFFFFFFF
-HD_MAX_SCHEDULER_PRIORITY = 0xFFFF
-#: hdDefines.h's error codes by value, for the operator's messages.
-ERROR_NAMES = {
-    0x100: 'HD_INVALID_ENUM', 0x101: 'HD_INVALID_VALUE', 0x102: 'HD_INVALID_OPERATION',
-    0x103: 'HD_INVALID_INPUT_TYPE', 0x104: 'HD_BAD_HANDLE', 0x200: 'HD_WARM_MOTORS',
-    0x201: 'HD_EXCEEDED_MAX_FORCE', 0x202: 'HD_EXCEEDED_MAX_FORCE_IMPULSE',
-    0x203: 'HD_EXCEEDED_MAX_VELOCITY', 0x204: 'HD_FORCE_ERROR', 0x300: 'HD_DEVICE_FAULT',
-    0x301: 'HD_DEVICE_ALREADY_INITIATED', 0x302: 'HD_COMM_ERROR',
-    0x303: 'HD_COMM_CONFIG_ERROR', 0x304: 'HD_TIMER_ERROR', 0x400: 'HD_ILLEGAL_BEGIN',
-    0x401: 'HD_ILLEGAL_END', 0x402: 'HD_FRAME_ERROR', 0x500: 'HD_INVALID_PRIORITY',
-    0x501: 'HD_SCHEDULER_FULL', 0x600: 'HD_INVALID_LICENSE'}
 _AXIS_INDEX = {'x': 0, 'y': 1, 'z': 2}
 _OPTIONS = ('library', 'device', 'axes', 'origin', 'max_force')
 #: The axes a 3-DOF force device of this family senses and actuates.
 OH_AXES = DeviceAxes(frozenset((Axis.X, Axis.Y, Axis.Z)), frozenset((Axis.X, Axis.Y, Axis.Z)))
-
-
-def error_text(code: int) -> str:
-    """``HD_COMM_ERROR (0x302)`` for an HDAPI error code."""
-    return f'{ERROR_NAMES.get(code, "HD error")} (0x{code:03x})'
-
-
-def library_path(options: Mapping[str, Any]) -> str:
-    """The library to load: ``options['library']`` (``emulator``: :data:`EMULATOR`), else
-    ``$HAPTIC_TOPOLOGY_LIBHD``, else ``libHD.so`` on the loader's path."""
-    lib = str(options.get('library', '') or '')
-    if lib == 'emulator':
-        return str(EMULATOR)
-    return lib or os.environ.get(LIBRARY_ENV, '') or LIBRARY
-
-
-def missing_text(path: str, why: str) -> str:
-    """The one-line refusal of a computer without the library or the package."""
-    return (f'openhaptics: cannot load {path} ({why}): install OpenHaptics for Linux and the '
-            f'Touch device driver (libHD.so in /usr/lib or on LD_LIBRARY_PATH), or set '
-            f'{LIBRARY_ENV} (or backend_options.library) to libHD.so\'s path; the Python '
-            f'package {PACKAGE} must be installed too')
-
-
-@dataclass(frozen=True)
-class HdLibrary:
-    """pyOpenHaptics over the loaded library ``path``: ``hd`` (``pyOpenHaptics.hd``: the
-    HDAPI calls and ``_lib_hd``, the library handle) and ``scheduling``
-    (``pyOpenHaptics.hd_callback``: ``hdAsyncSheduler``, ``hdSyncSheduler``)."""
-
-    path: str
-    hd: Any
-    scheduling: Any
-
-
-_loaded: list[HdLibrary] = []
-
-
-def load_hd(options: Mapping[str, Any]) -> HdLibrary:
-    """Load the library (by path, ``RTLD_GLOBAL``) and import pyOpenHaptics over it;
-    :class:`~haptic_topology.errors.MissingLibraryError` when either is missing. A process
-    holds one libHD: a second library path is refused."""
-    path = library_path(options)
-    if _loaded:
-        if _loaded[0].path != path:
-            raise DeviceError(f'openhaptics: this process has loaded {_loaded[0].path}; '
-                              f'cannot load {path} too')
-        return _loaded[0]
-    if path != LIBRARY and not Path(path).is_file():
-        raise MissingLibraryError(missing_text(path, 'no such file'))
-    try:
-        ctypes.CDLL(path, mode=ctypes.RTLD_GLOBAL)
-    except OSError as exc:
-        raise MissingLibraryError(missing_text(path, str(exc).split(':')[-1].strip())
-                                  ) from None
-    try:
-        import pyOpenHaptics.hd as hd
-        import pyOpenHaptics.hd_callback as scheduling
-    except ImportError as exc:
-        raise MissingLibraryError(missing_text(path, f'package pyOpenHaptics: {exc}')) from None
-    _loaded.append(HdLibrary(path, hd, scheduling))
-    return _loaded[0]
 
 
 def _parse_axes(value: Any) -> np.ndarray:
@@ -278,7 +197,8 @@ class OpenHapticsBackend(DeviceBackend):
                 'openhaptics_inkwell': str(int(self.inkwell)),
                 'openhaptics_errors': str(self.errors),
                 'openhaptics_nonfinite_commands': str(self.nonfinite_commands),
-                'openhaptics_max_force_n': f'{self._max_force:g}'}
+                'openhaptics_max_force_n': f'{self._max_force:g}',
+                'openhaptics_servo_ticks': str(self.ticks)}
 
     def fault_reason(self) -> str:
         return self._reason or super().fault_reason()

@@ -216,15 +216,15 @@ class DeadlinePacer:
         own servo loop is the clock (:attr:`DeviceBackend.drives_loop
         <haptic_topology.device.backend.DeviceBackend.drives_loop>`), so the grid follows
         it: the cycle is due one period after the previous release. A release ``dt`` after
-        the previous one counts ``round(dt / period) - 1`` periods as missed (a servo tick
-        the loop did not get) and is ``late`` by what ``dt`` exceeds the due periods;
-        periods and lateness go into the same statistics as :meth:`wait`'s."""
+        the previous one counts ``dt / period``, rounded half up, less one, as missed periods
+        (servo ticks the loop did not get) and is ``late`` by what ``dt`` exceeds the periods
+        it spans; periods and lateness go into the same statistics as :meth:`wait`'s."""
         if self._last_now is None:
             self._t0, self._index = now, -1
             dt, missed, late = self.period, 0, 0.0
         else:
             dt = now - self._last_now
-            missed = max(0, round(dt / self.period) - 1)
+            missed = max(0, int(dt / self.period + 0.5) - 1)
             late = max(0.0, dt - (missed + 1) * self.period)
             slot = self._n_periods % self._periods.size
             self._periods[slot] = dt

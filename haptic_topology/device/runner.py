@@ -69,6 +69,8 @@ LOCKSTEP_RUNS_ONCE = (
     'clock: lockstep: this driver has run once; a lock-step run cannot resume or start over in '
     "the same graph (the VE keeps the run's linkage state, simulated time would start again at "
     '0, and the run would no longer equal simulate): start ve_sim and device_driver again')
+#: Onsets of a device fault that each get a notice (the driver's log): its reason, once.
+FAULT_NOTICES = 10
 #: Longest single wait of the loop thread for an update or for room in the outbox (s), so
 #: that submitted calls and a stop request are served meanwhile.
 _POLL = 0.01
@@ -346,8 +348,15 @@ class LoopRunner:
         else:
             stamp = self._wall_ns()
             dt = min(max(tick.dt, 0.0), 20.0 * self.cfg.period)
-        return self._publish(self.cycle.step(tick.now, dt, ns_to_seconds(stamp),
-                                             self.may_engage), stamp)
+        device = self.cycle.device
+        faults = device.device_faults
+        step = self.cycle.step(tick.now, dt, ns_to_seconds(stamp), self.may_engage)
+        if device.device_faults != faults and device.device_faults <= FAULT_NOTICES:
+            more = (' (further onsets are counted in device_faults only)'
+                    if device.device_faults == FAULT_NOTICES else '')
+            self.notices.append(f'device fault: {device.backend.fault_reason()}: output '
+                                f'zero while it lasts{more}')
+        return self._publish(step, stamp)
 
     def _lockstep_step(self) -> Published | None:
         started = self._clock()
