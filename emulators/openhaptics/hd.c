@@ -45,7 +45,8 @@
  *   HD_EMU_CALIBRATION   ok | needs_update | needs_manual_input (hdCheckCalibration)
  *   HD_EMU_MAX_FORCE     HD_NOMINAL_MAX_FORCE in N (default 3.3, a Touch's)
  *   HD_EMU_MODEL, HD_EMU_SERIAL   the identity strings
- * and the exported hdEmuApplied() (the newest committed force and when) for tests.
+ * and the exported hdEmuApplied() (the newest committed force and when), hdEmuSetButtons(),
+ * hdEmuTicks() and hdEmuTickNs() (when the newest servo tick began) for tests and benches.
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -169,7 +170,7 @@ static double sim_t, mass = 0.1, damping = 1.0, hand_k = 100.0, hand_b = 2.0;
 static double hand_mm = 10.0, hand_hz = 0.5, resolution_mm = 0.055, max_force = 3.3;
 static int buttons, inkwell, calibration = HD_CALIBRATION_OK;
 static char fail_fn[64], model[64] = "Touch", serial[64] = "EMU-00001";
-static long long committed_ns, commits;
+static long long committed_ns, commits, tick_ns;
 
 /* The frame (the scheduler thread's, or an application thread's outside the scheduler). */
 static __thread int frame_depth;
@@ -592,6 +593,7 @@ static void *servo(void *arg) {
         if (late > 20LL * period) next = now;       /* far behind: no burst of ticks */
         pthread_mutex_lock(&lock);
         if (stopping) break;
+        tick_ns = now_ns();
         step_device(1.0 / (double)rate);
         run_callbacks();
     }
@@ -728,6 +730,15 @@ void hdEmuSetButtons(int mask, int in_inkwell) {
     buttons = mask;
     inkwell = in_inkwell;
     pthread_mutex_unlock(&lock);
+}
+
+/* CLOCK_MONOTONIC time (ns) at which the newest servo tick began (before the device's step
+ * and the callbacks): how long a callback took to be entered, for the cost measurements. */
+long long hdEmuTickNs(void) {
+    pthread_mutex_lock(&lock);
+    long long t = tick_ns;
+    pthread_mutex_unlock(&lock);
+    return t;
 }
 
 /* Servo ticks since hdInitDevice. */

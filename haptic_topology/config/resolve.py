@@ -101,13 +101,10 @@ def check_device_axes(sc: Scenario, backend: str, options: dict[str, Any]) -> No
     ``options``) when its task needs an axis the device does not actuate or sense
     (:meth:`~haptic_topology.device.backend.DeviceBackend.axes`): one line naming both and,
     for a rigid grasp, the point-grasp scenario to use instead
-    (:class:`~haptic_topology.errors.AxesError`); then a backend whose vendor library is not
-    installed (:meth:`~haptic_topology.device.backend.DeviceBackend.check_host`)."""
+    (:class:`~haptic_topology.errors.AxesError`)."""
     from haptic_topology.device.backend import backend_class, check_axes
-    cls = backend_class(backend)
-    check_axes(sc.linkage.task, cls.axes(options), sc.name, backend,
+    check_axes(sc.linkage.task, backend_class(backend).axes(options), sc.name, backend,
                None if sc.linkage.task.point else _point_alternative(sc))
-    cls.check_host(options)
 
 
 def run_backend(params: Path, backend: str | None, items: Sequence[str]

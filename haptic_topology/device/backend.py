@@ -158,14 +158,6 @@ class DeviceBackend(ABC):
     #: loop that paces itself (the in-process layouts, the conformance checks).
     drives_loop: ClassVar[bool] = False
 
-    @classmethod
-    def check_host(cls, options: Mapping[str, Any]) -> None:
-        """Refuse, before anything starts, a computer without what the backend needs with
-        the backend options ``options`` (a vendor library, its Python package):
-        :class:`~haptic_topology.errors.MissingLibraryError`, one line. Default: nothing
-        to check."""
-        del options
-
     def run_clocked(self, period: float, cycle: Callable[[float], None],
                     between: Callable[[float], bool], keep_going: Callable[[], bool]) -> None:
         """A backend that :attr:`drives_loop`: run the loop on the device's servo clock until

@@ -7,7 +7,7 @@ openhaptics``, with the unmodified PyPI package ``pyOpenHaptics`` (ctypes bindin
 ``<venv>/lib/haptic_topology/libHD.so``), else the variable ``HAPTIC_TOPOLOGY_LIBHD``, else
 ``libHD.so`` on the loader's path (OpenHaptics for Linux installs it in ``/usr/lib``;
 ``LD_LIBRARY_PATH`` adds directories). Without it, or without the package,
-:meth:`OpenHapticsBackend.check_host` refuses the run before anything starts
+:meth:`OpenHapticsBackend.preflight` refuses the run before anything starts
 (:class:`~haptic_topology.errors.MissingLibraryError`, exit status 2), naming both and the
 variable.
 
@@ -106,6 +106,23 @@ def _parse_axes(value: Any) -> np.ndarray:
     return m
 
 
+def _open(hd: Any, options: Mapping[str, Any]) -> int:
+    """``hdInitDevice`` of the configuration ``options['device']``: its handle, or a
+    :class:`~haptic_topology.errors.DeviceError` with the HD error (the error queue emptied:
+    pyOpenHaptics' own ``init_device`` compares with the wrong constant)."""
+    lib = hd._lib_hd
+    lib.hdInitDevice.argtypes = [ctypes.c_char_p]
+    lib.hdInitDevice.restype = ctypes.c_uint
+    handle = int(lib.hdInitDevice(str(options.get('device', 'Default Device')).encode()))
+    if handle != HD_INVALID_HANDLE:
+        return handle
+    code = int(hd._get_error().errorCode)
+    while int(hd._get_error().errorCode) != HD_SUCCESS:
+        pass
+    raise DeviceError(f'openhaptics: hdInitDevice failed: {error_text(code)}: is the Touch '
+                      'connected and its driver (Touch_Setup) configured?')
+
+
 class OpenHapticsBackend(DeviceBackend):
     """A Touch / Touch X / Phantom Premium through OpenHaptics (module doc). Options:
     ``library`` (path, or ``emulator``), ``device`` (the OpenHaptics configuration name,
@@ -121,10 +138,13 @@ class OpenHapticsBackend(DeviceBackend):
         del options
         return OH_AXES
 
-    @classmethod
-    def check_host(cls, options: Mapping[str, Any]) -> None:
-        """Load the library and the package (:func:`load_hd`)."""
-        load_hd(options)
+    def preflight(self, config: BackendConfig) -> None:
+        """Before ``run`` starts a node: the library and the package load
+        (:func:`~haptic_topology.device.openhaptics_hd.load_hd`; else
+        :class:`~haptic_topology.errors.MissingLibraryError`, exit status 2) and the device
+        opens (``hdInitDevice``, then ``hdDisableDevice``: no output is enabled)."""
+        hd = load_hd(config.options).hd
+        hd.close_device(_open(hd, config.options))
 
     def __init__(self) -> None:
         self._task: TaskSpace | None = None
@@ -235,16 +255,7 @@ class OpenHapticsBackend(DeviceBackend):
         self._lib = load_hd(self._options)
         hd = self._lib.hd
         lib = hd._lib_hd
-        lib.hdInitDevice.argtypes = [ctypes.c_char_p]
-        lib.hdInitDevice.restype = ctypes.c_uint
-        handle = int(lib.hdInitDevice(str(self._options.get('device', 'Default Device'))
-                                      .encode()))
-        if handle == HD_INVALID_HANDLE:
-            code = int(hd._get_error().errorCode)
-            self._drain_errors()
-            raise DeviceError(f'openhaptics: hdInitDevice failed: {error_text(code)}: is the '
-                              'Touch connected and its driver (Touch_Setup) configured?')
-        self._handle = handle
+        self._handle = _open(hd, self._options)
         lib.hdGetString.argtypes = [ctypes.c_uint]
         lib.hdGetString.restype = ctypes.c_char_p
         self._model = hd.get_model()

@@ -314,8 +314,10 @@ def test_a_missing_library_stops_run_before_anything_starts(
                           f'{tmp_path / "libHD.so"} (no such file): install OpenHaptics')
     for name in ('pyOpenHaptics==1.0.1', 'libHD.so', 'HAPTIC_TOPOLOGY_LIBHD'):
         assert name in err
+    sc = load_scenario('fig8_point')
     with pytest.raises(MissingLibraryError):
-        OpenHapticsBackend.check_host({'library': str(tmp_path / 'libHD.so')})
+        OpenHapticsBackend().preflight(BackendConfig(
+            sc.device, initial_device_pose(sc), {}, {'library': str(tmp_path / 'libHD.so')}))
 
 
 def test_without_libhd_on_the_loaders_path_run_says_what_to_install(tmp_path: Path) -> None:
