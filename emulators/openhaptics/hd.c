@@ -37,6 +37,8 @@
  *                        every hdBeginFrame records HD_COMM_ERROR
  *   HD_EMU_NAN_AT=N      from servo tick N on, for HD_EMU_NAN_FOR ticks (default: ever), the
  *                        position, transform and velocity read NaN
+ *   HD_EMU_STALL_AT=N    from servo tick N on the scheduler calls no callback (a hung
+ *                        servo loop); hdStopScheduler still stops it
  *   HD_EMU_FAIL=<fn>     that function fails: hdInitDevice returns HD_INVALID_HANDLE with
  *                        HD_COMM_CONFIG_ERROR; hdEnable, hdStartScheduler, hdSetDoublev record
  *                        HD_INVALID_OPERATION and do nothing
@@ -165,7 +167,7 @@ static int n_errors;
 
 /* The simulated device (SI inside: m, m/s, N) and its settings. */
 static double x[3], v[3], reported[3], vfilt[3], committed[3];
-static long long tick_count, unplug_at = -1, nan_at = -1, nan_for = -1;
+static long long tick_count, unplug_at = -1, nan_at = -1, nan_for = -1, stall_at = -1;
 static double sim_t, mass = 0.1, damping = 1.0, hand_k = 100.0, hand_b = 2.0;
 static double hand_mm = 10.0, hand_hz = 0.5, resolution_mm = 0.055, max_force = 3.3;
 static int buttons, inkwell, calibration = HD_CALIBRATION_OK;
@@ -275,6 +277,7 @@ HHD hdInitDevice(HDstring pConfigName) {
     unplug_at = env_ll("HD_EMU_UNPLUG_AT", -1);
     nan_at = env_ll("HD_EMU_NAN_AT", -1);
     nan_for = env_ll("HD_EMU_NAN_FOR", -1);
+    stall_at = env_ll("HD_EMU_STALL_AT", -1);
     mass = env_double("HD_EMU_MASS", 0.1);
     damping = env_double("HD_EMU_DAMPING", 1.0);
     hand_k = env_double("HD_EMU_HAND_K", 100.0);
@@ -595,7 +598,7 @@ static void *servo(void *arg) {
         if (stopping) break;
         tick_ns = now_ns();
         step_device(1.0 / (double)rate);
-        run_callbacks();
+        if (stall_at < 0 || tick_count < stall_at) run_callbacks();
     }
     /* what never ran: its callers must not wait for ever */
     for (int i = 0; i < n_callbacks; i++) callbacks[i].done = 1;

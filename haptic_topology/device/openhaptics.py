@@ -170,6 +170,7 @@ class OpenHapticsBackend(DeviceBackend):
         self._sync_cb: Any = None
         self._servo_cb: Any = None
         self._stop_clock = False
+        self._stalled = False
 
     # -- configuration ---------------------------------------------------------------------
     def configure(self, config: BackendConfig) -> None:
@@ -272,6 +273,7 @@ class OpenHapticsBackend(DeviceBackend):
         hd.start_scheduler()
         self._fail_on_error('hdStartScheduler')
         self._sync_cb = self._callback(self._sync_frame)
+        self._stalled = False
         self._active = True
         self._fault = self._reason = ''
 
@@ -299,7 +301,7 @@ class OpenHapticsBackend(DeviceBackend):
             return
         hd = self._lib.hd
         lib = hd._lib_hd
-        if self._sync_cb is not None:
+        if self._sync_cb is not None and not self._stalled:
             self._lib.scheduling.hdSyncSheduler(self._sync_cb)      # a zero-force frame
         lib.hdDisable.argtypes = [ctypes.c_uint]
         lib.hdDisable(HD_FORCE_OUTPUT)
@@ -442,6 +444,7 @@ class OpenHapticsBackend(DeviceBackend):
             if self.ticks != seen:
                 seen, seen_at = self.ticks, now
             elif now - seen_at > STALL:
+                self._stalled = True        # deactivate must not wait for a servo tick
                 self._drain_errors()
                 why = f'; {self._fault}' if self._fault else ''
                 raise DeviceError(f'openhaptics: the servo loop stopped calling back '

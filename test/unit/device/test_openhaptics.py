@@ -335,3 +335,17 @@ def test_without_libhd_on_the_loaders_path_run_says_what_to_install(tmp_path: Pa
     assert proc.stderr.startswith('haptic-topology run: error: openhaptics: cannot load '
                                   'libHD.so (libHD.so: cannot open shared object file'), \
         proc.stderr
+
+
+def test_a_device_that_does_not_open_stops_run_before_anything_starts(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """``run``'s preflight opens the device (and closes it): hdInitDevice failing is status 1
+    and the HD error in one line, before any node starts."""
+    monkeypatch.setenv('HD_EMU_FAIL', 'hdInitDevice')
+    params = Path(__file__).resolve().parents[3] / 'config' / 'devices' / \
+        'openhaptics_emulator.yaml'
+    assert cli_main(['run', 'fig8_point', '--params', str(params)]) == 1
+    err = capsys.readouterr().err
+    assert err == ('haptic-topology run: error: device: openhaptics: hdInitDevice failed: '
+                   'HD_COMM_CONFIG_ERROR (0x303): is the Touch connected and its driver '
+                   '(Touch_Setup) configured?\n')

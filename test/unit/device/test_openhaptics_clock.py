@@ -35,7 +35,7 @@ def _spec() -> tuple[dict[str, Any], int, int]:
     return spec, dim, dof
 
 
-def _run(proc: LoopProcess) -> list[Any]:
+def _run(proc: LoopProcess, cycles: int = CYCLES) -> list[Any]:
     """Start, collect the cycles until the child has reported :data:`CYCLES`, stop it (it
     zeroes and releases the device); its final status."""
     proc.start()
@@ -43,8 +43,8 @@ def _run(proc: LoopProcess) -> list[Any]:
     try:
         proc.wait_started()
         deadline = time.monotonic() + 120.0
-        while int(proc.status.get('n_periods', 0)) < CYCLES:
-            assert time.monotonic() < deadline, f'fewer than {CYCLES} cycles in 120 s'
+        while int(proc.status.get('n_periods', 0)) < cycles:
+            assert time.monotonic() < deadline, f'fewer than {cycles} cycles in 120 s'
             assert proc.running, proc.status
             proc.wait(0.02)
             records.extend(proc.drain())
@@ -91,3 +91,27 @@ def test_an_unplugged_device_is_a_fault_with_zero_output_and_its_reason(
     reasons = [n for n in proc.notices if n.startswith('device fault:')]
     assert reasons == ['device fault: openhaptics: Touch: HD_COMM_ERROR (0x302): output zero '
                        'while it lasts'], list(proc.notices)
+
+
+def test_a_servo_loop_that_stops_calling_back_ends_the_child_with_the_reason(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The scheduler stops calling back at servo tick 300 (a hung servo loop): after 1 s
+    without a tick the child ends its loop with that reason, releases the device without
+    waiting for a tick, and exits; the node sees a fault naming it."""
+    monkeypatch.setenv('HD_EMU_STALL_AT', '300')
+    spec, dim, dof = _spec()
+    proc = LoopProcess(spec, dim, dof)
+    try:
+        proc.start()
+        proc.wait_started()
+        deadline = time.monotonic() + 120.0
+        while proc.error is None:
+            assert time.monotonic() < deadline, 'the child did not end'
+            proc.wait(0.05)
+            proc.drain()
+            proc.check()
+        assert 'openhaptics: the servo loop stopped calling back (1 s without a tick)' in \
+            str(proc.error), str(proc.error)
+        assert proc.status['final'] is True
+    finally:
+        proc.close()
