@@ -3,11 +3,11 @@ against the emulator that ``scripts/setup.sh`` builds (``emulators/openhaptics/h
 
 * **In this process** (``--ticks`` servo ticks of the emulated scheduler thread, 1 kHz): per
   tick, the time from the tick's start in C (``hdEmuTickNs``: before the device's step and the
-  callbacks) to the Python callback's first line, which includes ctypes' entry and taking the
-  GIL from a C thread; the callback's whole duration with the cycle a backend's ``write`` and
-  ``read`` inside the frame (``hdBeginFrame`` ... ``hdEndFrame``: the pyOpenHaptics calls);
-  the same with an empty cycle (the frame and the callback only); and the period between
-  callbacks. p50 / p99 / max in microseconds.
+  callbacks) to the Python callback's first line (ctypes' entry and taking the GIL from a C
+  thread) and to the cycle's start (after ``hdBeginFrame`` and the held force); from there to
+  the frame's end with the cycle a backend's ``write`` and ``read`` inside the frame (the
+  pyOpenHaptics calls, ``hdEndFrame``), and the same with an empty cycle; and the period
+  between callbacks. p50 / p99 / max in microseconds.
 * **The loop process** (``--seconds`` s): ``LoopProcess`` with the openhaptics backend, as
   ``device_driver`` runs it (fig8_point, not engaged: the device loop's idle cycles, no
   controller step): the period between cycles and the missed servo ticks, from the loop's own
@@ -64,6 +64,7 @@ def in_process(ticks: int, with_cycle: bool) -> dict[str, np.ndarray]:
     lib = ctypes.CDLL(str(EMULATOR))
     lib.hdEmuTickNs.restype = ctypes.c_longlong
     entry = np.zeros(ticks)
+    python = np.zeros(ticks)
     spent = np.zeros(ticks)
     starts = np.zeros(ticks)
     u = np.array([0.1, 0.0])
@@ -73,7 +74,9 @@ def in_process(ticks: int, with_cycle: bool) -> dict[str, np.ndarray]:
     def cycle(now: float) -> None:
         nonlocal began
         began = time.monotonic_ns()
-        entry[k] = (began - lib.hdEmuTickNs()) / 1e3
+        tick = lib.hdEmuTickNs()
+        python[k] = (now * 1e9 - tick) / 1e3        # now: the callback's first line
+        entry[k] = (began - tick) / 1e3
         starts[k] = began / 1e3
         if with_cycle:
             be.write(u)
@@ -90,7 +93,8 @@ def in_process(ticks: int, with_cycle: bool) -> dict[str, np.ndarray]:
     finally:
         be.write(np.zeros(2))
         be.deactivate()
-    return {'entry': entry[:k], 'cycle': spent[:k], 'period': np.diff(starts[:k])}
+    return {'python': python[:k], 'entry': entry[:k], 'cycle': spent[:k],
+            'period': np.diff(starts[:k])}
 
 
 def loop_process(seconds: float) -> dict[str, Any]:
@@ -143,7 +147,9 @@ def main() -> int:
         r = in_process(args.ticks, with_cycle)
         what = 'write + read in the frame' if with_cycle else 'empty frame'
         print(f'in process, {len(r["cycle"])} ticks, {what} (us):')
-        print(f'  C tick -> cycle start      {_q(r["entry"])}  (ctypes entry, GIL, hdBeginFrame)')
+        print(f'  C tick -> Python callback  {_q(r["python"])}  (ctypes entry, the GIL)')
+        print(f'  C tick -> cycle start      {_q(r["entry"])}  (and hdBeginFrame, the held '
+              'force)')
         print(f'  cycle start -> frame end   {_q(r["cycle"])}  (the cycle, hdEndFrame)')
         print(f'  period between callbacks   {_q(r["period"])}')
     print(f'loop process, {args.seconds:g} s (idle cycles): {loop_process(args.seconds)}')

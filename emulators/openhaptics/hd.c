@@ -15,7 +15,8 @@
  *  - hdStartScheduler starts the servo thread: every 1/rate s (hdSetSchedulerRate, default
  *    1000 Hz; absolute deadlines on CLOCK_MONOTONIC) it advances the simulated device by one
  *    period with the force committed last, then calls the scheduled callbacks in order of
- *    priority. A callback returning HD_CALLBACK_CONTINUE is called again next tick, one
+ *    priority. Woken late, it advances the device by every period passed and calls the
+ *    callbacks once (the ticks between are skipped, counted by hdEmuSkippedTicks). A callback returning HD_CALLBACK_CONTINUE is called again next tick, one
  *    returning HD_CALLBACK_DONE is removed. hdScheduleSynchronous blocks the caller until its
  *    callback has returned HD_CALLBACK_DONE; hdScheduleAsynchronous returns at once.
  *  - hdBeginFrame snapshots the device state (what hdGetDoublev / hdGetIntegerv return until
@@ -172,7 +173,7 @@ static double sim_t, mass = 0.1, damping = 1.0, hand_k = 100.0, hand_b = 2.0;
 static double hand_mm = 10.0, hand_hz = 0.5, resolution_mm = 0.055, max_force = 3.3;
 static int buttons, inkwell, calibration = HD_CALIBRATION_OK;
 static char fail_fn[64], model[64] = "Touch", serial[64] = "EMU-00001";
-static long long committed_ns, commits, tick_ns;
+static long long committed_ns, commits, tick_ns, skipped;
 
 /* The frame (the scheduler thread's, or an application thread's outside the scheduler). */
 static __thread int frame_depth;
@@ -303,6 +304,7 @@ HHD hdInitDevice(HDstring pConfigName) {
     sim_t = 0.0;
     commits = 0;
     committed_ns = 0;
+    skipped = 0;
     n_errors = 0;
     force_enabled = 0;
     clamping = 1;
@@ -593,11 +595,22 @@ static void *servo(void *arg) {
         clock_gettime(CLOCK_MONOTONIC, &now);
         long long late = ((long long)now.tv_sec - next.tv_sec) * 1000000000LL
             + (now.tv_nsec - next.tv_nsec);
-        if (late > 20LL * period) next = now;       /* far behind: no burst of ticks */
+        /* Woken late (this thread got no CPU): the device has moved on in real time, one step
+         * per period passed, but the callbacks run once, at the newest tick: no burst of
+         * callbacks to catch up (as a timerfd read reports its overruns). */
+        long long passed = late > 0 ? late / period : 0;
+        for (long long i = 0; i < passed; i++) {
+            next.tv_nsec += period;
+            while (next.tv_nsec >= 1000000000L) {
+                next.tv_nsec -= 1000000000L;
+                next.tv_sec++;
+            }
+        }
         pthread_mutex_lock(&lock);
         if (stopping) break;
         tick_ns = now_ns();
-        step_device(1.0 / (double)rate);
+        for (long long i = 0; i <= passed; i++) step_device(1.0 / (double)rate);
+        skipped += passed;
         if (stall_at < 0 || tick_count < stall_at) run_callbacks();
     }
     /* what never ran: its callers must not wait for ever */
@@ -742,6 +755,14 @@ long long hdEmuTickNs(void) {
     long long t = tick_ns;
     pthread_mutex_unlock(&lock);
     return t;
+}
+
+/* Servo ticks whose callbacks were skipped because the thread woke late. */
+long long hdEmuSkippedTicks(void) {
+    pthread_mutex_lock(&lock);
+    long long n = skipped;
+    pthread_mutex_unlock(&lock);
+    return n;
 }
 
 /* Servo ticks since hdInitDevice. */
