@@ -16,7 +16,8 @@ against the emulator that ``scripts/setup.sh`` builds (``emulators/openhaptics/h
   config/devices/openhaptics_emulator.yaml --duration 5`` (the whole graph, engaged), and its
   ``summary.json``'s device period and answered figures.
 
-Run alone: ``.venv/bin/python bench/openhaptics_clock.py [--ticks 5000] [--seconds 5] [--run]``.
+Run alone: ``.venv/bin/python bench/openhaptics_clock.py [--ticks 5000] [--seconds 5] [--run]``
+(it sets ``HAPTIC_TOPOLOGY_LIBHD`` to the emulator).
 Figures depend on the machine and its load; nothing here is a threshold.
 """
 
@@ -48,6 +49,9 @@ from haptic_topology.device.openhaptics_hd import EMULATOR  # noqa: E402
 from haptic_topology.sim.lockstep import initial_device_pose  # noqa: E402
 from haptic_topology.sim.scenario import load_scenario  # noqa: E402
 
+#: The hand always grasps (no buttons), no grasp fade.
+OPTIONS = {'engage_button': None, 'clutch_button': None, 'grasp_ramp_ms': 0.0}
+
 
 def _q(us: np.ndarray) -> str:
     p50, p99 = np.percentile(us, [50, 99])
@@ -58,7 +62,7 @@ def in_process(ticks: int, with_cycle: bool) -> dict[str, np.ndarray]:
     """Per tick: entry latency, callback duration, period (us)."""
     sc = load_scenario('fig8_point')
     be = OpenHapticsBackend()
-    be.configure(BackendConfig(sc.device, initial_device_pose(sc), {}, {'library': 'emulator'},
+    be.configure(BackendConfig(sc.device, initial_device_pose(sc), {}, dict(OPTIONS),
                                sc.source))
     be.activate()
     lib = ctypes.CDLL(str(EMULATOR))
@@ -101,7 +105,7 @@ def loop_process(seconds: float) -> dict[str, Any]:
     spec, dim, dof = spec_for('fig8_point', lockstep=False, duration=0.0)
     cfg: BackendConfig = spec['backend_config']
     spec['backend'] = 'openhaptics'
-    spec['backend_config'] = replace(cfg, options={'library': 'emulator'})
+    spec['backend_config'] = replace(cfg, options=dict(OPTIONS))
     proc = LoopProcess(spec, dim, dof)
     try:
         proc.start()
@@ -142,6 +146,7 @@ def main() -> int:
     if not EMULATOR.is_file():
         print(f'{EMULATOR}: not built; run scripts/setup.sh', file=sys.stderr)
         return 2
+    os.environ['HAPTIC_TOPOLOGY_LIBHD'] = str(EMULATOR)     # this process, the loop's, run's
     print(f'host: {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}')
     for with_cycle in (False, True):
         r = in_process(args.ticks, with_cycle)

@@ -21,12 +21,7 @@ from haptic_topology.bag import analyze as analyze_command
 from haptic_topology.bag import repair as bag_command
 from haptic_topology.bag import replay as replay_plan
 from haptic_topology.bringup import run as run_command
-from haptic_topology.errors import (
-    AxesError,
-    HapticTopologyError,
-    MissingLibraryError,
-    VendorLibraryMissing,
-)
+from haptic_topology.errors import AxesError, HapticTopologyError, VendorLibraryMissing
 from haptic_topology.processes import stacks_on_signal
 from haptic_topology.remote import server_command as device_server_command
 from haptic_topology.sim import command as simulate_command
@@ -154,8 +149,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     A scenario whose task the device cannot render (:class:`~haptic_topology.errors.AxesError`)
     and a vendor backend whose package or library is missing
-    (:class:`~haptic_topology.errors.VendorLibraryMissing`,
-    :class:`~haptic_topology.errors.MissingLibraryError`) exit with status 2, any other
+    (:class:`~haptic_topology.errors.VendorLibraryMissing`) exit with status 2, any other
     error of the package with 1.
     SIGTERM ends a command as Ctrl-C does (status 143 instead of 130): ``run`` stops its
     nodes and every process deletes its DDS participant (nothing stays in ``/dev/shm``)."""
@@ -166,7 +160,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
     try:
         return run(args)
-    except (AxesError, VendorLibraryMissing, MissingLibraryError) as exc:   # usage, install
+    except (AxesError, VendorLibraryMissing) as exc:    # a usage or installation error
         print(f'haptic-topology {args.command}: error: {exc}', file=sys.stderr)
         return 2
     except HapticTopologyError as exc:

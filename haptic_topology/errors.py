@@ -25,12 +25,6 @@ class AxesError(ConfigError):
     (``haptic-topology`` exits with status 2)."""
 
 
-class MissingLibraryError(ConfigError):
-    """A device backend's vendor library or Python package is not installed on this computer:
-    refused before anything starts, one line naming the package, the library and the variable
-    that points at it (``haptic-topology`` exits with status 2)."""
-
-
 class BagError(HapticTopologyError):
     """A bag is missing, corrupt, truncated or holds unexpected message types."""
 

@@ -13,14 +13,15 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from haptic_topology.errors import DeviceError, MissingLibraryError
+from haptic_topology.errors import DeviceError, VendorLibraryMissing
 
-#: The Python package and its pin, the library, and the variable that points at the library.
+#: The backend, the Python package and its pin, the library, and the variable that points at
+#: the library.
+BACKEND = 'openhaptics'
 PACKAGE = 'pyOpenHaptics==1.0.1'
 LIBRARY = 'libHD.so'
 LIBRARY_ENV = 'HAPTIC_TOPOLOGY_LIBHD'
@@ -37,6 +38,8 @@ HD_SUCCESS = 0
 HD_FORCE_OUTPUT = 0x4000
 HD_CURRENT_INKWELL_SWITCH = 0x2002
 HD_CURRENT_VELOCITY = 0x2051
+HD_VERSION = 0x2500
+HD_DEVICE_VENDOR = 0x2503
 HD_DEVICE_SERIAL_NUMBER = 0x2504
 HD_CALIBRATION_STYLE = 0x2555
 HD_NOMINAL_MAX_FORCE = 0x2603
@@ -60,21 +63,16 @@ def error_text(code: int) -> str:
     return f'{ERROR_NAMES.get(code, "HD error")} (0x{code:03x})'
 
 
-def library_path(options: Mapping[str, Any]) -> str:
-    """The library to load: ``options['library']`` (``emulator``: :data:`EMULATOR`), else
-    ``$HAPTIC_TOPOLOGY_LIBHD``, else ``libHD.so`` on the loader's path."""
-    lib = str(options.get('library', '') or '')
-    if lib == 'emulator':
-        return str(EMULATOR)
-    return lib or os.environ.get(LIBRARY_ENV, '') or LIBRARY
+def library_path() -> str:
+    """The library to load: ``$HAPTIC_TOPOLOGY_LIBHD`` (a path; the emulator:
+    :data:`EMULATOR`), else ``libHD.so`` on the loader's path."""
+    return os.environ.get(LIBRARY_ENV, '') or LIBRARY
 
 
-def missing_text(path: str, why: str) -> str:
-    """The one-line refusal of a computer without the library or the package."""
-    return (f'openhaptics: cannot load {path} ({why}): install OpenHaptics for Linux and the '
-            f'Touch device driver (libHD.so in /usr/lib or on LD_LIBRARY_PATH), or set '
-            f'{LIBRARY_ENV} (or backend_options.library) to libHD.so\'s path; the Python '
-            f'package {PACKAGE} must be installed too')
+def missing(detail: str) -> VendorLibraryMissing:
+    """The one-line refusal of a computer without the library or the package (exit status
+    2)."""
+    return VendorLibraryMissing(BACKEND, PACKAGE, LIBRARY, LIBRARY_ENV, detail)
 
 
 @dataclass(frozen=True)
@@ -91,26 +89,26 @@ class HdLibrary:
 _loaded: list[HdLibrary] = []
 
 
-def load_hd(options: Mapping[str, Any]) -> HdLibrary:
-    """Load the library (by path, ``RTLD_GLOBAL``) and import pyOpenHaptics over it;
-    :class:`~haptic_topology.errors.MissingLibraryError` when either is missing. A process
-    holds one libHD: a second library path is refused."""
-    path = library_path(options)
+def load_hd() -> HdLibrary:
+    """Load the library (:func:`library_path`, by path, ``RTLD_GLOBAL``) and import
+    pyOpenHaptics over it; :class:`~haptic_topology.errors.VendorLibraryMissing` when either is
+    missing. A process holds one libHD: another path later is refused."""
+    path = library_path()
     if path != LIBRARY and not Path(path).is_file():
-        raise MissingLibraryError(missing_text(path, 'no such file'))
+        raise missing(f'{LIBRARY_ENV}={path}: no such file')
     if _loaded:
         if _loaded[0].path != path:
-            raise DeviceError(f'openhaptics: this process has loaded {_loaded[0].path}; '
+            raise DeviceError(f'{BACKEND}: this process has loaded {_loaded[0].path}; '
                               f'cannot load {path} too')
         return _loaded[0]
     try:
         ctypes.CDLL(path, mode=ctypes.RTLD_GLOBAL)
     except OSError as exc:
-        raise MissingLibraryError(missing_text(path, str(exc))) from None
+        raise missing(str(exc)) from None
     try:
         import pyOpenHaptics.hd as hd
         import pyOpenHaptics.hd_callback as scheduling
     except ImportError as exc:
-        raise MissingLibraryError(missing_text(path, f'package pyOpenHaptics: {exc}')) from None
+        raise missing(f'package pyOpenHaptics: {exc}') from None
     _loaded.append(HdLibrary(path, hd, scheduling))
     return _loaded[0]

@@ -1,8 +1,9 @@
-"""``backend: openhaptics`` in the node graph: ``haptic-topology run fig8_point --params
-config/devices/openhaptics_emulator.yaml`` (the hosted layout's loop process on the emulated
-Touch's servo clock, through the unmodified pyOpenHaptics), with the device unplugged
-mid-run (``HD_EMU_UNPLUG_AT``): the run ends normally with its bag and summary, the states
-carry FAULT from the unplug on with zero output, and the driver's log says why in one line.
+"""``backend: openhaptics`` in the node graph: ``HAPTIC_TOPOLOGY_LIBHD=<the emulator>
+haptic-topology run fig8_point --params config/devices/openhaptics_emulator.yaml`` (the hosted
+layout's loop process on the emulated Touch's servo clock, through the unmodified
+pyOpenHaptics), with the device unplugged mid-run (``HD_EMU_UNPLUG_AT``): the run ends
+normally with its bag and summary, the states carry FAULT from the unplug on with zero
+output, and the driver's log says why in one line.
 
 Every process runs in the session's random ROS_DOMAIN_ID (``conftest.ros_domain_env``); every
 wait has a deadline.
@@ -32,7 +33,7 @@ REASON = 'device fault: openhaptics: Touch: HD_COMM_ERROR (0x302): output zero w
 
 def test_a_run_on_the_emulated_touch_unplugged_mid_run(tmp_path: Path) -> None:
     bag = tmp_path / 'fig8_point'
-    env = dict(os.environ, HD_EMU_UNPLUG_AT='1500')
+    env = dict(os.environ, HD_EMU_UNPLUG_AT='1500', HAPTIC_TOPOLOGY_LIBHD=str(EMULATOR))
     proc = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', 'run', 'fig8_point',
                            '--params', str(PARAMS), '--duration', '2', '--out', str(bag)],
                           capture_output=True, timeout=300, env=env, check=False)

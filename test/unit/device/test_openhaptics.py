@@ -40,12 +40,15 @@ from haptic_topology.device.backend import (
 )
 from haptic_topology.device.openhaptics import OpenHapticsBackend
 from haptic_topology.device.openhaptics_hd import EMULATOR
-from haptic_topology.errors import AxesError, DeviceError, MissingLibraryError
+from haptic_topology.errors import AxesError, DeviceError, VendorLibraryMissing
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
-OPTIONS = {'library': 'emulator'}
+#: No engage or clutch button (the hand always grasps), no grasp fade (the driver's watchdog
+#: fades in already; the checks compare each force with its command).
+PARAMS = Path(__file__).resolve().parents[3] / 'config' / 'devices' / 'openhaptics_emulator.yaml'
+OPTIONS = {'engage_button': None, 'clutch_button': None, 'grasp_ramp_ms': 0.0}
 EMU_VARIABLES = ('HD_EMU_UNPLUG_AT', 'HD_EMU_NAN_AT', 'HD_EMU_NAN_FOR', 'HD_EMU_FAIL',
                  'HD_EMU_CALIBRATION', 'HD_EMU_INKWELL', 'HD_EMU_MAX_FORCE', 'HD_EMU_BUTTONS')
 
@@ -58,6 +61,7 @@ def clean_emulator(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     """No emulator setting of another test (they are read at each hdInitDevice)."""
     for name in EMU_VARIABLES:
         monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv('HAPTIC_TOPOLOGY_LIBHD', str(EMULATOR))
     yield
 
 
@@ -138,7 +142,9 @@ def test_identity_axes_and_units() -> None:
         be.write(np.zeros(2))
         r = be.read(0.001)
         assert r.status == DeviceStatus.OK
-        np.testing.assert_allclose(r.pose, start, atol=2e-3)    # the hand has moved it a little
+        np.testing.assert_allclose(r.pose, start, rtol=0.0, atol=1e-12)   # the first grasp
+        values = be.values()
+        assert (values['device_model'], values['device_serial']) == ('Touch', 'EMU-00001')
         np.testing.assert_array_equal(r.hand_wrench, np.zeros(2))   # no force sensor
         be.write(np.array([0.5, -0.25]))
         be.read(0.001)
@@ -149,6 +155,8 @@ def test_identity_axes_and_units() -> None:
     be = _backend({'axes': ['x', '-z', 'y']})
     be.activate()
     try:
+        be.write(np.zeros(2))
+        be.read(0.001)                  # the first reading: the hand grasps
         be.write(np.array([0.5, -0.25]))
         be.read(0.001)
         np.testing.assert_array_equal(applied()[0], [0.5, 0.0, 0.25])
@@ -164,6 +172,7 @@ def test_the_force_is_clamped_to_the_devices_nominal_maximum() -> None:
     be = _backend()
     be.activate()
     try:
+        be.read(0.001)                  # the first reading: the hand grasps
         be.write(np.array([20.0, 20.0]))
         be.read(0.001)
         f = applied()[0]
@@ -272,14 +281,30 @@ def test_calibration_is_asked_for_or_done_from_the_inkwell(
         be.deactivate()
 
 
-def test_buttons_are_read_each_frame(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv('HD_EMU_BUTTONS', '3')
-    be = _backend()
+def test_the_engage_button_grasps_and_the_clutch_lets_go() -> None:
+    """``engage_button: 0``, ``clutch_button: 1`` on the device's buttons (HD_CURRENT_BUTTONS):
+    no button, no force (WATCHDOG); button 1 held, the command reaches the motors; the clutch
+    held as well, zero again."""
+    lib = _emu()
+    lib.hdEmuSetButtons.argtypes = [ctypes.c_int, ctypes.c_int]
+    be = _backend({'engage_button': 0, 'clutch_button': 1})
     be.activate()
     try:
-        be.read(0.001)
-        assert be.buttons == 3 and be.values()['openhaptics_buttons'] == '3'
+        u = np.array([0.5, -0.25])
+        for mask, expected, status in ((0, [0.0, 0.0, 0.0], DeviceStatus.WATCHDOG),
+                                       (1, [0.5, -0.25, 0.0], DeviceStatus.OK),
+                                       (3, [0.0, 0.0, 0.0], DeviceStatus.WATCHDOG)):
+            lib.hdEmuSetButtons(mask, 0)
+            be.write(u)
+            r = be.read(0.001)          # the buttons of this frame: grasping from now on
+            be.write(u)
+            be.read(0.001)              # the force of the next frame follows them
+            assert r.status == status and be.buttons == mask
+            np.testing.assert_array_equal(applied()[0], expected)
+        assert be.values()['grasps'] == '1'
     finally:
+        lib.hdEmuSetButtons(0, 0)
+        be.write(np.zeros(2))
         be.deactivate()
 
 
@@ -291,50 +316,51 @@ def test_axes_point_tasks_only() -> None:
         check_axes(TaskSpace.PLANAR, OpenHapticsBackend.axes({}), 'fig8', 'openhaptics',
                    'fig8_point')
     check_axes(TaskSpace.SPATIAL_POINT, OpenHapticsBackend.axes({}), 'x', 'openhaptics')
-    with pytest.raises(DeviceError, match='the task must be a point task'):
+    with pytest.raises(DeviceError, match='a planar task needs torque; a 3-axis device '
+                                          'renders a point grasp only'):
         _backend(scenario='fig8')
-    with pytest.raises(DeviceError, match=r"backend_options.axes: expected 3 signed device "
-                                          r"axis names .* got \['x', 'y', '-z'\]"):
+    with pytest.raises(DeviceError, match=r"backend_options.axes: expected .* got \['x', 'y', "
+                                          r"'-z'\]"):
         _backend({'axes': ['x', 'y', '-z']})
+    with pytest.raises(DeviceError, match=r"backend_options.max_force: expected a number > 0 "
+                                          r"\(N\) or null"):
+        _backend({'max_force': -1})
     with pytest.raises(DeviceError, match="unknown option 'port'"):
         _backend({'port': 3})
 
 
 def test_a_missing_library_stops_run_before_anything_starts(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """``run`` with a libHD.so that is not there: exit status 2 and one line naming the
-    package, the library and the variable."""
-    params = tmp_path / 'params.yaml'
-    params.write_text("device_driver:\n  ros__parameters:\n    backend: openhaptics\n"
-                      f"    backend_options: '{{library: {tmp_path / 'libHD.so'}}}'\n")
-    assert cli_main(['run', 'fig8_point', '--params', str(params)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert '\n' not in err
-    assert err.startswith(f'haptic-topology run: error: openhaptics: cannot load '
-                          f'{tmp_path / "libHD.so"} (no such file): install OpenHaptics')
-    for name in ('pyOpenHaptics==1.0.1', 'libHD.so', 'HAPTIC_TOPOLOGY_LIBHD'):
-        assert name in err
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``run`` with HAPTIC_TOPOLOGY_LIBHD naming a libHD.so that is not there: exit status 2
+    and one line naming the package, the library and the variable."""
+    missing = tmp_path / 'libHD.so'
+    monkeypatch.setenv('HAPTIC_TOPOLOGY_LIBHD', str(missing))
+    assert cli_main(['run', 'fig8_point', '--params', str(PARAMS)]) == 2
+    err = capsys.readouterr().err
+    assert err == ('haptic-topology run: error: openhaptics: cannot load libHD.so through the '
+                   f'Python package pyOpenHaptics==1.0.1 (HAPTIC_TOPOLOGY_LIBHD={missing}: no '
+                   'such file); install both and set HAPTIC_TOPOLOGY_LIBHD '
+                   '(docs/devices.md)\n')
     sc = load_scenario('fig8_point')
-    with pytest.raises(MissingLibraryError):
-        OpenHapticsBackend().preflight(BackendConfig(
-            sc.device, initial_device_pose(sc), {}, {'library': str(tmp_path / 'libHD.so')}))
+    with pytest.raises(VendorLibraryMissing):
+        OpenHapticsBackend().preflight(BackendConfig(sc.device, initial_device_pose(sc), {},
+                                                     dict(OPTIONS)))
 
 
-def test_without_libhd_on_the_loaders_path_run_says_what_to_install(tmp_path: Path) -> None:
-    """No ``library`` option, no HAPTIC_TOPOLOGY_LIBHD and no libHD.so on the loader's path
-    (a computer without OpenHaptics): exit status 2, one line."""
-    params = tmp_path / 'params.yaml'
-    params.write_text('device_driver:\n  ros__parameters:\n    backend: openhaptics\n')
+def test_without_libhd_on_the_loaders_path_run_says_what_to_install() -> None:
+    """No HAPTIC_TOPOLOGY_LIBHD and no libHD.so on the loader's path (a computer without
+    OpenHaptics): exit status 2, one line."""
     env = {k: v for k, v in os.environ.items()
            if k not in ('HAPTIC_TOPOLOGY_LIBHD', 'LD_LIBRARY_PATH')}
     proc = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', 'run', 'fig8_point',
-                           '--params', str(params)], capture_output=True, text=True,
+                           '--params', str(PARAMS)], capture_output=True, text=True,
                           timeout=120, env=env, check=False)
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert proc.stderr.count('\n') == 1, proc.stderr
     assert proc.stderr.startswith('haptic-topology run: error: openhaptics: cannot load '
-                                  'libHD.so (libHD.so: cannot open shared object file'), \
-        proc.stderr
+                                  'libHD.so through the Python package pyOpenHaptics==1.0.1 '
+                                  '(libHD.so: cannot open shared object file'), proc.stderr
 
 
 def test_a_device_that_does_not_open_stops_run_before_anything_starts(
@@ -342,9 +368,7 @@ def test_a_device_that_does_not_open_stops_run_before_anything_starts(
     """``run``'s preflight opens the device (and closes it): hdInitDevice failing is status 1
     and the HD error in one line, before any node starts."""
     monkeypatch.setenv('HD_EMU_FAIL', 'hdInitDevice')
-    params = Path(__file__).resolve().parents[3] / 'config' / 'devices' / \
-        'openhaptics_emulator.yaml'
-    assert cli_main(['run', 'fig8_point', '--params', str(params)]) == 1
+    assert cli_main(['run', 'fig8_point', '--params', str(PARAMS)]) == 1
     err = capsys.readouterr().err
     assert err == ('haptic-topology run: error: device: openhaptics: hdInitDevice failed: '
                    'HD_COMM_CONFIG_ERROR (0x303): is the Touch connected and its driver '

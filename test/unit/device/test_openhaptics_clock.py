@@ -23,6 +23,12 @@ from haptic_topology.vocabulary import DeviceStatus
 pytestmark = pytest.mark.skipif(not EMULATOR.is_file(),
                                 reason=f'{EMULATOR} not built: run scripts/setup.sh')
 
+
+@pytest.fixture(autouse=True)
+def emulator(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The loop process loads the emulator (it inherits this variable)."""
+    monkeypatch.setenv('HAPTIC_TOPOLOGY_LIBHD', str(EMULATOR))
+
 #: Cycles each run waits for before it stops the child.
 CYCLES = 600
 
@@ -31,7 +37,8 @@ def _spec() -> tuple[dict[str, Any], int, int]:
     spec, dim, dof = spec_for('fig8_point', lockstep=False, duration=0.0)
     cfg: BackendConfig = spec['backend_config']
     spec['backend'] = 'openhaptics'
-    spec['backend_config'] = replace(cfg, options={'library': 'emulator'})
+    spec['backend_config'] = replace(cfg, options={'engage_button': None,
+                                                   'clutch_button': None})
     return spec, dim, dof
 
 
