@@ -283,7 +283,9 @@ class VendorSupport:
 
 #: Vendor backends: name -> ``'module:function'`` returning its :class:`VendorSupport`,
 #: imported only when asked (the backends register themselves here).
-VENDOR_BACKENDS: dict[str, str] = {}
+VENDOR_BACKENDS: dict[str, str] = {
+    'openhaptics': 'haptic_topology.device.openhaptics:support',
+}
 
 
 def vendor_support(name: str) -> VendorSupport | None:
