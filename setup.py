@@ -19,6 +19,7 @@ setup(
         (f'share/{PACKAGE}/config/linkages', sorted(glob('config/linkages/*.yaml')
                                                      + glob('config/linkages/*.urdf'))),
         (f'share/{PACKAGE}/config/scenarios', sorted(glob('config/scenarios/*.yaml'))),
+        (f'share/{PACKAGE}/config/meshes', sorted(glob('config/meshes/*.stl'))),
         (f'share/{PACKAGE}/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools'],

@@ -21,7 +21,7 @@ from haptic_topology.bag import analyze as analyze_command
 from haptic_topology.bag import repair as bag_command
 from haptic_topology.bag import replay as replay_plan
 from haptic_topology.bringup import run as run_command
-from haptic_topology.errors import AxesError, HapticTopologyError
+from haptic_topology.errors import AxesError, HapticTopologyError, VendorLibraryMissing
 from haptic_topology.processes import stacks_on_signal
 from haptic_topology.remote import server_command as device_server_command
 from haptic_topology.sim import command as simulate_command
@@ -152,7 +152,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``haptic-topology`` console script; returns the exit status.
 
     A scenario whose task the device cannot render (:class:`~haptic_topology.errors.AxesError`)
-    exits with status 2, any other error of the package with 1.
+    and a vendor backend whose package or library is missing
+    (:class:`~haptic_topology.errors.VendorLibraryMissing`) exit with status 2, any other
+    error of the package with 1.
     SIGTERM ends a command as Ctrl-C does (status 143 instead of 130): ``run`` stops its
     nodes and every process deletes its DDS participant (nothing stays in ``/dev/shm``)."""
     args = build_parser().parse_args(argv)
@@ -162,7 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
     try:
         return run(args)
-    except AxesError as exc:        # the task does not fit the device: a usage error
+    except (AxesError, VendorLibraryMissing) as exc:    # a usage or installation error
         print(f'haptic-topology {args.command}: error: {exc}', file=sys.stderr)
         return 2
     except HapticTopologyError as exc:

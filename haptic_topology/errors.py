@@ -44,6 +44,26 @@ class DeviceError(HapticTopologyError):
     """A device backend cannot be configured, activated, read or written."""
 
 
+class VendorLibraryMissing(DeviceError, ConfigError):
+    """A vendor backend's Python package or the vendor's own library cannot be loaded: one line
+    naming the package, the library and the environment variable that points to it
+    (``haptic-topology`` exits with status 2, as for a configuration error). ``detail``: what
+    the loader said, appended."""
+
+    def __init__(self, backend: str, package: str, library: str, variable: str,
+                 detail: str = '') -> None:
+        self.backend, self.package, self.library = backend, package, library
+        self.variable, self.detail = variable, detail
+        more = f' ({detail})' if detail else ''
+        super().__init__(f'{backend}: cannot load {library} through the Python package '
+                         f'{package}{more}; install both and set {variable} '
+                         f'(docs/devices.md)')
+
+    def __reduce__(self) -> tuple[object, ...]:     # pickled across processes whole
+        return (type(self), (self.backend, self.package, self.library, self.variable,
+                             self.detail))
+
+
 class TruncatedError(BagError):
     """The MCAP stream ended before its footer (the bag's readers keep what came before)."""
 

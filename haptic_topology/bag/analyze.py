@@ -42,8 +42,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from haptic_topology.bag.graph_index import DEVICE_STATUS
 from haptic_topology.bag.graph_trace import stream_graph_bag
 from haptic_topology.bag.reader import METADATA
+from haptic_topology.device.vendor import IDENTITY_KEYS
 from haptic_topology.errors import BagError, ConfigError
 from haptic_topology.model.linkage import Linkage
 from haptic_topology.sim.trace import Trace
@@ -75,6 +77,9 @@ class Run:
     graph_id: str | None = None
     foreign_messages: dict[str, int] = field(default_factory=dict)
     foreign_publishers: dict[str, list[str]] = field(default_factory=dict)
+    #: A bag's device, from the driver's newest ``/diagnostics`` status: ``hardware_id`` and
+    #: what identifies a vendor's unit (``device_vendor``, ``device_model``, ...).
+    device: dict[str, str] = field(default_factory=dict)
 
     @property
     def meta(self) -> dict[str, Any]:
@@ -154,9 +159,11 @@ def reduce_bag(path: str | Path, scenario: str = '', dof: int | None = None,
     loop = dict(result.loop)
     if periods:
         loop.update(period.result())
+    dev = result.diagnostics.get(DEVICE_STATUS, {})
+    device = {k: dev[k] for k in ('hardware_id', *IDENTITY_KEYS) if dev.get(k)}
     return Run(label_of(p), p, rows.trace or result.trace, _summary(summary, p), loop,
                dict(result.skipped), result.graph_id, dict(result.foreign_messages),
-               dict(result.foreign_publishers))
+               dict(result.foreign_publishers), device)
 
 
 def load_run(path: str | Path, plot: bool = True) -> Run:
@@ -264,10 +271,9 @@ def format_loop_health(runs: list[tuple[str, dict[str, Any]]]) -> str:
 
 def plot_comparison(runs: list[Run], path: Path) -> Path:
     """Drift over time of each run in one figure (PNG)."""
-    import matplotlib
-
-    matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+
+    from haptic_topology.sim.plots import save_figure
 
     fig, ax = plt.subplots(figsize=(10, 5))
     for r in runs:
@@ -279,10 +285,7 @@ def plot_comparison(runs: list[Run], path: Path) -> Path:
     ax.grid(alpha=0.3)
     ax.legend(loc='best')
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _unique_labels(labels: list[str]) -> list[str]:
@@ -321,11 +324,8 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
             row['foreign_publishers'] = dict(r.foreign_publishers)
         rows.append(row)
         if plots:
-            import matplotlib.pyplot as plt
-
-            fig = run_figure(r)
-            fig.savefig(out / f'{r.label}.png', dpi=110)
-            plt.close(fig)
+            from haptic_topology.sim.plots import save_figure
+            save_figure(run_figure(r), out / f'{r.label}.png')
             runs.append(r)
     if plots and len(runs) > 1:
         plot_comparison(runs, out / 'comparison.png')

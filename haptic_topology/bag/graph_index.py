@@ -353,6 +353,7 @@ def index_bag(bag: Bag, scenario: str, dof: int | None, task_dim: int | None,
                 continue
             for st in getattr(dmsg, 'status', None) or []:
                 pairs = {kv.key: kv.value for kv in st.values}
+                pairs.setdefault('hardware_id', str(getattr(st, 'hardware_id', '') or ''))
                 if pairs.get('graph_id', graph.graph_id) != graph.graph_id:
                     run.skip('read', 'diagnostics_foreign_graph')
                     continue

@@ -54,6 +54,8 @@ def analyse(job: AnalysisJob) -> dict[str, Any]:
     summary['graph_id'] = result.graph_id
     summary['foreign_messages'] = result.foreign_messages
     summary['foreign_publishers'] = result.foreign_publishers
+    summary.update({k if k.startswith('device_') else f'device_{k}': v
+                    for k, v in result.device.items()})
     if result.foreign_publishers:
         print(f'foreign publishers on the graph\'s topics (nothing of theirs applied): '
               f'{", ".join(result.foreign_publishers)}', flush=True)

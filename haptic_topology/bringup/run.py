@@ -404,7 +404,9 @@ def run(args: argparse.Namespace) -> int:
     from haptic_topology.messages.package import require_msgs_package
 
     require_msgs_package()      # before anything starts: one line if the messages are missing
+    from haptic_topology.bringup.startup import preflight_device
     from haptic_topology.config.resolve import check_device_axes, run_backend
+    from haptic_topology.device.vendor import require_library
     from haptic_topology.paths import config_dir
     from haptic_topology.sim.scenario import load_scenario
 
@@ -420,7 +422,10 @@ def run(args: argparse.Namespace) -> int:
     params = args.params or config_dir() / 'haptic_topology.yaml'
     if not params.is_file():
         raise ConfigError(f'--params: {params}: no such file')
-    check_device_axes(sc, *run_backend(params, args.backend, args.param))  # one line, exit 2
+    device, options = run_backend(params, args.backend, args.param)
+    check_device_axes(sc, device, options)                      # one line, exit 2
+    require_library(device)         # a vendor backend's SDK: one line, exit 2
+    preflight_device(sc, device, options, args.clock)           # one line, exit 1
     scenario_ref = args.scenario if Path(args.scenario).suffix == '' else str(
         Path(args.scenario).resolve())
     layout = 'composed' if args.composed else args.layout

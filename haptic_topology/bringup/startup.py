@@ -13,15 +13,46 @@ prints ``device: backend <name>, <hardware_id>`` (:func:`device_line`).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from haptic_topology.bringup.watch import DEVICE_STATUS, GraphWatcher
-from haptic_topology.errors import BringupError, TransitionRefused, WaitTimeout
+from haptic_topology.errors import (
+    BringupError,
+    DeviceError,
+    TransitionRefused,
+    VendorLibraryMissing,
+    WaitTimeout,
+)
+
+if TYPE_CHECKING:
+    from haptic_topology.sim.scenario import Scenario
 
 #: How long the bringup waits for a node's diagnostics after a refused transition, and for
 #: the device's identity after the activation (s).
 FAULT_WAIT = 5.0
 #: The node the bringup starts through its lifecycle.
 DRIVER = 'device_driver'
+
+
+def preflight_device(sc: Scenario, backend: str, options: dict[str, Any], clock: str) -> None:
+    """Before any node starts: whether the device of ``backend`` (with its parsed
+    ``options``) can run scenario ``sc`` on ``clock`` and can be reached
+    (:meth:`~haptic_topology.device.backend.DeviceBackend.preflight`, on an instance of this
+    process's own, released again), so that ``run`` fails at once with the backend's own
+    line (:class:`~haptic_topology.errors.BringupError`) rather than after the graph's
+    start."""
+    from haptic_topology.device.backend import BackendConfig, DeviceBackend, create_backend
+    from haptic_topology.sim.lockstep import initial_device_pose
+    try:
+        device = create_backend(backend, lockstep=clock == 'lockstep')
+        if type(device).preflight is DeviceBackend.preflight:
+            return
+        device.preflight(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user),
+                                       dict(options), sc.source))
+    except VendorLibraryMissing:
+        raise                   # an installation error: exit status 2, as require_library's
+    except DeviceError as exc:
+        raise BringupError(f'device: {exc}') from None
 
 
 def start_driver(watch: GraphWatcher, timeout: float, logs: Path) -> None:

@@ -44,7 +44,7 @@ import importlib
 import importlib.metadata as md
 import pickle
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
 
@@ -75,9 +75,11 @@ class BackendConfig:
     source: str = ''
 
 
-#: Task dimension -> its name in :attr:`DeviceBackend.hardware_id` (3 planar, 6 spatial; a
-#: backend that knows its task, as the simulated maglev, names it itself).
-_TASK_NAMES = {t.dim: t.value for t in (TaskSpace.PLANAR, TaskSpace.SPATIAL)}
+#: Task dimension -> its name in :attr:`DeviceBackend.hardware_id` of a backend that does not
+#: say its task (:meth:`DeviceBackend.task`): only the dimensions one task has (2
+#: planar_point, 6 spatial); m = 3 is planar or spatial_point.
+_TASK_NAMES = {m: tasks[0].value for m in {t.dim for t in TaskSpace}
+               if len(tasks := [t for t in TaskSpace if t.dim == m]) == 1}
 
 
 @dataclass(frozen=True)
@@ -154,6 +156,26 @@ class DeviceBackend(ABC):
     #: ``lmi_controller`` is on by default for a device that is not,
     #: :mod:`haptic_topology.control.passivity`). False: a real device, or one that may be.
     simulated: ClassVar[bool] = False
+    #: Whether the device's own servo loop is the loop's clock (OpenHaptics' scheduler): the
+    #: loop process then runs each cycle inside the device's callback (:meth:`run_clocked`)
+    #: and does not pace itself. Such a backend still serves ``read``/``write`` called by a
+    #: loop that paces itself (the in-process layouts, the conformance checks).
+    drives_loop: ClassVar[bool] = False
+
+    def run_clocked(self, period: float, cycle: Callable[[float], None],
+                    between: Callable[[float], bool], keep_going: Callable[[], bool]) -> None:
+        """A backend that :attr:`drives_loop`: run the loop on the device's servo clock until
+        it stops. Each servo tick (``period`` s; a backend whose servo loop runs at another
+        rate refuses it), inside the device's callback: ``cycle(now)`` (``now``: monotonic
+        s; one loop cycle: ``write``, ``read``, the controller) with the device's frame open,
+        then, once the frame has gone to the device, ``between(now)`` (the work between two
+        cycles; False: stop). The calling thread waits meanwhile and calls ``keep_going()``
+        every few tens of milliseconds (False: stop after the current tick). Returns once the
+        callback has stopped; raises :class:`~haptic_topology.errors.DeviceError` when the
+        servo loop stops by itself, and re-raises what ``cycle`` or ``between`` raised."""
+        del period, cycle, between, keep_going
+        raise DeviceError(f'{self.name}: run_clocked(): the device has no servo clock of its '
+                          'own (drives_loop is False)')
 
     @classmethod
     def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
@@ -165,6 +187,16 @@ class DeviceBackend(ABC):
         override it."""
         del options
         return ALL_DEVICE_AXES
+
+    def preflight(self, config: BackendConfig) -> None:
+        """Whether the device can be reached, asked on a fresh instance by ``haptic-topology
+        run`` in its own process before it starts any node, so that an unreachable device
+        fails the run at once with its own one-line reason (a
+        :class:`~haptic_topology.errors.DeviceError`) instead of after the graph's start.
+        It must leave the device as it found it (never enable an output) and release
+        whatever it opened. Default: nothing
+        to check (a simulated device, or one whose check is its ``configure``)."""
+        del config
 
     @abstractmethod
     def configure(self, config: BackendConfig) -> None:
@@ -213,16 +245,28 @@ class DeviceBackend(ABC):
         return self.read(dt)
 
     def task_dim(self) -> int:
-        """m of the task vectors (3 planar, 6 spatial); valid after ``configure``."""
+        """m of the task vectors (3 planar, 6 spatial, 2 planar_point, 3 spatial_point);
+        valid after ``configure``."""
         raise DeviceError(f'{type(self).__name__} does not implement task_dim()')
+
+    def task(self) -> TaskSpace | None:
+        """The task the backend was configured for (``config.params.task`` of
+        :meth:`configure`), or None: before ``configure``, or a backend that does not keep
+        it. m alone does not tell it (3 is ``planar`` or ``spatial_point``). Default: None."""
+        return None
 
     @property
     def hardware_id(self) -> str:
         """The device this backend drives, as ``DiagnosticStatus.hardware_id`` of the driver's
-        diagnostics: ``'<name> <planar|spatial>'`` once configured (e.g. ``'sim_maglev
-        planar'``), ``'<name>'`` before. A backend of a real device overrides it with what
-        identifies the unit (model and serial number, port or address). Read from the
-        diagnostics thread at 1 Hz, never in the device cycle: return text, do no I/O."""
+        diagnostics: ``'<name> <task>'`` once configured (e.g. ``'sim_maglev planar'``,
+        ``'sim_maglev spatial_point'``; the task of :meth:`task`, else named from
+        :meth:`task_dim` where one task has that m, else ``'<m>-dof'``), ``'<name>'`` before.
+        A backend of a real device overrides it with what identifies the unit (model and
+        serial number, port or address). Read from the diagnostics thread at 1 Hz, never in
+        the device cycle: return text, do no I/O."""
+        task = self.task()
+        if task is not None:
+            return f'{self.name} {task.value}'
         try:
             dim = self.task_dim()
         except DeviceError:
@@ -266,12 +310,10 @@ class SimMaglevBackend(DeviceBackend):
         del options
         return ALL_DEVICE_AXES
 
-    @property
-    def hardware_id(self) -> str:
-        """``'sim_maglev <task>'`` once configured (e.g. ``'sim_maglev planar_point'``)."""
-        if self._model is None:
-            return self.name
-        return f'{self.name} {self._model.params.task.value}'
+    def task(self) -> TaskSpace | None:
+        """The scenario's task once configured (``hardware_id``: ``'sim_maglev <task>'``,
+        e.g. ``'sim_maglev planar_point'``)."""
+        return None if self._model is None else self._model.params.task
 
     def __init__(self) -> None:
         self._model: MaglevModel | None = None
@@ -375,6 +417,7 @@ BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
     SimMaglevBackend.name: SimMaglevBackend,
     'ros_topics': 'haptic_topology.nodes.topic_backend:RosTopicBackend',
     'network': 'haptic_topology.remote.network:NetworkBackend',
+    'openhaptics': 'haptic_topology.device.openhaptics:OpenHapticsBackend',
 }
 
 

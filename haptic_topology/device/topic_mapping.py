@@ -65,9 +65,10 @@ class Reliability(enum.Enum):
     RELIABLE = 'reliable'
 
 
-def option_error(key: str, expected: str, value: Any) -> DeviceError:
-    """The error of a bad ``backend_options`` entry: names the field and what it must be."""
-    return DeviceError(f'{BACKEND}: backend_options.{key}: expected {expected}, got {value!r}')
+def option_error(key: str, expected: str, value: Any, backend: str = BACKEND) -> DeviceError:
+    """The error of a bad ``backend_options`` entry of ``backend``: names the field and what it
+    must be."""
+    return DeviceError(f'{backend}: backend_options.{key}: expected {expected}, got {value!r}')
 
 
 #: Options and their defaults (None: required). See :class:`TopicOptions`.
@@ -123,9 +124,10 @@ def _positive(options: Mapping[str, Any], key: str, hi: float = math.inf) -> flo
     return float(value)
 
 
-def _axes(value: Any) -> np.ndarray:
+def parse_axes(value: Any, backend: str = BACKEND) -> np.ndarray:
     """``axes``: 3 signed axis names (task axis i = that device axis) or a 3 x 3 rotation
-    (rows: task axes in device coordinates); right-handed either way."""
+    (rows: task axes in device coordinates); right-handed either way. A bad value raises
+    :class:`~haptic_topology.errors.DeviceError` naming ``backend``'s option."""
     expected = ('3 signed device axis names such as [x, -z, y] (task x, y, z), or a 3 x 3 '
                 'rotation matrix (rows), right-handed')
     if (isinstance(value, list) and len(value) == 3
@@ -136,7 +138,7 @@ def _axes(value: Any) -> np.ndarray:
             sign = -1.0 if text.startswith('-') else 1.0
             axis = _AXES.get(text.lstrip('+-'))
             if axis is None:
-                raise option_error('axes', expected, value)
+                raise option_error('axes', expected, value, backend)
             a[i, axis] = sign
     elif (isinstance(value, list) and len(value) == 3
           and all(isinstance(r, list) and len(r) == 3 for r in value)
@@ -144,10 +146,11 @@ def _axes(value: Any) -> np.ndarray:
                   for r in value for v in r)):
         a = np.array(value, dtype=float)
     else:
-        raise option_error('axes', expected, value)
+        raise option_error('axes', expected, value, backend)
     if (not np.all(np.isfinite(a)) or np.abs(a @ a.T - np.eye(3)).max() > _ORTHO_TOL
             or abs(np.linalg.det(a) - 1.0) > _ORTHO_TOL):
-        raise option_error('axes', expected + ' (orthonormal, determinant +1)', value)
+        raise option_error('axes', expected + ' (orthonormal, determinant +1)', value,
+                           backend)
     return a
 
 
@@ -210,6 +213,23 @@ class TopicMapping:
         m = self._m
         return (m[0] * x + m[3] * y + m[6] * z, m[1] * x + m[4] * y + m[7] * z,
                 m[2] * x + m[5] * y + m[8] * z)
+
+    # -- a point (3-axis vendor devices, haptic_topology.device.vendor) ----------------------
+    def point(self, p: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Task position ``p_o + M s p_D`` (m) of the device position ``p`` (device units)."""
+        s, o = self.scale, self._o
+        tx, ty, tz = self._rot(s * p[0], s * p[1], s * p[2])
+        return o[0] + tx, o[1] + ty, o[2] + tz
+
+    def point_velocity(self, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Task velocity ``M s v_D`` (m/s) of the device velocity ``v``."""
+        s = self.scale
+        return self._rot(s * v[0], s * v[1], s * v[2])
+
+    def point_force(self, f: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Device force ``M^T f_T / k_f`` (device units) of the task force ``f`` (N)."""
+        k = 1.0 / self.force_scale
+        return self._rot_t(k * f[0], k * f[1], k * f[2])
 
     # -- device -> task (the backend) --------------------------------------------------------
     def pose(self, p: tuple[float, float, float], q: tuple[float, float, float, float],
@@ -349,7 +369,7 @@ def parse_topic_options(options: Mapping[str, Any], task: TaskSpace) -> TopicOpt
     if missing:
         raise option_error(missing[0], 'a topic name (text)', None)
     p_o, r_o = _origin(options.get('origin'), task)
-    a = _axes(options.get('axes', DEFAULTS['axes']))
+    a = parse_axes(options.get('axes', DEFAULTS['axes']))
     mapping = TopicMapping(task, r_o @ a, p_o, _positive(options, 'scale'),
                            _positive(options, 'force_scale'),
                            _positive(options, 'torque_scale'))

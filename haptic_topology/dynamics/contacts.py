@@ -11,11 +11,14 @@ URDF takes the URDF's ``<collision>`` shapes instead, all modelled exactly: sphe
 capsules (``<capsule radius length>``, axis along the collision frame's z) as capsules, boxes
 and cylinders as solids (:mod:`haptic_topology.model.solids`; in a planar task a box, or a
 cylinder whose axis lies in the plane, as its projection, a convex polygon, and a cylinder
-along z as a disc); a URDF link without ``<collision>`` does not collide. A mesh, and in a
-planar task a cylinder tilted out of the plane (its projection has elliptic ends), cannot be
+along z as a disc), meshes (spatial tasks) as their convex hulls
+(:mod:`haptic_topology.model.meshes`: the file found through ``package://``, the ament index,
+``ROS_PACKAGE_PATH`` or the URDF's directory, and why the hull is the right shape for a
+penalty contact); a URDF link without ``<collision>`` does not collide. In a planar task a
+mesh, and a cylinder tilted out of the plane (its projection has elliptic ends), cannot be
 modelled without approximating it, so such a link is refused unless ``contacts.links.<name>``
 says what to do: ``radius: r`` (the default capsule along the link, also for YAML links) or
-``collide: false`` (the link does not collide).
+``collide: false`` (the link does not collide); both also replace a spatial link's meshes.
 A contact candidate is a point ``p_i`` on a capsule's axis with its signed gap ``g_i`` to an
 obstacle (m, negative: penetration depth ``delta_i = -g_i``) and the obstacle's normal ``n_i``
 (unit, world, from the obstacle towards the link). Against a half-plane or plane the
@@ -27,7 +30,9 @@ still passive). In a planar task the capsules are projected onto the xy plane (t
 obstacles extend along z). A solid's candidates are those of
 :func:`~haptic_topology.model.solids.solid_gaps` (a box's corners and a cylinder's deepest rim
 points against planes, the
-closest or deepest point against the other shapes), each at its own point of the solid.
+closest or deepest point against the other shapes), each at its own point of the solid; a
+mesh's candidate against every obstacle is the witness point of coal's signed distance
+between its hull and the obstacle (a plane as a half space, a mesh obstacle as its hull).
 
 **Contact model** (penalty with damping and regularized Coulomb friction), per candidate with
 ``delta_i > 0``, ``v_i = J_i qdot`` the velocity of the contact point (m/s, world)::
@@ -52,6 +57,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -59,6 +65,7 @@ import pinocchio as pin
 
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage
+from haptic_topology.model.meshes import MeshGeometry, load_mesh, resolve_mesh
 from haptic_topology.model.obstacles import (
     EPS,
     Obstacle,
@@ -68,7 +75,6 @@ from haptic_topology.model.obstacles import (
 )
 from haptic_topology.model.solids import (
     CoalPair,
-    box_sdf,
     box_vertices,
     convex_hull_xy,
     cylinder_rims,
@@ -81,6 +87,8 @@ from haptic_topology.validate import as_bool, as_float, check_keys
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
 _ROUND = (ObstacleKind.DISC, ObstacleKind.SPHERE)
+#: Obstacles a box or cylinder meets through coal (a mesh solid meets every obstacle so).
+_COAL = (ObstacleKind.BOX, ObstacleKind.MESH)
 #: Chains up to this many links take discs and spheres in scalar arithmetic.
 _SCALAR_LINKS = 8
 
@@ -117,8 +125,10 @@ class LinkSolid:
     """A URDF box or cylinder on link ``link`` (index), placed in the link's joint frame:
     ``kind`` ``box`` (``size``: half extents, m) or ``cylinder`` (``size``: radius, half
     length, m; axis along ``rotation[:, 2]``) at ``centre`` ((3,) m) with ``rotation``
-    (link_R_solid); in a planar task ``kind`` ``polygon``: its projection on the link's xy
-    plane, ``vertices`` (k x 3, z = 0, counter-clockwise, link frame)."""
+    (link_R_solid); ``kind`` ``mesh`` (spatial tasks): the convex hull of ``mesh`` (``size``:
+    its scale) with its frame at ``centre``, turned by ``rotation``; in a planar task ``kind``
+    ``polygon``: its projection on the link's xy plane, ``vertices`` (k x 3, z = 0,
+    counter-clockwise, link frame)."""
 
     link: int
     kind: str
@@ -126,6 +136,7 @@ class LinkSolid:
     rotation: np.ndarray
     size: tuple[float, ...]
     vertices: np.ndarray | None = None
+    mesh: MeshGeometry | None = None
 
 
 LinkShape = LinkCapsule | LinkSolid
@@ -149,9 +160,11 @@ class ContactSettings:
     where: str = 'contacts'
 
     @classmethod
-    def from_config(cls, raw: Any, where: str, linkage: Linkage) -> ContactSettings:
+    def from_config(cls, raw: Any, where: str, linkage: Linkage, base: Path | None = None
+                    ) -> ContactSettings:
         """Parse the block (``where``: its path) and check it against ``linkage`` (link
-        names, collision shapes it can model: :meth:`capsules`)."""
+        names, collision shapes it can model: :meth:`capsules`); ``base``: the directory
+        of the scenario file (relative mesh obstacle files)."""
         c = check_keys(raw, where, required=('obstacles',), optional=(
             'stiffness', 'damping', 'friction', 'slip_velocity', 'margin', 'link_radius',
             'links', 'lmi_local'))
@@ -176,7 +189,8 @@ class ContactSettings:
                                   f'or collide: false')
             choices.append((name, as_float(s['radius'], f'{w}.radius', lo=0.0)
                             if collide else None))
-        obstacles = obstacles_from_config(c['obstacles'], f'{where}.obstacles', linkage.task)
+        obstacles = obstacles_from_config(c['obstacles'], f'{where}.obstacles', linkage.task,
+                                          base)
         settings = cls(params, obstacles, default, tuple(choices),
                        as_bool(c.get('lmi_local', True), f'{where}.lmi_local'), where)
         settings.shapes(linkage)
@@ -235,6 +249,13 @@ class ContactSettings:
                                if planar else
                                LinkSolid(i, 'box', centre, rot, tuple(half_extents.tolist())))
                     continue
+                if shape.kind == 'mesh' and not planar:
+                    where = f'{linkage.urdf_path}: link {shape.urdf_link!r} <mesh>'
+                    base = linkage.urdf_path.parent if linkage.urdf_path else None
+                    geometry = load_mesh(resolve_mesh(shape.mesh, base, where), (
+                        shape.size[0], shape.size[1], shape.size[2]), where)
+                    out.append(LinkSolid(i, 'mesh', centre, rot, shape.size, mesh=geometry))
+                    continue
                 if shape.kind == 'cylinder':
                     radius, half_length = shape.size[0], 0.5 * shape.size[1]
                     axis_z = abs(float(rot[2, 2]))
@@ -254,7 +275,8 @@ class ContactSettings:
                 raise ConfigError(
                     f'{w}: the URDF gives link {link.name!r} a {what} collision shape (on '
                     f'{shape.urdf_link!r}, {linkage.urdf_path}); contacts model spheres, '
-                    f'capsules, boxes and cylinders exactly and would have to approximate '
+                    f'capsules, boxes, cylinders and (spatial tasks) meshes exactly and '
+                    f'would have to approximate '
                     f'it: set links.{link.name}.radius (m) in this contacts block for a '
                     f'capsule along the link, or links.{link.name}.collide: false to leave '
                     f'the link out')
@@ -264,24 +286,37 @@ class ContactSettings:
 def _bounding_sphere(solid: LinkSolid, corners: np.ndarray | None
                      ) -> tuple[np.ndarray, float]:
     """A sphere around ``solid`` (link frame): centre (3,) m and radius m. A box or polygon:
-    around its corners' mean; a cylinder: around its centre, ``hypot(r, h)``."""
+    around its corners' mean; a cylinder: around its centre, ``hypot(r, h)``; a mesh: its
+    hull's sphere."""
+    if solid.mesh is not None:
+        return solid.centre + solid.rotation @ solid.mesh.centre, solid.mesh.radius
     if corners is None:
         return solid.centre, math.hypot(solid.size[0], solid.size[1])
     centre = corners.mean(axis=0)
     return centre, float(np.max(np.linalg.norm(corners - centre, axis=1)))
 
 
-def _lower_bound(obstacle: Obstacle, point: np.ndarray) -> float:
-    """The signed distance (m) from ``point`` to ``obstacle``: less a solid's bounding radius,
-    a lower bound of the gaps of the solid around ``point`` (the distance is 1-Lipschitz)."""
+def _lower_bounds(obstacle: Obstacle, points: np.ndarray) -> np.ndarray:
+    """The signed distances (m) from ``points`` (n x 3) to ``obstacle`` (a box or mesh
+    obstacle: to the box around it): less a solid's bounding radius, a lower bound of the gaps
+    of the solid around each point (the distance is 1-Lipschitz)."""
     kind = obstacle.kind
     if kind in _PLANES:
-        return float(obstacle.normal @ (point - obstacle.point))
+        return points @ obstacle.normal - float(obstacle.normal @ obstacle.point)
     if kind in _ROUND:
-        return float(np.linalg.norm(point - obstacle.point)) - obstacle.radius
+        return np.linalg.norm(points - obstacle.point, axis=1) - obstacle.radius
     if kind is ObstacleKind.SEGMENT:
-        return capsule_gaps(obstacle, point, point, 0.0)[0][0]
-    return box_sdf(point, obstacle.point, obstacle.rotation, obstacle.half_extents)[0]
+        d = obstacle.end - obstacle.point
+        t = np.clip((points - obstacle.point) @ d / float(d @ d), 0.0, 1.0)
+        return (np.linalg.norm(points - obstacle.point - t[:, None] * d, axis=1)
+                - obstacle.radius)
+    centre, half = obstacle.point, obstacle.half_extents
+    if obstacle.mesh is not None:
+        centre = obstacle.rotation @ obstacle.mesh.box_centre + obstacle.point
+        half = obstacle.mesh.box_half
+    q = np.abs((points - centre) @ obstacle.rotation) - half
+    return (np.linalg.norm(np.maximum(q, 0.0), axis=1)
+            + np.minimum(q.max(axis=1), 0.0))
 
 
 @dataclass(frozen=True)
@@ -391,16 +426,35 @@ class ContactModel:
         # Solid candidates (after the capsules'), solid by solid, obstacle by obstacle; a pair
         # whose bounding-sphere distance is at least the query's limit is skipped (its gaps are
         # at least that). A box obstacle's coal query objects are made once.
-        self._pairs_of = [[(k, CoalPair(sol.kind, sol.size, ob)
-                            if ob.kind is ObstacleKind.BOX else None)
+        self._pairs_of = [[(k, CoalPair(sol.kind, sol.size, ob, sol.mesh)
+                            if ob.kind in _COAL or sol.mesh is not None else None)
                            for k, ob in enumerate(obstacles)] for sol in solids]
         self._plane_of = {k: (float(ob.normal @ ob.point), ob.normal.tolist())
                           for k, ob in enumerate(obstacles) if ob.kind in _PLANES}
         self._corners_local = [
-            None if sol.kind == 'cylinder' else sol.vertices if sol.vertices is not None
+            None if sol.kind in ('cylinder', 'mesh') else sol.vertices if sol.vertices is not None
             else box_vertices(sol.centre, sol.rotation, np.array(sol.size)) for sol in solids]
         self._bounds = [_bounding_sphere(sol, corners)
                         for sol, corners in zip(solids, self._corners_local, strict=True)]
+        self._bound_radii = np.array([r for _, r in self._bounds], dtype=float)
+        rounds = [k for k, ob in enumerate(obstacles) if ob.kind in _ROUND]
+        boxes = [k for k, ob in enumerate(obstacles) if ob.kind in _COAL]
+        self._bound_groups = (planes, rounds, boxes,
+                              [k for k, ob in enumerate(obstacles) if ob.kind is
+                               ObstacleKind.SEGMENT])
+        self._round_bound = (np.array([obstacles[k].point for k in rounds]).reshape(-1, 3),
+                             np.array([obstacles[k].radius for k in rounds]))
+        self._box_bound = (
+            np.array([ob.point if ob.mesh is None else ob.rotation @ ob.mesh.box_centre
+                      + ob.point for ob in (obstacles[k] for k in boxes)]).reshape(-1, 3),
+            np.array([obstacles[k].rotation for k in boxes]).reshape(-1, 3, 3),
+            np.array([ob.half_extents if ob.mesh is None else ob.mesh.box_half
+                      for ob in (obstacles[k] for k in boxes)]).reshape(-1, 3))
+        self._bound_centres = np.array([c for c, _ in self._bounds], dtype=float).reshape(-1, 3)
+        # the joints carrying solids, and each solid's index among them
+        self._solid_joints = sorted({sol.link + 1 for sol in solids})
+        self._solid_slot = np.array([self._solid_joints.index(sol.link + 1) for sol in solids],
+                                    dtype=int)
 
     def _axes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World ends of every capsule's axis (n x 3 each) at ``q`` (forward kinematics;
@@ -500,6 +554,29 @@ class ContactModel:
             normals.append([vx / dist, vy / dist, vz / dist])
         return np.array(gaps), np.array(ss), np.array(normals)
 
+    def _pair_bounds(self, centres: np.ndarray) -> np.ndarray:
+        """Lower bounds (m) of the gaps of every solid (bounding spheres at ``centres``, s x
+        3, world) and obstacle, s x (obstacles): :func:`_lower_bounds` less the solids'
+        bounding radii, with planes, spheres and box-like obstacles (boxes, the boxes around
+        meshes) each in one array operation."""
+        out = np.empty((centres.shape[0], len(self.settings.obstacles)))
+        planes, rounds, boxes, others = self._bound_groups
+        if planes:
+            out[:, planes] = centres @ self._plane_n.T - self._plane_offset
+        if rounds:
+            centre, radius = self._round_bound
+            out[:, rounds] = (np.linalg.norm(centres[:, None, :] - centre[None], axis=2)
+                              - radius)
+        if boxes:
+            centre, rotation, half = self._box_bound
+            q = np.abs(np.einsum('sbj,bjk->sbk', centres[:, None, :] - centre[None],
+                                 rotation)) - half
+            out[:, boxes] = (np.linalg.norm(np.maximum(q, 0.0), axis=2)
+                             + np.minimum(q.max(axis=2), 0.0))
+        for k in others:
+            out[:, k] = _lower_bounds(self.settings.obstacles[k], centres)
+        return out - self._bound_radii[:, None]
+
     def _solid_hits(self, limit: float) -> tuple[list[int], list[int], list[list[float]],
                                                   list[float], list[list[float]]]:
         """The solid candidates with ``gap < limit`` (``limit >= 0``) at the placements of the
@@ -517,60 +594,76 @@ class ContactModel:
         normals: list[list[float]] = []
         oMi = self.data.oMi
         obstacles = self.settings.obstacles
-        for j, sol in enumerate(self._solids):
-            placement = oMi[sol.link + 1]
-            rot, origin = placement.rotation, placement.translation
-            bound_centre, bound_radius = self._bounds[j]
-            centre_b = rot @ bound_centre + origin
-            if self._planar:
-                centre_b[2] = 0.0
-            placed: tuple[np.ndarray, np.ndarray] | None = None
-            for k, pair in self._pairs_of[j]:
-                ob = obstacles[k]
-                if _lower_bound(ob, centre_b) - bound_radius >= limit:
-                    continue
-                local = self._corners_local[j]
-                if local is None or ob.kind not in _PLANES:
-                    if placed is None:
-                        placed = (rot @ sol.centre + origin, rot @ sol.rotation)
-                    centre, rotation = placed
-                found: list[tuple[float, list[float], list[float]]]
-                if ob.kind in _PLANES:
-                    if local is not None:
-                        world = local @ rot.T + origin
-                        if self._planar:
-                            world[:, 2] = 0.0
-                    else:
-                        world = cylinder_rims(centre, rotation, sol.size[0], sol.size[1],
-                                              ob.normal)
-                    offset, normal_t = self._plane_of[k]
-                    world_t = world.tolist()
-                    for i, gap in enumerate((world @ ob.normal).tolist()):
-                        if gap - offset < limit:
-                            links.append(sol.link)
-                            obs.append(k)
-                            points.append(world_t[i])
-                            gaps.append(gap - offset)
-                            normals.append(normal_t)
-                    continue
-                if sol.kind == 'polygon':
-                    assert local is not None
+        if not obstacles:
+            return links, obs, points, gaps, normals
+        # every solid's bounding-sphere centre (world), one placement per link
+        rots = np.array([oMi[j].rotation for j in self._solid_joints])
+        origins = np.array([oMi[j].translation for j in self._solid_joints])
+        centres_b = (np.einsum('sij,sj->si', rots[self._solid_slot], self._bound_centres)
+                     + origins[self._solid_slot])
+        if self._planar:
+            centres_b[:, 2] = 0.0
+        # lower bounds of every pair's gaps (solid x obstacle), the bounding radii taken off;
+        # the pairs left, solid by solid, obstacle by obstacle
+        near = np.argwhere(self._pair_bounds(centres_b) < limit).tolist()
+        placed: tuple[np.ndarray, np.ndarray] | None = None
+        for n, (j, k) in enumerate(near):
+            sol, pair, ob = self._solids[j], self._pairs_of[j][k][1], obstacles[k]
+            slot = self._solid_slot[j]
+            rot, origin = rots[slot], origins[slot]
+            if n == 0 or near[n - 1][0] != j:
+                placed = None
+            local = self._corners_local[j]
+            if local is None or ob.kind not in _PLANES:
+                if placed is None:
+                    placed = (rot @ sol.centre + origin, rot @ sol.rotation)
+                centre, rotation = placed
+            found: list[tuple[float, list[float], list[float]]]
+            if pair is not None and sol.mesh is not None:
+                gap, point, normal = pair.gap(centre, rotation)
+                if gap < limit:
+                    links.append(sol.link)
+                    obs.append(k)
+                    points.append(point.tolist())
+                    gaps.append(gap)
+                    normals.append(normal.tolist())
+                continue
+            if ob.kind in _PLANES:
+                if local is not None:
                     world = local @ rot.T + origin
-                    a, b = ob.point, (ob.end if ob.kind is ObstacleKind.SEGMENT else ob.point)
-                    sd, px, py, nx, ny = polygon_segment_xy(
-                        [(x, y) for x, y, _ in world.tolist()],
-                        float(a[0]), float(a[1]), float(b[0]), float(b[1]))
-                    found = [(sd - ob.radius, [px, py, 0.0], [nx, ny, 0.0])]
+                    if self._planar:
+                        world[:, 2] = 0.0
                 else:
-                    found = [(gap, point.tolist(), normal.tolist()) for gap, point, normal
-                             in solid_gaps(ob, sol.kind, centre, rotation, sol.size, None, pair)]
-                for gap, point_t, normal_t in found:
-                    if gap < limit:
+                    world = cylinder_rims(centre, rotation, sol.size[0], sol.size[1],
+                                          ob.normal)
+                offset, normal_t = self._plane_of[k]
+                world_t = world.tolist()
+                for i, gap in enumerate((world @ ob.normal).tolist()):
+                    if gap - offset < limit:
                         links.append(sol.link)
                         obs.append(k)
-                        points.append(point_t)
-                        gaps.append(gap)
+                        points.append(world_t[i])
+                        gaps.append(gap - offset)
                         normals.append(normal_t)
+                continue
+            if sol.kind == 'polygon':
+                assert local is not None
+                world = local @ rot.T + origin
+                a, b = ob.point, (ob.end if ob.kind is ObstacleKind.SEGMENT else ob.point)
+                sd, px, py, nx, ny = polygon_segment_xy(
+                    [(x, y) for x, y, _ in world.tolist()],
+                    float(a[0]), float(a[1]), float(b[0]), float(b[1]))
+                found = [(sd - ob.radius, [px, py, 0.0], [nx, ny, 0.0])]
+            else:
+                found = [(gap, point.tolist(), normal.tolist()) for gap, point, normal
+                         in solid_gaps(ob, sol.kind, centre, rotation, sol.size, None, pair)]
+            for gap, point_t, normal_t in found:
+                if gap < limit:
+                    links.append(sol.link)
+                    obs.append(k)
+                    points.append(point_t)
+                    gaps.append(gap)
+                    normals.append(normal_t)
         return links, obs, points, gaps, normals
 
     def detect(self, q: np.ndarray, margin: float = 0.0,

@@ -33,7 +33,9 @@ Izz; spatial: ``[ixx, iyy, izz]``, ``[ixx, iyy, izz, ixy, ixz, iyz]`` or a 3x3 l
 (``{xyz: [...], rpy: [...]}``: placement of this joint in the previous link's frame, default
 ``xyz = [previous length, 0, 0]``).
 
-Instead of ``links``, ``urdf: file.urdf`` reads the chain from a URDF (a path relative to the
+Instead of ``links``, ``robot: NAME`` takes a robot of example-robot-data by name (an optional
+extra, :mod:`~haptic_topology.model.robots`; spatial, named NAME unless ``name`` says
+otherwise), and ``urdf: file.urdf`` reads the chain from a URDF (a path relative to the
 YAML file, or ``package://NAME/PATH`` for a file of an installed package, see
 ``haptic_topology.paths.resolve_package_uri``; ``revolute``,
 ``continuous``, ``prismatic`` and ``fixed`` joints; fixed links are merged into their parent).
@@ -66,6 +68,7 @@ from haptic_topology.errors import ConfigError, LinkageError
 from haptic_topology.model.build import LinkageModel, build_model
 from haptic_topology.model.links import CollisionShape, JointType, LinkSpec
 from haptic_topology.model.loops import LoopClosure, parse_loops
+from haptic_topology.model.robots import ROBOT_PREFIX, robot_urdf
 from haptic_topology.model.urdf_import import UrdfSource, links_from_urdf, read_urdf
 from haptic_topology.paths import PACKAGE_URI, resolve_package_uri
 from haptic_topology.validate import (
@@ -300,7 +303,14 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     where = f'{source}: linkage'
     raw = check_keys(top['linkage'], where,
                      optional=('name', 'task', 'gravity', 'links', 'grasp', 'constraints',
-                               'urdf', 'locked_joints', 'loops'), error=LinkageError)
+                               'urdf', 'robot', 'locked_joints', 'loops'), error=LinkageError)
+    if 'robot' in raw:      # a robot of example-robot-data by name: its URDF, spatial
+        if 'urdf' in raw or 'links' in raw:
+            raise LinkageError(f'{where}: give one of robot, urdf and links')
+        robot = as_str(raw['robot'], f'{where}.robot', error=LinkageError)
+        raw = {'name': robot, 'task': 'spatial', **raw,
+               'urdf': robot_urdf(robot, f'{where}.robot')}
+        del raw['robot']
     name = as_str(raw.get('name', Path(source).stem), f'{where}.name', error=LinkageError)
     task = TaskSpace(as_str(raw.get('task', 'planar'), f'{where}.task', TASK_NAMES,
                             error=LinkageError))
@@ -370,11 +380,14 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
 
 
 def load_linkage(path: str | Path) -> Linkage:
-    """Load a linkage from a YAML description or a bare URDF file.
+    """Load a linkage from a YAML description, a bare URDF file, or ``robot:NAME`` (a robot
+    of example-robot-data: :mod:`~haptic_topology.model.robots`).
 
     A bare URDF is spatial unless ``<robot>`` holds ``<haptic_topology task="planar"/>``;
-    the grasp is the COM of the last link of its serial chain.
+    the grasp (of a robot too) is the COM of the last link of its serial chain.
     """
+    if isinstance(path, str) and path.startswith(ROBOT_PREFIX):
+        return linkage_from_dict({'linkage': {'robot': path[len(ROBOT_PREFIX):]}}, path)
     p = Path(path)
     if p.suffix.lower() == '.urdf':
         task = read_urdf(p).task or TaskSpace.SPATIAL

@@ -24,15 +24,18 @@ class CollisionShape:
 
     ``kind``: ``sphere`` (``size = (radius,)``), ``capsule`` (``(radius, length)``, axis along
     the placement's z, as ``<capsule radius length>`` in Drake/Gazebo URDFs), ``cylinder``
-    (``(radius, length)``), ``box`` (``(x, y, z)`` full sizes) or ``mesh`` (``()``);
-    ``xyz`` (m) and ``rotation`` (3 x 3, row-major) place its centre in the link frame;
-    ``urdf_link`` names the URDF link it was declared on. SI units."""
+    (``(radius, length)``), ``box`` (``(x, y, z)`` full sizes) or ``mesh`` (its ``scale``
+    ``(sx, sy, sz)``, and ``mesh``: the ``filename`` as the URDF writes it, resolved by the
+    contacts: :mod:`haptic_topology.model.meshes`); ``xyz`` (m) and ``rotation`` (3 x 3,
+    row-major) place its centre (a mesh: its frame) in the link frame; ``urdf_link`` names the
+    URDF link it was declared on. SI units."""
 
     kind: str
     size: tuple[float, ...]
     xyz: tuple[float, ...]
     rotation: tuple[float, ...]
     urdf_link: str
+    mesh: str = ''
 
 
 @dataclass(frozen=True)

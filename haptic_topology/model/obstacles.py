@@ -1,13 +1,14 @@
 """Static obstacles of the virtual environment (VE) and their signed distance to a link.
 
-This is the VE's collision geometry for the contact terms of eq. 1: every link is a *capsule*
-(the set of points within ``radius`` of its axis segment ``p0 -> p1``) and every obstacle is
+This is the VE's collision geometry for the contact terms of eq. 1 for links that are
+*capsules* (the set of points within ``radius`` of its axis segment ``p0 -> p1``; the URDF's
+boxes, cylinders and meshes: :mod:`haptic_topology.model.solids`); every obstacle is
 static. :func:`capsule_gaps` returns candidate contacts ``(gap, s, normal)`` for one link and
 one obstacle; a penalty model turns the negative gaps into forces.
 
 Units and frames: SI (m, rad), everything in the world frame. A planar scenario lives in the
 xy plane with z = 0 (``half_plane``, ``segment``, ``disc``); a spatial one uses ``plane``,
-``sphere`` and ``box``.
+``sphere``, ``box`` and ``mesh``.
 
 Sign conventions:
 
@@ -26,6 +27,13 @@ YAML layout of ``scenario.contacts.obstacles`` (planar points take 2 or 3 number
     - {type: plane, point: [x, y, z], normal: [nx, ny, nz]}
     - {type: sphere, center: [x, y, z], radius: r}
     - {type: box, center: [x, y, z], half_extents: [hx, hy, hz], rpy: [r, p, y]}  # rpy opt.
+    - {type: mesh, file: table.stl, center: [x, y, z], rpy: [r, p, y], scale: s}  # opt.
+
+A ``mesh`` obstacle (STL, DAE, OBJ) is placed with its file's frame at ``center`` turned by
+``rpy``; ``file`` is found as a URDF's mesh (``package://``, absolute, or relative to the
+scenario file: :mod:`haptic_topology.model.meshes`), ``scale`` is 1 or 3 numbers (default 1;
+e.g. 0.001 for a file in mm). It is rendered by its convex hull (the module doc of
+:mod:`~haptic_topology.model.meshes` says why), through coal.
 """
 
 from __future__ import annotations
@@ -34,11 +42,19 @@ import enum
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from haptic_topology.errors import ConfigError
+from haptic_topology.model.meshes import (
+    MeshGeometry,
+    capsule_convex_gap,
+    coal_pose,
+    load_mesh,
+    resolve_mesh,
+)
 from haptic_topology.validate import as_float, as_str, as_vector, check_keys
 from haptic_topology.vocabulary import TaskSpace
 
@@ -59,6 +75,7 @@ class ObstacleKind(enum.Enum):
     PLANE = 'plane'
     SPHERE = 'sphere'
     BOX = 'box'
+    MESH = 'mesh'
 
     @property
     def task(self) -> TaskSpace:
@@ -74,7 +91,8 @@ class Obstacle:
     ``point``: on the boundary (half_plane, plane), the centre (disc, sphere, box) or end a
     (segment). ``normal``: unit outward normal into free space (half_plane, plane). ``end``:
     end b (segment). ``radius``: disc/sphere radius or segment half thickness (>= 0).
-    ``half_extents``: box half sizes (> 0). ``rotation``: box orientation ``world_R_box``.
+    ``half_extents``: box half sizes (> 0). ``rotation``: box (mesh) orientation
+    ``world_R_box``; a mesh's ``point`` is its frame's origin and ``mesh`` its geometry.
     Arrays are stored as read-only float copies; equality is identity (arrays do not compare).
     """
 
@@ -86,6 +104,7 @@ class Obstacle:
     radius: float = 0.0
     half_extents: np.ndarray = field(default_factory=lambda: np.zeros(3))
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    mesh: MeshGeometry | None = None
 
     def __post_init__(self) -> None:
         for name, shape in (('point', (3,)), ('normal', (3,)), ('end', (3,)),
@@ -115,6 +134,7 @@ _KEYS: dict[ObstacleKind, tuple[tuple[str, ...], tuple[str, ...]]] = {
     ObstacleKind.PLANE: (('point', 'normal'), ()),
     ObstacleKind.SPHERE: (('center', 'radius'), ()),
     ObstacleKind.BOX: (('center', 'half_extents'), ('rpy',)),
+    ObstacleKind.MESH: (('file', 'center'), ('rpy', 'scale')),
 }
 
 
@@ -144,7 +164,21 @@ def _unit(value: Any, where: str, task: TaskSpace) -> np.ndarray:
     return v / norm
 
 
-def _obstacle(raw: Any, w: str, i: int, task: TaskSpace) -> Obstacle:
+def _mesh_obstacle(item: Mapping[str, Any], w: str, name: str, base: Path | None
+                   ) -> Obstacle:
+    scale_raw = item.get('scale', 1.0)
+    scale = (as_vector(scale_raw, f'{w}.scale', 3, lo=0.0, lo_open=True)
+             if isinstance(scale_raw, list)
+             else np.full(3, as_float(scale_raw, f'{w}.scale', lo=0.0, lo_open=True)))
+    path = resolve_mesh(as_str(item['file'], f'{w}.file'), base, f'{w}.file')
+    mesh = load_mesh(path, (float(scale[0]), float(scale[1]), float(scale[2])), f'{w}.file')
+    rpy = as_vector(item.get('rpy', [0.0, 0.0, 0.0]), f'{w}.rpy', 3)
+    return Obstacle(ObstacleKind.MESH, name, as_vector(item['center'], f'{w}.center', 3),
+                    rotation=rpy_matrix(rpy), mesh=mesh)
+
+
+def _obstacle(raw: Any, w: str, i: int, task: TaskSpace, base: Path | None = None
+              ) -> Obstacle:
     if not isinstance(raw, Mapping):
         raise ConfigError(f'{w}: expected a mapping {{type: ..., ...}}, got {type(raw).__name__}')
     if 'type' not in raw:
@@ -162,6 +196,8 @@ def _obstacle(raw: Any, w: str, i: int, task: TaskSpace) -> Obstacle:
     name = as_str(item.get('name', f'{kind.value}{i}'), f'{w}.name')
     if not name:
         raise ConfigError(f'{w}.name: expected a non-empty string')
+    if kind is ObstacleKind.MESH:
+        return _mesh_obstacle(item, w, name, base)
     if kind in (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE):
         return Obstacle(kind, name, _point(item['point'], f'{w}.point', task),
                         normal=_unit(item['normal'], f'{w}.normal', task))
@@ -181,20 +217,22 @@ def _obstacle(raw: Any, w: str, i: int, task: TaskSpace) -> Obstacle:
                     radius=as_float(item['radius'], f'{w}.radius', lo=0.0, lo_open=True))
 
 
-def obstacles_from_config(raw: Any, where: str, task: TaskSpace) -> tuple[Obstacle, ...]:
+def obstacles_from_config(raw: Any, where: str, task: TaskSpace, base: Path | None = None
+                          ) -> tuple[Obstacle, ...]:
     """Parse the scenario's ``contacts.obstacles`` list (see the module docstring).
 
     ``where`` is the path of the list, e.g. ``'fig.yaml: scenario.contacts.obstacles'``; item
     ``i`` is reported as ``f'{where}[{i}]'``. Names must be unique. Raises
     :class:`~haptic_topology.errors.ConfigError`. A point grasp's linkage takes the
-    obstacles of its space (``planar_point``: the planar ones).
+    obstacles of its space (``planar_point``: the planar ones). ``base``: the directory a
+    mesh obstacle's relative ``file`` is relative to (the scenario file's).
     """
     task = task.rigid
     if not isinstance(raw, list):
         raise ConfigError(f'{where}: expected a list of obstacles, got {type(raw).__name__}')
     out: list[Obstacle] = []
     for i, item in enumerate(raw):
-        obs = _obstacle(item, f'{where}[{i}]', i, task)
+        obs = _obstacle(item, f'{where}[{i}]', i, task, base)
         if any(o.name == obs.name for o in out):
             raise ConfigError(f'{where}[{i}].name: expected a unique name, {obs.name!r} is '
                               'already used')
@@ -343,4 +381,7 @@ def capsule_gaps(obstacle: Obstacle, p0: np.ndarray, p1: np.ndarray, radius: flo
         if float(n @ (p0 + 0.5 * d - a)) < -EPS:
             n = -n
         return [(-radius - obstacle.radius, s, n)]
+    if kind is ObstacleKind.MESH:
+        assert obstacle.mesh is not None
+        return [capsule_convex_gap(obstacle.mesh.convex, coal_pose(obstacle), p0, p1, radius)]
     return [_box_gap(obstacle, p0, d, radius)]

@@ -21,7 +21,7 @@ cap; a cap parallel to the plane gives its centre). A box lying on a table is he
 lower corners, as a capsule lying flat is held at both ends. Against a sphere or disc the
 candidate is the point of the solid closest to the centre (the solid's signed distance
 function, closed form); against a box obstacle (spatial) it is the witness point of the signed
-distance between the two convex solids, computed by coal's GJK/EPA (``COAL_TOLERANCE``);
+distance between the two convex solids, computed by coal's GJK/EPA (``meshes.COAL_TOLERANCE``);
 against a segment obstacle (planar, ``radius`` ρ) the signed distance of the polygon and the
 segment (closest features when apart, the separating-axis minimum when they overlap) less ρ.
 
@@ -40,11 +40,8 @@ from typing import Any
 import coal
 import numpy as np
 
+from haptic_topology.model.meshes import MeshGeometry, distance_request
 from haptic_topology.model.obstacles import EPS, Obstacle, ObstacleKind, box_local
-
-#: GJK and EPA tolerance (m) of the box-obstacle queries: far below the contact model's
-#: resolution (a 1e-10 m error of depth is 2e-7 N at k = 2000 N/m).
-COAL_TOLERANCE = 1e-10
 
 #: (gap m, point (3,) m world, normal (3,) unit world from the obstacle towards the link)
 SolidGap = tuple[float, np.ndarray, np.ndarray]
@@ -239,22 +236,38 @@ def polygon_segment(vertices: np.ndarray, a: np.ndarray, b: np.ndarray
     return sd, np.array([px, py, 0.0]), np.array([nx, ny, 0.0])
 
 
-class CoalPair:
-    """A link solid (box or cylinder) against a box obstacle: coal's signed distance with
-    nearest points (GJK when apart, EPA when overlapping), tolerance ``COAL_TOLERANCE``, no
-    cached guess (every query is independent of the previous one, so runs repeat exactly)."""
+def coal_geometry(obstacle: Obstacle) -> tuple[Any, Any]:
+    """``(shape, pose)``: a spatial obstacle as coal computes with it (a plane as a
+    ``Halfspace``, a sphere, a box, a mesh's convex hull) and its placement
+    (``coal.Transform3s``, world)."""
+    kind = obstacle.kind
+    if kind is ObstacleKind.PLANE:
+        n = np.array(obstacle.normal)
+        return coal.Halfspace(n, float(n @ obstacle.point)), coal.Transform3s()
+    pose = coal.Transform3s(np.array(obstacle.rotation), np.array(obstacle.point))
+    if kind is ObstacleKind.SPHERE:
+        return coal.Sphere(obstacle.radius), pose
+    if kind is ObstacleKind.BOX:
+        return coal.Box(*(2.0 * obstacle.half_extents)), pose
+    if kind is ObstacleKind.MESH:
+        assert obstacle.mesh is not None
+        return obstacle.mesh.convex, pose
+    raise ValueError(f'coal_geometry: a spatial obstacle, not {kind.value}')
 
-    def __init__(self, kind: str, size: tuple[float, ...], obstacle: Obstacle) -> None:
-        self.link_geometry: Any = (coal.Box(*(2.0 * np.array(size))) if kind == 'box'
+
+class CoalPair:
+    """A link solid (box, cylinder, or a mesh's convex hull: ``mesh``) against a spatial
+    obstacle: coal's signed distance with nearest points (GJK when apart, EPA when
+    overlapping), tolerance ``meshes.COAL_TOLERANCE``, no cached guess (every query is independent
+    of the previous one, so runs repeat exactly)."""
+
+    def __init__(self, kind: str, size: tuple[float, ...], obstacle: Obstacle,
+                 mesh: MeshGeometry | None = None) -> None:
+        self.link_geometry: Any = (mesh.convex if mesh is not None
+                                   else coal.Box(*(2.0 * np.array(size))) if kind == 'box'
                                    else coal.Cylinder(size[0], 2.0 * size[1]))
-        self.obstacle_geometry = coal.Box(*(2.0 * obstacle.half_extents))
-        self.obstacle_pose = coal.Transform3s(np.array(obstacle.rotation),
-                                              np.array(obstacle.point))
-        req = coal.DistanceRequest()
-        req.enable_signed_distance = True
-        req.gjk_tolerance = COAL_TOLERANCE
-        req.epa_tolerance = COAL_TOLERANCE
-        self.request = req
+        self.obstacle_geometry, self.obstacle_pose = coal_geometry(obstacle)
+        self.request = distance_request()
 
     def gap(self, centre: np.ndarray, rotation: np.ndarray) -> SolidGap:
         """``(gap, point, normal)`` of the solid placed at ``(centre, rotation)``."""
@@ -296,7 +309,7 @@ def solid_gaps(obstacle: Obstacle, kind: str, centre: np.ndarray, rotation: np.n
         sdf, grad = (box_sdf(obstacle.point, centre, rotation, np.array(size)) if kind == 'box'
                      else cylinder_sdf(obstacle.point, centre, rotation, size[0], size[1]))
         return [(sdf - obstacle.radius, obstacle.point - sdf * grad, -grad)]
-    if ok is ObstacleKind.BOX:
+    if ok in (ObstacleKind.BOX, ObstacleKind.MESH):
         return [(pair or CoalPair(kind, size, obstacle)).gap(centre, rotation)]
     raise ValueError(f'solid_gaps: a {kind} meets spatial obstacles, not {ok.value}')
 

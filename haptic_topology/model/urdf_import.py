@@ -291,14 +291,36 @@ def links_from_urdf(src: UrdfSource, grasp_link: str | None, locked: dict[str, f
     return tuple(links), notes
 
 
-def _urdf_geometry(geom: ET.Element, where: str) -> tuple[str, tuple[float, ...]]:
-    """Kind and sizes (m) of a URDF ``<geometry>`` element (see :class:`CollisionShape`)."""
+def _urdf_mesh(shape: ET.Element, where: str) -> tuple[tuple[float, ...], str]:
+    """The ``scale`` (3,) and ``filename`` of a URDF ``<mesh>`` (resolved by the contacts)."""
+    filename = shape.get('filename')
+    if not filename:
+        raise LinkageError(f'{where}: <mesh> needs the attribute filename')
+    text = shape.get('scale', '1 1 1')
+    try:
+        scale = [float(v) for v in text.split()]
+    except ValueError:
+        raise LinkageError(f'{where}: <mesh scale="{text}">: expected numbers') from None
+    if len(scale) == 1:
+        scale *= 3
+    if len(scale) != 3 or not all(math.isfinite(v) and v > 0.0 for v in scale):
+        raise LinkageError(f'{where}: <mesh scale="{text}">: expected 1 or 3 finite '
+                           f'numbers > 0')
+    return tuple(scale), filename
+
+
+def _urdf_geometry(geom: ET.Element, where: str) -> tuple[str, tuple[float, ...], str]:
+    """Kind, sizes (m; a mesh: its scale) and mesh filename ('' for the primitives) of a
+    URDF ``<geometry>`` element (see :class:`CollisionShape`)."""
     shapes = list(geom)
     if len(shapes) != 1:
         raise LinkageError(f'{where}: <geometry> must hold exactly one shape, got '
                            f'{len(shapes)}')
     shape = shapes[0]
     kind = shape.tag
+    if kind == 'mesh':
+        scale, filename = _urdf_mesh(shape, where)
+        return kind, scale, filename
     attrs = {'sphere': ('radius',), 'capsule': ('radius', 'length'),
              'cylinder': ('radius', 'length'), 'box': ('size',), 'mesh': ()}
     if kind not in attrs:
@@ -318,7 +340,7 @@ def _urdf_geometry(geom: ET.Element, where: str) -> tuple[str, tuple[float, ...]
             raise LinkageError(f'{where}: <{kind} {attr}="{text}">: expected {expected} '
                                f'finite number(s) > 0 (m)')
         sizes.extend(values)
-    return kind, tuple(sizes)
+    return kind, tuple(sizes), ''
 
 
 def _urdf_collisions(src: UrdfSource, model: pin.Model) -> dict[int, list[CollisionShape]]:
@@ -342,7 +364,7 @@ def _urdf_collisions(src: UrdfSource, model: pin.Model) -> dict[int, list[Collis
             geom = col.find('geometry')
             if geom is None:
                 raise LinkageError(f'{where}: missing <geometry>')
-            kind, size = _urdf_geometry(geom, where)
+            kind, size, mesh = _urdf_geometry(geom, where)
             origin = col.find('origin')
             xyz = rpy = np.zeros(3)
             if origin is not None:
@@ -356,7 +378,8 @@ def _urdf_collisions(src: UrdfSource, model: pin.Model) -> dict[int, list[Collis
             placement = frame.placement * pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
             out.setdefault(frame.parentJoint, []).append(CollisionShape(
                 kind, size, tuple(np.asarray(placement.translation, dtype=float).tolist()),
-                tuple(np.asarray(placement.rotation, dtype=float).ravel().tolist()), name))
+                tuple(np.asarray(placement.rotation, dtype=float).ravel().tolist()), name,
+                mesh))
     return out
 
 

@@ -116,8 +116,7 @@ class RosTopicBackend(DeviceBackend):
         self.invalid_samples = 0
         self.commands_sent = 0
         self.nonfinite_writes = 0
-        self.stale_cycles = 0
-        self.stale_onsets = 0
+        self.stale_cycles = self.stale_onsets = 0
 
     # -- configuration -----------------------------------------------------------------------
     def configure(self, config: BackendConfig) -> None:
@@ -135,11 +134,13 @@ class RosTopicBackend(DeviceBackend):
     def task_dim(self) -> int:
         return self.options.mapping.task.dim
 
+    def task(self) -> TaskSpace | None:
+        return self._opts.mapping.task if self._opts is not None else None
+
     @property
     def hardware_id(self) -> str:
-        """``'ros_topics <planar|spatial> <pose topic>'`` once configured."""
-        base = super().hardware_id
-        return f'{base} {self._opts.pose_topic}' if self._opts is not None else base
+        """``'ros_topics <task> <pose topic>'`` once configured (the task of :meth:`task`)."""
+        return f'{super().hardware_id} {self._opts.pose_topic}' if self._opts else self.name
 
     def fault_reason(self) -> str:
         return self._reason or super().fault_reason()

@@ -209,6 +209,9 @@ class VeSim(Node):
         values = self.stats.values('batch_')
         values.update(self.update_stats.values('update_'))
         values.update({
+            # The run's task: task_dim 3 alone is planar or spatial_point (the live view's
+            # drift takes x, y or x, y, z by it).
+            'task': self.task.value,
             'hand_inputs': str(feed.inputs),
             'hand_batches': str(self.batches),
             # What the bringup checks the bag against at the end of a run (exact, no

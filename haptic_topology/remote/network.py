@@ -103,7 +103,7 @@ from haptic_topology.remote.protocol import (
     encode_command,
     new_session,
 )
-from haptic_topology.vocabulary import DeviceStatus
+from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 #: Options and their defaults (module doc).
 DEFAULTS: dict[str, Any] = {
@@ -160,6 +160,7 @@ class NetworkBackend(DeviceBackend):
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns
         self._m = 0
+        self._task: TaskSpace | None = None
         self._sock: socket.socket | None = None
         self._buf = bytearray(2048)
         self._state: State | None = None
@@ -233,7 +234,14 @@ class NetworkBackend(DeviceBackend):
         except ConfigError as exc:
             raise DeviceError(str(exc)) from None
         self.link = link_mode(self.key, trusted)
-        self._m = config.params.task.dim
+        task = config.params.task
+        if task.point:
+            raise DeviceError(f'network: scenario task {task.value} (m = {task.dim}): the '
+                              'device protocol carries the rigid tasks only (m = 3 planar, 6 '
+                              'spatial; its packets name m, not the task, so a device serving '
+                              'another task of the same m could not be told apart)')
+        self._task = task
+        self._m = task.dim
         self._initial_pose = np.array(config.initial_pose, dtype=float)
         self._zero = np.zeros(self._m)
         self._follower = SessionFollower(self.stale_ns * 1e-9, remember_all=self.key is not None)
@@ -244,11 +252,14 @@ class NetworkBackend(DeviceBackend):
             raise DeviceError('network: used before configure()')
         return self._m
 
+    def task(self) -> TaskSpace | None:
+        return self._task
+
     @property
     def hardware_id(self) -> str:
         if not self._m:
             return self.name
-        dev = 'planar' if self._m == 3 else 'spatial'
+        dev = self._task.value if self._task is not None else f'{self._m}-dof'
         sess = f', server session {self.server_session:08x}' if self.server_session else ''
         auth = 'authenticated' if self.key is not None else 'unauthenticated'
         return f'{self.name} {self.peer} {dev}, {auth} link{sess}'
@@ -257,6 +268,17 @@ class NetworkBackend(DeviceBackend):
         return self._reason or f'{self.name}: the device reports a fault'
 
     # -- lifecycle ---------------------------------------------------------------------------
+    def preflight(self, config: BackendConfig) -> None:
+        """The connection check of :meth:`activate` (idle commands, never engaged, until the
+        first valid STATE or ``connect_timeout_ms``), then the release of :meth:`deactivate`:
+        the server ends this session at once and follows the run's next one."""
+        self.configure(config)
+        try:
+            self.activate()
+        finally:
+            self.deactivate()
+            self.cleanup()
+
     def activate(self) -> None:
         m = self.task_dim()
         if self._sock is not None:

@@ -139,7 +139,12 @@ class DeviceServer:
 
         self.cfg = cfg
         self.scenario = scenario
-        self.m = scenario.linkage.task.dim
+        task = scenario.linkage.task
+        if task.point:
+            raise DeviceError(f'device-server: scenario {scenario.name} has task {task.value} '
+                              f'(m = {task.dim}): the device protocol carries the rigid tasks '
+                              'only (m = 3 planar, 6 spatial; its packets name m, not the task)')
+        self.m = task.dim
         self.period = 1.0 / cfg.rate_hz if cfg.rate_hz else scenario.dt
         self.limit = np.asarray(scenario.device.wrench_limit, dtype=float)
         self._clock_ns = clock_ns

@@ -25,6 +25,10 @@ lines, discs as hatched circles; spatial spheres as circles in each projection (
 boxes are not drawn). The linkage panels widen their view to show them; the zoomed hand panels
 keep theirs, so an obstacle away from the hand is not shown there.
 
+Long paths are drawn in chunks of :data:`PATH_CHUNK` vertices (Agg's ``agg.path.chunksize``,
+in :func:`save_figure`): an hour's hand paths, whose points jump across the panel from one
+plotted row to the next, would otherwise take the rasterizer gigabytes.
+
 The title, unless given: ``<run> - <mode>: final drift ... mm, max ... mm``, the run named by
 :func:`~haptic_topology.sim.trace.run_name` (the scenario, and the linkage it ran on when not
 its own: ``fig8 on my_arm.urdf``).
@@ -95,15 +99,27 @@ def _hand_paths(ax: plt.Axes, vt: np.ndarray, dev: np.ndarray, title: str,
     ax.grid(alpha=0.3)
 
 
+#: Vertices per chunk of a drawn path (module doc).
+PATH_CHUNK = 1000
+
+
+def save_figure(fig: plt.Figure, path: str | Path) -> Path:
+    """Write ``fig`` to ``path`` (PNG, 110 dpi; the directory made if needed), its long paths
+    drawn in chunks of :data:`PATH_CHUNK` vertices, and close it."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with matplotlib.rc_context({'agg.path.chunksize': PATH_CHUNK}):
+            fig.savefig(out, dpi=110)
+    finally:
+        plt.close(fig)
+    return out
+
+
 def plot_trace(trace: Trace, path: str | Path, linkage: Linkage | None = None,
                title: str | None = None, obstacles: Sequence[Obstacle] = ()) -> Path:
     """Write the figure of ``trace`` (see module doc) to ``path`` (PNG) and return the path."""
-    out = Path(path)
-    fig = trace_figure(trace, linkage, title, obstacles)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return save_figure(trace_figure(trace, linkage, title, obstacles), path)
 
 
 def trace_figure(trace: Trace, linkage: Linkage | None = None, title: str | None = None,

@@ -40,12 +40,13 @@ This module reads the top level; each block is parsed by its owner:
 (``control``), :meth:`PassivityConfig.from_config
 <haptic_topology.control.passivity.PassivityConfig.from_config>` (``passivity``),
 :class:`~haptic_topology.control.lmi.LmiSettings` (``lmi``),
-:class:`~haptic_topology.sim.ve.VeSettings` (``ve``),
+:class:`VeSettings` (``ve``),
 :class:`~haptic_topology.dynamics.contacts.ContactSettings` (``contacts``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -60,12 +61,13 @@ from haptic_topology.device.users import user_from_config
 from haptic_topology.dynamics.contacts import ContactSettings
 from haptic_topology.dynamics.loops import LoopClosures, check_assembled
 from haptic_topology.errors import ConfigError
-from haptic_topology.model.linkage import Linkage, load_linkage
+from haptic_topology.model.linkage import Linkage, linkage_from_dict, load_linkage
+from haptic_topology.model.robots import ROBOT_PREFIX
 from haptic_topology.paths import resolve_config
 from haptic_topology.sim.trace import run_name
-from haptic_topology.sim.ve import VeSettings
 from haptic_topology.validate import (
     as_angles,
+    as_bool,
     as_float,
     as_str,
     as_vector,
@@ -73,6 +75,24 @@ from haptic_topology.validate import (
     load_yaml,
 )
 from haptic_topology.vocabulary import TASK_NAMES, ControlMode, TaskSpace
+
+
+@dataclass(frozen=True)
+class VeSettings:
+    """The ``ve:`` block of a scenario: RK4 ``internal_step`` (s, in (0, dt]) and whether the
+    coordination wrench acts on the VT (``vt_coupling``: ``F_vt = F_h - F_pc``, else ``F_h``)."""
+
+    internal_step: float = 2.5e-4
+    vt_coupling: bool = True
+
+    @classmethod
+    def from_config(cls, raw: Any, where: str, dt: float) -> VeSettings:
+        """Parse the block (``where``: its path); ``dt``: the scenario's device period (s)."""
+        ve = check_keys(raw, where, optional=('internal_step', 'vt_coupling'))
+        step = as_float(ve.get('internal_step', 2.5e-4), f'{where}.internal_step', lo=0.0,
+                        lo_open=True, hi=dt)
+        return cls(step, as_bool(ve.get('vt_coupling', True), f'{where}.vt_coupling'))
+
 
 
 @dataclass(frozen=True)
@@ -175,6 +195,21 @@ class Scenario:
         return (self.gains.k_pc, self.gains.b_pc) if self.vt_coupling else None
 
 
+def _scenario_linkage(ref: Any, path: Path, w: str) -> Linkage:
+    """``scenario.linkage``: a linkage file (a path relative to the scenario, or a name in
+    ``config/linkages``), ``robot:NAME``, or the linkage document inline (a mapping, as under
+    a linkage file's ``linkage:``, e.g. ``{robot: panda, grasp: {link: panda_link4}}``)."""
+    if isinstance(ref, Mapping):
+        return linkage_from_dict({'linkage': dict(ref)}, str(path))
+    link_ref = as_str(ref, f'{w}.linkage')
+    if link_ref.startswith(ROBOT_PREFIX):
+        return load_linkage(link_ref)
+    link_path = Path(link_ref)
+    if not link_path.is_absolute() and (path.parent / link_path).is_file():
+        link_path = path.parent / link_path
+    return load_linkage(resolve_config(str(link_path), 'linkages'))
+
+
 def load_scenario(name_or_path: str) -> Scenario:
     """Load ``config/scenarios/<name>.yaml`` or a scenario file; errors name file and key."""
     path = resolve_config(name_or_path, 'scenarios')
@@ -185,11 +220,7 @@ def load_scenario(name_or_path: str) -> Scenario:
     raw = check_keys(top['scenario'], w, required=('linkage', 'q0', 'duration'), optional=(
         'name', 'description', 'dq0', 'dt', 'mode', 'gravity', 'grasp', 'task', 'device',
         'user', 'control', 'lmi', 've', 'contacts', 'passivity'))
-    link_ref = as_str(raw['linkage'], f'{w}.linkage')
-    link_path = Path(link_ref)
-    if not link_path.is_absolute() and (path.parent / link_path).is_file():
-        link_path = path.parent / link_path
-    linkage = load_linkage(resolve_config(str(link_path), 'linkages'))
+    linkage = _scenario_linkage(raw['linkage'], path, w)
     if 'gravity' in raw:
         linkage = replace(linkage, gravity=as_vector(raw['gravity'], f'{w}.gravity', 3))
     if 'grasp' in raw:      # the linkage held elsewhere than its file says
@@ -220,7 +251,7 @@ def load_scenario(name_or_path: str) -> Scenario:
 
     device, offset = device_from_config(raw.get('device', {}), f'{w}.device', linkage.task)
     user = raw.get('user', {'type': 'constant_wrench', 'wrench': [0.0] * m})
-    user_from_config(user, linkage.task, f'{w}.user', np.zeros(m))  # validate now
+    user_from_config(user, linkage.task, f'{w}.user', np.zeros(m), compile=False)  # check
     gains = ControlGains.from_config(raw.get('control', {}), f'{w}.control', m)
     lmi = LmiSettings.from_config(raw.get('lmi', {}), f'{w}.lmi')
     if lmi.model is LmiModel.EQ20 and np.any(linkage.gravity != 0.0):
@@ -229,7 +260,8 @@ def load_scenario(name_or_path: str) -> Scenario:
                           'VE integrates; expected eq17, or scenario.gravity: [0, 0, 0]')
     ve = VeSettings.from_config(raw.get('ve', {}), f'{w}.ve', dt)
     name = as_str(raw.get('name', path.stem), f'{w}.name')
-    contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage)
+    contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage,
+                                            path.parent)
                 if 'contacts' in raw else None)
     passivity = (PassivityConfig.from_config(raw['passivity'], f'{w}.passivity')
                  if 'passivity' in raw else None)

@@ -142,7 +142,8 @@ def layout_problems(layout: dict[str, Any]) -> list[str]:
             problems.append(f'user script {sid}: output {output} must start with /studio_script/')
         outputs[output] = _script_outputs(src)
         read = {'state': 'haptic_topology_msgs/msg/DeviceState',
-                'path': 'haptic_topology_msgs/msg/VtPath'}
+                'path': 'haptic_topology_msgs/msg/VtPath',
+                'diag': 'diagnostic_msgs/msg/DiagnosticArray'}
         for topic in inputs:
             if topic not in types:
                 problems.append(f'user script {sid}: input {topic} is not a graph topic')

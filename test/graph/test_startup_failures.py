@@ -2,9 +2,10 @@
 transition and prints the backend's own one-line reason and where the driver's log is.
 
 Each case runs the command as a user does (a params file with the backend, the command line),
-in the session's ROS domain: a ``network`` device with no server, a ``ros_topics`` device whose
-topics nobody publishes, a backend class whose ``configure`` raises (its own ``DeviceError``,
-and a bug), and a lock-step run with a device on its own clock (refused at configure).
+in the session's ROS domain: a ``network`` device with no server and a lock-step run with a
+device on its own clock (both refused by the run's preflight, before any node starts: no bag,
+no node), a ``ros_topics`` device whose topics nobody publishes and a backend class whose
+``configure`` raises (its own ``DeviceError``, and a bug): refused by the driver's transition.
 No time bound is asserted (the machine's load decides how long the graph takes to start);
 what the run must not do is wait for the recorder, as if the device had run.
 """
@@ -29,11 +30,6 @@ pytestmark = pytest.mark.graph
 SUPPORT = Path(__file__).resolve().parents[1] / 'support'
 
 
-def _free_udp_port() -> int:
-    """A UDP port with nothing listening on it (taken from the system, then released)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return int(s.getsockname()[1])
 
 
 def _params(tmp_path: Path, backend: str, options: str) -> Path:
@@ -74,14 +70,27 @@ def _assert_failed(code: int, out: str, bag: Path, line: str) -> None:
     assert 'device: backend' not in out, out
 
 
+def _assert_refused_before_start(code: int, out: str, bag: Path, line: str) -> None:
+    """The run failed with status 1 and printed ``line`` before starting anything: no bag
+    directory, no node's output."""
+    assert code == 1, out
+    assert f'haptic-topology run: error: {line}' in out, out
+    assert not bag.exists(), out
+    assert 'running fig8' not in out and 'Traceback' not in out, out
+
+
 def test_a_network_device_without_its_server(tmp_path: Path) -> None:
-    port = _free_udp_port()
-    params = _params(tmp_path, 'network',
-                     f'{{host: 127.0.0.1, port: {port}, connect_timeout_ms: 500}}')
-    code, out, bag = _run(tmp_path, params)
-    _assert_failed(code, out, bag, 'device_driver: activate failed: network: no valid STATE '
-                   f'from 127.0.0.1:{port} within 500 ms (connect_timeout_ms); received 0 '
-                   'datagrams: is `haptic-topology device-server` running there')
+    # The port is held by a socket that never answers, so that no other program takes it.
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(('127.0.0.1', 0))
+        port = int(silent.getsockname()[1])
+        params = _params(tmp_path, 'network',
+                         f'{{host: 127.0.0.1, port: {port}, connect_timeout_ms: 500}}')
+        code, out, bag = _run(tmp_path, params)
+    _assert_refused_before_start(
+        code, out, bag, 'device: network: no valid STATE from 127.0.0.1:'
+        f'{port} within 500 ms (connect_timeout_ms); received 0 datagrams: is '
+        '`haptic-topology device-server` running there')
 
 
 def test_a_ros_topics_device_whose_topics_nobody_publishes(tmp_path: Path) -> None:
@@ -108,5 +117,5 @@ def test_a_backend_whose_configure_raises(tmp_path: Path, refuse: str, reason: s
 def test_lockstep_with_a_device_on_its_own_clock(tmp_path: Path) -> None:
     params = _params(tmp_path, 'network', '{host: 127.0.0.1}')
     code, out, bag = _run(tmp_path, params, '--clock', 'lockstep')
-    _assert_failed(code, out, bag, 'device_driver: configure failed: backend network: the '
-                   'device runs on its own clock, so clock: lockstep cannot pace it')
+    _assert_refused_before_start(code, out, bag, 'device: backend network: the device runs '
+                                 'on its own clock, so clock: lockstep cannot pace it')

@@ -6,7 +6,8 @@ its device. After the fault the output fades back in over the watchdog ramp."""
 from __future__ import annotations
 
 import numpy as np
-from fake_backend import FaultBackend
+import pytest
+from fake_backend import CircleBackend, FaultBackend
 
 from haptic_topology.device.backend import (
     BackendConfig,
@@ -19,7 +20,7 @@ from haptic_topology.messages.check import STATUS_BITS
 from haptic_topology.messages.definitions import typestore_with_haptic_msgs
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
-from haptic_topology.vocabulary import ControlMode, DeviceStatus
+from haptic_topology.vocabulary import ControlMode, DeviceStatus, TaskSpace
 
 PENALTY = int(ControlMode.PENALTY)
 FAULT = DeviceStatus.FAULT
@@ -176,6 +177,29 @@ def test_hardware_id_names_backend_and_device() -> None:
     assert hardware_id(backend, 'ignored') == 'sim_maglev planar'
     assert hardware_id(None, 'my_pkg.dev:Dev') == 'my_pkg.dev:Dev'
     assert SimMaglevBackend().fault_reason() == 'sim_maglev: the device reports a fault'
+
+
+@pytest.mark.parametrize('scenario,task', [('fig8', 'planar'), ('spatial_arm4', 'spatial'),
+                                           ('fig8_point', 'planar_point'),
+                                           ('spatial_arm4_point', 'spatial_point')])
+def test_hardware_id_names_the_declared_task_not_a_guess_from_m(scenario: str,
+                                                                 task: str) -> None:
+    """m = 3 is planar or spatial_point: the default ``hardware_id`` names the task the
+    backend says it was configured for (:meth:`DeviceBackend.task`); a backend that keeps
+    only m is named by m where one task has it (2 planar_point, 6 spatial), else ``3-dof``,
+    never ``planar`` for a spatial_point device."""
+    class Declaring(CircleBackend):
+        def configure(self, config: BackendConfig) -> None:
+            super().configure(config)
+            self.declared = config.params.task
+
+        def task(self) -> TaskSpace | None:
+            return self.declared
+
+    assert _configured(SimMaglevBackend(), scenario).hardware_id == f'sim_maglev {task}'
+    assert _configured(Declaring(), scenario).hardware_id == f'circle_test_double {task}'
+    by_m = {'planar': '3-dof', 'spatial_point': '3-dof'}.get(task, task)
+    assert _configured(CircleBackend(), scenario).hardware_id == f'circle_test_double {by_m}'
 
 
 def test_fault_bit_is_the_message_constant_and_a_valid_status() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,8 @@ W = 'fig.yaml: scenario.contacts.obstacles'
 PLANAR, SPATIAL = TaskSpace.PLANAR, TaskSpace.SPATIAL
 X0, X1 = np.zeros(3), np.array([0.1, 0.0, 0.0])  # a 0.1 m link along world x
 S2 = math.sqrt(2.0)
+#: The unit cube [-0.5, 0.5]^3 as 12 triangles (ASCII STL, written for these tests).
+BOX12 = Path(__file__).resolve().parents[2] / 'fixtures' / 'meshes' / 'box12.stl'
 
 
 def one(raw: dict[str, Any], task: TaskSpace = PLANAR) -> Obstacle:
@@ -201,7 +204,9 @@ def pointwise(obs: Obstacle, x: np.ndarray) -> np.ndarray:
         d = obs.end - obs.point
         t = np.clip((x - obs.point) @ d / (d @ d), 0.0, 1.0)
         return np.linalg.norm(x - obs.point - t[:, None] * d, axis=1) - obs.radius
-    q = np.abs((x - obs.point) @ obs.rotation) - obs.half_extents
+    # a box; a mesh obstacle here is the 12-triangle unit cube scaled to the box
+    half = obs.half_extents if obs.mesh is None else 0.5 * np.array(obs.mesh.scale)
+    q = np.abs((x - obs.point) @ obs.rotation) - half
     return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
 
 
@@ -227,6 +232,9 @@ def random_obstacle(rng: np.random.Generator, kind: ObstacleKind) -> Obstacle:
     elif kind is ObstacleKind.BOX:
         raw.update(center=pt(), half_extents=rng.uniform(0.005, 0.1, 3).tolist(),
                    rpy=rng.uniform(-math.pi, math.pi, 3).tolist())
+    elif kind is ObstacleKind.MESH:     # the box above as a mesh of 12 triangles
+        raw.update(file=str(BOX12), center=pt(), scale=rng.uniform(0.01, 0.2, 3).tolist(),
+                   rpy=rng.uniform(-math.pi, math.pi, 3).tolist())
     else:
         raw.update(center=pt(), radius=float(rng.uniform(0.002, 0.05)))
     return one(raw, kind.task)
@@ -243,12 +251,19 @@ def test_gap_matches_sampled_minimum(kind: ObstacleKind) -> None:
         r = float(rng.uniform(0.0, 0.02))
         cands = capsule_gaps(obs, p0, p1, r)
         gap = min(c[0] for c in cands)
-        assert gap == pytest.approx(sampled_min(obs, p0, p1, r), abs=1e-9), (trial, obs)
+        sampled = sampled_min(obs, p0, p1, r)
+        if kind is ObstacleKind.MESH and sampled < 0.0:
+            # coal's depth is the shortest translation that separates the two (EPA), at least
+            # the depth of the capsule's deepest point, which is -sampled
+            assert gap <= sampled + 1e-9, (trial, obs)
+            continue
+        assert gap == pytest.approx(sampled, abs=1e-9), (trial, obs)
         for g, s, n in cands:
             assert 0.0 <= s <= 1.0 and np.linalg.norm(n) == pytest.approx(1.0)
             assert n[2] == 0.0 or kind.task is SPATIAL
             x = p0 + s * (p1 - p0)
-            assert g == pytest.approx(pointwise(obs, x[None])[0] - r, abs=1e-12)  # gap at s
+            tol = 1e-9 if kind is ObstacleKind.MESH else 1e-12     # coal: GJK tolerance
+            assert g == pytest.approx(pointwise(obs, x[None])[0] - r, abs=tol)  # gap at s
         if gap + r > 1e-3:  # apart: moving the link along the normal opens the gap 1:1
             h = 1e-6
             moved = min(c[0] for c in capsule_gaps(obs, p0 + h * n, p1 + h * n, r))

@@ -1,6 +1,6 @@
 """Contacts with the URDF's collision geometry (issue 13 item 1): spheres and capsules read from
 ``<collision>`` (merged fixed links included) are the links' contact shapes, exactly;
-meshes are refused unless the scenario says what to do (boxes and cylinders:
+a missing mesh file is refused unless the scenario says what to do (boxes and cylinders:
 ``test_core_contacts_solids``); the ``table`` scenario (6-D, URDF shapes) stops the tool on the
 table.
 
@@ -10,6 +10,7 @@ with the code under test."""
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -148,16 +149,18 @@ def test_off_axis_shapes_jacobians_torques_and_energy(tmp_path: Path) -> None:
     np.testing.assert_allclose(tau0, -grad, rtol=1e-5, atol=1e-9)
 
 
-def test_meshes_are_refused_unless_the_scenario_chooses(tmp_path: Path) -> None:
-    """(Boxes and cylinders are modelled: ``test_core_contacts_solids``.)"""
-    kind = 'mesh'
+def test_a_missing_mesh_is_refused_unless_the_scenario_chooses(tmp_path: Path) -> None:
+    """A link mesh that is nowhere is refused in one line naming the file and where it was
+    looked for; the scenario can still put a capsule in its place or leave the link out.
+    (Meshes found: ``test_core_contacts_meshes``.)"""
     linkage = load_linkage(_urdf(tmp_path, '<collision><geometry><mesh filename="package://'
                                            'nowhere/l1.stl"/></geometry></collision>'))
-    with pytest.raises(ConfigError, match=(
-            rf"test.links.l1: the URDF gives link 'l1' a {kind} collision shape .*"
-            r'set links.l1.radius \(m\) in this contacts block for a capsule along the '
-            r'link, or links.l1.collide: false to leave the link out')):
+    with pytest.raises(ConfigError) as err:
         _contacts(linkage, PLANE)[1].settings.capsules(linkage)
+    assert '\n' not in str(err.value)
+    assert re.fullmatch(rf"{re.escape(str(tmp_path))}/chain.urdf: link 'l1' <mesh>: mesh file "
+                        r"'package://nowhere/l1.stl' not found \(looked in: .*"
+                        r"no Python distribution 'nowhere'\)", str(err.value)), str(err.value)
     # radius: the default capsule along the link (joint 1 -> joint 2), of that radius
     _, cm = _contacts(linkage, PLANE, links=[('l1', 0.004)])
     caps = cm.settings.capsules(linkage)

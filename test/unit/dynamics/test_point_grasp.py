@@ -160,3 +160,29 @@ def test_compiled_pose_difference_of_a_point_is_a_plain_difference() -> None:
     moved = np.array([0.1, 0.2])
     compiled.integrate_pose(moved, np.array([1.0, -1.0]), 0.5)
     np.testing.assert_array_equal(moved, [0.6, -0.3])
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_panda_elbow_is_constrained_radially_about_the_shoulder(seed: int) -> None:
+    """panda_link4_point holds the Panda at panda_link4's origin, on the joint-4 axis. From the
+    URDF: joint 1 about z at the base, joint 2 333 mm above it, joint 3 along the upper arm
+    through the shoulder, joint 4 316 mm along it and 82.5 mm aside. Joints 1-3 turn about
+    axes through the shoulder (0, 0, 0.333) and joints 4-7 do not move the point, so it lies
+    at sqrt(0.316^2 + 0.0825^2) from the shoulder and the radial direction is constrained at
+    every configuration (t = 1, rank J_h = 2)."""
+    from haptic_topology.sim.scenario import load_scenario
+
+    lk = load_scenario('panda_link4_point').linkage
+    assert lk.task is TaskSpace.SPATIAL_POINT
+    dyn = LinkageDynamics(lk)
+    q = np.random.default_rng(seed).uniform(-2.5, 2.5, dyn.dof)
+    shoulder = np.array([0.0, 0.0, 0.333])
+    r = dyn.hand_pose(q) - shoulder
+    assert np.linalg.norm(r) == pytest.approx(np.hypot(0.316, 0.0825), abs=1e-12)
+    u = r / np.linalg.norm(r)
+    j = dyn.hand_jacobian(q)
+    assert j.shape == (3, 7)
+    np.testing.assert_allclose(j[:, 3:], 0.0, atol=1e-15)
+    np.testing.assert_allclose(u @ j, 0.0, atol=1e-15)
+    assert dyn.constraints(q).count == 1
+    np.testing.assert_allclose(constrained(dyn, q), np.outer(u, u), atol=1e-12)

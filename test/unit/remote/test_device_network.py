@@ -58,7 +58,7 @@ from haptic_topology.remote.network import NetworkBackend
 from haptic_topology.remote.server import DeviceServer, ServerConfig
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
-from haptic_topology.vocabulary import ControlMode, DeviceStatus
+from haptic_topology.vocabulary import ControlMode, DeviceStatus, TaskSpace
 
 PENALTY = int(ControlMode.PENALTY)
 FAULT = DeviceStatus.FAULT
@@ -829,6 +829,41 @@ def test_backend_and_server_process_closed_loop(spawn: Callable[..., ServerProce
     assert f'{c["commands"]} commands' in res.output
 
 
+def test_preflight_reaches_the_server_releases_and_leaves_the_run_followed_at_once(
+        spawn: Callable[..., ServerProcess]) -> None:
+    """``run``'s preflight (:meth:`NetworkBackend.preflight`) against the server process: it
+    returns once a STATE came, never engages (the server applies nothing for it), and
+    releases, so the run's own session that follows at once is followed (not ``foreign``)
+    and its commands are applied; without a server it fails within its connect timeout
+    with the backend's line."""
+    server = spawn()
+    options = {'port': server.port, 'stale_ms': 200.0, 'connect_timeout_ms': 60_000}
+    NetworkBackend().preflight(_config(options))
+    be = NetworkBackend()
+    be.configure(_config(options))
+    try:
+        be.activate()
+        _, sent, _ = _run_loop(be, 300)
+    finally:
+        be.deactivate()
+    res = server.stop()
+    assert res.returncode == 0, res.output
+    assert _check_applied(res.seq, res.u, sent) > 0
+    assert set(np.unique(res.session[res.seq > 0]).tolist()) == {be.session}
+    c = res.counters
+    assert c['client_sessions'] == 2 and c['releases'] == 2, c
+    assert c['foreign'] == c['malformed'] == 0, c
+    # A port held by a socket that never answers (released after the check: no other
+    # program can take it meanwhile and answer).
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(('127.0.0.1', 0))
+        port = int(silent.getsockname()[1])
+        with pytest.raises(DeviceError, match=rf'^network: no valid STATE from '
+                           rf'127\.0\.0\.1:{port} within 300 ms \(connect_timeout_ms\); '
+                           r'received 0 datagrams'):
+            NetworkBackend().preflight(_config({'port': port, 'connect_timeout_ms': 300}))
+
+
 def test_server_process_clamps_and_zeroes_output_when_commands_stop(
         spawn: Callable[..., ServerProcess]) -> None:
     """A raw client (no driver clamping) commands (30 N, -25 N, 0.5 N m) until the server
@@ -969,3 +1004,34 @@ def test_server_command_line(spawn: Callable[..., ServerProcess]) -> None:
     res = server.stop()
     assert res.returncode == 0 and res.counters['cycles'] >= 1
     assert res.counters['states_sent'] == 0            # no client: nothing sent
+
+
+@pytest.mark.parametrize('scenario', ['fig8_point', 'spatial_arm4_point'])
+def test_a_point_task_is_refused_its_packets_name_m_not_the_task(scenario: str) -> None:
+    """spatial_point has m = 3 as planar does: a device serving fig8 would answer a
+    spatial_arm4_point client with x, y, theta taken as x, y, z. The backend keeps the task
+    the scenario declares and refuses a point task at configure, in one line; a rigid task is
+    named by its declared task."""
+    task = load_scenario(scenario).linkage.task
+    be = NetworkBackend()
+    with pytest.raises(DeviceError, match=re.escape(
+            f'network: scenario task {task.value} (m = {task.dim}): the device protocol '
+            'carries the rigid tasks only (m = 3 planar, 6 spatial; its packets name m, not '
+            'the task, so a device serving another task of the same m could not be told '
+            'apart)')):
+        be.configure(_config({}, scenario))
+    assert be.task() is None and be.hardware_id == 'network'
+    be.configure(_config({}, 'spatial_arm4'))
+    assert be.task() is TaskSpace.SPATIAL
+    assert be.hardware_id == 'network 127.0.0.1:47001 spatial, unauthenticated link'
+
+
+def test_the_device_server_refuses_a_point_task() -> None:
+    """The server's side of the same rule: it would answer in packets of m = 3 that a planar
+    client takes for x, y, theta."""
+    with pytest.raises(DeviceError, match=re.escape(
+            'device-server: scenario spatial_arm4_point has task spatial_point (m = 3): the '
+            'device protocol carries the rigid tasks only (m = 3 planar, 6 spatial; its packets '
+            'name m, not the task)')):
+        DeviceServer(load_scenario('spatial_arm4_point'),
+                     ServerConfig(port=0, log_cycles=100_000), clock_ns=FakeClock())
