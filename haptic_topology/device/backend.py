@@ -413,6 +413,7 @@ BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
     'ros_topics': 'haptic_topology.nodes.topic_backend:RosTopicBackend',
     'network': 'haptic_topology.remote.network:NetworkBackend',
     'openhaptics': 'haptic_topology.device.openhaptics:OpenHapticsBackend',
+    'haply': 'haptic_topology.remote.haply:HaplyBackend',
 }
 
 

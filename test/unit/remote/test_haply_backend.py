@@ -1,0 +1,266 @@
+"""The ``haply`` backend against the Haply Inverse Service emulator in another process: options,
+axes, identity and device choice, the task <-> device mapping, and the faults (service
+unreachable, NaN and malformed states, the device unplugged, the service hung or stopped):
+each is a FAULT reading with its reason, after which the driver's loop writes zero and the
+device gets nothing but zero; nothing non-finite is passed on. Waits are on conditions with
+deadlines; no timing is asserted."""
+
+from __future__ import annotations
+
+import re
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from backend_conformance import Bench, Subject
+from haply_harness import Emulator, EmulatorDevice, read_log
+
+from haptic_topology import cli
+from haptic_topology.config.resolve import check_device_axes
+from haptic_topology.device.backend import TRANSLATION_AXES, BackendConfig, create_backend
+from haptic_topology.errors import AxesError, DeviceError
+from haptic_topology.remote.haply import HaplyBackend
+from haptic_topology.sim.lockstep import initial_device_pose
+from haptic_topology.sim.scenario import load_scenario
+from haptic_topology.vocabulary import DeviceStatus
+
+FAULT = DeviceStatus.FAULT
+WAIT = 60.0
+
+
+def _free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return int(s.getsockname()[1])
+
+
+def _configured(options: dict[str, Any], scenario: str = 'fig8_point') -> HaplyBackend:
+    sc = load_scenario(scenario)
+    b = create_backend('haply')
+    assert isinstance(b, HaplyBackend)
+    b.configure(BackendConfig(sc.device, initial_device_pose(sc), {}, options, sc.source))
+    return b
+
+
+@pytest.fixture
+def emulators(tmp_path: Path) -> Iterator[list[Emulator]]:
+    made: list[Emulator] = []
+    yield made
+    for e in made:
+        e.kill()
+
+
+def _start(made: list[Emulator], tmp: Path, *extra: str) -> Emulator:
+    e = Emulator(tmp / f'e{len(made)}', extra)
+    made.append(e)
+    return e
+
+
+# -- options, axes, identity ---------------------------------------------------------------------
+@pytest.mark.parametrize(('options', 'message'), [
+    ({'port': 0}, 'haply: backend_options.port: expected an integer port in [1, 65535], got 0'),
+    ({'axes': ['x', 'x', 'z']}, 'haply: backend_options.axes: expected 3 signed device axis '
+     'names such as [x, -z, y] (task x, y, z), right-handed, got'),
+    ({'origin': [0.1]}, 'haply: backend_options.origin: expected start, or 2 numbers (m)'),
+    ({'max_force': 0}, 'haply: backend_options.max_force: expected a number in (0, 1000], '
+     'got 0'),
+    ({'max_in_flight': 0}, 'haply: backend_options.max_in_flight: expected an integer in '
+     '[1, 64], got 0'),
+    ({'speed': 1}, "haply: backend_options: unknown option 'speed'")])
+def test_bad_options_are_refused_naming_the_field(options: dict[str, Any], message: str
+                                                  ) -> None:
+    with pytest.raises(DeviceError) as err:
+        _configured(options)
+    assert str(err.value).startswith(message), err.value
+
+
+def test_a_translation_device_point_tasks_only(capsys: pytest.CaptureFixture[str]) -> None:
+    assert HaplyBackend.axes({}) == TRANSLATION_AXES
+    check_device_axes(load_scenario('fig8_point'), 'haply', {})
+    with pytest.raises(AxesError, match=r'^scenario fig8 needs torque about z; device haply '
+                       r'actuates x, y, z forces only: use fig8_point$'):
+        check_device_axes(load_scenario('fig8'), 'haply', {})
+    assert cli.main(['run', 'fig8', '--backend', 'haply']) == 2
+    assert capsys.readouterr().err == ('haptic-topology run: error: scenario fig8 needs '
+                                       'torque about z; device haply actuates x, y, z forces '
+                                       'only: use fig8_point\n')
+    with pytest.raises(DeviceError, match='renders point tasks only'):
+        _configured({}, 'fig8')
+
+
+def test_an_unreachable_service_fails_at_once_naming_the_address() -> None:
+    port = _free_tcp_port()
+    b = _configured({'port': port, 'connect_timeout_ms': 600_000})
+    started = time.monotonic()
+    with pytest.raises(DeviceError) as err:
+        b.activate()
+    assert str(err.value).startswith(f'haply: cannot connect to ws://127.0.0.1:{port}/: '
+                                     'Connection refused: is the Haply Inverse Service'), err.value
+    # "at once": long before the (10 min) connect timeout; no bound of this machine asserted
+    assert time.monotonic() - started < 600.0
+    b.deactivate()
+
+
+def test_one_device_among_several_by_its_id(tmp_path: Path,
+                                            emulators: list[Emulator]) -> None:
+    e = _start(emulators, tmp_path, '--device', '04A1', '--device', '04B2')
+    b = _configured({'port': e.port})
+    with pytest.raises(DeviceError, match=r'^haply: 2 Inverse3 devices at ws://127\.0\.0\.1:'
+                       r'\d+/ \(04A1, 04B2\): choose one with backend_options\.device_id$'):
+        b.activate()
+    b = _configured({'port': e.port, 'device_id': '0000'})
+    with pytest.raises(DeviceError, match=r"no Inverse3 '0000' at .*; it has 04A1, 04B2$"):
+        b.activate()
+    b = _configured({'port': e.port, 'device_id': '04B2'})
+    b.activate()
+    assert b.hardware_id.startswith('haply Inverse3 04B2 (inverse3, version 7.4, '
+                                    'right-handed, port emulated) via ws://127.0.0.1:')
+    assert b.hardware_id.endswith('(service protocol 3.5.x)')
+    for _ in range(20):
+        b.write(np.array([0.5, -0.25]))
+        b.read(0.001)
+    b.deactivate()
+    e.stop()
+    _, ids, f = read_log(e.log)
+    sent = [i for i, row in zip(ids, f, strict=True) if row.any()]
+    assert sent and set(sent) == {'04B2'}
+
+
+def test_the_mapping_axes_origin_and_force_limit(tmp_path: Path,
+                                                 emulators: list[Emulator]) -> None:
+    """``axes: [y, -x, z]``: task x is device y, task y is device -x. The handle rests at
+    the emulator's start (0, -0.12, 0.15) m (no hand): task position origin + (-0.12, 0)."""
+    e = _start(emulators, tmp_path, '--hand-stiffness', '0', '--quantum', '0')
+    b = _configured({'port': e.port, 'axes': ['y', '-x', 'z'], 'origin': [0.2, 0.1],
+                     'max_force': 2.5})
+    b.activate()
+    r = b.read(0.001)
+    np.testing.assert_allclose(r.pose, [0.2 - 0.12, 0.1 - 0.0], rtol=0, atol=1e-15)
+    b.write(np.array([1.0, 0.5]))       # device (-0.5, 1.0, 0)
+    b.write(np.array([3.0, 4.0]))       # norm 5 -> 2.5 N: device (-2.0, 1.5, 0)
+    b.deactivate()
+    e.stop()
+    _, _, f = read_log(e.log)
+    assert f[:3].tolist() == [[0.0, 0.0, 0.0], [-0.5, 1.0, 0.0], [-2.0, 1.5, 0.0]]
+    assert b.force_clamped == 1
+
+
+def test_origin_start_holds_the_grasp_point_across_activations(
+        tmp_path: Path, emulators: list[Emulator]) -> None:
+    e = _start(emulators, tmp_path, '--hand-stiffness', '0')
+    b = _configured({'port': e.port})
+    b.activate()
+    sc = load_scenario('fig8_point')
+    np.testing.assert_allclose(b.read(0.001).pose, initial_device_pose(sc), rtol=0,
+                               atol=1e-12)
+    carried = b.carry_over()
+    b.deactivate()
+    assert carried is not None
+    again = _configured({'port': e.port})
+    again.resume(carried)
+    again.activate()
+    assert again.carry_over() == carried
+    again.deactivate()
+
+
+# -- faults --------------------------------------------------------------------------------------
+def _run_to_fault(tmp_path: Path, emulators: list[Emulator], fault: str,
+                  **options: Any) -> tuple[Bench, EmulatorDevice, int, list[DeviceStatus]]:
+    """Engage a bench on the emulator with ``--fault fault`` and cycle with a constant force
+    until a FAULT reading, then 30 cycles more; (bench, device, index of the first faulted
+    cycle in ``bench.written``, the statuses)."""
+    device = EmulatorDevice(tmp_path / 'dev', 2, ('--fault', fault))
+    emulators.append(device.emulator)
+    opts = {'port': device.port, 'stale_ms': 2000.0, **options}
+    bench = Bench(Subject('haply', lambda: device, opts, 'fig8_point'), device)
+    bench.activate()
+    bench.engage()
+    u = np.array([1.5, -1.0])
+    statuses: list[DeviceStatus] = []
+    deadline = time.monotonic() + WAIT
+    while not statuses or not statuses[-1] & FAULT:
+        assert time.monotonic() < deadline, 'no FAULT reading'
+        statuses.append(bench.cycle(u).reading.status)
+        time.sleep(0.0005)
+    first = len(bench.written) - 1
+    for _ in range(30):
+        statuses.append(bench.cycle(u).reading.status)
+        time.sleep(0.0005)
+    return bench, device, first, statuses
+
+
+def _zero_after_fault(bench: Bench, first: int) -> None:
+    """The loop wrote zero from the cycle after the first FAULT reading for as long as the
+    fault lasted (the existing fault path): never force from bad data."""
+    w = np.array(bench.written)
+    assert w[first - 1].any()                       # force before the fault
+    faulted = [k for k in range(first, len(bench.readings)) if k < len(w)]
+    assert faulted and not w[first + 1:first + 2].any()
+    for r in bench.readings:
+        assert np.all(np.isfinite(r)), 'a non-finite reading was passed on'
+
+
+@pytest.mark.parametrize(('fault', 'reason'), [
+    ('nan@200', 'haply: a non-finite state of 0E31 from ws://127.0.0.1:'),
+    ('malformed@200', "haply: a malformed message from ws://127.0.0.1:")])
+def test_a_bad_state_is_a_fault_until_a_good_one(tmp_path: Path, emulators: list[Emulator],
+                                                 fault: str, reason: str) -> None:
+    bench, device, first, statuses = _run_to_fault(tmp_path, emulators, fault)
+    assert bench.backend.fault_reason().startswith(reason), bench.backend.fault_reason()
+    _zero_after_fault(bench, first)
+    assert not statuses[-1] & FAULT          # the next state cleared it
+    assert bench.loop.device_faults == 1
+    bench.release()
+    c = bench.backend.counters()          # type: ignore[attr-defined]
+    assert (c['nonfinite'], c['malformed']) == ((1, 0) if fault.startswith('nan') else (0, 1))
+
+
+@pytest.mark.parametrize(('fault', 'reason', 'options'), [
+    ('unplug@200', r"haply: the Inverse3 0E31 is gone from ws://127\.0\.0\.1:\d+/'s states "
+     r'\(unplugged or powered off\?\)', {}),
+    ('hang@200', r'haply: no state from ws://127\.0\.0\.1:\d+/ for [\d.]+ ms \(stale_ms 50\): '
+     'the service is stalled or stopped', {'stale_ms': 50.0}),
+    ('stop@200', r'haply: the connection to ws://127\.0\.0\.1:\d+/ ended \(the service '
+     r'(closed|reset) the connection\)', {})])
+def test_a_lasting_fault_holds_zero(tmp_path: Path, emulators: list[Emulator], fault: str,
+                                    reason: str, options: dict[str, Any]) -> None:
+    bench, device, first, statuses = _run_to_fault(tmp_path, emulators, fault, **options)
+    assert re.fullmatch(reason, bench.backend.fault_reason()), bench.backend.fault_reason()
+    _zero_after_fault(bench, first)
+    assert all(s & FAULT for s in statuses[-30:])
+    w = np.array(bench.written)
+    assert not w[first + 1:].any(), 'force written while the fault lasted'
+    if fault.startswith('hang'):
+        assert bench.backend.counters()['throttled'] > 0     # type: ignore[attr-defined]
+    bench.backend.write(np.zeros(2))
+    bench.backend.deactivate()               # harmless with the service gone or hung
+    bench.backend.deactivate()
+    # what the device got after the faulted state: zero only (or nothing: service gone)
+    device.stopped = True
+    device.emulator.stop()
+    t, _, f = read_log(device.emulator.log)
+    cut = np.flatnonzero(np.abs(f - [1.5, -1.0, 0.0]).max(axis=1) == 0.0)
+    assert cut.size, 'the device never got the force'
+    assert not f[cut[-1] + 1:].any() or fault.startswith('stop'), f[cut[-1] + 1:]
+    device.close()
+
+
+def test_service_stopped_output_ends_with_the_fault(tmp_path: Path) -> None:
+    """The emulator's ``stop`` fault ends the process at once (exit 0) with its counters."""
+    e = Emulator(tmp_path, ('--fault', 'stop@5'))
+    b = _configured({'port': e.port})
+    b.activate()
+    deadline = time.monotonic() + WAIT
+    while not b.read(0.001).status & FAULT:
+        assert time.monotonic() < deadline
+        b.write(np.zeros(2))
+        time.sleep(0.001)
+    assert e.proc.wait(timeout=WAIT) == 0
+    b.deactivate()
+    e.kill()
+    assert 'haply_emulator: stopped (fault stop@5)' in e.output, e.output
+
