@@ -149,6 +149,7 @@ class HaplyBackend(DeviceBackend):
         self._ws: WebSocketClient | None = None
         self._origin: np.ndarray | None = None
         self._first = True
+        self._fresh_start = False
         self._pos = np.zeros(3)
         self._vel = np.zeros(3)
         self._state_ns = 0
@@ -319,6 +320,7 @@ class HaplyBackend(DeviceBackend):
                 raise DeviceError(f'haply: {self._bad}')
         if self._origin is None:
             self._origin = self._initial - self._a @ self._pos
+        self._fresh_start = True
 
     def deactivate(self) -> None:
         ws = self._ws
@@ -393,6 +395,12 @@ class HaplyBackend(DeviceBackend):
             raise DeviceError('haply: read() before activate()')
         newest, count = ws.poll()
         now = self._clock_ns()
+        if self._fresh_start:
+            # The first cycle comes some time after activate() took its state (the driver
+            # starts its loop meanwhile) while the service was answering: that state is
+            # the device's newest, not a stale one.
+            self._fresh_start = False
+            self._state_ns = max(self._state_ns, now)
         if count:
             self._answers += count
             assert newest is not None
