@@ -66,7 +66,7 @@ import json
 import math
 import pickle
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -150,8 +150,9 @@ class HaplyBackend(DeviceBackend):
         self._origin: np.ndarray | None = None
         self._first = True
         self._fresh_start = False
-        self._pos = np.zeros(3)
-        self._vel = np.zeros(3)
+        self._pos = (0.0, 0.0, 0.0)
+        self._vel = (0.0, 0.0, 0.0)
+        self._origin_list = (0.0, 0.0, 0.0)
         self._state_ns = 0
         self._bad = ''
         self._reason = ''
@@ -201,7 +202,7 @@ class HaplyBackend(DeviceBackend):
         self.wanted_id = _text(opts, 'device_id')
         self.profile = _text(opts, 'profile')
         self._a = parse_axes(opts.get('axes', DEFAULTS['axes']))
-        self._at = self._a.T.copy()
+        self._a_rows = [[float(v) for v in row] for row in self._a]
         m = task.dim
         origin = opts.get('origin', DEFAULTS['origin'])
         if origin == 'start':
@@ -222,7 +223,6 @@ class HaplyBackend(DeviceBackend):
             raise _error('max_in_flight', 'an integer in [1, 64]', n)
         self.max_in_flight = n
         self._m = m
-        self._task = task
         self._initial = np.zeros(3)
         self._initial[:m] = np.asarray(config.initial_pose, dtype=float)[:m]
         self.peer = f'ws://{self.host}:{self.port}{self.path}'
@@ -306,7 +306,7 @@ class HaplyBackend(DeviceBackend):
         self._sent = self._answers = 0
         self._state_ns = 0
         self._bad = self._reason = ''
-        self._send(np.zeros(3), force=True)
+        self._send((0.0, 0.0, 0.0), force=True)
         while not self._state_ns:
             msg = ws.wait_text(self._left(start))
             if msg is None:
@@ -319,7 +319,9 @@ class HaplyBackend(DeviceBackend):
             if self._bad and not self._state_ns:
                 raise DeviceError(f'haply: {self._bad}')
         if self._origin is None:
-            self._origin = self._initial - self._a @ self._pos
+            self._origin = self._initial - self._a @ np.array(self._pos)
+        ox, oy, oz = (float(v) for v in self._origin)
+        self._origin_list = (ox, oy, oz)
         self._fresh_start = True
 
     def deactivate(self) -> None:
@@ -327,7 +329,7 @@ class HaplyBackend(DeviceBackend):
         if ws is None:
             return
         if not ws.closed:
-            self._send(np.zeros(3), force=True)
+            self._send((0.0, 0.0, 0.0), force=True)
             deadline = time.monotonic() + _RELEASE_WAIT
             while ws._out and not ws.closed and time.monotonic() < deadline:
                 ws.poll()
@@ -352,13 +354,13 @@ class HaplyBackend(DeviceBackend):
             self._origin = origin
 
     # -- cycle -------------------------------------------------------------------------------
-    def _send(self, f_dev: np.ndarray, force: bool = False) -> None:
+    def _send(self, f_dev: Sequence[float], force: bool = False) -> None:
         ws = self._ws
         assert ws is not None
         if not force and self._sent - self._answers >= self.max_in_flight:
             self.throttled += 1
             return
-        x, y, z = (float(v) for v in f_dev)
+        x, y, z = f_dev
         body = b'{"x":%r,"y":%r,"z":%r}' % (x, y, z)
         msg = self._prefix + body + self._suffix
         if self._first:
@@ -379,13 +381,15 @@ class HaplyBackend(DeviceBackend):
         if not np.all(np.isfinite(w)):
             self.nonfinite_writes += 1
             w = np.where(np.isfinite(w), w, 0.0)
-        f = np.zeros(3)
-        f[:self._m] = w
-        f_dev = self._at @ f
-        norm = math.sqrt(float(f_dev @ f_dev))
+        # f_D = A^T f, on plain floats (for 3-vectors a fraction of numpy's calls)
+        f = w.tolist() + [0.0] * (3 - self._m)
+        a = self._a_rows
+        f_dev = [a[0][i] * f[0] + a[1][i] * f[1] + a[2][i] * f[2] for i in range(3)]
+        norm = math.sqrt(f_dev[0] * f_dev[0] + f_dev[1] * f_dev[1] + f_dev[2] * f_dev[2])
         if norm > self.max_force:
             self.force_clamped += 1
-            f_dev *= self.max_force / norm
+            k = self.max_force / norm
+            f_dev = [k * c for c in f_dev]
         self._send(f_dev)
 
     def read(self, dt: float) -> DeviceReading:
@@ -440,16 +444,21 @@ class HaplyBackend(DeviceBackend):
             self._bad = (f'a non-finite state of {self.device_id} from {self.peer}: '
                          f'position {pos}, velocity {vel}')
             return
-        self._pos = np.array(pos)
-        self._vel = np.array(vel)
+        self._pos = pos
+        self._vel = vel
         self._state_ns = now
         self._bad = ''
         self.states += 1
 
+    def _task(self, d: tuple[float, float, float], origin: bool) -> np.ndarray:
+        """``(p_o +) A d``, its first m rows."""
+        a, o = self._a_rows, self._origin_list if origin else (0.0, 0.0, 0.0)
+        return np.array([o[i] + a[i][0] * d[0] + a[i][1] * d[1] + a[i][2] * d[2]
+                         for i in range(self._m)])
+
     def _reading(self, now: int, ws: WebSocketClient) -> DeviceReading:
         m = self._m
-        assert self._origin is not None
-        pose = (self._origin + self._a @ self._pos)[:m]
+        pose = self._task(self._pos, True)
         age = now - self._state_ns
         if ws.closed:
             self._reason = f'haply: the connection to {self.peer} ended ({ws.closed})'
@@ -461,7 +470,7 @@ class HaplyBackend(DeviceBackend):
                             f'(stale_ms {self.stale_ns * 1e-6:g}): the service is stalled or '
                             'stopped')
         else:
-            return DeviceReading(pose, (self._a @ self._vel)[:m], np.zeros(m))
+            return DeviceReading(pose, self._task(self._vel, False), np.zeros(m))
         self.fault_reads += 1
         return DeviceReading(pose, np.zeros(m), np.zeros(m), _FAULT)
 
