@@ -4,6 +4,9 @@ WebSocket/JSON simulation channel, as Haply documents it for service version 3.5
 module follows is :data:`SERVICE_VERSION`). The closed serial protocol between the service
 and the device is not used.
 
+(One module of ~510 lines on purpose: the options, the lifecycle, the per-cycle path and the
+counters share the connection's state and are read together.)
+
 **The protocol** (3.5.x). The service listens on ``ws://localhost:10001``. On connection it
 sends an inventory: ``{"session_id": ..., "inverse3": [{"device_id", "config", "state",
 "status"}, ...], ...}``; after that it sends exactly one state message (``state`` and
@@ -36,35 +39,43 @@ address. A faulted reading repeats the newest valid position with zero velocity.
 connection is not reopened: the run goes on at zero force with the fault, and the next
 activation connects again.
 
-**Lifecycle.** ``configure`` checks the options (no I/O). ``activate`` connects (at most
-``connect_timeout_ms``; a refused connection fails at once, naming the address), takes the
-inventory, chooses the device (``device_id``, or the only Inverse3), sends a zero force and
-waits for its answer. ``deactivate`` sends a zero force (always, whatever ``max_in_flight``
-says), closes the connection; the service's device then returns to idle. The identity
-(device id, model, firmware, handedness) is :attr:`HaplyBackend.hardware_id`.
+**Lifecycle.** ``configure`` checks the options (no I/O). ``preflight`` (``run``, before any
+node starts) connects, takes the inventory and chooses the device, then closes without a
+command. ``activate`` connects (at most ``connect_timeout_ms``; a refused connection fails at
+once, naming the address), takes the inventory, chooses the device (``device_id``, or the
+only Inverse3), sends a zero force and waits for its answer. ``deactivate`` sends a zero
+force (always, whatever ``max_in_flight`` says), waits for its answer (at most 0.2 s) and
+closes the connection; the service's device then returns to idle. The identity
+(:class:`~haptic_topology.device.vendor.DeviceIdentity`: Haply, the model from the
+inventory's ``config.type``, the device id as serial) is in :attr:`HaplyBackend.hardware_id`
+and the diagnostics values.
 
 **Frames and units.** Task vectors of a point grasp only (``planar_point``: x, y;
 ``spatial_point``: x, y, z): the Inverse3 senses and actuates three translations, no rotation
-(:data:`~haptic_topology.device.backend.TRANSLATION_AXES`). With ``A`` from ``axes`` (task
-axis i = that signed device axis) and ``p_o`` from ``origin``: task position ``p = p_o + A
-p_D`` (its first m rows), velocity ``v = A v_D``, command ``f_D = A^T f`` (the task force,
-zero on a planar task's z row). ``origin: start`` (the default) puts the handle's position at
-the first activation on the scenario's initial pose: wherever the handle is, it holds the
-grasp point. The Inverse3 has no force sensor: the hand wrench is reported as zero and the
-controller sees the hand through the motion.
+(:data:`~haptic_topology.device.backend.TRANSLATION_AXES`). The mapping, the grasp and clutch
+buttons and the fade-in of the force at each grasp are the shared vendor layer's
+(:class:`~haptic_topology.device.vendor.VendorHand`, options ``axes``, ``origin``, ``scale``,
+``force_scale``, ``engage_button``, ``clutch_button``, ``grasp_ramp_ms``): by default the
+handle's position at activation is the scenario's initial pose and the force fades in over
+50 ms. Buttons: the service reports none for the Inverse3 itself; the handle's buttons are
+those of a VerseGrip, a device of its own in the protocol (``verse_grip``: ``button``, bit 0;
+``wireless_verse_grip``: ``buttons.a``, bit 0, ``buttons.b``, bit 1), read from the grip
+``grip_id`` (default: the first one the service lists; none: no buttons held). The device
+force is then clamped to ``max_force`` (norm). The Inverse3 has no force sensor: the hand
+wrench is reported as zero and the controller sees the hand through the motion.
 
-Options (``backend_options``; every one optional): ``host`` (127.0.0.1), ``port`` (10001),
-``path`` (``/``), ``device_id`` (the only Inverse3), ``axes`` ([x, y, z]), ``origin``
-(``start``, or m numbers in metres), ``max_force`` (N, norm; default 10), ``stale_ms`` (20),
-``connect_timeout_ms`` (2000), ``max_in_flight`` (4), ``profile`` (the session profile name).
-A bad one is refused naming it.
+Options (``backend_options``; every one optional): the vendor layer's
+(:data:`~haptic_topology.device.vendor.VENDOR_OPTIONS`) and ``host`` (127.0.0.1), ``port``
+(10001), ``path`` (``/``), ``device_id`` (the only Inverse3), ``grip_id`` (the first
+VerseGrip), ``max_force`` (N, norm; default 10), ``stale_ms`` (20), ``connect_timeout_ms``
+(2000), ``max_in_flight`` (4), ``profile`` (the session profile name). A bad one is refused
+naming it.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import pickle
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -78,6 +89,8 @@ from haptic_topology.device.backend import (
     DeviceBackend,
     DeviceReading,
 )
+from haptic_topology.device.topic_mapping import option_error
+from haptic_topology.device.vendor import DeviceIdentity, VendorHand, parse_vendor_options
 from haptic_topology.errors import DeviceError
 from haptic_topology.remote.websocket_client import WebSocketClient, connect
 from haptic_topology.vocabulary import DeviceStatus
@@ -86,78 +99,76 @@ from haptic_topology.vocabulary import DeviceStatus
 SERVICE_VERSION = '3.5.x'
 #: The service's default simulation-channel port.
 DEFAULT_PORT = 10001
-#: Options and their defaults (module doc).
-DEFAULTS: dict[str, Any] = {
-    'host': '127.0.0.1', 'port': DEFAULT_PORT, 'path': '/', 'device_id': '',
-    'axes': ['x', 'y', 'z'], 'origin': 'start', 'max_force': 10.0, 'stale_ms': 20.0,
-    'connect_timeout_ms': 2000.0, 'max_in_flight': 4, 'profile': 'haptic_topology',
+#: The backend's own options and their defaults (module doc); the vendor layer's come on top.
+OWN_OPTIONS: dict[str, Any] = {
+    'host': '127.0.0.1', 'port': DEFAULT_PORT, 'path': '/', 'device_id': '', 'grip_id': '',
+    'max_force': 10.0, 'stale_ms': 20.0, 'connect_timeout_ms': 2000.0, 'max_in_flight': 4,
+    'profile': 'haptic_topology',
 }
-_AXES = {'x': 0, 'y': 1, 'z': 2}
+NAME = 'haply'
 _FAULT = DeviceStatus.FAULT
-#: How long ``deactivate`` may wait for its zero force to leave (s).
+#: How long ``deactivate`` may wait for the answer to its zero force (s).
 _RELEASE_WAIT = 0.2
 
 
-def _error(key: str, expected: str, value: Any) -> DeviceError:
-    return DeviceError(f'haply: backend_options.{key}: expected {expected}, got {value!r}')
-
-
 def _number(opts: Mapping[str, Any], key: str, lo: float, hi: float) -> float:
-    value = opts.get(key, DEFAULTS[key])
+    value = opts[key]
     if (isinstance(value, bool) or not isinstance(value, int | float)
             or not (math.isfinite(value) and lo < value <= hi)):
-        raise _error(key, f'a number in ({lo:g}, {hi:g}]', value)
+        raise option_error(key, f'a number in ({lo:g}, {hi:g}]', value, NAME)
     return float(value)
 
 
 def _text(opts: Mapping[str, Any], key: str) -> str:
-    value = opts.get(key, DEFAULTS[key])
+    value = opts[key]
     if not isinstance(value, str):
-        raise _error(key, 'text', value)
+        raise option_error(key, 'text', value, NAME)
     return value
 
 
-def parse_axes(value: Any) -> np.ndarray:
-    """``axes``: 3 signed device axis names (task x, y, z), right-handed -> ``A`` (3 x 3,
-    device -> task)."""
-    expected = '3 signed device axis names such as [x, -z, y] (task x, y, z), right-handed'
-    if not (isinstance(value, list) and len(value) == 3
-            and all(isinstance(v, str) for v in value)):
-        raise _error('axes', expected, value)
-    a = np.zeros((3, 3))
-    for i, name in enumerate(value):
-        text = name.strip().lower()
-        axis = _AXES.get(text.lstrip('+-'))
-        if axis is None:
-            raise _error('axes', expected, value)
-        a[i, axis] = -1.0 if text.startswith('-') else 1.0
-    if abs(np.linalg.det(a) - 1.0) > 1e-9:
-        raise _error('axes', expected, value)
-    return a
+def _buttons(data: Mapping[str, Any], grip_id: str) -> int:
+    """The button mask of the VerseGrip ``grip_id`` (''': the first listed) in a state
+    message: wired ``button`` bit 0; wireless ``buttons.a`` bit 0, ``buttons.b`` bit 1."""
+    for kind in ('wireless_verse_grip', 'verse_grip'):
+        grips = data.get(kind)
+        if not isinstance(grips, list):
+            continue
+        for g in grips:
+            if not isinstance(g, dict) or (grip_id and str(g.get('device_id')) != grip_id):
+                continue
+            st = g.get('state')
+            if not isinstance(st, dict):
+                return 0
+            b = st.get('buttons')
+            if isinstance(b, dict):
+                return int(bool(b.get('a'))) | int(bool(b.get('b'))) << 1
+            return int(bool(st.get('button')))
+    return 0
 
 
 class HaplyBackend(DeviceBackend):
     """A Haply Inverse3 through the Inverse Service (module doc). ``clock_ns``: monotonic
     clock (ns) for the staleness (tests inject one)."""
 
-    name = 'haply'
+    name = NAME
     lockstep = False            # the device runs on its own clock
 
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns
         self._m = 0
         self._ws: WebSocketClient | None = None
-        self._origin: np.ndarray | None = None
+        self._hand: VendorHand | None = None
         self._first = True
         self._fresh_start = False
         self._pos = (0.0, 0.0, 0.0)
         self._vel = (0.0, 0.0, 0.0)
-        self._origin_list = (0.0, 0.0, 0.0)
+        self._buttons = 0
         self._state_ns = 0
+        self._last: DeviceReading | None = None
         self._bad = ''
         self._reason = ''
         self.device_id = ''
-        self.identity = ''
+        self.identity: DeviceIdentity | None = None
         self.session_id: Any = None
         self.peer = ''
         self._sent = 0
@@ -182,51 +193,29 @@ class HaplyBackend(DeviceBackend):
 
     # -- configuration -----------------------------------------------------------------------
     def configure(self, config: BackendConfig) -> None:
-        opts = config.options
-        unknown = sorted(set(opts) - set(DEFAULTS))
-        if unknown:
-            raise DeviceError(f'haply: backend_options: unknown option {unknown[0]!r} '
-                              f'(expected some of: {", ".join(sorted(DEFAULTS))})')
-        task = config.params.task
-        if not task.point:
-            raise DeviceError(f'haply: the Inverse3 renders point tasks only (planar_point, '
-                              f'spatial_point), got {task.value}')
+        self._vendor, opts = parse_vendor_options(config.options, NAME, config.params.task,
+                                                  OWN_OPTIONS)
         self.host = _text(opts, 'host')
-        port = opts.get('port', DEFAULTS['port'])
+        port = opts['port']
         if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
-            raise _error('port', 'an integer port in [1, 65535]', port)
+            raise option_error('port', 'an integer port in [1, 65535]', port, NAME)
         self.port = port
         self.path = _text(opts, 'path')
         if not self.path.startswith('/'):
-            raise _error('path', 'a path starting with /', self.path)
+            raise option_error('path', 'a path starting with /', self.path, NAME)
         self.wanted_id = _text(opts, 'device_id')
+        self.grip_id = _text(opts, 'grip_id')
         self.profile = _text(opts, 'profile')
-        self._a = parse_axes(opts.get('axes', DEFAULTS['axes']))
-        self._a_rows = [[float(v) for v in row] for row in self._a]
-        m = task.dim
-        origin = opts.get('origin', DEFAULTS['origin'])
-        if origin == 'start':
-            self._fixed_origin: np.ndarray | None = None
-        elif (isinstance(origin, list) and len(origin) == m
-              and all(isinstance(v, int | float) and not isinstance(v, bool)
-                      and math.isfinite(v) for v in origin)):
-            self._fixed_origin = np.zeros(3)
-            self._fixed_origin[:m] = origin
-        else:
-            raise _error('origin', f'start, or {m} numbers (m): the task position of the '
-                         'device frame\'s origin', origin)
         self.max_force = _number(opts, 'max_force', 0.0, 1000.0)
         self.stale_ns = round(1e6 * _number(opts, 'stale_ms', 0.0, 10_000.0))
         self.connect_timeout = 1e-3 * _number(opts, 'connect_timeout_ms', 0.0, 600_000.0)
-        n = opts.get('max_in_flight', DEFAULTS['max_in_flight'])
+        n = opts['max_in_flight']
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 64:
-            raise _error('max_in_flight', 'an integer in [1, 64]', n)
+            raise option_error('max_in_flight', 'an integer in [1, 64]', n, NAME)
         self.max_in_flight = n
-        self._m = m
-        self._initial = np.zeros(3)
-        self._initial[:m] = np.asarray(config.initial_pose, dtype=float)[:m]
+        self._m = config.params.task.dim
+        self._start_pose = np.asarray(config.initial_pose, dtype=float)[:self._m].copy()
         self.peer = f'ws://{self.host}:{self.port}{self.path}'
-        self._origin = self._fixed_origin
 
     def task_dim(self) -> int:
         if not self._m:
@@ -237,28 +226,41 @@ class HaplyBackend(DeviceBackend):
     def hardware_id(self) -> str:
         if not self._m:
             return self.name
-        if not self.identity:
+        if self.identity is None:
             return f'{self.name} {self.peer}'
-        return f'{self.name} {self.identity} via {self.peer} (service protocol {SERVICE_VERSION})'
+        return f'{self.identity.hardware_id(self.name)} via {self.peer}'
 
     def fault_reason(self) -> str:
         return self._reason or f'{self.name}: the device reports a fault'
 
     # -- lifecycle ---------------------------------------------------------------------------
+    def preflight(self, config: BackendConfig) -> None:
+        """Connect, take the inventory, choose the device; close without a command (the
+        device's output is never touched)."""
+        self.configure(config)
+        start = time.monotonic()
+        ws = self._connect()
+        try:
+            self._choose(ws, start)
+        finally:
+            ws.close()
+
+    def _connect(self) -> WebSocketClient:
+        try:
+            return connect(self.host, self.port, self.path, self.connect_timeout)
+        except DeviceError as exc:
+            raise DeviceError(f'haply: {exc}: is the Haply Inverse Service (or '
+                              '`python -m haptic_topology.remote.haply_emulator`) running '
+                              'there?') from None
+
     def activate(self) -> None:
         self.task_dim()
         if self._ws is not None:
             return
         start = time.monotonic()
+        self._ws = self._connect()
         try:
-            ws = connect(self.host, self.port, self.path, self.connect_timeout)
-        except DeviceError as exc:
-            raise DeviceError(f'haply: {exc}: is the Haply Inverse Service (or '
-                              '`python -m haptic_topology.remote.haply_emulator`) running '
-                              'there?') from None
-        self._ws = ws
-        try:
-            self._start(ws, start)
+            self._start(self._ws, start)
         except DeviceError:
             self._close()
             raise
@@ -266,7 +268,8 @@ class HaplyBackend(DeviceBackend):
     def _left(self, start: float) -> float:
         return max(0.0, self.connect_timeout - (time.monotonic() - start))
 
-    def _start(self, ws: WebSocketClient, start: float) -> None:
+    def _choose(self, ws: WebSocketClient, start: float) -> None:
+        """Take the inventory and choose the device (module doc)."""
         first = ws.wait_text(self._left(start))
         if first is None:
             raise DeviceError(f'haply: no inventory from {self.peer} within '
@@ -287,16 +290,19 @@ class HaplyBackend(DeviceBackend):
             chosen = self.wanted_id
         elif len(ids) == 1:
             chosen = ids[0]
-        else:
+        elif ids:
             raise DeviceError(f'haply: {len(ids)} Inverse3 devices at {self.peer} '
-                              f'({", ".join(ids) or "none"}): choose one with '
-                              'backend_options.device_id' if ids else
-                              f'haply: no Inverse3 at {self.peer}: is it plugged in and '
+                              f'({", ".join(ids)}): choose one with backend_options.device_id')
+        else:
+            raise DeviceError(f'haply: no Inverse3 at {self.peer}: is it plugged in and '
                               'powered?')
         self.device_id = chosen
         self.session_id = inventory.get('session_id')
-        self.identity = _identity(devices[ids.index(chosen)])
-        head = json.dumps({'device_id': chosen}, separators=(',', ':'))[:-1]
+        self.identity = identity(devices[ids.index(chosen)])
+
+    def _start(self, ws: WebSocketClient, start: float) -> None:
+        self._choose(ws, start)
+        head = json.dumps({'device_id': self.device_id}, separators=(',', ':'))[:-1]
         self._prefix = ('{"inverse3":[' + head + ',"commands":{"set_cursor_force":{"vector":'
                         ).encode()
         self._suffix = b'}}}]}'
@@ -306,6 +312,8 @@ class HaplyBackend(DeviceBackend):
         self._sent = self._answers = 0
         self._state_ns = 0
         self._bad = self._reason = ''
+        self._hand = VendorHand(self._vendor, self._start_pose)
+        self._last = None
         self._send((0.0, 0.0, 0.0), force=True)
         while not self._state_ns:
             msg = ws.wait_text(self._left(start))
@@ -318,10 +326,6 @@ class HaplyBackend(DeviceBackend):
             self._take(msg, self._clock_ns())
             if self._bad and not self._state_ns:
                 raise DeviceError(f'haply: {self._bad}')
-        if self._origin is None:
-            self._origin = self._initial - self._a @ np.array(self._pos)
-        ox, oy, oz = (float(v) for v in self._origin)
-        self._origin_list = (ox, oy, oz)
         self._fresh_start = True
 
     def deactivate(self) -> None:
@@ -329,29 +333,23 @@ class HaplyBackend(DeviceBackend):
         if ws is None:
             return
         if not ws.closed:
+            # A zero force, and the service's answer to it (and to every command before it):
+            # the service has applied it before the connection closes (a message still
+            # queued at the service when it closes may never be read).
             self._send((0.0, 0.0, 0.0), force=True)
             deadline = time.monotonic() + _RELEASE_WAIT
-            while ws._out and not ws.closed and time.monotonic() < deadline:
-                ws.poll()
-                time.sleep(0.001)
+            while not ws.closed:
+                self._answers += ws.poll()[1]
+                left = deadline - time.monotonic()
+                if self._answers >= self._sent or left <= 0.0:
+                    break
+                ws.wait(left)
         self._close()
 
     def _close(self) -> None:
         if self._ws is not None:
             self._ws.close()
             self._ws = None
-
-    def carry_over(self) -> bytes | None:
-        """The task position of the device frame's origin, so that the next activation (a
-        new instance) keeps the mapping of the first (``origin: start``)."""
-        return None if self._origin is None else pickle.dumps(self._origin)
-
-    def resume(self, carried: bytes) -> None:
-        origin = pickle.loads(carried)
-        if not (isinstance(origin, np.ndarray) and origin.shape == (3,)):
-            raise DeviceError('haply: resume(): not a carried origin')
-        if self._fixed_origin is None:
-            self._origin = origin
 
     # -- cycle -------------------------------------------------------------------------------
     def _send(self, f_dev: Sequence[float], force: bool = False) -> None:
@@ -372,7 +370,7 @@ class HaplyBackend(DeviceBackend):
             self.not_sent += 1
 
     def write(self, wrench: np.ndarray) -> None:
-        if self._ws is None:
+        if self._ws is None or self._hand is None:
             raise DeviceError('haply: write() before activate()')
         w = np.asarray(wrench, dtype=float)
         if w.shape != (self._m,):
@@ -381,21 +379,17 @@ class HaplyBackend(DeviceBackend):
         if not np.all(np.isfinite(w)):
             self.nonfinite_writes += 1
             w = np.where(np.isfinite(w), w, 0.0)
-        # f_D = A^T f, on plain floats (for 3-vectors a fraction of numpy's calls)
-        f = w.tolist() + [0.0] * (3 - self._m)
-        a = self._a_rows
-        f_dev = [a[0][i] * f[0] + a[1][i] * f[1] + a[2][i] * f[2] for i in range(3)]
-        norm = math.sqrt(f_dev[0] * f_dev[0] + f_dev[1] * f_dev[1] + f_dev[2] * f_dev[2])
+        x, y, z = self._hand.force(w)
+        norm = math.sqrt(x * x + y * y + z * z)
         if norm > self.max_force:
             self.force_clamped += 1
             k = self.max_force / norm
-            f_dev = [k * c for c in f_dev]
-        self._send(f_dev)
+            x, y, z = k * x, k * y, k * z
+        self._send((x, y, z))
 
     def read(self, dt: float) -> DeviceReading:
-        del dt  # the device runs at its own clock
         ws = self._ws
-        if ws is None:
+        if ws is None or self._hand is None:
             raise DeviceError('haply: read() before activate()')
         newest, count = ws.poll()
         now = self._clock_ns()
@@ -409,10 +403,10 @@ class HaplyBackend(DeviceBackend):
             self._answers += count
             assert newest is not None
             self._take(newest, now)
-        return self._reading(now, ws)
+        return self._reading(now, ws, dt)
 
     def _take(self, msg: bytes, now: int) -> None:
-        """Decode one state message; keep its position and velocity if valid."""
+        """Decode one state message; keep its position, velocity and buttons if valid."""
         try:
             data = json.loads(msg)
             entry = None
@@ -444,21 +438,14 @@ class HaplyBackend(DeviceBackend):
             self._bad = (f'a non-finite state of {self.device_id} from {self.peer}: '
                          f'position {pos}, velocity {vel}')
             return
-        self._pos = pos
-        self._vel = vel
+        self._pos, self._vel = pos, vel
+        self._buttons = _buttons(data, self.grip_id)
         self._state_ns = now
         self._bad = ''
         self.states += 1
 
-    def _task(self, d: tuple[float, float, float], origin: bool) -> np.ndarray:
-        """``(p_o +) A d``, its first m rows."""
-        a, o = self._a_rows, self._origin_list if origin else (0.0, 0.0, 0.0)
-        return np.array([o[i] + a[i][0] * d[0] + a[i][1] * d[1] + a[i][2] * d[2]
-                         for i in range(self._m)])
-
-    def _reading(self, now: int, ws: WebSocketClient) -> DeviceReading:
-        m = self._m
-        pose = self._task(self._pos, True)
+    def _reading(self, now: int, ws: WebSocketClient, dt: float) -> DeviceReading:
+        assert self._hand is not None
         age = now - self._state_ns
         if ws.closed:
             self._reason = f'haply: the connection to {self.peer} ended ({ws.closed})'
@@ -470,8 +457,11 @@ class HaplyBackend(DeviceBackend):
                             f'(stale_ms {self.stale_ns * 1e-6:g}): the service is stalled or '
                             'stopped')
         else:
-            return DeviceReading(pose, self._task(self._vel, False), np.zeros(m))
+            self._last = self._hand.reading(self._pos, self._vel, self._buttons, dt)
+            return self._last
         self.fault_reads += 1
+        m = self._m
+        pose = self._last.pose if self._last is not None else self._start_pose.copy()
         return DeviceReading(pose, np.zeros(m), np.zeros(m), _FAULT)
 
     # -- figures -----------------------------------------------------------------------------
@@ -488,26 +478,35 @@ class HaplyBackend(DeviceBackend):
                 'partial_sends': ws.partial_sends if ws is not None else 0}
 
     def values(self) -> dict[str, str]:
-        """Counters as diagnostics key/values, with the device and the service session."""
+        """Counters, the device's identity, the grasp, the service session (diagnostics)."""
         out = {f'haply_{k}': str(v) for k, v in self.counters().items()}
-        out['haply_device_id'] = self.device_id
         out['haply_session_id'] = str(self.session_id)
+        if self.identity is not None:
+            out.update(self.identity.values())
+        if self._hand is not None:
+            out.update(self._hand.values())
         return out
 
 
-def _identity(entry: Any) -> str:
-    """``Inverse3 <id> (<type>, hardware 7, firmware 4, right-handed)`` from an inventory
-    entry (what of it is there)."""
+def identity(entry: Any) -> DeviceIdentity:
+    """The :class:`~haptic_topology.device.vendor.DeviceIdentity` of an inventory entry: Haply,
+    the model from ``config.type`` (``inverse3`` -> ``Inverse3``) with its device_info
+    version and handedness, the device id as serial, the protocol as SDK."""
     cfg = entry.get('config') if isinstance(entry, dict) else None
     cfg = cfg if isinstance(cfg, dict) else {}
     raw = cfg.get('device_info')
     info: dict[str, Any] = raw if isinstance(raw, dict) else {}
-    parts = [str(cfg.get('type', 'inverse3'))]
+    kind = str(cfg.get('type', 'inverse3'))
+    model = {'inverse3': 'Inverse3', 'inverse3x': 'Inverse3x', 'minverse': 'Minverse'}.get(
+        kind, kind)
+    more = []
     if 'major_version' in info:
-        parts.append(f'version {info.get("major_version")}.{info.get("minor_version")}')
+        more.append(f'version {info.get("major_version")}.{info.get("minor_version")}')
     if 'handedness' in cfg:
-        parts.append(f'{cfg["handedness"]}-handed')
+        more.append(f'{cfg["handedness"]}-handed')
     if 'port' in cfg:
-        parts.append(f'port {cfg["port"]}')
-    return f'Inverse3 {entry.get("device_id")} ({", ".join(parts)})'
-
+        more.append(f'port {cfg["port"]}')
+    if more:
+        model += f' ({", ".join(more)})'
+    return DeviceIdentity('Haply', model, str(entry.get('device_id', '')),
+                          f'Inverse Service protocol {SERVICE_VERSION}')

@@ -30,6 +30,10 @@ from message N on; ``hang@N`` stops answering from message N on (the connection 
 ``stop@N`` ends the service at message N (the connection drops without a close frame, as
 when the service is stopped or crashes).
 
+**The handle's buttons**: ``--grip ID`` adds a wireless VerseGrip (``wireless_verse_grip`` in
+the inventory and the states, ``state.buttons.a`` / ``.b``); ``--press B@N-M`` holds its
+button B from message N to M.
+
 ``--ready-file PATH`` writes ``{host, port, pid, devices}`` (JSON) once it serves (with
 ``--port 0``, how a program learns the port), ``--log PATH`` one line per command received
 (CSV: monotonic ns, device id, fx, fy, fz; and a zero line when a connection closes),
@@ -160,8 +164,11 @@ class Service:
 
     def __init__(self, devices: list[SimInverse3], command_timeout: float,
                  faults: dict[str, int], log: TextIO | None,
-                 monitor: tuple[str, int] | None) -> None:
+                 monitor: tuple[str, int] | None, grip: str = '',
+                 presses: Sequence[tuple[str, int, int]] = ()) -> None:
         self.devices = {d.device_id: d for d in devices}
+        self.grip = grip
+        self.presses = tuple(presses)
         self.lifetime = command_timeout
         self.faults = faults
         self.log = log
@@ -191,13 +198,27 @@ class Service:
             return False
         return n >= at if kind in ('unplug', 'hang') else n == at
 
+    def _grips(self, n: int, config: bool = False) -> list[dict[str, Any]]:
+        """The wireless VerseGrip (``--grip``) with its buttons at message ``n``."""
+        if not self.grip:
+            return []
+        held = {b: any(b == k and n0 <= n <= n1 for k, n0, n1 in self.presses) for b in 'ab'}
+        grip: dict[str, Any] = {
+            'device_id': self.grip,
+            'state': {'buttons': held, 'hall': 0, 'battery_level': 1.0,
+                      'orientation': {'w': 1.0, 'x': 0.0, 'y': 0.0, 'z': 0.0}},
+            'status': {'ready': True}}
+        if config:
+            grip['config'] = {'type': 'wireless_verse_grip'}
+        return [grip]
+
     def inventory(self) -> str:
         with self.lock:
             self.sessions += 1
             return json.dumps({'session_id': self.sessions, 'inverse3': [
                 {'device_id': d.device_id, 'config': d.config(), 'state': d.state(),
                  'status': STATUS} for d in self.devices.values()],
-                'verse_grip': [], 'wireless_verse_grip': []})
+                'verse_grip': [], 'wireless_verse_grip': self._grips(self.received, True)})
 
     def answer(self, text: str | bytes) -> str | None:
         """Take one client message; the state message to answer with (None: no answer)."""
@@ -239,7 +260,8 @@ class Service:
             gone = self._fault('unplug', n)
             return json.dumps({'inverse3': [] if gone else [
                 {'device_id': d.device_id, 'state': d.state(self._fault('nan', n)),
-                 'status': STATUS} for d in self.devices.values()]})
+                 'status': STATUS} for d in self.devices.values()],
+                'wireless_verse_grip': self._grips(n)})
 
     def disconnected(self) -> None:
         """A connection closed: every device returns to idle (zero force)."""
@@ -276,6 +298,15 @@ def _fault(text: str) -> tuple[str, int]:
     return kind, int(at)
 
 
+def _press(text: str) -> tuple[str, int, int]:
+    button, _, span = text.partition('@')
+    n0, _, n1 = span.partition('-')
+    if button not in ('a', 'b') or not n0.isdigit() or not n1.isdigit() or int(n1) < int(n0):
+        raise argparse.ArgumentTypeError(f'expected a@N-M or b@N-M (held from message N to M), '
+                                         f'got {text!r}')
+    return button, int(n0), int(n1)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='python -m haptic_topology.remote.haply_emulator',
@@ -295,6 +326,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--hand-radius', type=float, default=0.005, help='m')
     p.add_argument('--hand-frequency', type=float, default=0.25, help='Hz')
     p.add_argument('--command-timeout-ms', type=float, default=10.0)
+    p.add_argument('--grip', default='', metavar='ID',
+                   help='a wireless VerseGrip with this device id (its buttons a and b)')
+    p.add_argument('--press', type=_press, action='append', default=[], metavar='B@N-M',
+                   help='the grip\'s button B (a or b) held from message N to M; repeatable')
     p.add_argument('--fault', type=_fault, action='append', default=[], metavar='KIND@N')
     p.add_argument('--ready-file', default='')
     p.add_argument('--log', default='')
@@ -315,7 +350,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         host, _, port = args.monitor.rpartition(':')
         monitor = (host, int(port))
     log = open(args.log, 'w', encoding='utf-8') if args.log else None
-    service = Service(devices, 1e-3 * args.command_timeout_ms, dict(args.fault), log, monitor)
+    service = Service(devices, 1e-3 * args.command_timeout_ms, dict(args.fault), log, monitor,
+                      args.grip, args.press)
 
     def handler(ws: ServerConnection) -> None:
         ws.socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)

@@ -97,6 +97,11 @@ class WebSocketClient:
         self.pings = 0
 
     # -- sending -----------------------------------------------------------------------------
+    @property
+    def sending(self) -> bool:
+        """A frame is still unfinished (part of it waits for the socket's buffer)."""
+        return bool(self._out)
+
     def _key(self) -> bytes:
         if not self._keys:
             self._keys = os.urandom(4096)
@@ -236,6 +241,10 @@ class WebSocketClient:
         if count > 1:
             self.skipped += count - 1
         return newest, count
+
+    def wait(self, timeout: float) -> None:
+        """Wait at most ``timeout`` s for something to read (outside a device cycle)."""
+        select.select([self._sock], [], [], timeout)
 
     def wait_text(self, timeout: float) -> bytes | None:
         """The next text message, waiting at most ``timeout`` s (None: none came, or the

@@ -64,12 +64,13 @@ def _start(made: list[Emulator], tmp: Path, *extra: str) -> Emulator:
 @pytest.mark.parametrize(('options', 'message'), [
     ({'port': 0}, 'haply: backend_options.port: expected an integer port in [1, 65535], got 0'),
     ({'axes': ['x', 'x', 'z']}, 'haply: backend_options.axes: expected 3 signed device axis '
-     'names such as [x, -z, y] (task x, y, z), right-handed, got'),
-    ({'origin': [0.1]}, 'haply: backend_options.origin: expected start, or 2 numbers (m)'),
+     'names such as [x, -z, y] (task x, y, z)'),
+    ({'origin': [0.1]}, 'haply: backend_options.origin: expected 3 numbers'),
     ({'max_force': 0}, 'haply: backend_options.max_force: expected a number in (0, 1000], '
      'got 0'),
     ({'max_in_flight': 0}, 'haply: backend_options.max_in_flight: expected an integer in '
      '[1, 64], got 0'),
+    ({'engage_button': 40}, 'haply: backend_options.engage_button: expected a button index'),
     ({'speed': 1}, "haply: backend_options: unknown option 'speed'")])
 def test_bad_options_are_refused_naming_the_field(options: dict[str, Any], message: str
                                                   ) -> None:
@@ -88,7 +89,7 @@ def test_a_translation_device_point_tasks_only(capsys: pytest.CaptureFixture[str
     assert capsys.readouterr().err == ('haptic-topology run: error: scenario fig8 needs '
                                        'torque about z; device haply actuates x, y, z forces '
                                        'only: use fig8_point\n')
-    with pytest.raises(DeviceError, match='renders point tasks only'):
+    with pytest.raises(DeviceError, match='a 3-axis device renders a point grasp only'):
         _configured({}, 'fig8')
 
 
@@ -117,9 +118,11 @@ def test_one_device_among_several_by_its_id(tmp_path: Path,
         b.activate()
     b = _configured({'port': e.port, 'device_id': '04B2'})
     b.activate()
-    assert b.hardware_id.startswith('haply Inverse3 04B2 (inverse3, version 7.4, '
-                                    'right-handed, port emulated) via ws://127.0.0.1:')
-    assert b.hardware_id.endswith('(service protocol 3.5.x)')
+    assert b.hardware_id.startswith('haply Inverse3 (version 7.4, right-handed, port '
+                                    'emulated) serial 04B2 via ws://127.0.0.1:')
+    values = b.values()
+    assert (values['device_vendor'], values['device_serial'], values['device_sdk']) == (
+        'Haply', '04B2', 'Inverse Service protocol 3.5.x')
     for _ in range(20):
         b.write(np.array([0.5, -0.25]))
         b.read(0.001)
@@ -130,13 +133,28 @@ def test_one_device_among_several_by_its_id(tmp_path: Path,
     assert sent and set(sent) == {'04B2'}
 
 
+def test_preflight_checks_the_service_and_the_device_and_sends_nothing(
+        tmp_path: Path, emulators: list[Emulator]) -> None:
+    e = _start(emulators, tmp_path, '--device', '04A1')
+    sc = load_scenario('fig8_point')
+    config = BackendConfig(sc.device, initial_device_pose(sc), {}, {'port': e.port},
+                           sc.source)
+    create_backend('haply').preflight(config)
+    wrong = BackendConfig(sc.device, initial_device_pose(sc), {},
+                          {'port': e.port, 'device_id': '0000'}, sc.source)
+    with pytest.raises(DeviceError, match=r"no Inverse3 '0000' at .*; it has 04A1$"):
+        create_backend('haply').preflight(wrong)
+    out = e.stop()
+    assert '"sessions": 2, "received": 0, "commands": 0' in out, out
+
+
 def test_the_mapping_axes_origin_and_force_limit(tmp_path: Path,
                                                  emulators: list[Emulator]) -> None:
     """``axes: [y, -x, z]``: task x is device y, task y is device -x. The handle rests at
     the emulator's start (0, -0.12, 0.15) m (no hand): task position origin + (-0.12, 0)."""
     e = _start(emulators, tmp_path, '--hand-stiffness', '0', '--quantum', '0')
-    b = _configured({'port': e.port, 'axes': ['y', '-x', 'z'], 'origin': [0.2, 0.1],
-                     'max_force': 2.5})
+    b = _configured({'port': e.port, 'axes': ['y', '-x', 'z'], 'origin': [0.2, 0.1, 0.0],
+                     'max_force': 2.5, 'grasp_ramp_ms': 0})
     b.activate()
     r = b.read(0.001)
     np.testing.assert_allclose(r.pose, [0.2 - 0.12, 0.1 - 0.0], rtol=0, atol=1e-15)
@@ -149,22 +167,50 @@ def test_the_mapping_axes_origin_and_force_limit(tmp_path: Path,
     assert b.force_clamped == 1
 
 
-def test_origin_start_holds_the_grasp_point_across_activations(
+def test_the_hand_starts_at_the_grasp_point_and_the_force_fades_in(
         tmp_path: Path, emulators: list[Emulator]) -> None:
+    """Default origin: the handle's position at activation is the scenario's initial pose;
+    the force fades in over grasp_ramp_ms (readings WATCHDOG meanwhile)."""
     e = _start(emulators, tmp_path, '--hand-stiffness', '0')
-    b = _configured({'port': e.port})
+    b = _configured({'port': e.port, 'grasp_ramp_ms': 10.0, 'max_in_flight': 64})
     b.activate()
     sc = load_scenario('fig8_point')
-    np.testing.assert_allclose(b.read(0.001).pose, initial_device_pose(sc), rtol=0,
-                               atol=1e-12)
-    carried = b.carry_over()
+    statuses = []
+    for k in range(15):
+        r = b.read(0.001)
+        if k == 0:
+            np.testing.assert_allclose(r.pose, initial_device_pose(sc), rtol=0, atol=1e-12)
+        statuses.append(r.status)
+        b.write(np.array([1.0, 0.0]))
     b.deactivate()
-    assert carried is not None
-    again = _configured({'port': e.port})
-    again.resume(carried)
-    again.activate()
-    assert again.carry_over() == carried
-    again.deactivate()
+    e.stop()
+    _, _, f = read_log(e.log)
+    fx = f[1:16, 0]
+    assert statuses[0] == DeviceStatus.WATCHDOG and statuses[-1] == DeviceStatus.OK
+    assert fx[0] == pytest.approx(0.1) and fx[-1] == 1.0
+    assert np.all(np.diff(fx) >= 0.0)
+
+
+def test_the_grip_button_engages(tmp_path: Path, emulators: list[Emulator]) -> None:
+    """``engage_button: 0``: the device gets force only while the VerseGrip's button a is
+    held (emulator messages 100-300); before and after, zero, whatever the loop writes."""
+    e = _start(emulators, tmp_path, '--grip', '61548', '--press', 'a@100-300')
+    b = _configured({'port': e.port, 'engage_button': 0, 'grasp_ramp_ms': 0,
+                     'max_in_flight': 64})
+    b.activate()
+    deadline = time.monotonic() + WAIT
+    while b.states < 400:
+        assert time.monotonic() < deadline
+        b.write(np.array([0.5, 0.0]))
+        b.read(0.001)
+        time.sleep(0.0005)
+    b.deactivate()
+    e.stop()
+    _, _, f = read_log(e.log)
+    on = np.flatnonzero(f[:, 0] != 0.0)
+    assert on.size and np.all(f[on[0]:on[-1] + 1, 0] == 0.5), 'not one block of force'
+    assert 50 < on[0] < 350 and on[-1] < len(f) - 50
+    assert b.values()['grasps'] == '1'
 
 
 # -- faults --------------------------------------------------------------------------------------

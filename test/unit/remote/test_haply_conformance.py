@@ -6,8 +6,9 @@ and ``settle`` watches its monitor stream. Planar (``fig8_point``, m = 2) and sp
 
 ``stale_ms`` is 2 s here: these checks are about the driver's pipeline, and a stall of this
 test process on a loaded machine must not trip it (staleness has tests of its own in
-``test_haply_backend.py``). ``max_force`` is above the scenarios' limits, so what the device
-gets is exactly what the loop wrote.
+``test_haply_backend.py``). ``max_force`` is above the scenarios' limits and the vendor
+layer's fade-in at the grasp is off (``grasp_ramp_ms: 0``; the driver's own watchdog ramp
+stays), so what the device gets is exactly what the loop wrote.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from haptic_topology.sim.scenario import load_scenario
 CHECKS: dict[str, Callable[[Bench], None]] = {
     'clamping': check_clamping, 'nonfinite': check_nonfinite, 'watchdog': check_watchdog,
     'lifecycle': check_lifecycle}
-OPTIONS = {'stale_ms': 2000.0, 'max_force': 1000.0}
+OPTIONS = {'stale_ms': 2000.0, 'max_force': 1000.0, 'grasp_ramp_ms': 0.0}
 
 
 def _paced() -> Callable[[], None]:
