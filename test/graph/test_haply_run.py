@@ -70,11 +70,12 @@ def test_fig8_point_on_the_emulated_inverse3(tmp_path: Path) -> None:
                               capture_output=True, timeout=400, env=dict(os.environ))
         out = (proc.stdout + proc.stderr).decode(errors='replace')
         assert proc.returncode == 0, out
-        assert ('device: backend haply, haply Inverse3 0E31 (inverse3, version 7.4, '
-                f'right-handed, port emulated) via ws://127.0.0.1:{emu.port}/ (service '
-                'protocol 3.5.x)') in out, out
+        assert ('device: backend haply, haply Inverse3 (version 7.4, right-handed, port '
+                f'emulated) serial 0E31 via ws://127.0.0.1:{emu.port}/') in out, out
         summary = json.loads((bag / 'summary.json').read_text())
         assert summary['scenario'] == 'fig8_point' and summary['samples'] > 0
+        assert (summary.get('device_vendor'), summary.get('device_serial')) == (
+            'Haply', '0E31'), summary
     finally:
         emu.stop()
     _, ids, f = read_log(emu.log)
