@@ -163,8 +163,28 @@ def test_the_mapping_axes_origin_and_force_limit(tmp_path: Path,
     b.deactivate()
     e.stop()
     _, _, f = read_log(e.log)
-    assert f[:3].tolist() == [[0.0, 0.0, 0.0], [-0.5, 1.0, 0.0], [-2.0, 1.5, 0.0]]
+    # activation's zero, the two forces, deactivate's zero, then the service's idle on close
+    assert f.tolist() == [[0.0, 0.0, 0.0], [-0.5, 1.0, 0.0], [-2.0, 1.5, 0.0],
+                          [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
     assert b.force_clamped == 1
+
+
+def test_the_first_cycle_after_a_slow_start_is_not_stale(
+        tmp_path: Path, emulators: list[Emulator]) -> None:
+    """The driver's first cycle may come well after ``activate`` took its state: that state
+    is not stale then; later ones are when no answer comes within ``stale_ms``."""
+    e = _start(emulators, tmp_path, '--fault', 'hang@2')
+    b = _configured({'port': e.port, 'stale_ms': 20.0})
+    b.activate()
+    time.sleep(0.1)
+    assert b.read(0.001).status != FAULT
+    b.write(np.zeros(2))                        # message 2: never answered
+    deadline = time.monotonic() + WAIT
+    while not b.read(0.001).status & FAULT:
+        assert time.monotonic() < deadline
+        time.sleep(0.002)
+    assert 'no state from' in b.fault_reason()
+    b.deactivate()
 
 
 def test_the_hand_starts_at_the_grasp_point_and_the_force_fades_in(
