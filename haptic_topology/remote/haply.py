@@ -4,8 +4,9 @@ WebSocket/JSON simulation channel, as Haply documents it for service version 3.5
 module follows is :data:`SERVICE_VERSION`). The closed serial protocol between the service
 and the device is not used.
 
-(One module of ~510 lines on purpose: the options, the lifecycle, the per-cycle path and the
-counters share the connection's state and are read together.)
+(One module of ~560 lines on purpose: the options, the lifecycle, the per-cycle path and the
+counters share the connection's state and are read together; its vendor registry entry is
+at the end.)
 
 **The protocol** (3.5.x). The service listens on ``ws://localhost:10001``. On connection it
 sends an inventory: ``{"session_id": ..., "inverse3": [{"device_id", "config", "state",
@@ -27,8 +28,8 @@ registers the session (``session.configure.profile.name``).
   (``throttled``), so a service that falls behind never accumulates a queue of old
   commands, and its states never lag behind by more than that many messages;
 * :meth:`HaplyBackend.read` takes whatever has arrived, decodes only the newest state (older
-  ones are counted and skipped) and returns it. A state is normally the answer to the
-  previous cycle's command: one cycle old.
+  ones are counted, ``skipped``, and never used, valid or not) and returns it. A state is
+  normally the answer to the previous cycle's command: one cycle old.
 
 **Never force from bad or stale data.** A reading carries ``DeviceStatus.FAULT`` (the driver
 then writes zero from the next cycle on and fades back in when it clears) while the newest
@@ -76,6 +77,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -90,15 +92,22 @@ from haptic_topology.device.backend import (
     DeviceReading,
 )
 from haptic_topology.device.topic_mapping import option_error
-from haptic_topology.device.vendor import DeviceIdentity, VendorHand, parse_vendor_options
+from haptic_topology.device.vendor import (
+    DeviceIdentity,
+    VendorHand,
+    VendorSupport,
+    parse_vendor_options,
+)
 from haptic_topology.errors import DeviceError
 from haptic_topology.remote.websocket_client import WebSocketClient, connect
-from haptic_topology.vocabulary import DeviceStatus
+from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 
 #: The Haply Inverse Service version whose documented protocol this backend follows.
 SERVICE_VERSION = '3.5.x'
 #: The service's default simulation-channel port.
 DEFAULT_PORT = 10001
+#: Where ``haptic-topology devices`` looks for the service (``host:port``).
+SERVICE_VARIABLE = 'HAPLY_INVERSE_SERVICE'
 #: The backend's own options and their defaults (module doc); the vendor layer's come on top.
 OWN_OPTIONS: dict[str, Any] = {
     'host': '127.0.0.1', 'port': DEFAULT_PORT, 'path': '/', 'device_id': '', 'grip_id': '',
@@ -156,6 +165,7 @@ class HaplyBackend(DeviceBackend):
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns
         self._m = 0
+        self._task: TaskSpace | None = None
         self._ws: WebSocketClient | None = None
         self._hand: VendorHand | None = None
         self._first = True
@@ -214,6 +224,7 @@ class HaplyBackend(DeviceBackend):
             raise option_error('max_in_flight', 'an integer in [1, 64]', n, NAME)
         self.max_in_flight = n
         self._m = config.params.task.dim
+        self._task = config.params.task
         self._start_pose = np.asarray(config.initial_pose, dtype=float)[:self._m].copy()
         self.peer = f'ws://{self.host}:{self.port}{self.path}'
 
@@ -221,6 +232,10 @@ class HaplyBackend(DeviceBackend):
         if not self._m:
             raise DeviceError('haply: used before configure()')
         return self._m
+
+    def task(self) -> TaskSpace | None:
+        """The point task configured (None before ``configure``)."""
+        return self._task
 
     @property
     def hardware_id(self) -> str:
@@ -510,3 +525,39 @@ def identity(entry: Any) -> DeviceIdentity:
         model += f' ({", ".join(more)})'
     return DeviceIdentity('Haply', model, str(entry.get('device_id', '')),
                           f'Inverse Service protocol {SERVICE_VERSION}')
+
+
+def vendor_support() -> VendorSupport:
+    """The ``haply`` entry of the vendor registry
+    (:data:`~haptic_topology.device.vendor.VENDOR_BACKENDS`, for ``haptic-topology
+    devices``): no vendor library to load (the protocol is built in); its devices are the
+    Inverse3 devices in the inventory of the service at ``$HAPLY_INVERSE_SERVICE``
+    (``host:port``, default ``127.0.0.1:10001``)."""
+    def where() -> tuple[str, int]:
+        text = os.environ.get(SERVICE_VARIABLE, '') or f'127.0.0.1:{DEFAULT_PORT}'
+        host, _, port = text.rpartition(':')
+        if not host or not port.isdigit():
+            raise DeviceError(f'haply: {SERVICE_VARIABLE}: expected host:port, got {text!r}')
+        return host, int(port)
+
+    def load() -> str:
+        host, port = where()
+        return (f'no library needed: the Inverse Service protocol {SERVICE_VERSION} at '
+                f'ws://{host}:{port}/')
+
+    def devices() -> list[str]:
+        host, port = where()
+        ws = connect(host, port, '/', 2.0)
+        try:
+            first = ws.wait_text(2.0)
+        finally:
+            ws.close()
+        try:
+            entries = json.loads(first or b'')['inverse3']
+            return [identity(e).hardware_id('Haply') for e in entries]
+        except (ValueError, KeyError, TypeError):
+            raise DeviceError(f'haply: no inventory from ws://{host}:{port}/') from None
+
+    return VendorSupport(NAME, 'haptic_topology (built in)',
+                         f'the Haply Inverse Service {SERVICE_VERSION}', SERVICE_VARIABLE,
+                         load, devices)

@@ -23,7 +23,7 @@ from haptic_topology import cli
 from haptic_topology.config.resolve import check_device_axes
 from haptic_topology.device.backend import TRANSLATION_AXES, BackendConfig, create_backend
 from haptic_topology.errors import AxesError, DeviceError
-from haptic_topology.remote.haply import HaplyBackend
+from haptic_topology.remote.haply import HaplyBackend, vendor_support
 from haptic_topology.sim.lockstep import initial_device_pose
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.vocabulary import DeviceStatus
@@ -234,11 +234,13 @@ def test_the_grip_button_engages(tmp_path: Path, emulators: list[Emulator]) -> N
 
 
 # -- faults --------------------------------------------------------------------------------------
-def _run_to_fault(tmp_path: Path, emulators: list[Emulator], fault: str,
+def _run_to_fault(tmp_path: Path, emulators: list[Emulator], fault: str, lasting: bool = False,
                   **options: Any) -> tuple[Bench, EmulatorDevice, int, list[DeviceStatus]]:
     """Engage a bench on the emulator with ``--fault fault`` and cycle with a constant force
-    until a FAULT reading, then 30 cycles more; (bench, device, index of the first faulted
-    cycle in ``bench.written``, the statuses)."""
+    until a FAULT reading, then 30 cycles more (``lasting``: until the last 30 readings are
+    all FAULT; a loaded machine may have stalled the emulator into a passing stale fault
+    before); (bench, device, index in ``bench.written`` of the cycle of the first FAULT
+    reading (``lasting``: of the final run of them), the statuses)."""
     device = EmulatorDevice(tmp_path / 'dev', 2, ('--fault', fault))
     emulators.append(device.emulator)
     opts = {'port': device.port, 'stale_ms': 2000.0, **options}
@@ -247,25 +249,38 @@ def _run_to_fault(tmp_path: Path, emulators: list[Emulator], fault: str,
     bench.engage()
     u = np.array([1.5, -1.0])
     statuses: list[DeviceStatus] = []
+    index: list[int] = []
     deadline = time.monotonic() + WAIT
+
+    def cycle() -> None:
+        statuses.append(bench.cycle(u).reading.status)
+        index.append(len(bench.written) - 1)
+        time.sleep(0.0005)
+
     while not statuses or not statuses[-1] & FAULT:
         assert time.monotonic() < deadline, 'no FAULT reading'
-        statuses.append(bench.cycle(u).reading.status)
-        time.sleep(0.0005)
-    first = len(bench.written) - 1
-    for _ in range(30):
-        statuses.append(bench.cycle(u).reading.status)
-        time.sleep(0.0005)
+        cycle()
+    first = index[-1]
+    if lasting:
+        while len(statuses) < 30 or not all(st & FAULT for st in statuses[-30:]):
+            assert time.monotonic() < deadline, 'no lasting FAULT'
+            cycle()
+        k = len(statuses) - 1
+        while k > 0 and statuses[k - 1] & FAULT:
+            k -= 1
+        first = index[k]
+    else:
+        for _ in range(30):
+            cycle()
     return bench, device, first, statuses
 
 
 def _zero_after_fault(bench: Bench, first: int) -> None:
-    """The loop wrote zero from the cycle after the first FAULT reading for as long as the
-    fault lasted (the existing fault path): never force from bad data."""
+    """The loop wrote zero from the cycle after the FAULT reading of cycle ``first`` (the
+    existing fault path), after force before it: never force from bad data."""
     w = np.array(bench.written)
-    assert w[first - 1].any()                       # force before the fault
-    faulted = [k for k in range(first, len(bench.readings)) if k < len(w)]
-    assert faulted and not w[first + 1:first + 2].any()
+    assert w[:first].any()                          # force before the fault
+    assert first + 1 < len(w) and not w[first + 1].any()
     for r in bench.readings:
         assert np.all(np.isfinite(r)), 'a non-finite reading was passed on'
 
@@ -275,7 +290,10 @@ def _zero_after_fault(bench: Bench, first: int) -> None:
     ('malformed@200', "haply: a malformed message from ws://127.0.0.1:")])
 def test_a_bad_state_is_a_fault_until_a_good_one(tmp_path: Path, emulators: list[Emulator],
                                                  fault: str, reason: str) -> None:
-    bench, device, first, statuses = _run_to_fault(tmp_path, emulators, fault)
+    # one command in flight: every answer is read (of several arriving together only the
+    # newest is decoded, so a bad one among them is never used, nor seen)
+    bench, device, first, statuses = _run_to_fault(tmp_path, emulators, fault,
+                                                   max_in_flight=1)
     assert bench.backend.fault_reason().startswith(reason), bench.backend.fault_reason()
     _zero_after_fault(bench, first)
     assert not statuses[-1] & FAULT          # the next state cleared it
@@ -294,7 +312,7 @@ def test_a_bad_state_is_a_fault_until_a_good_one(tmp_path: Path, emulators: list
      r'(closed|reset) the connection\)', {})])
 def test_a_lasting_fault_holds_zero(tmp_path: Path, emulators: list[Emulator], fault: str,
                                     reason: str, options: dict[str, Any]) -> None:
-    bench, device, first, statuses = _run_to_fault(tmp_path, emulators, fault, **options)
+    bench, device, first, statuses = _run_to_fault(tmp_path, emulators, fault, True, **options)
     assert re.fullmatch(reason, bench.backend.fault_reason()), bench.backend.fault_reason()
     _zero_after_fault(bench, first)
     assert all(s & FAULT for s in statuses[-30:])
@@ -305,13 +323,15 @@ def test_a_lasting_fault_holds_zero(tmp_path: Path, emulators: list[Emulator], f
     bench.backend.write(np.zeros(2))
     bench.backend.deactivate()               # harmless with the service gone or hung
     bench.backend.deactivate()
-    # what the device got after the faulted state: zero only (or nothing: service gone)
     device.stopped = True
     device.emulator.stop()
-    t, _, f = read_log(device.emulator.log)
-    cut = np.flatnonzero(np.abs(f - [1.5, -1.0, 0.0]).max(axis=1) == 0.0)
-    assert cut.size, 'the device never got the force'
-    assert not f[cut[-1] + 1:].any() or fault.startswith('stop'), f[cut[-1] + 1:]
+    if fault.startswith('unplug'):
+        # the service still answers: what the device got after the force is zero only (a
+        # hung service gets no more commands, max_in_flight; a stopped one none at all)
+        _, _, f = read_log(device.emulator.log)
+        cut = np.flatnonzero(np.abs(f - [1.5, -1.0, 0.0]).max(axis=1) == 0.0)
+        assert cut.size, 'the device never got the force'
+        assert cut[-1] + 1 < len(f) and not f[cut[-1] + 1:].any(), f[cut[-1] + 1:]
     device.close()
 
 
@@ -330,3 +350,20 @@ def test_service_stopped_output_ends_with_the_fault(tmp_path: Path) -> None:
     e.kill()
     assert 'haply_emulator: stopped (fault stop@5)' in e.output, e.output
 
+
+
+def test_the_vendor_registry_entry_lists_the_service_devices(
+        tmp_path: Path, emulators: list[Emulator], monkeypatch: pytest.MonkeyPatch) -> None:
+    e = _start(emulators, tmp_path, '--device', '04A1', '--device', '04B2')
+    monkeypatch.setenv('HAPLY_INVERSE_SERVICE', f'127.0.0.1:{e.port}')
+    support = vendor_support()
+    assert support.backend == 'haply'
+    assert support.load() == ('no library needed: the Inverse Service protocol 3.5.x at '
+                              f'ws://127.0.0.1:{e.port}/')
+    assert support.devices() == [
+        f'Haply Inverse3 (version 7.4, right-handed, port emulated) serial {i}'
+        for i in ('04A1', '04B2')]
+    monkeypatch.setenv('HAPLY_INVERSE_SERVICE', 'nowhere')
+    with pytest.raises(DeviceError, match="HAPLY_INVERSE_SERVICE: expected host:port, got "
+                       "'nowhere'"):
+        support.devices()
