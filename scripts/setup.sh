@@ -17,6 +17,8 @@
 #      + share/haptic_topology/{package.xml,config} as symlinks, ament index marker
 #   5. <site-packages>/haptic_topology_env.pth: AMENT_PREFIX_PATH for every venv process
 #   6. the loop's compiled functions into numba's cache (haptic_topology/*/__pycache__)
+#      + the Force Dimension emulator (emulators/forcedimension, gcc) into <venv>/fdsdk-emulator,
+#        an SDK-like tree for FDSDK                      (stamp: its sources)
 #   7. --for-tests: unshare present; chromium (apt-get), if missing: the docs tests render the
 #      site headless
 #   8. --for-tests: test/foxglove_client/: npm ci (the @foxglove/ws-protocol client of the
@@ -183,6 +185,18 @@ fi
 # their __pycache__ and loaded in about 1 s), so no node's first activation waits for it.
 "$vpy" -c 'import haptic_topology.control.compiled, haptic_topology.device.compiled' \
   || die "compiling haptic_topology's loop arithmetic (numba) failed"
+
+# The Force Dimension emulator: a libdrd for forcedimension-core without the vendor's SDK
+# (the forcedimension backend's tests, FDSDK=<venv>/fdsdk-emulator; docs/devices.md).
+mapfile -t emu_files < <(find "$root/emulators/forcedimension" -type f)
+emu_hash=$(hash_files "${emu_files[@]}")
+if ! stamp_ok fdemu "$emu_hash" || [[ ! -d "$venv/fdsdk-emulator" ]]; then
+  say "building the Force Dimension emulator into $venv/fdsdk-emulator"
+  rm -rf "$venv/fdsdk-emulator"
+  bash "$root/emulators/forcedimension/build.sh" "$venv/fdsdk-emulator" \
+    || die "building the Force Dimension emulator (gcc) failed"
+  stamp_set fdemu "$emu_hash"
+fi
 
 # --- 7. unshare and chromium (--for-tests) ----------------------------------------------------
 if ((for_tests)); then

@@ -392,6 +392,7 @@ BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
     SimMaglevBackend.name: SimMaglevBackend,
     'ros_topics': 'haptic_topology.nodes.topic_backend:RosTopicBackend',
     'network': 'haptic_topology.remote.network:NetworkBackend',
+    'forcedimension': 'haptic_topology.device.forcedimension:ForceDimensionBackend',
 }
 
 

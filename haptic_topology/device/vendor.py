@@ -209,6 +209,11 @@ class VendorHand:
         status = DeviceStatus.OK if self.scale >= 1.0 else DeviceStatus.WATCHDOG
         return DeviceReading(np.array(self._held[:m]), twist, np.zeros(m), status)
 
+    @property
+    def pose(self) -> np.ndarray:
+        """The task pose it reports now (where the hand holds the linkage, or held it)."""
+        return np.array(self._held[:self._m])
+
     def force(self, u: np.ndarray) -> tuple[float, float, float]:
         """The device force (device units and frame) of the task wrench ``u`` (N; already
         clamped and finite, ``m`` entries): zero while not grasping, faded in after a grasp
@@ -283,7 +288,9 @@ class VendorSupport:
 
 #: Vendor backends: name -> ``'module:function'`` returning its :class:`VendorSupport`,
 #: imported only when asked (the backends register themselves here).
-VENDOR_BACKENDS: dict[str, str] = {}
+VENDOR_BACKENDS: dict[str, str] = {
+    'forcedimension': 'haptic_topology.device.forcedimension:support',
+}
 
 
 def vendor_support(name: str) -> VendorSupport | None:
