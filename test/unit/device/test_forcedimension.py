@@ -23,6 +23,7 @@ from backend_conformance import (
 )
 from fd_emulator import LIBRARY, EmulatorSide, applied, emulator
 
+from haptic_topology.cli import main as cli_main
 from haptic_topology.config.resolve import check_device_axes
 from haptic_topology.device.backend import BackendConfig, activate_backend, create_backend
 from haptic_topology.device.forcedimension import ForceDimensionBackend, list_devices
@@ -194,12 +195,19 @@ def test_bad_options_name_the_field(options: dict, text: str) -> None:
         _configured(options)
 
 
-def test_devices_lists_the_connected_ones() -> None:
+def test_devices_lists_the_connected_ones(capsys: pytest.CaptureFixture[str]) -> None:
     with emulator(devices=2, serial=500):
         assert list_devices() == ['omega.3 serial 500', 'omega.3 serial 501']
         found = probe('forcedimension')
         assert found.found and found.devices == ('omega.3 serial 500', 'omega.3 serial 501')
         assert str(LIBRARY.parent) in found.detail
+        capsys.readouterr()
+        assert cli_main(['devices']) == 0
+        out = capsys.readouterr().out.splitlines()
+        assert [line.split()[0] for line in out] == ['backend', 'sim_maglev', 'ros_topics',
+                                                     'network', 'forcedimension']
+        assert out[-1].endswith(' omega.3 serial 500, omega.3 serial 501'), out[-1]
+        assert f'found: {LIBRARY} (SDK 3.16.0-0)' in out[-1]
 
 
 def test_missing_library_is_one_line_and_exit_status_2(tmp_path: Path) -> None:
@@ -216,6 +224,13 @@ def test_missing_library_is_one_line_and_exit_status_2(tmp_path: Path) -> None:
                         'through the Python package forcedimension-core (Could not find '
                         'libdrd. Is it installed?); install both and set FDSDK '
                         '(docs/devices.md)')
+    proc = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', 'devices', '--backend',
+                           'forcedimension'], capture_output=True, text=True, env=env,
+                          timeout=120, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1].split() == [
+        'forcedimension', 'vendor', 'missing:', 'forcedimension-core', '/', 'libdrd', '(set',
+        'FDSDK):', 'Could', 'not', 'find', 'libdrd.', 'Is', 'it', 'installed?', '-']
 
 
 def test_the_emulator_exports_every_bound_symbol() -> None:
