@@ -46,6 +46,7 @@ def library() -> Any:
     lib.fdemuSetForceCalls.argtypes = [ctypes.c_int]
     lib.fdemuSetForceCalls.restype = ctypes.c_long
     lib.fdemuIsOpen.argtypes = [ctypes.c_int]
+    lib.fdemuStep.argtypes = [ctypes.c_double]
     return lib
 
 
