@@ -208,6 +208,23 @@ def test_engage_button_gates_the_force() -> None:
         bench.release()
 
 
+def test_the_devices_own_force_limit() -> None:
+    """``max_force: 5``: the device saturates a 10 N command at 5 N (``dhdSetMaxForce``), and
+    the states say so (SATURATED) and the diagnostics count it."""
+    with emulator() as lib:
+        bench = Bench(subject({'grasp_ramp_ms': 0, 'max_force': 5.0}))
+        bench.activate()
+        bench.engage()
+        u = np.array([10.0, -10.0])
+        for _ in range(5):
+            tick = bench.cycle(u)
+        np.testing.assert_array_equal(applied(lib), [5.0, -5.0, 0.0])
+        np.testing.assert_array_equal(tick.applied, u)
+        assert tick.status & DeviceStatus.SATURATED
+        assert int(bench.backend.values()['device_saturated_writes']) >= 4
+        bench.release()
+
+
 @pytest.mark.parametrize(('options', 'text'), [
     ({'serial': 'abc'}, "backend_options.serial: expected the device's serial number"),
     ({'max_force': -1}, r'backend_options.max_force: expected a number in \(0, 1000\]'),
