@@ -280,12 +280,11 @@ def test_the_emulator_exports_every_bound_symbol() -> None:
     proc = subprocess.run([sys.executable, str(REPO / 'scripts' / 'fd_emulator_stubs.py'),
                            '--check'], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    sys.path.insert(0, str(REPO / 'scripts'))
-    try:
-        from fd_emulator_stubs import bound_signatures
-    finally:
-        sys.path.remove(str(REPO / 'scripts'))
     import ctypes
+    import runpy
+
+    bound_signatures = runpy.run_path(str(REPO / 'scripts' / 'fd_emulator_stubs.py'))[
+        'bound_signatures']
 
     lib = ctypes.CDLL(str(LIBRARY))
     names = sorted(bound_signatures())
