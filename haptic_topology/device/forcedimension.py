@@ -224,11 +224,9 @@ class ForceDimensionBackend(DeviceBackend):
         if rc < 0:
             raise DeviceError(f'{self.name}: {call} failed: {self._error()}')
 
-    def activate(self) -> None:
-        if self._hand is None:
-            raise DeviceError(f'{self.name}: activate() before configure()')
-        fdc = binding()
-        dhd, drd = fdc.dhd, fdc.drd
+    def _open(self) -> int:
+        """Open the device (``serial``, else the first): its ID, or a DeviceError."""
+        dhd = binding().dhd
         if self._serial is not None:
             ident = dhd.openSerial(self._serial)
             what = f'the device with serial {self._serial}'
@@ -238,6 +236,20 @@ class ForceDimensionBackend(DeviceBackend):
         if ident < 0:
             raise DeviceError(f'{self.name}: cannot open {what} ({dhd.getDeviceCount()} '
                               f'found): {self._error()}')
+        return int(ident)
+
+    def preflight(self, config: BackendConfig) -> None:
+        """Before ``run`` starts any node: the options, the library (one line, exit status 2
+        when it is missing) and the device, opened and closed again (force never enabled)."""
+        self.configure(config)
+        binding().dhd.close(self._open())
+
+    def activate(self) -> None:
+        if self._hand is None:
+            raise DeviceError(f'{self.name}: activate() before configure()')
+        fdc = binding()
+        dhd, drd = fdc.dhd, fdc.drd
+        ident = self._open()
         self._id = ident
         self._fault = ''
         self._last = None

@@ -173,6 +173,28 @@ def test_no_device_found() -> None:
         be.deactivate()
 
 
+def test_run_without_a_device_stops_before_any_node_starts(tmp_path: Path) -> None:
+    """``run`` asks the backend before anything starts (``preflight``): no device connected
+    is one line, exit status 1, and no node was started (no bag directory)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith('FDEMU_')}
+    env['FDEMU_DEVICES'] = '0'
+    proc = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', 'run', SCENARIO,
+                           '--backend', 'forcedimension', '--duration', '1', '--out',
+                           str(tmp_path / 'bag')],
+                          capture_output=True, text=True, env=env, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        'haptic-topology run: error: device: forcedimension: cannot open a device (0 found): '
+        'no device found'], proc.stderr
+    assert not (tmp_path / 'bag').exists()
+    with emulator() as lib:
+        be = create_backend('forcedimension')
+        sc = load_scenario(SCENARIO)
+        be.preflight(BackendConfig(sc.device, initial_device_pose(sc), {}, {}, sc.source))
+        assert not lib.fdemuIsOpen(0) and not lib.fdemuForceEnabled(0)
+        assert lib.fdemuSetForceCalls(0) == 0
+
+
 def test_an_uncalibrated_device_is_refused_or_calibrated_on_request() -> None:
     with emulator(uninitialized=1) as lib:
         with pytest.raises(DeviceError, match='is not calibrated: calibrate it .* or set '
