@@ -21,7 +21,7 @@
  * position reads NaN. FDEMU_DEVICES (default 1, 0: none found), FDEMU_SERIAL (first serial,
  * default 11029), FDEMU_MODEL (system name, default omega.3), FDEMU_UNINITIALIZED=1 (the
  * device needs drdAutoInit), FDEMU_BUTTONS (the button mask). Emulator-only functions:
- * fdemuReset, fdemuStep, fdemuSetButtons, fdemuAppliedForce, fdemuForceEnabled,
+ * fdemuReset, fdemuStep, fdemuSetClock, fdemuSetButtons, fdemuAppliedForce, fdemuForceEnabled,
  * fdemuSetForceCalls, fdemuIsOpen. */
 #define _GNU_SOURCE
 #include "fd_emulator.h"
@@ -401,6 +401,11 @@ FDEMU_API int fdemuStep(double dt) {
     if (current < 0) return -1;
     advance(&devs[current], dt);
     return 0;
+}
+/* Choose the clock: 1 stepped (fdemuStep only), 0 the wall clock (FDEMU_CLOCK's choice). */
+FDEMU_API void fdemuSetClock(int stepped) {
+    setup();
+    step_clock = stepped != 0;
 }
 FDEMU_API void fdemuSetButtons(unsigned int mask) {
     setup();

@@ -393,6 +393,8 @@ BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
     'ros_topics': 'haptic_topology.nodes.topic_backend:RosTopicBackend',
     'network': 'haptic_topology.remote.network:NetworkBackend',
     'forcedimension': 'haptic_topology.device.forcedimension:ForceDimensionBackend',
+    'forcedimension_emulator':
+        'haptic_topology.device.forcedimension:ForceDimensionEmulatorBackend',
 }
 
 

@@ -386,3 +386,47 @@ class ForceDimensionBackend(DeviceBackend):
 
     def fault_reason(self) -> str:
         return self._fault or super().fault_reason()
+
+
+class ForceDimensionEmulatorBackend(ForceDimensionBackend):
+    """``backend: forcedimension_emulator``: :class:`ForceDimensionBackend` on the Force
+    Dimension emulator (``emulators/forcedimension``) with the emulator's clock stepped by the
+    loop, so that it follows the driver's lock-step clock (``clock: lockstep``) and a run is
+    deterministic: each engaged ``read(dt)`` advances the emulated device by ``dt`` first
+    (``fdemuStep``); until the loop engages, ``idle`` reads without advancing it (as the
+    simulated maglev parks). Refused (:class:`~haptic_topology.errors.DeviceError`) when the
+    library ``FDSDK`` leads to is not the emulator. Options: those of ``forcedimension``."""
+
+    name = 'forcedimension_emulator'
+    lockstep = True
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._step: Any = None
+
+    def activate(self) -> None:
+        if self._hand is None:
+            raise DeviceError(f'{self.name}: activate() before configure()')
+        import ctypes
+
+        lib = binding().runtime._libdrd
+        try:
+            step, clock = lib.fdemuStep, lib.fdemuSetClock
+        except AttributeError:
+            raise DeviceError(f'{self.name}: {getattr(lib, "_name", "libdrd")} is not the '
+                              'Force Dimension emulator (no fdemuStep): use backend '
+                              'forcedimension for a device') from None
+        step.argtypes, step.restype = [ctypes.c_double], ctypes.c_int
+        clock.argtypes, clock.restype = [ctypes.c_int], None
+        clock(1)
+        self._step = step
+        super().activate()
+
+    def read(self, dt: float) -> DeviceReading:
+        if self._id >= 0 and not self._fault and self._step is not None:
+            self._step(dt)
+        return super().read(dt)
+
+    def idle(self, dt: float) -> DeviceReading:
+        self.write(np.zeros(self._m))
+        return super().read(dt)

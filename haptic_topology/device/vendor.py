@@ -16,7 +16,8 @@ package.
 * :class:`VendorHand`: per cycle, :meth:`VendorHand.reading` turns the device's position,
   velocity and button mask into the task's
   :class:`~haptic_topology.device.backend.DeviceReading`, and :meth:`VendorHand.force` the
-  task wrench ``u`` into the device force;
+  task wrench ``u`` into the device force; :attr:`VendorHand.pose` is the task pose it
+  reports now;
 * :class:`DeviceIdentity`: vendor, model, serial, SDK, workspace -> ``hardware_id`` and
   diagnostics values (which ``/diagnostics`` carries into the bag and ``summary.json``);
 * :data:`VENDOR_BACKENDS`, :class:`VendorSupport`, :func:`vendor_support`,
@@ -290,6 +291,7 @@ class VendorSupport:
 #: imported only when asked (the backends register themselves here).
 VENDOR_BACKENDS: dict[str, str] = {
     'forcedimension': 'haptic_topology.device.forcedimension:support',
+    'forcedimension_emulator': 'haptic_topology.device.forcedimension:support',
 }
 
 

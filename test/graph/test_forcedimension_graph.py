@@ -57,3 +57,33 @@ def test_run_on_the_emulator_unplugged_mid_run(tmp_path: Path) -> None:
     assert applied[:first].any(), 'no force before the fault'
     assert not applied[first + 1:].any(), 'force written after the fault'
     assert np.isfinite(trace.columns['device_pose']).all()
+
+
+def _lockstep_run(bag: Path, cwd: Path) -> str:
+    env = {k: v for k, v in os.environ.items() if not k.startswith('FDEMU_')}
+    env['FDSDK'] = str(FDSDK)
+    proc = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', 'run', 'fig8_point',
+                           '--backend', 'forcedimension_emulator', '--clock', 'lockstep',
+                           '--duration', '0.3', '--out', str(bag)],
+                          capture_output=True, text=True, env=env, timeout=300, cwd=cwd)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    return out
+
+
+def test_lockstep_runs_on_the_stepped_emulator_are_the_same(tmp_path: Path) -> None:
+    """``backend: forcedimension_emulator`` on ``clock: lockstep``: the emulated device
+    advances by each cycle's dt, so two runs record the same trace bit for bit (the device,
+    pushed by the emulator's simulated hand, moves)."""
+    runs = []
+    for name in ('a', 'b'):
+        out = _lockstep_run(tmp_path / name, tmp_path)
+        assert ('\ndevice: backend forcedimension_emulator, forcedimension_emulator omega.3 '
+                'serial 11029\n') in out, out
+        runs.append(read_graph_bag(tmp_path / name).trace)
+    a, b = runs
+    # The trace starts at the first state without WATCHDOG: after the grasp's 50 ms fade-in.
+    assert len(a) == len(b) > round(0.25 / 1e-3)
+    for col in a.columns:
+        np.testing.assert_array_equal(a.columns[col], b.columns[col], err_msg=col)
+    assert np.ptp(a.columns['device_pose'][:, 0]) > 1e-4

@@ -83,6 +83,35 @@ def test_the_stepped_emulator_is_deterministic() -> None:
     assert np.ptp(first[0][:, 0]) > 1e-3        # x moved by more than a millimetre
 
 
+def test_the_emulator_backend_follows_the_lockstep_clock() -> None:
+    """``forcedimension_emulator``: accepted on the lock-step clock (``forcedimension`` is
+    not), each read advances the emulated device by its ``dt``, so two runs are the same bit
+    for bit; idle reads (before engagement) do not advance it."""
+    with pytest.raises(DeviceError, match='backend forcedimension: the device runs on its own '
+                                          'clock'):
+        create_backend('forcedimension', lockstep=True)
+
+    def once() -> list[np.ndarray]:
+        with emulator():
+            bench = Bench(Subject('forcedimension_emulator', lambda: EmulatorSide(2),
+                                  dict(OPTIONS), scenario=SCENARIO))
+            assert create_backend('forcedimension_emulator', lockstep=True).lockstep
+            bench.activate()
+            parked = [bench.tick().reading.pose for _ in range(5)]
+            assert all(np.array_equal(p, parked[0]) for p in parked)
+            bench.engage()
+            rng = np.random.default_rng(5)
+            for _ in range(400):
+                bench.cycle(0.2 * rng.uniform(-1.0, 1.0, bench.m) * bench.limit)
+            bench.release()
+            return [np.array(bench.readings), np.array(bench.written), bench.device.log()[1]]
+
+    first, second = once(), once()
+    for a, b in zip(first, second, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert np.ptp(first[0][:, 0]) > 1e-3
+
+
 def test_identity_reaches_hardware_id_and_values() -> None:
     with emulator(serial=4321, model='delta.3'):
         bench = Bench(subject())
@@ -267,10 +296,12 @@ def test_devices_lists_the_connected_ones(capsys: pytest.CaptureFixture[str]) ->
         capsys.readouterr()
         assert cli_main(['devices']) == 0
         out = capsys.readouterr().out.splitlines()
-        assert [line.split()[0] for line in out] == ['backend', 'sim_maglev', 'ros_topics',
-                                                     'network', 'forcedimension']
-        assert out[-1].endswith(' omega.3 serial 500, omega.3 serial 501'), out[-1]
-        assert f'found: {LIBRARY} (SDK 3.16.0-0)' in out[-1]
+        assert [line.split()[0] for line in out] == [
+            'backend', 'sim_maglev', 'ros_topics', 'network', 'forcedimension',
+            'forcedimension_emulator']
+        for line in out[-2:]:
+            assert line.endswith(' omega.3 serial 500, omega.3 serial 501'), line
+            assert f'found: {LIBRARY} (SDK 3.16.0-0)' in line
 
 
 def test_missing_library_is_one_line_and_exit_status_2(tmp_path: Path) -> None:
@@ -291,7 +322,7 @@ def test_missing_library_is_one_line_and_exit_status_2(tmp_path: Path) -> None:
                            'forcedimension'], capture_output=True, text=True, env=env,
                           timeout=120, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.splitlines()[-1].split() == [
+    assert proc.stdout.splitlines()[1].split() == [
         'forcedimension', 'vendor', 'missing:', 'forcedimension-core', '/', 'libdrd', '(set',
         'FDSDK):', 'Could', 'not', 'find', 'libdrd.', 'Is', 'it', 'installed?', '-']
 
