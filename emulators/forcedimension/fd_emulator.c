@@ -22,7 +22,7 @@
  * default 11029), FDEMU_MODEL (system name, default omega.3), FDEMU_UNINITIALIZED=1 (the
  * device needs drdAutoInit), FDEMU_BUTTONS (the button mask). Emulator-only functions:
  * fdemuReset, fdemuStep, fdemuSetClock, fdemuSetButtons, fdemuAppliedForce, fdemuForceEnabled,
- * fdemuSetForceCalls, fdemuIsOpen. */
+ * fdemuSetForceCalls, fdemuIsOpen, fdemuGravity, fdemuEffectorMass, fdemuMaxForce. */
 #define _GNU_SOURCE
 #include "fd_emulator.h"
 
@@ -420,3 +420,6 @@ FDEMU_API void fdemuAppliedForce(int index, double *f) {
 FDEMU_API int fdemuForceEnabled(int index) { setup(); return devs[index].open && devs[index].force_on; }
 FDEMU_API long fdemuSetForceCalls(int index) { setup(); return devs[index].set_force_calls; }
 FDEMU_API int fdemuIsOpen(int index) { setup(); return devs[index].open; }
+FDEMU_API int fdemuGravity(int index) { setup(); return devs[index].gravity; }
+FDEMU_API double fdemuEffectorMass(int index) { setup(); return devs[index].effector_mass; }
+FDEMU_API double fdemuMaxForce(int index) { setup(); return devs[index].max_force; }

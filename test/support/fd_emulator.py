@@ -47,6 +47,10 @@ def library() -> Any:
     lib.fdemuSetForceCalls.restype = ctypes.c_long
     lib.fdemuIsOpen.argtypes = [ctypes.c_int]
     lib.fdemuStep.argtypes = [ctypes.c_double]
+    lib.fdemuGravity.argtypes = [ctypes.c_int]
+    for name in ('fdemuEffectorMass', 'fdemuMaxForce'):
+        getattr(lib, name).argtypes = [ctypes.c_int]
+        getattr(lib, name).restype = ctypes.c_double
     return lib
 
 

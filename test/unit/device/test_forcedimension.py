@@ -276,6 +276,21 @@ def test_the_devices_own_force_limit() -> None:
         bench.release()
 
 
+def test_gravity_compensation_and_effector_mass_reach_the_device() -> None:
+    with emulator() as lib:
+        be = _configured({'gravity_compensation': False, 'effector_mass': 0.25,
+                          'max_force': 7.5})
+        be.activate()
+        assert (lib.fdemuGravity(0), lib.fdemuEffectorMass(0), lib.fdemuMaxForce(0)) == (
+            0, 0.25, 7.5)
+        be.deactivate()
+        be = _configured()
+        be.activate()
+        assert (lib.fdemuGravity(0), lib.fdemuEffectorMass(0), lib.fdemuMaxForce(0)) == (
+            1, 0.25, 7.5)           # the defaults leave mass and limit as the device has them
+        be.deactivate()
+
+
 @pytest.mark.parametrize(('options', 'text'), [
     ({'serial': 'abc'}, "backend_options.serial: expected the device's serial number"),
     ({'max_force': -1}, r'backend_options.max_force: expected a number in \(0, 1000\]'),
