@@ -1,8 +1,9 @@
 """``backend: forcedimension`` in the node graph, on the Force Dimension emulator: the
 documented command ``FDSDK=<venv>/fdsdk-emulator haptic-topology run fig8_point --params
 config/devices/forcedimension_emulator.yaml``, with the device unplugged mid-run
-(``FDEMU_UNPLUG_AFTER``): the run ends normally with its bag and summary, which names the
-device; from the fault on every state carries FAULT and the device gets zero force.
+(``FDEMU_UNPLUG_AFTER``): the run ends normally with its bag and summary, which name the
+device (``summary.json``, the bag's ``custom_data``); from the fault on every state carries
+FAULT and the device gets zero force.
 
 Every process runs in the session's random ROS_DOMAIN_ID; every wait has a deadline.
 """
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from fd_emulator import FDSDK
 
 from haptic_topology.bag.graph_trace import read_graph_bag
@@ -43,6 +45,10 @@ def test_run_on_the_emulator_unplugged_mid_run(tmp_path: Path) -> None:
     summary = json.loads((bag / 'summary.json').read_text(encoding='utf-8'))
     assert summary['device_hardware_id'] == 'forcedimension omega.3 serial 11029'
     assert (summary['device_vendor'], summary['device_serial']) == ('Force Dimension', '11029')
+    custom = yaml.safe_load((bag / 'metadata.yaml').read_text(encoding='utf-8'))[
+        'rosbag2_bagfile_information']['custom_data']
+    assert (custom['device'], custom['device_model'], custom['device_serial']) == (
+        'forcedimension omega.3 serial 11029', 'omega.3', '11029'), custom
     run = read_graph_bag(bag)
     device = run.diagnostics['device_driver: loop']
     assert device['device_fault'] == ('forcedimension: dhdGetPosition failed: communication '
