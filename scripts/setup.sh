@@ -17,6 +17,8 @@
 #      + share/haptic_topology/{package.xml,config} as symlinks, ament index marker
 #   5. <site-packages>/haptic_topology_env.pth: AMENT_PREFIX_PATH for every venv process
 #   6. the loop's compiled functions into numba's cache (haptic_topology/*/__pycache__)
+#      + the OpenHaptics emulator: emulators/openhaptics/hd.c -> <venv>/lib/haptic_topology/
+#        libHD.so with gcc (backend openhaptics, `library: emulator`)   (stamp: its source)
 #      + the Force Dimension emulator (emulators/forcedimension, gcc) into <venv>/fdsdk-emulator,
 #        an SDK-like tree for FDSDK                      (stamp: its sources)
 #   7. --for-tests: unshare present; chromium (apt-get), if missing: the docs tests render the
@@ -185,6 +187,18 @@ fi
 # their __pycache__ and loaded in about 1 s), so no node's first activation waits for it.
 "$vpy" -c 'import haptic_topology.control.compiled, haptic_topology.device.compiled' \
   || die "compiling haptic_topology's loop arithmetic (numba) failed"
+# The emulator of OpenHaptics' libHD.so (a simulated Touch) that the openhaptics backend's tests
+# and `library: emulator` load; soname libHD.so, as pyOpenHaptics loads it by that name.
+emu_src="$root/emulators/openhaptics/hd.c"
+emu_lib="$venv/lib/haptic_topology/libHD.so"
+emu_hash=$(hash_files "$emu_src")
+if ! stamp_ok libhd "$emu_hash" || [[ ! -f "$emu_lib" ]]; then
+  say "building the OpenHaptics emulator $emu_lib"
+  mkdir -p "$(dirname "$emu_lib")"
+  gcc -O2 -Wall -fPIC -shared -pthread -Wl,-soname,libHD.so -o "$emu_lib" "$emu_src" -lm \
+    || die "building the OpenHaptics emulator ($emu_src) failed"
+  stamp_set libhd "$emu_hash"
+fi
 
 # The Force Dimension emulator: a libdrd for forcedimension-core without the vendor's SDK
 # (the forcedimension backend's tests, FDSDK=<venv>/fdsdk-emulator; docs/devices.md).

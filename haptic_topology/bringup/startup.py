@@ -16,7 +16,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from haptic_topology.bringup.watch import DEVICE_STATUS, GraphWatcher
-from haptic_topology.errors import BringupError, DeviceError, TransitionRefused, WaitTimeout
+from haptic_topology.errors import (
+    BringupError,
+    DeviceError,
+    TransitionRefused,
+    VendorLibraryMissing,
+    WaitTimeout,
+)
 
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario
@@ -43,6 +49,8 @@ def preflight_device(sc: Scenario, backend: str, options: dict[str, Any], clock:
             return
         device.preflight(BackendConfig(sc.device, initial_device_pose(sc), dict(sc.user),
                                        dict(options), sc.source))
+    except VendorLibraryMissing:
+        raise                   # an installation error: exit status 2, as require_library's
     except DeviceError as exc:
         raise BringupError(f'device: {exc}') from None
 

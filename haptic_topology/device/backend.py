@@ -44,7 +44,7 @@ import importlib
 import importlib.metadata as md
 import pickle
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
 
@@ -152,6 +152,26 @@ class DeviceBackend(ABC):
     #: Whether the backend uses rclpy itself (a node of its own in the driver's process): then
     #: it cannot run in the loop process (``loop_process``), which imports no rclpy.
     needs_ros: ClassVar[bool] = False
+    #: Whether the device's own servo loop is the loop's clock (OpenHaptics' scheduler): the
+    #: loop process then runs each cycle inside the device's callback (:meth:`run_clocked`)
+    #: and does not pace itself. Such a backend still serves ``read``/``write`` called by a
+    #: loop that paces itself (the in-process layouts, the conformance checks).
+    drives_loop: ClassVar[bool] = False
+
+    def run_clocked(self, period: float, cycle: Callable[[float], None],
+                    between: Callable[[float], bool], keep_going: Callable[[], bool]) -> None:
+        """A backend that :attr:`drives_loop`: run the loop on the device's servo clock until
+        it stops. Each servo tick (``period`` s; a backend whose servo loop runs at another
+        rate refuses it), inside the device's callback: ``cycle(now)`` (``now``: monotonic
+        s; one loop cycle: ``write``, ``read``, the controller) with the device's frame open,
+        then, once the frame has gone to the device, ``between(now)`` (the work between two
+        cycles; False: stop). The calling thread waits meanwhile and calls ``keep_going()``
+        every few tens of milliseconds (False: stop after the current tick). Returns once the
+        callback has stopped; raises :class:`~haptic_topology.errors.DeviceError` when the
+        servo loop stops by itself, and re-raises what ``cycle`` or ``between`` raised."""
+        del period, cycle, between, keep_going
+        raise DeviceError(f'{self.name}: run_clocked(): the device has no servo clock of its '
+                          'own (drives_loop is False)')
 
     @classmethod
     def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
@@ -395,6 +415,7 @@ BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
     'forcedimension': 'haptic_topology.device.forcedimension:ForceDimensionBackend',
     'forcedimension_emulator':
         'haptic_topology.device.forcedimension:ForceDimensionEmulatorBackend',
+    'openhaptics': 'haptic_topology.device.openhaptics:OpenHapticsBackend',
 }
 
 

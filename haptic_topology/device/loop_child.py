@@ -14,6 +14,10 @@ taken from the node's ring when :class:`UpdateTiming` says) and a
    everything built so far, start the deadline grid;
 2. each cycle: the gap before the deadline (``_Child.gap``: the node's requests, and the
    updates that fit), then the cycle (read -> controller -> write, its record into the ring);
+   with a backend whose servo loop is the clock
+   (:attr:`~haptic_topology.device.backend.DeviceBackend.drives_loop`: OpenHaptics), the
+   cycle and then the gap's work run inside the device's callback at each servo tick
+   (``_Child.run_clocked``) and this thread only waits: no pacer of its own;
 3. until asked to stop (a request, SIGTERM, its parent's death) or the run's end; then, in a
    ``finally`` that every way out of 1 and 2 takes, zero wrench and release the device, and a
    final status.
@@ -306,6 +310,39 @@ class _Child:
             put_bytes(self.mem.rings['status'], data, 'status')
             self.notices = []
 
+    def run_clocked(self) -> None:
+        """The loop on the device's servo clock
+        (:meth:`~haptic_topology.device.backend.DeviceBackend.run_clocked`): each servo tick,
+        the cycle inside the device's callback, then, once the frame has gone to the device,
+        the gap's work before the next tick (the node's requests, the updates that
+        :class:`UpdateTiming` lets in before ``now + period``, the status, a collection every
+        :data:`GC_EVERY` cycles). This thread waits meanwhile; the signals end the wait."""
+        s, k = self.spec, 0
+
+        def cycle(now: float) -> None:
+            nonlocal k
+            if k == 0:          # the servo thread: named and scheduled as the loop's would be
+                name_os_thread('device_loop')
+                self.notices.extend(set_thread_realtime(s.sched_priority, s.cpu_affinity,
+                                                        s.lock_memory, s.sched_slice_us,
+                                                        s.timer_slack_ns))
+            self.runner.cycle_at(now)
+
+        def between(now: float) -> bool:
+            nonlocal k
+            self.poll_control()
+            if self.stop or self.runner.finished:
+                return False
+            self.cycle.apply_in_gap(now + s.period, True)
+            self.cycle.timing.end_gap(self.cycle.waiting)
+            k += 1
+            if k % GC_EVERY == 0:
+                gc.collect(1)
+            self.report()
+            return True
+
+        self.backend.run_clocked(s.period, cycle, between, lambda: not self.stop)
+
     def run(self) -> int:
         s = self.spec
         name_os_thread('device_loop')
@@ -332,6 +369,9 @@ class _Child:
             gc.collect()
             gc.freeze()
             gc.disable()
+            if self.backend.drives_loop:
+                self.run_clocked()
+                return 0
             self.runner.pacer.start()
             k = 0
             while not self.stop and not self.runner.finished:

@@ -211,6 +211,34 @@ class DeadlinePacer:
         self.max_missed_run = max(self.max_missed_run, missed)
         return PacerTick(j, now, dt, missed, late)
 
+    def release(self, now: float) -> PacerTick:
+        """Release a cycle at ``now`` (s, the pacer's clock) without waiting: the device's
+        own servo loop is the clock (:attr:`DeviceBackend.drives_loop
+        <haptic_topology.device.backend.DeviceBackend.drives_loop>`), so the grid follows
+        it: the cycle is due one period after the previous release. A release ``dt`` after
+        the previous one counts ``dt / period``, rounded half up, less one, as missed periods
+        (servo ticks the loop did not get) and is ``late`` by what ``dt`` exceeds the periods
+        it spans; periods and lateness go into the same statistics as :meth:`wait`'s."""
+        if self._last_now is None:
+            self._t0, self._index = now, -1
+            dt, missed, late = self.period, 0, 0.0
+        else:
+            dt = now - self._last_now
+            missed = max(0, int(dt / self.period + 0.5) - 1)
+            late = max(0.0, dt - (missed + 1) * self.period)
+            slot = self._n_periods % self._periods.size
+            self._periods[slot] = dt
+            self._late[slot] = late
+            self._n_periods += 1
+            self.period_max = dt if math.isnan(self.period_max) else max(self.period_max, dt)
+            self.late_max = late if math.isnan(self.late_max) else max(self.late_max, late)
+        self._index += 1 + missed
+        self._last_now = now
+        self.cycles += 1
+        self.missed += missed
+        self.max_missed_run = max(self.max_missed_run, missed)
+        return PacerTick(self._index, now, dt, missed, late)
+
     @property
     def periods(self) -> tuple[np.ndarray, int]:
         """The measured-period buffer (s, a ring of the newest) and how many it has held."""

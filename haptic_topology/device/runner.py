@@ -53,7 +53,7 @@ from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiSnapshot
 from haptic_topology.device.hosted import HostedCycle, HostedStep
 from haptic_topology.device.loop import ns_to_seconds, period_ns
-from haptic_topology.device.pacing import DeadlinePacer, PacerFigures
+from haptic_topology.device.pacing import DeadlinePacer, PacerFigures, PacerTick
 from haptic_topology.errors import ConfigError
 from haptic_topology.vocabulary import ControlMode
 
@@ -69,6 +69,8 @@ LOCKSTEP_RUNS_ONCE = (
     'clock: lockstep: this driver has run once; a lock-step run cannot resume or start over in '
     "the same graph (the VE keeps the run's linkage state, simulated time would start again at "
     '0, and the run would no longer equal simulate): start ve_sim and device_driver again')
+#: Onsets of a device fault that each get a notice (the driver's log): its reason, once.
+FAULT_NOTICES = 10
 #: Longest single wait of the loop thread for an update or for room in the outbox (s), so
 #: that submitted calls and a stop request are served meanwhile.
 _POLL = 0.01
@@ -324,7 +326,18 @@ class LoopRunner:
         with a fake clock). Returns what it published, or None (stopped while waiting)."""
         if self.cfg.lockstep and self.cycle.device.engaged:
             return self._lockstep_step()
-        tick = self.pacer.wait()
+        return self._released(self.pacer.wait())
+
+    def cycle_at(self, now: float) -> Published:
+        """One wall-clock cycle released by the device's own servo clock at ``now`` (s, the
+        pacer's clock; :meth:`DeadlinePacer.release
+        <haptic_topology.device.pacing.DeadlinePacer.release>`): as :meth:`cycle_once`
+        without waiting. The loop process calls it inside the device's callback."""
+        if self.cfg.lockstep:
+            raise ConfigError('a device whose servo loop is the clock cannot run lock-step')
+        return self._released(self.pacer.release(now))
+
+    def _released(self, tick: PacerTick) -> Published:
         if self.cycle.device.engaged:
             self.missed_deadlines += tick.missed
             self.max_missed_deadlines = max(self.max_missed_deadlines, tick.missed)
@@ -335,8 +348,15 @@ class LoopRunner:
         else:
             stamp = self._wall_ns()
             dt = min(max(tick.dt, 0.0), 20.0 * self.cfg.period)
-        return self._publish(self.cycle.step(tick.now, dt, ns_to_seconds(stamp),
-                                             self.may_engage), stamp)
+        device = self.cycle.device
+        faults = device.device_faults
+        step = self.cycle.step(tick.now, dt, ns_to_seconds(stamp), self.may_engage)
+        if device.device_faults != faults and device.device_faults <= FAULT_NOTICES:
+            more = (' (further onsets are counted in device_faults only)'
+                    if device.device_faults == FAULT_NOTICES else '')
+            self.notices.append(f'device fault: {device.backend.fault_reason()}: output '
+                                f'zero while it lasts{more}')
+        return self._publish(step, stamp)
 
     def _lockstep_step(self) -> Published | None:
         started = self._clock()

@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -73,15 +73,20 @@ class SpringDamperUser:
     k: np.ndarray
     b: np.ndarray
     task: TaskSpace
+    #: Load the compiled wrench now (False: a user built only to check a scenario's
+    #: ``user`` block, whose :meth:`wrench` must not be called).
+    compile: InitVar[bool] = True
 
     #: The compiled wrench (:func:`~haptic_topology.device.compiled.spring_damper_wrench`)
     #: and its path code, set at construction.
     _wrench: Any = field(init=False, repr=False, compare=False, default=None)
     _path_code: int = field(init=False, repr=False, compare=False, default=0)
 
-    def __post_init__(self) -> None:
-        # Imported here: loading the compiled code costs about 1 s, which a process that
-        # never steps a device does not pay.
+    def __post_init__(self, compile: bool) -> None:
+        if not compile:
+            return
+        # Imported here: loading the compiled code costs about 1 s and 60 MB, which a
+        # process that never steps a device (one that reads bags) does not pay.
         from haptic_topology.device.compiled import CIRCLE, LINE, task_spring_damper_wrench
         object.__setattr__(self, '_wrench', task_spring_damper_wrench)
         object.__setattr__(self, '_path_code', LINE if self.path.kind == 'line' else CIRCLE)
@@ -101,8 +106,9 @@ class SpringDamperUser:
 
 
 def user_from_config(raw: Any, task: TaskSpace, where: str,
-                     start_pose: np.ndarray) -> UserModel:
-    """Build a user from a scenario's ``user`` mapping.
+                     start_pose: np.ndarray, compile: bool = True) -> UserModel:
+    """Build a user from a scenario's ``user`` mapping (``compile``: as
+    :class:`SpringDamperUser`'s; False to check the mapping only).
 
     ``{type: constant_wrench, wrench: [...]}`` or ``{type: spring_damper, path: line|circle,
     velocity: [...], radius: R, period: T, stiffness: [...], damping: [...]}`` (the path
@@ -127,4 +133,5 @@ def user_from_config(raw: Any, task: TaskSpace, where: str,
             raise ConfigError(f'{where}.{key}: missing required key')
     k = as_vector(raw['stiffness'], f'{where}.stiffness', m, lo=0.0)
     b = as_vector(raw['damping'], f'{where}.damping', m, lo=0.0)
-    return SpringDamperUser(TargetPath(path_kind, start, velocity, radius, period), k, b, task)
+    return SpringDamperUser(TargetPath(path_kind, start, velocity, radius, period), k, b, task,
+                            compile)

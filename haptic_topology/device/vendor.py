@@ -292,6 +292,7 @@ class VendorSupport:
 VENDOR_BACKENDS: dict[str, str] = {
     'forcedimension': 'haptic_topology.device.forcedimension:support',
     'forcedimension_emulator': 'haptic_topology.device.forcedimension:support',
+    'openhaptics': 'haptic_topology.device.openhaptics:support',
 }
 
 

@@ -36,7 +36,7 @@ This module reads the top level; each block is parsed by its owner:
 :func:`~haptic_topology.device.users.user_from_config` (``user``),
 :meth:`ControlGains.from_config <haptic_topology.control.laws.ControlGains.from_config>`
 (``control``), :class:`~haptic_topology.control.lmi.LmiSettings` (``lmi``),
-:class:`~haptic_topology.sim.ve.VeSettings` (``ve``),
+:class:`VeSettings` (``ve``),
 :class:`~haptic_topology.dynamics.contacts.ContactSettings` (``contacts``).
 """
 
@@ -60,9 +60,9 @@ from haptic_topology.model.linkage import Linkage, linkage_from_dict, load_linka
 from haptic_topology.model.robots import ROBOT_PREFIX
 from haptic_topology.paths import resolve_config
 from haptic_topology.sim.trace import run_name
-from haptic_topology.sim.ve import VeSettings
 from haptic_topology.validate import (
     as_angles,
+    as_bool,
     as_float,
     as_str,
     as_vector,
@@ -70,6 +70,24 @@ from haptic_topology.validate import (
     load_yaml,
 )
 from haptic_topology.vocabulary import TASK_NAMES, ControlMode, TaskSpace
+
+
+@dataclass(frozen=True)
+class VeSettings:
+    """The ``ve:`` block of a scenario: RK4 ``internal_step`` (s, in (0, dt]) and whether the
+    coordination wrench acts on the VT (``vt_coupling``: ``F_vt = F_h - F_pc``, else ``F_h``)."""
+
+    internal_step: float = 2.5e-4
+    vt_coupling: bool = True
+
+    @classmethod
+    def from_config(cls, raw: Any, where: str, dt: float) -> VeSettings:
+        """Parse the block (``where``: its path); ``dt``: the scenario's device period (s)."""
+        ve = check_keys(raw, where, optional=('internal_step', 'vt_coupling'))
+        step = as_float(ve.get('internal_step', 2.5e-4), f'{where}.internal_step', lo=0.0,
+                        lo_open=True, hi=dt)
+        return cls(step, as_bool(ve.get('vt_coupling', True), f'{where}.vt_coupling'))
+
 
 
 @dataclass(frozen=True)
@@ -225,7 +243,7 @@ def load_scenario(name_or_path: str) -> Scenario:
 
     device, offset = device_from_config(raw.get('device', {}), f'{w}.device', linkage.task)
     user = raw.get('user', {'type': 'constant_wrench', 'wrench': [0.0] * m})
-    user_from_config(user, linkage.task, f'{w}.user', np.zeros(m))  # validate now
+    user_from_config(user, linkage.task, f'{w}.user', np.zeros(m), compile=False)  # check
     gains = ControlGains.from_config(raw.get('control', {}), f'{w}.control', m)
     lmi = LmiSettings.from_config(raw.get('lmi', {}), f'{w}.lmi')
     if lmi.model is LmiModel.EQ20 and np.any(linkage.gravity != 0.0):

@@ -11,8 +11,7 @@ state k+1, the same convention as the LMI (:mod:`haptic_topology.control.lmi`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 import pinocchio as pin
@@ -29,7 +28,6 @@ from haptic_topology.dynamics.linkage_dynamics import (
 from haptic_topology.dynamics.rk4 import rk4_step
 from haptic_topology.dynamics.taskspace import pose_difference
 from haptic_topology.errors import SimulationError
-from haptic_topology.validate import as_bool, as_float, check_keys
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 #: ABA in world coordinates: the same qdd as the local form to rounding (1e-16 relative for
@@ -43,23 +41,6 @@ def _frame_jacobian_6x1(model: pin.Model, data: pin.Data, q: np.ndarray, frame: 
     """``pin.computeFrameJacobian`` of a 1-DOF model, which Pinocchio returns as a flat
     vector of 6, as the 6 x 1 matrix it is."""
     return pin.computeFrameJacobian(model, data, q, frame, ref).reshape(6, 1)
-
-
-@dataclass(frozen=True)
-class VeSettings:
-    """The ``ve:`` block of a scenario: RK4 ``internal_step`` (s, in (0, dt]) and whether the
-    coordination wrench acts on the VT (``vt_coupling``: ``F_vt = F_h - F_pc``, else ``F_h``)."""
-
-    internal_step: float = 2.5e-4
-    vt_coupling: bool = True
-
-    @classmethod
-    def from_config(cls, raw: Any, where: str, dt: float) -> VeSettings:
-        """Parse the block (``where``: its path); ``dt``: the scenario's device period (s)."""
-        ve = check_keys(raw, where, optional=('internal_step', 'vt_coupling'))
-        step = as_float(ve.get('internal_step', 2.5e-4), f'{where}.internal_step', lo=0.0,
-                        lo_open=True, hi=dt)
-        return cls(step, as_bool(ve.get('vt_coupling', True), f'{where}.vt_coupling'))
 
 
 class VirtualEnvironment:

@@ -30,11 +30,6 @@ pytestmark = pytest.mark.graph
 SUPPORT = Path(__file__).resolve().parents[1] / 'support'
 
 
-def _free_udp_port() -> int:
-    """A UDP port with nothing listening on it (taken from the system, then released)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return int(s.getsockname()[1])
 
 
 def _params(tmp_path: Path, backend: str, options: str) -> Path:
@@ -85,10 +80,13 @@ def _assert_refused_before_start(code: int, out: str, bag: Path, line: str) -> N
 
 
 def test_a_network_device_without_its_server(tmp_path: Path) -> None:
-    port = _free_udp_port()
-    params = _params(tmp_path, 'network',
-                     f'{{host: 127.0.0.1, port: {port}, connect_timeout_ms: 500}}')
-    code, out, bag = _run(tmp_path, params)
+    # The port is held by a socket that never answers, so that no other program takes it.
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(('127.0.0.1', 0))
+        port = int(silent.getsockname()[1])
+        params = _params(tmp_path, 'network',
+                         f'{{host: 127.0.0.1, port: {port}, connect_timeout_ms: 500}}')
+        code, out, bag = _run(tmp_path, params)
     _assert_refused_before_start(
         code, out, bag, 'device: network: no valid STATE from 127.0.0.1:'
         f'{port} within 500 ms (connect_timeout_ms); received 0 datagrams: is '

@@ -239,3 +239,22 @@ def test_lateness_figures_are_the_releases_after_their_deadlines() -> None:
 def test_bad_settings_are_refused_with_the_value(kwargs: dict[str, Any], message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         DeadlinePacer(**kwargs)
+
+
+def test_release_follows_a_device_clock_and_counts_its_missed_ticks() -> None:
+    """A device's servo loop is the clock (``release``): no sleep; a release 3.5 periods
+    after the previous one missed 3 ticks (3.5 rounds half up to 4), one 1.25 periods after
+    is 0.25 ms late, one early (0.75) misses nothing; the periods are measured as
+    ``wait``'s."""
+    sleeps: list[float] = []
+    pacer = DeadlinePacer(0.001, clock=lambda: math.nan, sleep=sleeps.append)
+    ticks = [pacer.release(t) for t in (10.0, 10.001, 10.0045, 10.00575, 10.0065)]
+    assert sleeps == []
+    assert [t.index for t in ticks] == [0, 1, 5, 6, 7]
+    assert [t.missed for t in ticks] == [0, 0, 3, 0, 0]
+    assert [t.late for t in ticks] == pytest.approx([0.0, 0.0, 0.0, 0.00025, 0.0], abs=1e-12)
+    assert [t.dt for t in ticks] == pytest.approx([0.001, 0.001, 0.0035, 0.00125, 0.00075],
+                                                  abs=1e-12)
+    f = pacer.figures()
+    assert (f.cycles, f.missed, f.max_missed_run) == (5, 3, 3)
+    assert f.period_max == pytest.approx(0.0035, abs=1e-12)

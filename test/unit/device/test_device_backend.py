@@ -33,7 +33,7 @@ def test_builtin_names_resolve() -> None:
     not import: test_core_imports.py)."""
     assert backend_class('sim_maglev') is SimMaglevBackend
     assert BUILTIN_BACKENDS['ros_topics'] == 'haptic_topology.nodes.topic_backend:RosTopicBackend'
-    for name in ('ros_topics', 'network'):
+    for name in ('ros_topics', 'network', 'openhaptics'):
         cls = backend_class(name)
         assert cls.name == name and cls.__module__ == str(BUILTIN_BACKENDS[name]).split(':')[0]
 
@@ -44,7 +44,7 @@ def test_module_class_resolves_a_backend_outside_the_package() -> None:
 
 @pytest.mark.parametrize(('name', 'text'), [
     ('nope', "backend 'nope': unknown; expected one of forcedimension, "
-             'forcedimension_emulator, network, ros_topics, sim_maglev'),
+             'forcedimension_emulator, network, openhaptics, ros_topics, sim_maglev'),
     # the placeholder of earlier versions is gone (README: "Bring your own device")
     ('hardware', "backend 'hardware': unknown; expected one of forcedimension, "),
     ('fake_backend:Missing', "module 'fake_backend' has no 'Missing'"),

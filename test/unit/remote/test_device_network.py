@@ -837,9 +837,10 @@ def test_preflight_reaches_the_server_releases_and_leaves_the_run_followed_at_on
     and its commands are applied; without a server it fails within its connect timeout
     with the backend's line."""
     server = spawn()
-    NetworkBackend().preflight(_config({'port': server.port, 'stale_ms': 200.0}))
+    options = {'port': server.port, 'stale_ms': 200.0, 'connect_timeout_ms': 60_000}
+    NetworkBackend().preflight(_config(options))
     be = NetworkBackend()
-    be.configure(_config({'port': server.port, 'stale_ms': 200.0}))
+    be.configure(_config(options))
     try:
         be.activate()
         _, sent, _ = _run_loop(be, 300)
@@ -852,12 +853,15 @@ def test_preflight_reaches_the_server_releases_and_leaves_the_run_followed_at_on
     c = res.counters
     assert c['client_sessions'] == 2 and c['releases'] == 2, c
     assert c['foreign'] == c['malformed'] == 0, c
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        port = int(s.getsockname()[1])
-    with pytest.raises(DeviceError, match=rf'^network: no valid STATE from 127\.0\.0\.1:{port} '
-                       r'within 300 ms \(connect_timeout_ms\); received 0 datagrams'):
-        NetworkBackend().preflight(_config({'port': port, 'connect_timeout_ms': 300}))
+    # A port held by a socket that never answers (released after the check: no other
+    # program can take it meanwhile and answer).
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(('127.0.0.1', 0))
+        port = int(silent.getsockname()[1])
+        with pytest.raises(DeviceError, match=rf'^network: no valid STATE from '
+                           rf'127\.0\.0\.1:{port} within 300 ms \(connect_timeout_ms\); '
+                           r'received 0 datagrams'):
+            NetworkBackend().preflight(_config({'port': port, 'connect_timeout_ms': 300}))
 
 
 def test_server_process_clamps_and_zeroes_output_when_commands_stop(
