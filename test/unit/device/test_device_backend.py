@@ -43,10 +43,10 @@ def test_module_class_resolves_a_backend_outside_the_package() -> None:
 
 
 @pytest.mark.parametrize(('name', 'text'), [
-    ('nope', "backend 'nope': unknown; expected one of haply, network, openhaptics, "
-             "ros_topics, sim_maglev"),
+    ('nope', "backend 'nope': unknown; expected one of forcedimension, "
+             'forcedimension_emulator, haply, network, openhaptics, ros_topics, sim_maglev'),
     # the placeholder of earlier versions is gone (README: "Bring your own device")
-    ('hardware', "backend 'hardware': unknown; expected one of haply, network, openhaptics, "),
+    ('hardware', "backend 'hardware': unknown; expected one of forcedimension, "),
     ('fake_backend:Missing', "module 'fake_backend' has no 'Missing'"),
     ('no_such_module_xyz:Thing', "cannot import module 'no_such_module_xyz'"),
     ('fake_backend:NotABackend', 'is not a subclass of DeviceBackend'),
