@@ -20,6 +20,7 @@ setup(
                                                      + glob('config/linkages/*.urdf'))),
         (f'share/{PACKAGE}/config/scenarios', sorted(glob('config/scenarios/*.yaml'))),
         (f'share/{PACKAGE}/config/meshes', sorted(glob('config/meshes/*.stl'))),
+        (f'share/{PACKAGE}/config/devices', sorted(glob('config/devices/*.yaml'))),
         (f'share/{PACKAGE}/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools'],

@@ -21,6 +21,7 @@ from haptic_topology.bag import analyze as analyze_command
 from haptic_topology.bag import repair as bag_command
 from haptic_topology.bag import replay as replay_plan
 from haptic_topology.bringup import run as run_command
+from haptic_topology.device import devices_command
 from haptic_topology.errors import AxesError, HapticTopologyError, VendorLibraryMissing
 from haptic_topology.processes import stacks_on_signal
 from haptic_topology.remote import server_command as device_server_command
@@ -120,6 +121,8 @@ COMMANDS: tuple[Command, ...] = (
             device_server_command.run),
     Command('device-key', 'write a new random pre-shared key for an authenticated device link '
             '(mode 0600)', device_server_command.add_key_arguments, device_server_command.run_key),
+    Command('devices', 'list the device backends, whether each vendor library loads, and the '
+            'devices connected', devices_command.add_arguments, devices_command.run),
     Command('bag', 'bag tools: info, repair (a bag whose recorder was killed)',
             bag_command.add_arguments, bag_command.run),
 )

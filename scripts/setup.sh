@@ -19,6 +19,8 @@
 #   6. the loop's compiled functions into numba's cache (haptic_topology/*/__pycache__)
 #      + the OpenHaptics emulator: emulators/openhaptics/hd.c -> <venv>/lib/haptic_topology/
 #        libHD.so with gcc (backend openhaptics, `library: emulator`)   (stamp: its source)
+#      + the Force Dimension emulator (emulators/forcedimension, gcc) into <venv>/fdsdk-emulator,
+#        an SDK-like tree for FDSDK                      (stamp: its sources)
 #   7. --for-tests: unshare present; chromium (apt-get), if missing: the docs tests render the
 #      site headless
 #   8. --for-tests: test/foxglove_client/: npm ci (the @foxglove/ws-protocol client of the
@@ -196,6 +198,18 @@ if ! stamp_ok libhd "$emu_hash" || [[ ! -f "$emu_lib" ]]; then
   gcc -O2 -Wall -fPIC -shared -pthread -Wl,-soname,libHD.so -o "$emu_lib" "$emu_src" -lm \
     || die "building the OpenHaptics emulator ($emu_src) failed"
   stamp_set libhd "$emu_hash"
+fi
+
+# The Force Dimension emulator: a libdrd for forcedimension-core without the vendor's SDK
+# (the forcedimension backend's tests, FDSDK=<venv>/fdsdk-emulator; docs/devices.md).
+mapfile -t emu_files < <(find "$root/emulators/forcedimension" -type f)
+emu_hash=$(hash_files "${emu_files[@]}")
+if ! stamp_ok fdemu "$emu_hash" || [[ ! -d "$venv/fdsdk-emulator" ]]; then
+  say "building the Force Dimension emulator into $venv/fdsdk-emulator"
+  rm -rf "$venv/fdsdk-emulator"
+  bash "$root/emulators/forcedimension/build.sh" "$venv/fdsdk-emulator" \
+    || die "building the Force Dimension emulator (gcc) failed"
+  stamp_set fdemu "$emu_hash"
 fi
 
 # --- 7. unshare and chromium (--for-tests) ----------------------------------------------------

@@ -40,9 +40,11 @@ _MARK = 4_000_000_000_000_000_000
 
 class MetadataText:
     """``dump_yaml`` of a bag's ``metadata.yaml`` document for each flush, emitted once per
-    shape (the storage files it lists) with a placeholder for each number, which each flush
-    fills in: the numbers (counts, times) are all that changes, and emitting the YAML again
-    cost ~2 ms a flush for the graph's 17 topics (their QoS text is most of its 11 kB)."""
+    shape (the storage files it lists and its ``custom_data``, which the recorder completes
+    with the device's identity once the driver reports it) with a placeholder for each
+    number, which each flush fills in: the numbers (counts, times) are all that changes, and
+    emitting the YAML again cost ~2 ms a flush for the graph's 17 topics (their QoS text is
+    most of its 11 kB)."""
 
     def __init__(self) -> None:
         self._shape: tuple[str, ...] | None = None
@@ -51,7 +53,8 @@ class MetadataText:
     def __call__(self, info: dict[str, Any]) -> str:
         doc = {'rosbag2_bagfile_information': info}
         values: list[int] = []
-        shape = tuple(f['path'] for f in info['files'])
+        custom = info.get('custom_data') or {}
+        shape = (*(f['path'] for f in info['files']), *(f'{k}={v}' for k, v in custom.items()))
         if shape != self._shape:
             self._shape = shape
             text = dump_yaml(_numbers(doc, values, mark=True))

@@ -245,7 +245,8 @@ class DeviceDriverSettings(NodeSettings):
                                 'normal scheduling. Needs CAP_SYS_NICE (root or an rtprio '
                                 'limit): without it one warning and normal scheduling',
                                 lo=0, hi=99)
-    backend: str = param('sim_maglev', 'device backend: sim_maglev, ros_topics, network, '
+    backend: str = param('sim_maglev', 'device backend: sim_maglev, ros_topics, network, a '
+                         'vendor\'s (forcedimension; haptic-topology devices lists them), '
                          'module:Class, or an entry point of haptic_topology.device_backends')
     backend_options: str = param('', "backend settings as a YAML/JSON mapping (e.g. '{port: "
                                  "/dev/ttyUSB0}'); empty for none")

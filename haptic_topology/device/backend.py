@@ -417,7 +417,11 @@ BUILTIN_BACKENDS: dict[str, type[DeviceBackend] | str] = {
     SimMaglevBackend.name: SimMaglevBackend,
     'ros_topics': 'haptic_topology.nodes.topic_backend:RosTopicBackend',
     'network': 'haptic_topology.remote.network:NetworkBackend',
+    'forcedimension': 'haptic_topology.device.forcedimension:ForceDimensionBackend',
+    'forcedimension_emulator':
+        'haptic_topology.device.forcedimension:ForceDimensionEmulatorBackend',
     'openhaptics': 'haptic_topology.device.openhaptics:OpenHapticsBackend',
+    'haply': 'haptic_topology.remote.haply:HaplyBackend',
 }
 
 

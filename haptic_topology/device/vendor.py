@@ -16,7 +16,8 @@ package.
 * :class:`VendorHand`: per cycle, :meth:`VendorHand.reading` turns the device's position,
   velocity and button mask into the task's
   :class:`~haptic_topology.device.backend.DeviceReading`, and :meth:`VendorHand.force` the
-  task wrench ``u`` into the device force;
+  task wrench ``u`` into the device force; :attr:`VendorHand.pose` is the task pose it
+  reports now;
 * :class:`DeviceIdentity`: vendor, model, serial, SDK, workspace -> ``hardware_id`` and
   diagnostics values (which ``/diagnostics`` carries into the bag and ``summary.json``);
 * :data:`VENDOR_BACKENDS`, :class:`VendorSupport`, :func:`vendor_support`,
@@ -209,6 +210,11 @@ class VendorHand:
         status = DeviceStatus.OK if self.scale >= 1.0 else DeviceStatus.WATCHDOG
         return DeviceReading(np.array(self._held[:m]), twist, np.zeros(m), status)
 
+    @property
+    def pose(self) -> np.ndarray:
+        """The task pose it reports now (where the hand holds the linkage, or held it)."""
+        return np.array(self._held[:self._m])
+
     def force(self, u: np.ndarray) -> tuple[float, float, float]:
         """The device force (device units and frame) of the task wrench ``u`` (N; already
         clamped and finite, ``m`` entries): zero while not grasping, faded in after a grasp
@@ -284,7 +290,10 @@ class VendorSupport:
 #: Vendor backends: name -> ``'module:function'`` returning its :class:`VendorSupport`,
 #: imported only when asked (the backends register themselves here).
 VENDOR_BACKENDS: dict[str, str] = {
+    'forcedimension': 'haptic_topology.device.forcedimension:support',
+    'forcedimension_emulator': 'haptic_topology.device.forcedimension:support',
     'openhaptics': 'haptic_topology.device.openhaptics:support',
+    'haply': 'haptic_topology.remote.haply:vendor_support',
 }
 
 

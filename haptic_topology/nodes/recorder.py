@@ -37,10 +37,12 @@ from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
+from haptic_topology.bag.graph_index import DEVICE_STATUS
 from haptic_topology.bag.writer import BagWriter, TopicSpec, make_qos
 from haptic_topology.bag.writer_thread import WriterThread
 from haptic_topology.config import node_params, resolve
 from haptic_topology.config.settings import RecorderSettings
+from haptic_topology.device.vendor import IDENTITY_KEYS
 from haptic_topology.errors import BagError
 from haptic_topology.messages.definitions import message_definitions, typestore_with_haptic_msgs
 from haptic_topology.nodes.diagnostics import diagnostics
@@ -171,6 +173,9 @@ class Recorder(Node):
         self.connected = False
         self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
                                               QOS_DIAGNOSTICS)
+        # The device's identity, from its driver's status, into the bag's custom_data.
+        self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._device_identity,
+                                 QOS_DIAGNOSTICS)
         self._connect_timer = self.create_timer(0.05, self._check_connected)
         self.create_timer(0.25, self._publish_status)
         self.get_logger().info(f'recording to {self.path}')
@@ -189,6 +194,21 @@ class Recorder(Node):
             self.connected = True
             self.get_logger().info(f'connected to {", ".join(self._connect) or "(none)"}')
         self._publish_status()
+
+    def _device_identity(self, msg: DiagnosticArray) -> None:
+        """Keep ``device`` (the driver's ``hardware_id``) and a vendor's identity values
+        (``device_model``, ``device_serial``, ...) of this graph's device in the bag's
+        ``custom_data`` (``metadata.yaml``, written at each flush and at the end)."""
+        for st in msg.status:
+            values = {kv.key: kv.value for kv in st.values}
+            if (st.name != DEVICE_STATUS or not st.hardware_id
+                    or values.get('graph_id', self.graph_id) != self.graph_id):
+                continue
+            found = {'device': st.hardware_id,
+                     **{k: values[k] for k in IDENTITY_KEYS if values.get(k)}}
+            if any(self.writer.custom.get(k) != v for k, v in found.items()):
+                # a new dict, swapped whole: the writer thread reads it at its flushes
+                self.writer.custom = {**self.writer.custom, **found}
 
     def _publish_status(self) -> None:
         """``/diagnostics`` status ``recorder: bag``: path, counts, ``connected``, and the

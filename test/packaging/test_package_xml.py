@@ -54,6 +54,8 @@ NO_ROSDEP_KEY = {
     'foxglove': 'foxglove-sdk',     # the optional foxglove_bridge node
     'numba': 'numba (PyPI',         # python3-numba: Debian, Ubuntu bionic/focal only
     'pyarrow': 'pyarrow (PyPI',     # Apache Arrow: not in Ubuntu noble's archive
+    'forcedimension_core': 'forcedimension-core (PyPI',     # backend forcedimension
+    'pyOpenHaptics': 'pyOpenHaptics (PyPI',     # backend openhaptics
 }
 #: Declared dependencies that no import shows, and where they are used.
 NOT_IMPORTED = {

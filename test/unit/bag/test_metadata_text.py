@@ -35,6 +35,19 @@ def test_filled_in_text_is_the_emitted_document() -> None:
             assert text(info) == dump_yaml({'rosbag2_bagfile_information': info})
 
 
+def test_custom_data_completed_during_the_recording_is_written() -> None:
+    """The recorder adds the device's identity to ``custom_data`` once the driver reports
+    it: the next flush's text has it (the template is not the one of the first flushes)."""
+    rng = np.random.default_rng(9)
+    text = MetadataText()
+    custom = {'recorded_by': 'haptic_topology recorder', 'scenario': 'fig8_point'}
+    for extra in ({}, {}, {'device': 'forcedimension omega.3 serial 11029'}, {},
+                  {'device': 'forcedimension omega.3 serial 11029', 'device_serial': '11029'}):
+        custom = {**custom, **extra}
+        info = _info(rng, 1, custom)
+        assert text(info) == dump_yaml({'rosbag2_bagfile_information': info})
+
+
 def test_a_string_that_holds_a_placeholder_falls_back_to_emitting() -> None:
     rng = np.random.default_rng(8)
     text = MetadataText()

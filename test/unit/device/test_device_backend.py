@@ -28,12 +28,12 @@ def _config(options: dict[str, object] | None = None) -> BackendConfig:
 
 
 def test_builtin_names_resolve() -> None:
-    """``sim_maglev`` is in the registry; ``ros_topics`` and ``network`` are named there as
-    ``module:Class`` and imported when selected (the ROS one needs rclpy, which the core does
-    not import: test_core_imports.py)."""
+    """``sim_maglev`` is in the registry; ``ros_topics``, ``network``, ``openhaptics`` and
+    ``haply`` are named there as ``module:Class`` and imported when selected (the ROS one
+    needs rclpy, which the core does not import: test_core_imports.py)."""
     assert backend_class('sim_maglev') is SimMaglevBackend
     assert BUILTIN_BACKENDS['ros_topics'] == 'haptic_topology.nodes.topic_backend:RosTopicBackend'
-    for name in ('ros_topics', 'network', 'openhaptics'):
+    for name in ('ros_topics', 'network', 'openhaptics', 'haply'):
         cls = backend_class(name)
         assert cls.name == name and cls.__module__ == str(BUILTIN_BACKENDS[name]).split(':')[0]
 
@@ -43,11 +43,10 @@ def test_module_class_resolves_a_backend_outside_the_package() -> None:
 
 
 @pytest.mark.parametrize(('name', 'text'), [
-    ('nope', "backend 'nope': unknown; expected one of network, openhaptics, ros_topics, "
-             "sim_maglev"),
+    ('nope', "backend 'nope': unknown; expected one of forcedimension, "
+             'forcedimension_emulator, haply, network, openhaptics, ros_topics, sim_maglev'),
     # the placeholder of earlier versions is gone (README: "Bring your own device")
-    ('hardware', "backend 'hardware': unknown; expected one of network, openhaptics, "
-                 "ros_topics, "),
+    ('hardware', "backend 'hardware': unknown; expected one of forcedimension, "),
     ('fake_backend:Missing', "module 'fake_backend' has no 'Missing'"),
     ('no_such_module_xyz:Thing', "cannot import module 'no_such_module_xyz'"),
     ('fake_backend:NotABackend', 'is not a subclass of DeviceBackend'),

@@ -1,0 +1,140 @@
+"""``haptic-topology run fig8_point`` with ``backend: haply`` against the Haply Inverse Service
+emulator in a process of its own, as a user runs it (a params file with the backend and its
+port, the command line): a run to the end; the service gone mid-run (killed: FAULT states,
+zero force from then on, bag and summary written, the reason on ``/diagnostics``); the
+service not there at all (the run stops before any node starts, with one line naming the
+address).
+No time bound is asserted; waits are on events with generous deadlines.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from haply_harness import Emulator, read_log
+
+from haptic_topology import vocabulary as vocab
+from haptic_topology.bag.reader import decoder, iter_messages, open_bag
+from haptic_topology.paths import config_dir
+
+pytestmark = [pytest.mark.graph, pytest.mark.timeout(600)]
+
+FAULT = int(vocab.DeviceStatus.FAULT)
+
+
+def _params(tmp_path: Path, options: str) -> Path:
+    """A copy of the default params file with ``backend: haply`` and ``backend_options``."""
+    doc = yaml.safe_load((config_dir() / 'haptic_topology.yaml').read_text(encoding='utf-8'))
+    driver = doc['device_driver']['ros__parameters']
+    driver['backend'] = 'haply'
+    driver['backend_options'] = options
+    path = tmp_path / 'my_params.yaml'
+    path.write_text(yaml.safe_dump(doc), encoding='utf-8')
+    return path
+
+
+def _command(params: Path, bag: Path, duration: float) -> list[str]:
+    return [sys.executable, '-m', 'haptic_topology.cli', 'run', 'fig8_point', '--params',
+            str(params), '--duration', str(duration), '--no-plot', '--out', str(bag)]
+
+
+def _bag(bag: Path) -> tuple[list[object], list[str]]:
+    """The bag's device states (seq order) and every ``/diagnostics`` message text."""
+    decode = decoder()
+    states, texts = [], []
+    b = open_bag(next(bag.glob('*.mcap')))
+    for m in iter_messages(b):
+        if m.topic.endswith(vocab.TOPIC_STATE):
+            states.append(decode(m))
+        elif m.topic == vocab.TOPIC_DIAGNOSTICS:
+            texts.extend(str(st.message) for st in decode(m).status)
+    states.sort(key=lambda s: int(s.seq))       # type: ignore[attr-defined]
+    return states, texts
+
+
+def test_fig8_point_on_the_emulated_inverse3(tmp_path: Path) -> None:
+    emu = Emulator(tmp_path / 'emu')
+    try:
+        bag = tmp_path / 'bag'
+        proc = subprocess.run(_command(_params(tmp_path, f'{{port: {emu.port}}}'), bag, 2.0),
+                              capture_output=True, timeout=400, env=dict(os.environ))
+        out = (proc.stdout + proc.stderr).decode(errors='replace')
+        assert proc.returncode == 0, out
+        assert ('device: backend haply, haply Inverse3 (version 7.4, right-handed, port '
+                f'emulated) serial 0E31 via ws://127.0.0.1:{emu.port}/') in out, out
+        summary = json.loads((bag / 'summary.json').read_text())
+        assert summary['scenario'] == 'fig8_point' and summary['samples'] > 0
+        assert (summary.get('device_vendor'), summary.get('device_serial')) == (
+            'Haply', '0E31'), summary
+    finally:
+        emu.stop()
+    _, ids, f = read_log(emu.log)
+    assert set(ids) == {'0E31'} and np.abs(f).max() > 0.0, 'the device got no force'
+    assert not f[-1].any(), 'the device was not left at zero'
+    assert '"bad_messages": 0' in emu.output, emu.output
+
+
+def test_the_service_gone_mid_run(tmp_path: Path) -> None:
+    monitor = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    monitor.bind(('127.0.0.1', 0))
+    emu = Emulator(tmp_path / 'emu', monitor=('127.0.0.1', monitor.getsockname()[1]))
+    bag = tmp_path / 'bag'
+    run = subprocess.Popen(_command(_params(tmp_path, f'{{port: {emu.port}}}'), bag, 6.0),
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                           env=dict(os.environ))
+    try:
+        # the loop is engaged once the device gets a force other than zero: then kill
+        deadline = time.monotonic() + 300.0
+        engaged = False
+        while not engaged:
+            assert time.monotonic() < deadline and run.poll() is None, 'never engaged'
+            if select.select([monitor], [], [], 0.5)[0]:
+                _, _, *f = monitor.recv(4096).decode().split(',')
+                engaged = any(float(v) != 0.0 for v in f)
+        emu.kill()
+        out = run.communicate(timeout=400)[0].decode(errors='replace')
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.communicate()
+        monitor.close()
+    assert run.returncode == 0, out
+    assert (bag / 'summary.json').is_file(), out
+    states, texts = _bag(bag)
+    status = np.array([int(s.status) for s in states])                 # type: ignore
+    applied = np.array([list(s.applied_wrench) for s in states])        # type: ignore
+    # the states from the kill to the end: FAULT (the connection is not reopened; a stall of
+    # the emulator on a loaded machine may have faulted some earlier states too)
+    ok = np.flatnonzero(~status & FAULT)
+    first = int(ok[-1]) + 1 if ok.size else 0
+    assert first < len(states), 'the run did not end in FAULT with the service gone'
+    assert not applied[first + 1:].any(), 'force written after the service was gone'
+    assert applied[:first].any(), 'no force before the service was gone'
+    reason = f'haply: the connection to ws://127.0.0.1:{emu.port}/ ended (the service '
+    assert any(reason in t for t in texts), sorted(set(texts))
+
+
+def test_an_unreachable_service_stops_the_run_before_it_starts(tmp_path: Path) -> None:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        port = int(s.getsockname()[1])
+    bag = tmp_path / 'bag'
+    proc = subprocess.run(_command(_params(tmp_path, f'{{port: {port}}}'), bag, 2.0),
+                          capture_output=True, timeout=400, env=dict(os.environ))
+    out = (proc.stdout + proc.stderr).decode(errors='replace')
+    assert proc.returncode == 1, out
+    assert out.strip() == (
+        'haptic-topology run: error: device: haply: cannot connect to '
+        f'ws://127.0.0.1:{port}/: Connection refused: is the Haply Inverse Service (or '
+        '`python -m haptic_topology.remote.haply_emulator`) running there?'), out
+    assert not bag.exists(), out           # refused before anything started
