@@ -56,7 +56,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from haptic_topology.config import node_params
-from haptic_topology.config.resolve import resolve_device_driver
+from haptic_topology.config.resolve import passivity_by_default, resolve_device_driver
 from haptic_topology.config.settings import DeviceDriverSettings
 from haptic_topology.device.backend import DeviceBackend, create_backend, zero_and_release
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, hardware_id
@@ -145,8 +145,9 @@ class DeviceDriver(LifecycleNode):
                                        CommandWatchdog(c.watchdog, c.task_dim), c.period,
                                        c.takeover_after)
             if self.hosted is not None and self.hosted.cfg.passivity_auto:
-                # lmi_controller's passivity: auto: on for a device that is not simulated
-                self.hosted.loop.ctrl.energy.enable(not self.backend.simulated)
+                # lmi_controller's passivity: auto (config.resolve.passivity_by_default)
+                self.hosted.loop.ctrl.energy.enable(passivity_by_default(
+                    self.backend.simulated, c.scenario.linkage.task))
             self.layout = driver_layout(self, self.hosted)
         except Exception as exc:    # a backend's own code too: the fault
             why = error_line(exc, f'{getattr(self.backend, "name", c.backend)}: configure()')

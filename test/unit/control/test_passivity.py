@@ -11,6 +11,7 @@ import pytest
 
 from haptic_topology.control.compiled import PENALTY, ZERO
 from haptic_topology.control.passivity import EnergyAccount, PassivityConfig
+from haptic_topology.vocabulary import TaskSpace
 
 T = 1e-3          # s, the device period of every scenario
 
@@ -141,3 +142,19 @@ def test_passivity_setting_and_backends() -> None:
     assert resolve_passivity('auto', sc) == (PassivityConfig(enabled=False), True)
     assert backend_class('sim_maglev').simulated and not DeviceBackend.simulated
     assert not backend_class('network').simulated
+
+
+def test_auto_turns_the_controller_on_for_a_real_device_rendering_a_point_grasp() -> None:
+    """``auto`` with no scenario block: on for a device that is not simulated and a point
+    grasp (every vendor backend's 3-axis device); off for a rigid grasp, where the observer
+    counts the VT's coordination energy as generated (docs/concepts.md), and off for the
+    simulated maglev."""
+    from haptic_topology.config.resolve import passivity_by_default
+    from haptic_topology.device.backend import backend_class
+
+    cases = {(backend, task): passivity_by_default(backend_class(backend).simulated, task)
+             for backend in ('sim_maglev', 'network', 'forcedimension', 'openhaptics', 'haply')
+             for task in TaskSpace}
+    assert {key for key, on in cases.items() if on} == {
+        (backend, task) for backend in ('network', 'forcedimension', 'openhaptics', 'haply')
+        for task in (TaskSpace.PLANAR_POINT, TaskSpace.SPATIAL_POINT)}
