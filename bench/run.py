@@ -38,6 +38,10 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
 8. The authenticated device link (``bench/link_auth.py``): the MAC's cost per packet, and the
    ``network`` backend's loop against ``device-server`` without and with a key,
    ``LINK_DURATION`` s each (at most ``--loop-duration``), side by side.
+9. The vendor backends on their emulators (``bench/vendor_loops.py``): ``run fig8_point``
+   with ``sim_maglev``, ``forcedimension``, ``openhaptics`` and ``haply``, hosted,
+   ``--loop-duration`` s each, and each one's figures as a ratio to ``sim_maglev``'s and to
+   the floor. ``--vendors-only``: the floor and this section alone.
 
 Then a table of every figure beside its goal (issues 11 and 26). Run: ``make bench`` (about
 26 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
@@ -69,6 +73,7 @@ import core_costs  # noqa: E402
 import floor  # noqa: E402
 import link_auth  # noqa: E402
 import recorder_load  # noqa: E402
+import vendor_loops  # noqa: E402
 from chain_scenario import write_chain_scenario  # noqa: E402
 
 from haptic_topology.vocabulary import TaskSpace  # noqa: E402
@@ -369,6 +374,17 @@ def run(loop_duration: float, recorder_duration: float,
     print(f'== device link: MAC per packet; network backend loop without and with a key, '
           f'{duration:g} s each ...', flush=True)
     res['link_auth'] = link_auth.run(duration)
+    res['vendors'] = vendor_loops.run(loop_duration, graph_loop)
+    return res
+
+
+def run_vendors(loop_duration: float) -> dict[str, Any]:
+    """``--vendors-only``: the machine's floor, then section 9 (module doc)."""
+    res: dict[str, Any] = {'date': time.strftime('%Y-%m-%d %H:%M:%S %Z'),
+                           'machine': _machine(), 'versions': _versions()}
+    _floors(res, loop_duration, False, 'floor')
+    res['vendors'] = vendor_loops.run(loop_duration, graph_loop)
+    _floors(res, loop_duration, False, 'floor_end')
     return res
 
 
@@ -601,7 +617,17 @@ def table(res: dict[str, Any]) -> str:
                      f's, fastest of {OFFLINE_RUNS} ({r["realtime_factor"]:.1f}x real time)')
     if 'link_auth' in res:
         lines.extend(link_auth.table(res['link_auth']))
+    if 'vendors' in res:
+        lines.append(vendor_loops.table(res['vendors'], res.get('floor')))
     return '\n'.join(lines)
+
+
+def floor_line(res: dict[str, Any]) -> str:
+    """The floor before and after the runs, one line each."""
+    return '\n'.join(
+        f'machine floor ({key}): {100 * res[key]["answered_fraction"]:.2f} % answered, '
+        f'{res[key]["max_consecutive_missed"]:.0f} missed in a row, period p99 '
+        f'{res[key]["period_p99_us"]:.0f} us' for key in ('floor', 'floor_end') if key in res)
 
 
 def main() -> None:
@@ -613,9 +639,24 @@ def main() -> None:
                     'minute (shorter: after its first half)')
     ap.add_argument('--quick', action='store_true',
                     help='5 s runs to try the script; nothing is written to RESULTS.md')
+    ap.add_argument('--vendors-only', action='store_true',
+                    help='the machine floor and the vendor backends on their emulators only '
+                    '(section 9)')
     a = ap.parse_args()
     if a.quick:
         a.loop_duration, a.recorder_duration, a.memory_duration = 5.0, 5.0, 10.0
+    if a.vendors_only:
+        res = run_vendors(a.loop_duration)
+        text = (vendor_loops.table(res['vendors'], res['floor']) + '\n'
+                + floor_line(res))
+        print(text)
+        with (BENCH / 'RESULTS.md').open('a', encoding='utf-8') as f:
+            f.write(f'\n## {res["date"]} - {res["machine"]["cores"]} cores, '
+                    f'{res["machine"]["cpu"]} (--vendors-only, --loop-duration '
+                    f'{a.loop_duration:g})\n\nversions: {json.dumps(res["versions"])}\n\n'
+                    f'```\n{text}\n```\n')
+        print(f'appended {BENCH / "RESULTS.md"}')
+        return
     res = run(a.loop_duration, a.recorder_duration, a.memory_duration)
     head = headline(res)
     res['headline'] = head
