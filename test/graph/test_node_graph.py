@@ -298,7 +298,8 @@ def test_run_command_composed(tmp_path: Path) -> None:
 
     def loop_table(text: str, label: str) -> tuple[list[str], list[str]]:
         lines = text.split('\n')
-        head = max(i for i, line in enumerate(lines) if line.startswith('run '))
+        head = max(i for i, line in enumerate(lines)
+                   if line.startswith('run ') and 'answered, device [%]' in line)
         row = next(line for line in lines[head:] if line.startswith(label))
         return [c.strip() for c in lines[head].split('  ') if c.strip()], \
             row[len(label):].split()

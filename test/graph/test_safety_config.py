@@ -135,8 +135,8 @@ def test_nodes_refuse_a_bad_params_file_before_rclpy(tmp_path: Path) -> None:
     assert out.strip().splitlines() == [
         f'lmi_controller: error: {bad}: lmi_controller.ros__parameters.resync_rmp: unknown '
         'parameter of lmi_controller (expected one of: ack_updates, b_tc, clock, '
-        'degrade_after, executor, graph_id, k_tc, lockstep_wait, max_dt, mode, resync_max_jump, '
-        'resync_ramp, scenario, sched_priority, stale_after)']
+        'degrade_after, executor, graph_id, k_tc, lockstep_wait, max_dt, mode, passivity, '
+        'resync_max_jump, resync_ramp, scenario, sched_priority, stale_after)']
     code, out = _node('device_driver', '--ros-args', '--params-file', str(tmp_path / 'no.yaml'))
     assert code == 2 and f'device_driver: error: {tmp_path / "no.yaml"}: file not found' in out
 
