@@ -18,14 +18,23 @@ itself, so a process that happens to create a segment of the same name at that m
 to lock it and picks another name (as Fast DDS does on a collision); a segment whose lock is
 held, by whatever process on the machine, is never touched.
 
+One cleaner at a time per folder: :func:`remove_stale_segments` runs only while it holds the
+folder's cleaner lock (:func:`cleaning`, a file in the temporary directory); another cleaner
+that finds it held leaves the folder to the holder. A program that must see a killed
+process's segments before they are removed (a test of this cleanup) holds that lock meanwhile.
+
 No ROS import here: the bringup and the test session use it before and after any node runs.
 """
 
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import os
 import re
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 #: Where Fast DDS keeps its shared memory and lock files on Linux.
@@ -69,10 +78,38 @@ def stale_segments(shm_dir: Path = SHM_DIR) -> set[str]:
             if SEGMENT_LOCK.match(lock) and not lock_held(shm_dir / lock)}
 
 
+def cleaner_lock(shm_dir: Path = SHM_DIR) -> Path:
+    """The cleaner lock file of ``shm_dir`` (module doc), in the temporary directory."""
+    key = hashlib.blake2b(str(shm_dir.resolve()).encode(), digest_size=8).hexdigest()
+    return Path(tempfile.gettempdir()) / f'haptic_topology_shm_cleaner_{key}.lock'
+
+
+@contextmanager
+def cleaning(shm_dir: Path = SHM_DIR) -> Iterator[bool]:
+    """Hold the cleaner lock of ``shm_dir`` while the block runs, if no other process holds
+    it: yields whether this process does (it never waits)."""
+    fd = os.open(cleaner_lock(shm_dir), os.O_CREAT | os.O_RDWR, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)
+
+
 def remove_stale_segments(shm_dir: Path = SHM_DIR) -> list[str]:
     """Remove every stale segment of ``shm_dir`` and its lock file; return the segments'
     names (sorted). Each is removed while this process holds its lock; an entry locked by
-    another process, or that this user may not remove, stays."""
+    another process, or that this user may not remove, stays. Nothing is removed while
+    another process holds the folder's cleaner lock (:func:`cleaning`)."""
+    with cleaning(shm_dir) as mine:
+        return _remove_stale(shm_dir) if mine else []
+
+
+def _remove_stale(shm_dir: Path) -> list[str]:
     removed: list[str] = []
     for lock in sorted(fastdds_entries(shm_dir)):
         if not SEGMENT_LOCK.match(lock):

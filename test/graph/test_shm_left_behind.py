@@ -17,13 +17,13 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import pytest
 from procs import pidfd
 
-from haptic_topology.nodes.dds_shm import SHM_DIR, process_segments
+from haptic_topology.nodes.dds_shm import SHM_DIR, cleaning, process_segments
 from haptic_topology.paths import config_dir
 from haptic_topology.processes import children, cmdline
 
@@ -207,17 +207,24 @@ def test_sigterm_of_run_stops_the_graph_and_leaves_nothing(tmp_path: Path) -> No
 @pytest.mark.timeout(300)
 def test_a_killed_graphs_segments_are_removed_by_the_next_run(tmp_path: Path) -> None:
     killed, sampler = start_long_run(tmp_path / 'killed')
-    try:
-        fds = [fd for fd in map(pidfd, tree(killed.pid)) if fd is not None]
-        kill_all(fds)
-        killed.wait()
-    finally:
-        if killed.poll() is None:
-            killed.kill()
-        killed.communicate()
-        left = sampler.stop()
-    assert len(set(left.values())) == 4, left
-    assert existing(left) == left                # SIGKILL: nothing deleted them
+    # The folder's cleaner lock from before the kill to the check that the segments are
+    # left: another test's run cleaning /dev/shm meanwhile would remove them first.
+    with ExitStack() as stack:
+        deadline = time.monotonic() + START
+        while not stack.enter_context(cleaning()):
+            assert time.monotonic() < deadline, 'another cleaner held /dev/shm throughout'
+            time.sleep(0.05)
+        try:
+            fds = [fd for fd in map(pidfd, tree(killed.pid)) if fd is not None]
+            kill_all(fds)
+            killed.wait()
+        finally:
+            if killed.poll() is None:
+                killed.kill()
+            killed.communicate()
+            left = sampler.stop()
+        assert len(set(left.values())) == 4, left
+        assert existing(left) == left            # SIGKILL: nothing deleted them
     with probe_node():
         live = process_segments(os.getpid())
         assert live and not live & set(left)

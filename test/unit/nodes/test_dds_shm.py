@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from haptic_topology.nodes.dds_shm import (
+    cleaner_lock,
     fastdds_entries,
     lock_held,
     process_segments,
@@ -103,3 +104,27 @@ def test_nothing_to_do(tmp_path: Path) -> None:
     assert remove_stale_segments(tmp_path / 'absent') == []
     assert fastdds_entries(tmp_path / 'absent') == set()
     assert not lock_held(tmp_path / f'{DEAD}_el')
+
+
+def test_while_another_process_holds_the_cleaner_lock_nothing_is_removed(
+        tmp_path: Path) -> None:
+    """One cleaner at a time: a process holding the folder's cleaner lock (here a child
+    that takes it and waits) keeps every other cleaner out; once it lets go, the stale
+    segment goes. Another folder's cleaner lock is another file."""
+    _segment(tmp_path, DEAD)
+    code = ('import sys, time\n'
+            'from pathlib import Path\n'
+            'from haptic_topology.nodes.dds_shm import cleaning\n'
+            'with cleaning(Path(sys.argv[1])) as mine:\n'
+            '    print(mine, flush=True)\n'
+            '    sys.stdin.readline()\n')
+    other = subprocess.Popen([sys.executable, '-c', code, str(tmp_path)], text=True,
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert other.stdout is not None and other.stdout.readline().strip() == 'True'
+        assert remove_stale_segments(tmp_path) == []
+        assert stale_segments(tmp_path) == {DEAD}
+        assert cleaner_lock(tmp_path) != cleaner_lock(tmp_path / 'other')
+    finally:
+        other.communicate('\n', timeout=60)
+    assert remove_stale_segments(tmp_path) == [DEAD]
