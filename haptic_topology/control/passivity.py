@@ -61,6 +61,7 @@ See ``docs/concepts/control.md``.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -242,7 +243,10 @@ class EnergyAccount:
         }
 
     def values(self) -> dict[str, str]:
-        """Diagnostics key/values (the live channel)."""
+        """Diagnostics key/values (the live channel): the figures rounded for reading, and
+        ``energy_account``, :meth:`summary` as JSON (floats exact), which a recorded run's
+        analysis reads from the controller's last status
+        (``haptic_topology.bag.analyze.controller_account``)."""
         s = self.state
         return {
             'port_work_j': f'{self.work:.6g}',
@@ -255,4 +259,5 @@ class EnergyAccount:
             'passivity_controller': 'on' if self.params[0] else 'off',
             'passivity_cycles': str(int(s[_ACTED])),
             'passivity_damping': f'{self.damping:.4g}',
+            'energy_account': json.dumps(self.summary()),
         }
