@@ -34,7 +34,7 @@ from haptic_topology.sim.trace import format_energy
 pytestmark = pytest.mark.graph
 
 PARAMS = config_dir() / 'haptic_topology.yaml'
-DURATION = 1.0          # s of wall clock from engagement
+DURATION = 2.0          # s of wall clock from engagement: the VT reaches the constraint at ~0.9 s
 
 
 def _last_controller_status(bag: Path) -> dict[str, str]:
