@@ -63,9 +63,9 @@ def account(rotation_dim: int, mode: int, ml: np.ndarray, c_d: np.ndarray, x_h: 
        :mod:`~haptic_topology.control.passivity`); the windowed observer ``E_w`` sums the
        newest ``window`` of these increments;
     2. passivity controller (Hannaford & Ryu, on ``E_w``): when ``E_w < 0``,
-       ``alpha = -E_w / (dt max(|xd_h|^2, floor))``, at most the cap and at most
-       ``limit_i / |xd_h_i|`` on every axis (the added damping never exceeds the wrench
-       limit), and ``u -= alpha xd_h``;
+       ``alpha = -E_w / (dt max(|xd_h|^2, floor))``, at most the cap, and ``u -= alpha
+       xd_h`` with the added wrench clipped to ``limit_i`` on each axis (an axis moving
+       fast against a small limit does not lower the damping of the others);
     3. the parts of ``u`` (module :mod:`~haptic_topology.control.passivity`) and ``u``
        clamped, kept for the next period.
 
@@ -127,10 +127,7 @@ def account(rotation_dim: int, mode: int, ml: np.ndarray, c_d: np.ndarray, x_h: 
         alpha = -state[WINDOWED] / (dt * max(v2, state[P_V2_FLOOR]))
         alpha = min(alpha, state[P_ALPHA_MAX])
         for i in range(m):
-            if abs(xd_h[i]) * alpha > limit[i]:
-                alpha = limit[i] / abs(xd_h[i])
-        for i in range(m):
-            u[i] = u[i] - alpha * xd_h[i]
+            u[i] = u[i] + min(max(-alpha * xd_h[i], -limit[i]), limit[i])
         state[ACTED] += 1.0
         state[ALPHA_PEAK] = max(state[ALPHA_PEAK], alpha)
     state[ALPHA] = alpha
@@ -152,7 +149,7 @@ def account(rotation_dim: int, mode: int, ml: np.ndarray, c_d: np.ndarray, x_h: 
                 h += ml[i, k] * f_h[k]
                 d += c_d[i, k] * xd_h[k]
             h -= f_h[i]
-            pc = -alpha * xd_h[i]
+            pc = min(max(-alpha * xd_h[i], -limit[i]), limit[i])
             prev_parts[PART_COORDINATION * m + i] = c
             prev_parts[PART_CONTACTS * m + i] = e
             prev_parts[PART_HAND * m + i] = h

@@ -50,8 +50,9 @@ user accelerates a VT lighter than the device, so counting it would damp the ren
 the energy a sampled, delayed or too stiff law *generates* is in the feedback parts (penalty,
 coordination, contacts, damping). When ``E_w < 0`` it adds the damping ``-alpha xd_h`` to the
 command held over the next period, with ``alpha = -E_w / (dT max(|xd_h|^2, v_floor^2))`` (the
-floor keeps ``alpha`` finite at rest), at most ``damping_max`` and at most ``limit_i /
-|xd_h_i|`` on every axis (the added wrench never exceeds the wrench limit). It acts on the
+floor keeps ``alpha`` finite at rest), at most ``damping_max``, the added wrench clipped to
+the wrench limit on each axis (an axis moving fast against a small limit, a rotation, does
+not lower the damping of the others; the clipped damper still only dissipates). It acts on the
 total observer of the port, not per axis: energy the law moves between axes is not generated.
 The observer counts the command as the device applies it one period later, so the energy the
 damping dissipates is measured, not assumed; the delay of a VE update (the LMI's 100 or 25 Hz)

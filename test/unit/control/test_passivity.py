@@ -115,6 +115,25 @@ def test_passivity_controller_dissipates_the_deficit() -> None:
     assert big[0] == pytest.approx(-10.0, rel=1e-12)
 
 
+def test_a_fast_axis_against_a_small_limit_leaves_the_others_damped() -> None:
+    """Two axes, one moving fast against a small limit (a rotation spinning at 1 rad/s,
+    0.1 N m): the added wrench is clipped to that limit on that axis alone; the other axis
+    gets the whole damping ``alpha = -E / (T |v|^2)`` (not ``0.1 / 1``, which a common cap
+    by the fastest axis would leave it)."""
+    account = EnergyAccount(2, PassivityConfig(enabled=True, window=0.0), T, np.eye(2))
+    account.set_limit(np.array([10.0, 0.1]))
+    zero, ml, c_d = np.zeros(2), np.zeros((2, 2)), np.zeros((2, 2))
+    v = np.array([0.1, 1.0])
+    account_step(account, c_d, ml, np.zeros(2), v, zero, np.array([2.0, 0.0]))
+    u = np.zeros(2)
+    account_step(account, c_d, ml, v * T, v, zero, u)
+    deficit = 2.0 * v[0] * T                        # the held 2 N along axis 0
+    alpha = deficit / (T * float(v @ v))
+    assert account.damping == pytest.approx(alpha, rel=1e-12)
+    assert u[0] == pytest.approx(-alpha * v[0], rel=1e-12)
+    assert u[1] == -0.1
+
+
 def test_zero_mode_accounts_nothing() -> None:
     """Mode ZERO: no part of the command, no work, whatever the device does."""
     account = EnergyAccount(2, PassivityConfig(enabled=True), T, np.eye(2))
