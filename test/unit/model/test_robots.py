@@ -98,8 +98,8 @@ def robots_from_the_repo(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Ite
     yield prefix
 
 
-def test_the_pinned_version_is_the_requirements_pin() -> None:
-    pins = [line.split('==')[1] for line in (REPO / 'requirements.in').read_text()
+def test_the_pinned_version_is_the_extras_pin() -> None:
+    pins = [line.split('==')[1] for line in (REPO / 'requirements-robots.in').read_text()
             .splitlines() if line.startswith('example-robot-data==')]
     assert pins == [VERSION]
 
