@@ -6,18 +6,18 @@ install the extra. Where the extra is not installed at all, the child runs as it
 
 from __future__ import annotations
 
-import importlib.metadata as md
 import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from without_distribution import hidden_command
 
 REPO = Path(__file__).resolve().parents[3]
-DIST = 'example-robot-data'
+#: The distributions of the optional extra (example-robot-data and what it alone requires).
+EXTRA = [line.split('==')[0] for line in (REPO / 'requirements-robots.lock').read_text()
+         .splitlines() if '==' in line and not line.startswith('#')]
 
 PROBE = '''
 import importlib.metadata as md
@@ -53,12 +53,9 @@ except LinkageError as exc:
 
 
 def _child(tmp_path: Path, args: list[str]) -> subprocess.CompletedProcess[str]:
-    """``python ARGS`` with example-robot-data hidden (or as it is, where not installed)."""
-    try:
-        md.distribution(DIST)
-        cmd = hidden_command(DIST, tmp_path / 'site-packages', args)
-    except md.PackageNotFoundError:
-        cmd = [sys.executable, *args]
+    """``python ARGS`` with the extra's distributions hidden (as they are where not
+    installed)."""
+    cmd = hidden_command(EXTRA, tmp_path / 'site-packages', args)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         filter(None, (str(REPO), os.environ.get('PYTHONPATH', '')))))
     return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True,
@@ -66,18 +63,21 @@ def _child(tmp_path: Path, args: list[str]) -> subprocess.CompletedProcess[str]:
 
 
 def test_the_hiding_works(tmp_path: Path) -> None:
-    """The child does not see the distribution, nor any of its files by package://."""
+    """The child sees none of the extra's distributions, nor any of their files by
+    package://."""
     probe = tmp_path / 'p.py'
     probe.write_text(
         'import importlib.metadata as md, sys\n'
         'from haptic_topology.paths import resolve_package_uri\n'
         'from haptic_topology.errors import ConfigError\n'
-        'try:\n    md.distribution("example-robot-data"); sys.exit("visible")\n'
-        'except md.PackageNotFoundError:\n    pass\n'
+        'for name in sys.argv[1:]:\n'
+        '    try:\n        md.distribution(name); sys.exit(name + " visible")\n'
+        '    except md.PackageNotFoundError:\n        pass\n'
         'try:\n    resolve_package_uri("package://example-robot-data/robots/ur_description/'
         'urdf/ur5_robot.urdf", "w"); sys.exit("resolved")\n'
         'except ConfigError as exc:\n    print(exc)\n')
-    res = _child(tmp_path, [str(probe)])
+    assert EXTRA == ['example-robot-data', 'jrl-cmakemodules']
+    res = _child(tmp_path, [str(probe), *EXTRA])
     assert res.returncode == 0, res.stderr + res.stdout
     assert res.stdout.startswith("w: package 'example-robot-data' is not installed")
 
