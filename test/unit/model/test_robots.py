@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import os
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -104,11 +105,31 @@ def test_the_pinned_version_is_the_extras_pin() -> None:
     assert pins == [VERSION]
 
 
-def test_the_shipped_robots_are_example_robot_datas_files_unchanged() -> None:
+def as_upstream(rel: str, text: str) -> str:
+    """A shipped URDF as example-robot-data has it: without the note of line 2 and with its
+    collision meshes as ``package://`` references again (the only change made)."""
+    lines = text.split('\n')
+    assert lines[1].startswith('<!-- Changed by haptic_topology: in the collision <mesh ')
+    package = 'package://example-robot-data/' + rel.split('/urdf/')[0] + '/'
+    return '\n'.join(lines[:1] + lines[2:]).replace('filename="../', f'filename="{package}')
+
+
+def test_the_shipped_robots_are_example_robot_datas_files() -> None:
+    """Every file is the wheel's, byte for byte, but the two URDFs, whose collision mesh
+    references are relative (so that the copy uses its own meshes, wherever another
+    example-robot-data is installed) with a note saying so."""
     files = sorted(p.relative_to(SHIPPED).as_posix() for p in SHIPPED.rglob('*') if p.is_file())
     assert files == sorted(UPSTREAM)
     for rel, digest in UPSTREAM.items():
-        got = base64.urlsafe_b64encode(hashlib.sha256((SHIPPED / rel).read_bytes()).digest())
+        data = (SHIPPED / rel).read_bytes()
+        if rel.endswith('.urdf'):
+            text = data.decode()
+            assert text.count('filename="../') == (9 if 'panda' in rel else 7)
+            assert all(ref.startswith(('../meshes/', 'package://example-robot-data/'))
+                       for ref in re.findall(r'filename="([^"]+)"', text)
+                       if ref.endswith(('.stl', '.dae')))
+            data = as_upstream(rel, text).encode()
+        got = base64.urlsafe_b64encode(hashlib.sha256(data).digest())
         assert got.decode().rstrip('=') == digest, rel
     # each robot carries its licence beside it; the collection its own
     assert 'Apache License' in (SHIPPED / 'robots/panda_description/LICENSE').read_text()
@@ -163,7 +184,7 @@ def test_a_robot_by_name_and_the_shipped_scenario_are_the_same_robot(
     assert (shipped.name, shipped.task, shipped.grasp_link, shipped.disabled_collisions) == (
         by_name.name, by_name.task, by_name.grasp_link, by_name.disabled_collisions)
     assert shipped.urdf is not None and by_name.urdf is not None
-    assert shipped.urdf.text == by_name.urdf.text
+    assert shipped.urdf.text == by_name.urdf.text   # the fixture serves the same files
     assert len(shipped.links) == len(by_name.links) == 7
     for a, b in zip(shipped.links, by_name.links, strict=True):
         assert (a.name, a.joint, a.mass) == (b.name, b.joint, b.mass)
@@ -258,3 +279,24 @@ def test_setup_installs_the_shipped_robots(monkeypatch: pytest.MonkeyPatch) -> N
     assert len(shipped) == len(UPSTREAM) + 1    # + config/robots/README.md
     for f in shipped:
         assert installed.get(f) == f'share/haptic_topology/{Path(f).parent.as_posix()}', f
+
+
+def test_the_shipped_scenarios_use_their_own_meshes_whatever_is_installed(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Another example-robot-data first on AMENT_PREFIX_PATH (its Panda and UR5 meshes all
+    a 12-triangle box) changes nothing in panda_table and ur5_table: every link mesh is the
+    one shipped beside their URDF."""
+    other = tmp_path / 'prefix' / 'share' / 'example-robot-data'
+    box = (REPO / 'test' / 'fixtures' / 'meshes' / 'box12.stl').read_bytes()
+    for stl in SHIPPED.rglob('*.stl'):
+        target = other / stl.relative_to(SHIPPED)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(box)
+    monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join(
+        filter(None, (str(tmp_path / 'prefix'), os.environ.get('AMENT_PREFIX_PATH', '')))))
+    for name, count in (('panda_table', 8), ('ur5_table', 6)):
+        sc = load_scenario(name)
+        assert sc.contacts is not None
+        meshes = [s.mesh.path for s in sc.contacts.shapes(sc.linkage) if s.mesh is not None]
+        assert len(meshes) == count
+        assert all(m.resolve().is_relative_to(SHIPPED) for m in meshes), meshes
