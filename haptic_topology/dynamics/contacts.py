@@ -65,7 +65,7 @@ import pinocchio as pin
 
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage
-from haptic_topology.model.meshes import MeshGeometry, load_mesh, resolve_mesh
+from haptic_topology.model.meshes import MeshGeometry, capsule_shape, load_mesh, resolve_mesh
 from haptic_topology.model.obstacles import (
     EPS,
     Obstacle,
@@ -87,7 +87,8 @@ from haptic_topology.validate import as_bool, as_float, check_keys
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
 _ROUND = (ObstacleKind.DISC, ObstacleKind.SPHERE)
-#: Obstacles a box or cylinder meets through coal (a mesh solid meets every obstacle so).
+#: Obstacles a box or cylinder meets through coal (a mesh solid meets every obstacle so, a box
+#: also a sphere).
 _COAL = (ObstacleKind.BOX, ObstacleKind.MESH)
 #: Chains up to this many links take discs and spheres in scalar arithmetic.
 _SCALAR_LINKS = 8
@@ -394,6 +395,9 @@ class ContactModel:
         self._cap_joint = [c.link + 1 for c in caps]
         self._cap_link = cap_link = np.array([c.link for c in caps], dtype=int)
         self._radii = radii = np.array([c.radius for c in caps], dtype=float)
+        # each capsule's coal shape (against boxes and meshes), made once
+        self._coal_caps = [capsule_shape(c.radius, float(np.linalg.norm(c.b - c.a)))
+                           for c in caps]
         n = self._ncaps = len(caps)
         # Candidate layout (static), by capsule: planes (row-major: end e times plane; the
         # ends are every capsule's b, then the a of every capsule that is neither a sphere nor
@@ -427,7 +431,9 @@ class ContactModel:
         # whose bounding-sphere distance is at least the query's limit is skipped (its gaps are
         # at least that). A box obstacle's coal query objects are made once.
         self._pairs_of = [[(k, CoalPair(sol.kind, sol.size, ob, sol.mesh)
-                            if ob.kind in _COAL or sol.mesh is not None else None)
+                            if ob.kind in _COAL or sol.mesh is not None
+                            or (sol.kind == 'box' and ob.kind is ObstacleKind.SPHERE)
+                            else None)
                            for k, ob in enumerate(obstacles)] for sol in solids]
         self._plane_of = {k: (float(ob.normal @ ob.point), ob.normal.tolist())
                           for k, ob in enumerate(obstacles) if ob.kind in _PLANES}
@@ -515,7 +521,8 @@ class ContactModel:
                 parts_n.append(normal)
         for ob in self._other:
             for i in range(self._ncaps):
-                for gap_i, s_i, n_i in capsule_gaps(ob, p0[i], p1[i], radii[i]):
+                for gap_i, s_i, n_i in capsule_gaps(ob, p0[i], p1[i], radii[i],
+                                                    self._coal_caps[i]):
                     parts_gap.append(np.array([gap_i]))
                     parts_s.append(np.array([s_i]))
                     parts_n.append(n_i[None, :])

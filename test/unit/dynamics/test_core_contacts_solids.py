@@ -26,7 +26,6 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.model import Linkage, load_linkage
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.model.solids import (
-    box_sdf,
     convex_hull_xy,
     cylinder_rims,
     cylinder_sdf,
@@ -54,17 +53,23 @@ def _obstacle(raw: dict, task: TaskSpace = TaskSpace.SPATIAL):
 # ----------------------------------------------------------------------------- geometry
 
 
-def test_box_sdf_by_hand() -> None:
+def test_box_against_a_sphere_by_hand() -> None:
     """Box at (0.1, 0.2, 0.3), turned 90 deg about z, half extents (0.05, 0.02, 0.01): in the
-    world it spans +-0.02 in x, +-0.05 in y, +-0.01 in z."""
-    c, rot, half = np.array([0.1, 0.2, 0.3]), _rz(math.pi / 2), np.array([0.05, 0.02, 0.01])
+    world it spans +-0.02 in x, +-0.05 in y, +-0.01 in z; a sphere of radius 1 mm off a face,
+    an edge, inside and off the bottom (through coal): the gap is the box's signed distance
+    at the sphere's centre less 1 mm, the point the centre moved onto the surface, the normal
+    from the sphere towards the box."""
+    c, rot, half = np.array([0.1, 0.2, 0.3]), _rz(math.pi / 2), (0.05, 0.02, 0.01)
     for offset, sdf, grad in (([0.05, 0.0, 0.0], 0.03, [1.0, 0.0, 0.0]),          # face
                               ([0.05, 0.09, 0.0], 0.05, [0.6, 0.8, 0.0]),         # edge
                               ([0.0, 0.045, 0.0], -0.005, [0.0, 1.0, 0.0]),       # inside
                               ([0.0, 0.0, -0.012], 0.002, [0.0, 0.0, -1.0])):
-        got, g = box_sdf(c + np.array(offset), c, rot, half)
-        assert got == pytest.approx(sdf, abs=1e-15)
-        np.testing.assert_allclose(g, grad, atol=1e-15)
+        centre = c + np.array(offset)
+        sphere = _obstacle({'type': 'sphere', 'center': centre.tolist(), 'radius': 0.001})
+        ((gap, point, normal),) = solid_gaps(sphere, 'box', c, rot, half)
+        assert gap == pytest.approx(sdf - 0.001, abs=1e-15)
+        np.testing.assert_allclose(normal, -np.array(grad), atol=1e-12)
+        np.testing.assert_allclose(point, centre - sdf * np.array(grad), atol=1e-15)
 
 
 def test_cylinder_sdf_and_rims_by_hand() -> None:
