@@ -11,14 +11,17 @@ URDF takes the URDF's ``<collision>`` shapes instead, all modelled exactly: sphe
 capsules (``<capsule radius length>``, axis along the collision frame's z) as capsules, boxes
 and cylinders as solids (:mod:`haptic_topology.model.solids`; in a planar task a box, or a
 cylinder whose axis lies in the plane, as its projection, a convex polygon, and a cylinder
-along z as a disc), meshes (spatial tasks) as their convex hulls
+along z as a disc), meshes as their convex hulls
 (:mod:`haptic_topology.model.meshes`: the file found through ``package://``, the ament index,
 ``ROS_PACKAGE_PATH`` or the URDF's directory, and why the hull is the right shape for a
-penalty contact); a URDF link without ``<collision>`` does not collide. In a planar task a
-mesh, and a cylinder tilted out of the plane (its projection has elliptic ends), cannot be
-modelled without approximating it, so such a link is refused unless ``contacts.links.<name>``
-says what to do: ``radius: r`` (the default capsule along the link, also for YAML links) or
-``collide: false`` (the link does not collide); both also replace a spatial link's meshes.
+penalty contact; in a planar task the hull's projection, a convex polygon, as a box's: the
+planar obstacles extend along z, so every part of the link meets them where its projection
+does, which a section in the plane would miss); a URDF link without ``<collision>`` does
+not collide. In a planar task a cylinder tilted out of the plane (its projection has
+elliptic ends) cannot be modelled without approximating it, so such a link is refused unless
+``contacts.links.<name>`` says what to do: ``radius: r`` (the default capsule along the link,
+also for YAML links) or ``collide: false`` (the link does not collide); both also replace a
+link's meshes.
 A contact candidate is a point ``p_i`` on a capsule's axis with its signed gap ``g_i`` to an
 obstacle (m, negative: penetration depth ``delta_i = -g_i``) and the obstacle's normal ``n_i``
 (unit, world, from the obstacle towards the link). Against a half-plane or plane the
@@ -128,8 +131,8 @@ class LinkSolid:
     length, m; axis along ``rotation[:, 2]``) at ``centre`` ((3,) m) with ``rotation``
     (link_R_solid); ``kind`` ``mesh`` (spatial tasks): the convex hull of ``mesh`` (``size``:
     its scale) with its frame at ``centre``, turned by ``rotation``; in a planar task ``kind``
-    ``polygon``: its projection on the link's xy plane, ``vertices`` (k x 3, z = 0,
-    counter-clockwise, link frame)."""
+    ``polygon``: the projection of a box, cylinder or mesh hull on the link's xy plane,
+    ``vertices`` (k x 3, z = 0, counter-clockwise, link frame)."""
 
     link: int
     kind: str
@@ -204,8 +207,8 @@ class ContactSettings:
     def shapes(self, linkage: Linkage) -> tuple[LinkShape, ...]:
         """Every link's contact shapes (see module doc), in link order. Raises ConfigError
         for a choice naming a link ``linkage`` lacks, and for a URDF collision shape that
-        cannot be modelled exactly (a mesh; planar: a cylinder tilted out of the plane) on a
-        link without a choice."""
+        cannot be modelled exactly (planar: a cylinder tilted out of the plane) on a link
+        without a choice."""
         planar = linkage.task.planar
         chosen = dict(self.links)
         unknown = sorted(set(chosen) - set(linkage.link_names))
@@ -250,12 +253,14 @@ class ContactSettings:
                                if planar else
                                LinkSolid(i, 'box', centre, rot, tuple(half_extents.tolist())))
                     continue
-                if shape.kind == 'mesh' and not planar:
+                if shape.kind == 'mesh':
                     where = f'{linkage.urdf_path}: link {shape.urdf_link!r} <mesh>'
                     base = linkage.urdf_path.parent if linkage.urdf_path else None
                     geometry = load_mesh(resolve_mesh(shape.mesh, base, where), (
                         shape.size[0], shape.size[1], shape.size[2]), where)
-                    out.append(LinkSolid(i, 'mesh', centre, rot, shape.size, mesh=geometry))
+                    out.append(LinkSolid(i, 'polygon', centre, rot, shape.size, convex_hull_xy(
+                        centre + geometry.vertices @ rot.T)) if planar else
+                               LinkSolid(i, 'mesh', centre, rot, shape.size, mesh=geometry))
                     continue
                 if shape.kind == 'cylinder':
                     radius, half_length = shape.size[0], 0.5 * shape.size[1]
@@ -276,11 +281,10 @@ class ContactSettings:
                 raise ConfigError(
                     f'{w}: the URDF gives link {link.name!r} a {what} collision shape (on '
                     f'{shape.urdf_link!r}, {linkage.urdf_path}); contacts model spheres, '
-                    f'capsules, boxes, cylinders and (spatial tasks) meshes exactly and '
-                    f'would have to approximate '
-                    f'it: set links.{link.name}.radius (m) in this contacts block for a '
-                    f'capsule along the link, or links.{link.name}.collide: false to leave '
-                    f'the link out')
+                    f'capsules, boxes, cylinders and meshes (their hulls) exactly and would '
+                    f'have to approximate it: set links.{link.name}.radius (m) in this '
+                    f'contacts block for a capsule along the link, or '
+                    f'links.{link.name}.collide: false to leave the link out')
         return tuple(out)
 
 

@@ -16,8 +16,10 @@ A file found nowhere is refused in one line naming it and every place looked at.
 
 **What.** :func:`load_mesh` reads the file once (STL, DAE, OBJ: whatever coal's assimp loader
 reads; a file it cannot read is refused in one line with coal's reason), scales it (URDF
-``scale``) and keeps its **convex hull** (``coal.Convex``, qhull): the contacts compute signed
-distances, witness points and normals between the hull and each obstacle with coal's GJK/EPA.
+``scale``, and a COLLADA file's ``<unit meter>``, as ROS's mesh loaders do; the file's
+``up_axis`` is ignored, as they do: a URDF's meshes are z up) and keeps its **convex hull**
+(``coal.Convex``, qhull): the contacts compute signed distances, witness points and normals
+between the hull and each obstacle with coal's GJK/EPA.
 A convex mesh is its own hull, so for convex meshes (most robots' collision meshes, made
 convex for collision checking) the result is exact to coal's tolerance. A non-convex mesh is
 rendered by its hull, also when apart: the contacts are a penalty model, whose force must be
@@ -39,6 +41,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
+from xml.etree import ElementTree
 
 import coal
 import numpy as np
@@ -146,13 +149,39 @@ def load_mesh(path: Path, scale: tuple[float, float, float], where: str,
         raise error(f'{where}: {exc}') from None
 
 
+def _collada_unit(path: str) -> float:
+    """The length unit of a COLLADA file in metres (``<asset><unit meter="..."/>``, 1 without
+    one), which coal's loader does not apply and ROS's mesh loaders (rviz, MoveIt) do.
+    A file that is no XML is left to coal to refuse; a unit that is no number > 0 is refused
+    here (ConfigError)."""
+    try:
+        for _, element in ElementTree.iterparse(path):
+            tag = element.tag.rsplit('}', 1)[-1]
+            if tag == 'unit':
+                text = element.get('meter', '1')
+                try:
+                    meter = float(text)
+                except ValueError:
+                    meter = math.nan
+                if not (math.isfinite(meter) and meter > 0.0):
+                    raise ConfigError(f'the mesh {path}: <unit meter="{text}">: expected a '
+                                      f'number > 0 (metres per unit of the file)')
+                return meter
+            if tag == 'asset':      # the file's first asset has no unit: metres
+                return 1.0
+    except ElementTree.ParseError:
+        pass
+    return 1.0
+
+
 @lru_cache(maxsize=64)
 def _load(path: str, size: int, mtime_ns: int, scale: tuple[float, float, float]
           ) -> MeshGeometry:
     """:func:`load_mesh` of one file version (raises ConfigError, its message without the
     field)."""
+    unit = _collada_unit(path) if path.lower().endswith('.dae') else 1.0
     try:
-        bvh = coal.MeshLoader().load(path, np.array(scale, dtype=float))
+        bvh = coal.MeshLoader().load(path, unit * np.array(scale, dtype=float))
     except (ValueError, RuntimeError) as exc:
         lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
         reason = next((ln for ln in lines[1:] if not ln.startswith(

@@ -51,7 +51,7 @@ the penalty contact needs:
   a 100 mm link along x of radius 10 mm: -0.02 m with normal (1, 0, 0)), a force along the
   link for a depth across it; this form takes a perpendicular. Elsewhere the two agree to
   1e-16 m, and ``ContactModel`` computes every capsule against a disc in one array operation.
-* **segments** (:func:`_segment_params`): where the axis crosses the segment coal's normal is
+* **segments** (``_segment_params``): where the axis crosses the segment coal's normal is
   zero (crossing at the axis' middle) or points away from the side the axis' middle is on,
   and for parallel overlapping segments its witness is an end of the overlap, not its middle.
 """
