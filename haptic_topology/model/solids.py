@@ -32,7 +32,7 @@ segment (closest features when apart, the separating-axis minimum when they over
   held at one corner, not at its four lower corners (``box_table``);
 * a cylinder against a sphere (:func:`cylinder_sdf`): once the sphere's centre is inside the
   cylinder coal's depth is not their signed distance (on the axis: -0.021 m with a zero normal
-  where -0.006 m is right; off by up to 32 mm at a quarter of random such poses), while the
+  where -0.006 m is right; off by up to 32 mm in 20-27 % of random such poses), while the
   sphere's signed distance to a convex solid is the solid's at its centre less its radius,
   closed form here;
 * polygons (planar tasks: :func:`convex_hull_xy`, :func:`rectangle_of_cylinder`,
