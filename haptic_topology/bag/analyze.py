@@ -26,7 +26,17 @@ from the state stamps). It writes into DIR:
   A bag whose controller's last ``/diagnostics`` status was sent after the run's last state
   has the controller's energy account too (:func:`controller_account`): ``energy_account``
   as ``simulate`` writes it, and the observer's lowest and last value and the cycles the
-  passivity controller acted in the energy table.
+  passivity controller acted in the energy table;
+* ``<label>_energy.png`` for a bag (the figure ``simulate`` draws as ``energy.png``: the work
+  at the device port per axis, the hand's, the passivity observer and the passivity
+  controller's damping over time) when its energy account could be reconstructed row by row
+  (:mod:`haptic_topology.bag.energy_series`: the controller replayed offline from the bag's
+  states and updates, every command equal to the recorded one); the energy table and
+  ``summary.json`` then take the observer's figures from that series, and
+  ``energy_series`` says ``exact``, or why there is none (``refused: state N: ...``, ``not
+  reconstructed: ...``). By default bags of at most
+  :data:`~haptic_topology.bag.energy_series.AUTO_STATES` device states are reconstructed;
+  ``--energy`` reconstructs any bag, ``--no-energy`` none.
 
 Reading a large bag shows a progress line on stderr (when stderr is a terminal, or the bag
 is larger than 20 MB). Inputs are read as a stream, one after the other: the memory used
@@ -84,6 +94,8 @@ class Run:
     #: A bag's device, from the driver's newest ``/diagnostics`` status: ``hardware_id`` and
     #: what identifies a vendor's unit (``device_vendor``, ``device_model``, ...).
     device: dict[str, str] = field(default_factory=dict)
+    #: A bag's energy account row by row (the rows its energy figure draws), when exact.
+    energy_plot: Trace | None = None
 
     @property
     def meta(self) -> dict[str, Any]:
@@ -163,17 +175,55 @@ def controller_account(diagnostics: dict[str, dict[str, str]]) -> dict[str, Any]
     return account
 
 
+class _FirstRow:
+    """The seq of a trace's first row (a sink)."""
+
+    def __init__(self) -> None:
+        self.seq: int | None = None
+
+    def begin(self, template: Trace, rows: int) -> None:
+        pass
+
+    def add(self, chunk: Trace) -> None:
+        if self.seq is None and len(chunk):
+            self.seq = int(chunk.seq[0])
+
+    def end(self) -> None:
+        pass
+
+
+def _energy(p: Path, energy: bool | None, rows: int, diagnostics: dict[str, dict[str, str]],
+            first_seq: int | None, plot: bool, scenario: str
+            ) -> tuple[dict[str, Any], Trace | None]:
+    """The reconstructed energy series of bag ``p`` (module doc): the summary's figures and
+    the rows of its figure (None: no figure)."""
+    from haptic_topology.bag.energy_series import AUTO_STATES, energy_series
+
+    if energy is False:
+        return {'energy_series': 'not reconstructed: --no-energy'}, None
+    if energy is None and rows > AUTO_STATES:
+        return {'energy_series': f'not reconstructed: {rows} states, more than '
+                                 f'{AUTO_STATES} (analyze --energy)'}, None
+    series = energy_series(p, diagnostics.get(CONTROLLER_STATUS), first_seq, plot, scenario)
+    if not series.exact:
+        return {'energy_series': f'refused: {series.refused}'}, None
+    return dict(series.figures(), energy_series='exact'), series.plot
+
+
 def reduce_bag(path: str | Path, scenario: str = '', dof: int | None = None,
                task_dim: int | None = None, linkage: Linkage | None = None,
                traces: tuple[Path, ...] = (), periods: bool = False, plot: bool = True,
-               progress: Any = None) -> Run:
+               progress: Any = None, energy: bool | None = None) -> Run:
     """Read the bag ``path`` once as a stream (:func:`~haptic_topology.bag.graph_trace.
     stream_graph_bag`; arguments as there) into its drift summary, loop figures (with the
     device period figures if ``periods``), the rows of its plot (if ``plot``) and the trace
-    files ``traces`` (``.parquet``, ``.csv``), written as the rows come."""
+    files ``traces`` (``.parquet``, ``.csv``), written as the rows come; then its energy
+    account row by row (module doc; ``energy``: True always, False never, None for a bag
+    of at most :data:`~haptic_topology.bag.energy_series.AUTO_STATES` states)."""
     p = Path(path)
-    summary, period, rows = Summary(), PeriodStats(), PlotRows()
-    sinks: list[Any] = [summary] + ([period] if periods else []) + ([rows] if plot else [])
+    summary, period, rows, first = Summary(), PeriodStats(), PlotRows(), _FirstRow()
+    sinks: list[Any] = [summary, first] + ([period] if periods else []) + (
+        [rows] if plot else [])
     sinks += [TraceWriter(f) for f in traces]
     result = stream_graph_bag(p, sinks, scenario, dof, progress, task_dim, linkage)
     loop = dict(result.loop)
@@ -188,13 +238,16 @@ def reduce_bag(path: str | Path, scenario: str = '', dof: int | None = None,
                        passivity_observer_min_j=account['passivity_observer_min_j'],
                        passivity_observer_final_j=account['passivity_observer_j'],
                        passivity_rows=account['passivity_cycles'])
+    series, energy_plot = _energy(p, energy, result.rows, result.diagnostics, first.seq,
+                                  plot, scenario)
+    figures.update(series)
     return Run(label_of(p), p, rows.trace or result.trace, figures, loop,
                dict(result.skipped), result.graph_id, dict(result.foreign_messages),
-               dict(result.foreign_publishers), device)
+               dict(result.foreign_publishers), device, energy_plot)
 
 
-def load_run(path: str | Path, plot: bool = True) -> Run:
-    """Read one input (see module doc)."""
+def load_run(path: str | Path, plot: bool = True, energy: bool | None = None) -> Run:
+    """Read one input (see module doc; ``energy``: :func:`reduce_bag`'s)."""
     p = Path(path)
     if not p.exists():
         raise BagError(f'{p}: no such file or directory')
@@ -213,7 +266,7 @@ def load_run(path: str | Path, plot: bool = True) -> Run:
                 pass
         size = sum(f.stat().st_size for f in ([p] if p.is_file() else p.glob('*.mcap')))
         run = reduce_bag(p, name, dof, task_dim, linkage, periods=True, plot=plot,
-                         progress=_ProgressLine(p.name, size))
+                         progress=_ProgressLine(p.name, size), energy=energy)
         if scenario:
             run.plot.meta.setdefault('scenario_ref', scenario)
         return run
@@ -325,9 +378,10 @@ def _unique_labels(labels: list[str]) -> list[str]:
     return out
 
 
-def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str, Any]]:
+def analyze(inputs: list[Path], out: Path, plots: bool = True,
+            energy: bool | None = None) -> list[dict[str, Any]]:
     """Analyse ``inputs`` into ``out`` (see module doc), one after the other; return the
-    summary rows."""
+    summary rows. ``energy``: reconstruct bags' energy series (:func:`reduce_bag`)."""
     for p in inputs:
         if not Path(p).exists():
             raise BagError(f'{p}: no such file or directory')
@@ -336,7 +390,7 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
     rows: list[dict[str, Any]] = []
     runs: list[Run] = []
     for p, label in zip(inputs, labels, strict=True):
-        r = load_run(p, plots)
+        r = load_run(p, plots, energy)
         r.label = label
         summary = r.summary
         row: dict[str, Any] = {'label': r.label, 'input': str(r.path),
@@ -353,6 +407,9 @@ def analyze(inputs: list[Path], out: Path, plots: bool = True) -> list[dict[str,
         if plots:
             from haptic_topology.sim.plots import save_figure
             save_figure(run_figure(r), out / f'{r.label}.png')
+            if r.energy_plot is not None:
+                from haptic_topology.sim.energy_plots import plot_energy
+                plot_energy(r.energy_plot, out / f'{r.label}_energy.png', r.label)
             runs.append(r)
     if plots and len(runs) > 1:
         plot_comparison(runs, out / 'comparison.png')
@@ -368,13 +425,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--out', type=Path, required=True, metavar='DIR',
                         help='output directory (plots, summary.json)')
     parser.add_argument('--no-plot', action='store_true', help='summary only')
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument('--energy', action='store_true', default=None,
+                       help="reconstruct a bag's energy account row by row whatever its "
+                       'length (default: bags of at most 600,000 states)')
+    group.add_argument('--no-energy', action='store_false', dest='energy',
+                       help="do not reconstruct bags' energy accounts")
 
 
 def run(args: argparse.Namespace) -> int:
     """The ``analyze`` subcommand (see module doc)."""
     from haptic_topology.sim.trace import format_energy, format_summary
 
-    rows = analyze(list(args.inputs), args.out, not args.no_plot)
+    rows = analyze(list(args.inputs), args.out, not args.no_plot, args.energy)
     # The first column shows the run's label (same width as the header 'scenario').
     print(format_summary([dict(r, scenario=r['label']) for r in rows]).replace(
         'scenario', 'run     ', 1))
@@ -387,6 +450,9 @@ def run(args: argparse.Namespace) -> int:
         print(f'\nnote: {", ".join(truncated)} ended early (recorder killed?); read up to '
               'the last complete chunk')
     for r in rows:
+        series = str(r.get('energy_series', ''))
+        if series.startswith('refused'):
+            print(f'\nnote: {r["label"]}: energy series {series}')
         skipped = r.get('skipped_messages') or {}
         if skipped:
             print(f'\nnote: {r["label"]}: skipped {sum(skipped.values())} foreign or '

@@ -6,8 +6,10 @@ reports, the resident-set sampler): reading an hour's bag in that process would 
 reading's memory to what the watching left behind. A fresh process starts from the package's
 imports alone, and its memory is returned to the system when it ends. It takes an
 :class:`AnalysisJob` (pickled, on its stdin), writes ``trace.parquet`` (and ``trace.csv``),
-``summary.json`` and ``plot.png`` beside the bag, prints what ``run`` prints of the bag
-(foreign publishers, skipped messages, the plot's path) and writes the run's summary and loop
+``summary.json``, ``plot.png`` and, when the bag's energy account was reconstructed row by row
+(:mod:`haptic_topology.bag.energy_series`), ``energy.png`` beside the bag, prints what ``run``
+prints of the bag (foreign publishers, skipped messages, the plots' paths, an energy series
+refused) and writes the run's summary and loop
 figures as JSON to ``job.result``, which ``run`` reads for its tables.
 """
 
@@ -85,6 +87,15 @@ def analyse(job: AnalysisJob) -> dict[str, Any]:
                    title=f'{sc.label} {job.mode} (ROS graph)',
                    obstacles=sc.contacts.obstacles if sc.contacts else ())
         print(f'plot: {bag / "plot.png"}', flush=True)
+        if result.energy_plot is not None:
+            from haptic_topology.sim.energy_plots import plot_energy
+
+            plot_energy(result.energy_plot, bag / 'energy.png',
+                        f'{sc.label} {job.mode} (ROS graph)')
+            print(f'energy plot: {bag / "energy.png"}', flush=True)
+    series = str(summary.get('energy_series', ''))
+    if series.startswith('refused'):
+        print(f'energy series {series}', flush=True)
     out = {'summary': summary, 'loop': result.loop}
     job.result.write_text(json.dumps(out) + '\n', encoding='utf-8')
     return out

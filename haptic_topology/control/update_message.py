@@ -1,7 +1,7 @@
 """An ``LmiUpdate`` message (as rclpy or a bag's reader decodes it: any object with its fields)
 to the :class:`~haptic_topology.control.lmi.LmiSnapshot` it carries, every field checked: what
-``lmi_controller`` takes (:mod:`haptic_topology.nodes.convert` re-exports it) and what a
-bag's offline replay of the controller takes (:mod:`haptic_topology.bag.energy_series`), one
+``lmi_controller`` takes (``haptic_topology.nodes.convert`` re-exports it) and what a
+bag's offline replay of the controller takes (``haptic_topology.bag.energy_series``), one
 function so both see the same numbers."""
 
 from __future__ import annotations

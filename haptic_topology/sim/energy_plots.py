@@ -18,7 +18,11 @@ from haptic_topology.sim.trace import Trace, run_name
 
 def work_integrals(trace: Trace) -> tuple[np.ndarray, np.ndarray]:
     """The accumulated work (J) of the applied wrench per axis (rows x m) and of the hand
-    wrench (rows): row k's wrench times its twist and period, the trace's work integral."""
+    wrench (rows): row k's wrench times its twist and period, the trace's work integral; a
+    trace of sampled rows carries them summed over every row (``work_integral``,
+    ``hand_work_integral``: ``haptic_topology.bag.energy_series``)."""
+    if 'work_integral' in trace.columns:
+        return trace.columns['work_integral'], trace.columns['hand_work_integral']
     dt = np.diff(trace.t, prepend=np.nan)
     ok = np.isfinite(dt)
     v = trace.columns['device_twist']

@@ -147,6 +147,8 @@ def _series(chunk: Trace) -> list[np.ndarray]:
         out += [np.linalg.norm(chunk.columns[c][:, rows], axis=1)
                 for c in ('env_wrench', 'applied', 'hand_wrench')]
         out.append(chunk.columns['penetration'])
+    if chunk.has_energy:
+        out += [chunk.columns[c] for c in ('passivity_observer', 'passivity_damping')]
     return out
 
 
@@ -163,7 +165,8 @@ class PlotRows:
     """The rows a plot of the trace draws (``trace``, after ``end``): all of them when
     there are at most :data:`PLOT_ROWS`; else, in buckets of ``ceil(rows / PLOT_ROWS)`` rows,
     the first row of each bucket and the rows of the smallest and the largest value of each
-    drawn time series (drift; with contacts, ``F_env``, the wrench norms and the penetration),
+    drawn time series (drift; with contacts, ``F_env``, the wrench norms and the penetration;
+    with the energy account, the passivity observer and damping),
     every row where a step panel changes (constraint count, workspace limit, contact) and the
     last row. The time series keep their envelope at any zoom a figure can show, the step
     panels are exact, and the hand paths are sampled at 1 / bucket of the device's rate."""

@@ -202,6 +202,10 @@ def test_analyze_and_reduce_write_what_the_whole_trace_gives(bags: dict[int, Pat
     whole = read_graph_bag(bag, dof=3, task_dim=3).trace
     red = reduce_bag(bag, dof=3, task_dim=3, traces=(tmp_path / 'trace.parquet',
                                                      tmp_path / 'trace.csv'))
+    # The synthetic commands are no controller's: its energy series is refused, at the first.
+    series = red.summary.pop('energy_series')
+    assert series.startswith('refused: state 1: the replayed command differs'), series
+    assert red.energy_plot is None
     assert red.summary == whole.summary()
     csv, parquet = read_trace(tmp_path / 'trace.csv'), read_trace(tmp_path / 'trace.parquet')
     for name, col in whole.columns.items():
@@ -212,3 +216,21 @@ def test_analyze_and_reduce_write_what_the_whole_trace_gives(bags: dict[int, Pat
         for key, value in whole.summary().items():
             assert row[key] == value, key
     assert isinstance(Trace.concat([whole.take(slice(0, 5)), whole.take(slice(5, 9))]), Trace)
+
+
+def test_energy_series_is_reconstructed_up_to_its_limit_or_on_request(
+        bags: dict[int, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """``analyze`` reconstructs a bag's energy series by default up to
+    ``energy_series.AUTO_STATES`` states, any bag with ``--energy``, none with
+    ``--no-energy``; it says which in ``energy_series``."""
+    import haptic_topology.bag.energy_series as es
+
+    bag = bags[3000]
+    off = reduce_bag(bag, dof=3, task_dim=3, plot=False, energy=False).summary
+    assert off['energy_series'] == 'not reconstructed: --no-energy'
+    monkeypatch.setattr(es, 'AUTO_STATES', 2999)
+    auto = reduce_bag(bag, dof=3, task_dim=3, plot=False).summary
+    assert auto['energy_series'] == ('not reconstructed: 3000 states, more than 2999 '
+                                     '(analyze --energy)')
+    forced = reduce_bag(bag, dof=3, task_dim=3, plot=False, energy=True).summary
+    assert forced['energy_series'].startswith('refused: state 1: ')
