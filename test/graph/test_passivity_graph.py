@@ -18,6 +18,7 @@ Every graph runs in a domain of its own (``spare_domains``); every wait has a de
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from haptic_topology.bag.analyze import analyze, reduce_bag
 from haptic_topology.bag.energy_series import energy_series
 from haptic_topology.bag.reader import decoder, iter_messages, open_bag, read_channels
 from haptic_topology.bag.writer import BagWriter, TopicSpec
+from haptic_topology.bringup.analysis import AnalysisJob, analyse
 from haptic_topology.bringup.options import param_overrides
 from haptic_topology.bringup.run import run_graph
 from haptic_topology.bringup.watch import CONTROLLER_STATUS
@@ -134,6 +136,13 @@ def test_lockstep_bag_energy_series_equals_simulate_row_by_row(
     rows = analyze([lockstep_bag], tmp_path / 'out')
     assert rows[0]['energy_series'] == 'exact'
     assert (tmp_path / 'out' / f'{lockstep_bag.name}_energy.png').is_file()
+    # run's analysis (beside a copy of the bag: it writes there)
+    copy = tmp_path / 'run_bag'
+    shutil.copytree(lockstep_bag, copy)
+    out = analyse(AnalysisJob(copy, load_scenario('fig6'), 'penalty', 'hosted', False, True,
+                              tmp_path / 'result.json'))
+    assert out['summary']['energy_series'] == 'exact'
+    assert (copy / 'energy.png').is_file()
 
 
 def _tampered_copy(bag: Path, out: Path, nth: int) -> int:
