@@ -54,6 +54,7 @@ from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.trace import Trace
 from haptic_topology.sim.trace_io import CHUNK_ROWS
 from haptic_topology.sim.trace_stats import PlotRows
+from haptic_topology.vocabulary import ControlMode
 
 #: ``analyze`` reconstructs the series by default for bags of at most this many device
 #: states (10 minutes at 1 kHz); ``--energy`` for longer ones, ``--no-energy`` never.
@@ -255,11 +256,14 @@ def _replay(bag: Bag, controller: dict[str, str], first_seq: int | None, plot: b
                 break
             if int(ans.out.mode) != int(cp.modes[ci]) or not np.array_equal(
                     ans.out.wrench, rec):
-                diff = (float(np.max(np.abs(ans.out.wrench - rec)))
-                        if ans.out.wrench.shape == rec.shape else math.inf)
+                recorded = ControlMode(int(cp.modes[ci]))
+                what = (f'mode {ans.out.mode.label}, recorded {recorded.label}'
+                        if ans.out.mode != recorded else
+                        f'max |difference| {float(np.max(np.abs(ans.out.wrench - rec))):.3g}'
+                        if ans.out.wrench.shape == rec.shape else
+                        f'{ans.out.wrench.size} wrench entries, recorded {rec.size}')
                 out.refused = (f'state {seq}: the replayed command differs from the recorded '
-                               f'one (mode {int(ans.out.mode)} vs {int(cp.modes[ci])}, max '
-                               f'|difference| {diff:.3g}): not the recorded controller')
+                               f'one ({what}): not the recorded controller')
                 break
             if first_seq is not None and seq < first_seq:
                 continue
