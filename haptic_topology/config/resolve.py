@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -37,6 +37,8 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.vocabulary import Clock, ControlMode, TaskSpace
 
 if TYPE_CHECKING:
+    from haptic_topology.control.passivity import EnergyAccount
+    from haptic_topology.device.backend import DeviceBackend
     from haptic_topology.sim.scenario import Scenario
 
 
@@ -223,21 +225,41 @@ def passivity_by_default(simulated: bool, task: TaskSpace) -> bool:
     return not simulated and task.point
 
 
-def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None
-                   ) -> str | None:
-    """Why ``c``'s penalty gains lie outside the Z-width map of its scenario (at the
-    scenario's LMI update period, with the passivity controller as configured), naming the
-    gain and the bound; None inside, or without a map. ``maps``: default the shipped ones
-    (``config/zwidth.json``, written by ``haptic-topology zwidth``). A warning, not a refusal:
-    the edge of the map is for probing on purpose."""
+def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None,
+                   device: str = 'scenario', passivity: bool | None = None) -> list[str]:
+    """Why ``c``'s gains lie outside the Z-width maps of its scenario on ``device`` (the
+    scenario's own, or a vendor device of :data:`haptic_topology.sim.zwidth.DEVICES`), at
+    the scenario's LMI update period with the passivity controller as configured: one line
+    per gain (eq. 13's ``k_tc``, ``b_tc``; a scenario with obstacles also
+    ``contacts.stiffness``, ``contacts.damping``) naming the gain and the bound; empty
+    inside, or without a map. ``maps``: default the shipped ones (``config/zwidth.json``,
+    written by ``haptic-topology zwidth``). A warning, not a refusal: the edge of the map is
+    for probing on purpose. ``passivity``: whether the passivity controller is on (default:
+    as ``c`` configures it; ``passivity: auto`` is decided by the driver's backend)."""
     from haptic_topology.paths import config_dir
     from haptic_topology.sim.zwidth import load_maps, outside_map
 
     if maps is None:
         maps = load_maps(config_dir() / 'zwidth.json')
-    on = c.passivity is not None and c.passivity.enabled
-    return outside_map(maps, c.scenario.name, c.scenario.update_period, on, c.gains.k_tc,
-                       c.gains.b_tc)
+    on = (c.passivity is not None and c.passivity.enabled) if passivity is None else passivity
+    gains = {'k_tc': float(c.gains.k_tc), 'b_tc': float(c.gains.b_tc)}
+    contacts = c.scenario.contacts
+    if contacts is not None:
+        gains['contacts.stiffness'] = float(contacts.params.stiffness)
+        gains['contacts.damping'] = float(contacts.params.damping)
+    return outside_map(maps, c.scenario.name, c.scenario.update_period, on, gains, device)
+
+
+def configure_hosted(c: ControllerConfig, energy: EnergyAccount, backend: DeviceBackend,
+                     warn: Callable[[str], Any]) -> None:
+    """The hosted controller ``c`` on the driver's configured ``backend``: ``passivity:
+    auto`` decided (:func:`passivity_by_default`) on ``c``'s ``energy`` account, and every
+    line of :func:`zwidth_warning` for the backend's device and that controller passed to
+    ``warn``."""
+    if c.passivity_auto:
+        energy.enable(passivity_by_default(backend.simulated, c.scenario.linkage.task))
+    for line in zwidth_warning(c, device=backend.name, passivity=bool(energy.params[0])):
+        warn(line)
 
 
 def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> ControllerConfig:
