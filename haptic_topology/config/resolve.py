@@ -253,13 +253,17 @@ def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None
 def configure_hosted(c: ControllerConfig, energy: EnergyAccount, backend: DeviceBackend,
                      warn: Callable[[str], Any]) -> None:
     """The hosted controller ``c`` on the driver's configured ``backend``: ``passivity:
-    auto`` decided (:func:`passivity_by_default`) on ``c``'s ``energy`` account, and every
-    line of :func:`zwidth_warning` for the backend's device and that controller passed to
-    ``warn``."""
+    auto`` decided (:func:`passivity_by_default`) on ``c``'s ``energy`` account; for a vendor
+    device with Z-width maps (:data:`haptic_topology.sim.zwidth.DEVICES`), every line of
+    :func:`zwidth_warning` for that device and controller passed to ``warn`` (the
+    scenario's own device: ``lmi_controller`` warns itself)."""
+    from haptic_topology.sim.zwidth import DEVICES
+
     if c.passivity_auto:
         energy.enable(passivity_by_default(backend.simulated, c.scenario.linkage.task))
-    for line in zwidth_warning(c, device=backend.name, passivity=bool(energy.params[0])):
-        warn(line)
+    if backend.name in DEVICES:
+        for line in zwidth_warning(c, device=backend.name, passivity=bool(energy.params[0])):
+            warn(line)
 
 
 def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> ControllerConfig:

@@ -136,16 +136,6 @@ class Variant:
     ve_delay_ms: float = 0.0
     device_delay_ms: float = 0.0
 
-    def key(self) -> tuple[Any, ...]:
-        return (self.axes, self.device, self.update_period, self.passivity, self.ve_delay_ms,
-                self.device_delay_ms)
-
-
-def map_key(m: dict[str, Any]) -> tuple[Any, ...]:
-    """A map's :meth:`Variant.key`."""
-    return (m['axes'], m['device'], m['update_period'], m['passivity'], m['ve_delay_ms'],
-            m['device_delay_ms'])
-
 
 @dataclass(frozen=True)
 class Point:
@@ -318,8 +308,8 @@ def outside_map(maps: list[dict[str, Any]], scenario: str, update_period: int,
                      f'{m["rate_hz"]:g} Hz, passivity controller '
                      f'{"on" if passivity else "off"}): ')
             if stable is None:
-                lines.append(where + f'not stable at {m["default"][gain != m["x"]]:g}, the '
-                             'map\'s default, there')
+                lines.append(where + f'not stable there even at the map\'s default {gain} = '
+                             f'{m["default"][gain != m["x"]]:g}')
             elif value > stable[1] and stable[3]:
                 lines.append(where + f'the map sweeps {gain} up to {stable[1]:g} {unit} '
                              f'(stable there, passive up to {_g(passive, 1)})')
