@@ -113,7 +113,11 @@ def run_backend(params: Path, backend: str | None, items: Sequence[str]
     """The backend name and parsed ``backend_options`` a run's ``device_driver`` will have:
     ``backend`` (``run --backend``) or the last ``-p device_driver:backend:=...`` item, else
     the params file's ``device_driver`` section (default ``sim_maglev``); the options
-    likewise. For :func:`check_device_axes` before anything starts."""
+    likewise. A ``-p`` value is read as ROS reads it (YAML: ``'{port: 10002}'`` is the text
+    ``{port: 10002}``); an unquoted mapping (``{port: 10002}``) is taken as the options too
+    (``run`` passes it on quoted: ``bringup.options.param_overrides``).
+    For :func:`check_device_axes` before anything starts."""
+    from haptic_topology.config.params import override_value
     from haptic_topology.validate import load_yaml
     found: dict[str, Any] = {}
     for section, body in load_yaml(params).items():
@@ -126,9 +130,12 @@ def run_backend(params: Path, backend: str | None, items: Sequence[str]
         target, _, value = item.partition(':=')
         node, _, name = target.rpartition(':')
         if node == 'device_driver' and name in ('backend', 'backend_options'):
-            found[name] = value
+            found[name] = override_value(value)
     name = backend or str(found.get('backend', 'sim_maglev'))
-    return name, parse_backend_options(str(found.get('backend_options', '') or ''))
+    options = found.get('backend_options', '')
+    if isinstance(options, dict):
+        return name, options
+    return name, parse_backend_options('' if options is None else str(options))
 
 
 def _point_alternative(sc: Scenario) -> str:

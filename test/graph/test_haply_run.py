@@ -84,6 +84,29 @@ def test_fig8_point_on_the_emulated_inverse3(tmp_path: Path) -> None:
     assert '"bad_messages": 0' in emu.output, emu.output
 
 
+def test_a_service_on_another_port_from_the_example_params_and_the_command_line(
+        tmp_path: Path) -> None:
+    """``config/devices/haply_other_port.yaml`` (a service on another port) with its
+    ``backend_options`` replaced on the command line by an unquoted mapping: ``run`` passes it
+    to ``device_driver`` as the string parameter ROS takes; the device chosen among two."""
+    emu = Emulator(tmp_path / 'emu', ('--device', '04A1', '--device', '04B2'))
+    try:
+        bag = tmp_path / 'bag'
+        params = Path(__file__).resolve().parents[2] / 'config' / 'devices' / \
+            'haply_other_port.yaml'
+        cmd = _command(params, bag, 1.0) + [
+            '-p', f'device_driver:backend_options:={{port: {emu.port}, device_id: "04B2"}}']
+        proc = subprocess.run(cmd, capture_output=True, timeout=400, env=dict(os.environ))
+        out = (proc.stdout + proc.stderr).decode(errors='replace')
+        assert proc.returncode == 0, out
+        assert f'serial 04B2 via ws://127.0.0.1:{emu.port}/' in out, out
+    finally:
+        emu.stop()
+    _, ids, f = read_log(emu.log)
+    pushed = {i for i, row in zip(ids, f, strict=True) if row.any()}
+    assert pushed == {'04B2'}, pushed
+
+
 def test_the_service_gone_mid_run(tmp_path: Path) -> None:
     monitor = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     monitor.bind(('127.0.0.1', 0))
