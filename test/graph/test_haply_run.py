@@ -2,7 +2,8 @@
 emulator in a process of its own, as a user runs it (a params file with the backend and its
 port, the command line): a run to the end; the service gone mid-run (killed: FAULT states,
 zero force from then on, bag and summary written, the reason on ``/diagnostics``); the
-service not there at all (the run stops before any node starts, with one line naming the
+service killed and started again mid-run (FAULT until the user grasps again, zero meanwhile);
+the service not there at all (the run stops before any node starts, with one line naming the
 address).
 No time bound is asserted; waits are on events with generous deadlines.
 """
@@ -136,7 +137,7 @@ def test_the_service_gone_mid_run(tmp_path: Path) -> None:
     states, texts = _bag(bag)
     status = np.array([int(s.status) for s in states])                 # type: ignore
     applied = np.array([list(s.applied_wrench) for s in states])        # type: ignore
-    # the states from the kill to the end: FAULT (the connection is not reopened; a stall of
+    # the states from the kill to the end: FAULT (no service comes back to reconnect to; a stall of
     # the emulator on a loaded machine may have faulted some earlier states too)
     ok = np.flatnonzero(~status & FAULT)
     first = int(ok[-1]) + 1 if ok.size else 0
@@ -145,6 +146,67 @@ def test_the_service_gone_mid_run(tmp_path: Path) -> None:
     assert applied[:first].any(), 'no force before the service was gone'
     reason = f'haply: the connection to ws://127.0.0.1:{emu.port}/ ended (the service '
     assert any(reason in t for t in texts), sorted(set(texts))
+
+
+def test_the_service_restarted_mid_run(tmp_path: Path) -> None:
+    """The service killed once the device pushes and started again on the same port: the
+    states are FAULT from the kill until the user grasps again (the grip's button a, held
+    through the loss (messages 1-20 of the new service), released, pressed again from message
+    60), the driver writes zero meanwhile and the new service gets nothing but zero before
+    the press; then the output fades in (WATCHDOG) and the run ends normally. The run lasts
+    20 s: the restart has that long to happen."""
+    monitor = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    monitor.bind(('127.0.0.1', 0))
+    where = ('127.0.0.1', monitor.getsockname()[1])
+    grip = ('--grip', '61548')
+    emu = Emulator(tmp_path / 'e0', (*grip, '--press', 'a@1-100000000'), monitor=where)
+    options = (f'{{port: {emu.port}, engage_button: 0, grasp_ramp_ms: 20.0, stale_ms: 2000.0, '
+               'reconnect_max_ms: 200.0}')
+    bag = tmp_path / 'bag'
+    run = subprocess.Popen(_command(_params(tmp_path, options), bag, 20.0),
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                           env=dict(os.environ))
+    second = None
+    try:
+        deadline = time.monotonic() + 300.0
+        engaged = False
+        while not engaged:
+            assert time.monotonic() < deadline and run.poll() is None, 'never engaged'
+            if select.select([monitor], [], [], 0.5)[0]:
+                _, _, *f = monitor.recv(4096).decode().split(',')
+                engaged = any(float(v) != 0.0 for v in f)
+        emu.kill()
+        second = Emulator(tmp_path / 'e1', (*grip, '--press', 'a@1-20', '--press',
+                                            'a@60-100000000'), monitor=where, port=emu.port)
+        out = run.communicate(timeout=400)[0].decode(errors='replace')
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.communicate()
+        monitor.close()
+        if second is not None:
+            second.stop()
+    assert run.returncode == 0, out
+    assert second is not None and (bag / 'summary.json').is_file(), out
+    states, texts = _bag(bag)
+    status = np.array([int(s.status) for s in states])                 # type: ignore
+    applied = np.array([list(s.applied_wrench) for s in states])        # type: ignore
+    fault = (status & FAULT) != 0
+    edges = np.flatnonzero(np.diff(fault.astype(int)))
+    assert len(edges) == 2, f'expected one run of FAULT states, edges at {edges}'
+    first, last = int(edges[0]) + 1, int(edges[1])
+    assert applied[:first].any(), 'no force before the service was gone'
+    assert not applied[first + 1:last + 1].any(), 'force written while the FAULT stood'
+    assert status[last + 1] & int(vocab.DeviceStatus.WATCHDOG), 'no fade-in after the FAULT'
+    assert applied[last + 1:].any(), 'no force after the grasp again'
+    peer = f'ws://127.0.0.1:{emu.port}/'
+    assert any(f'haply: the connection to {peer} ended' in t and 'reconnecting' in t
+               for t in texts), sorted(set(texts))
+    assert any(f'haply: reconnected to {peer}' in t and t.endswith(
+        'release and press the engage button (button 0) to grasp again') for t in texts), \
+        sorted(set(texts))
+    _, _, f = read_log(second.log)
+    assert len(f) > 60 and not f[:60].any() and f.any(), 'not zero before the press'
 
 
 def test_an_unreachable_service_stops_the_run_before_it_starts(tmp_path: Path) -> None:
