@@ -17,6 +17,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -49,8 +50,9 @@ def _command(params: Path, bag: Path, duration: float) -> list[str]:
             str(params), '--duration', str(duration), '--no-plot', '--out', str(bag)]
 
 
-def _bag(bag: Path) -> tuple[list[object], list[str]]:
-    """The bag's device states (seq order) and every ``/diagnostics`` message text."""
+def _bag(bag: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """The bag's device states (seq order): their status and applied wrench; every
+    ``/diagnostics`` message text."""
     decode = decoder()
     states, texts = [], []
     b = open_bag(next(bag.glob('*.mcap')))
@@ -60,7 +62,31 @@ def _bag(bag: Path) -> tuple[list[object], list[str]]:
         elif m.topic == vocab.TOPIC_DIAGNOSTICS:
             texts.extend(str(st.message) for st in decode(m).status)
     states.sort(key=lambda s: int(s.seq))       # type: ignore[attr-defined]
-    return states, texts
+    status = np.array([int(s.status) for s in states])                 # type: ignore
+    applied = np.array([list(s.applied_wrench) for s in states])        # type: ignore
+    return status, applied, texts
+
+
+def _interrupt(run: subprocess.Popen[bytes], monitor: socket.socket,
+               then: Callable[[], None]) -> str:
+    """Once the emulator's ``--monitor`` stream shows a force other than zero (the loop is
+    engaged and the device pushes; at most 300 s), ``then()``; the run's output once it has
+    ended. The run is killed if anything fails; the monitor is closed."""
+    try:
+        deadline = time.monotonic() + 300.0
+        pushing = False
+        while not pushing:
+            assert time.monotonic() < deadline and run.poll() is None, 'never engaged'
+            if select.select([monitor], [], [], 0.5)[0]:
+                _, _, *f = monitor.recv(4096).decode().split(',')
+                pushing = any(float(v) != 0.0 for v in f)
+        then()
+        return run.communicate(timeout=400)[0].decode(errors='replace')
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.communicate()
+        monitor.close()
 
 
 def test_fig8_point_on_the_emulated_inverse3(tmp_path: Path) -> None:
@@ -116,32 +142,15 @@ def test_the_service_gone_mid_run(tmp_path: Path) -> None:
     run = subprocess.Popen(_command(_params(tmp_path, f'{{port: {emu.port}}}'), bag, 6.0),
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            env=dict(os.environ))
-    try:
-        # the loop is engaged once the device gets a force other than zero: then kill
-        deadline = time.monotonic() + 300.0
-        engaged = False
-        while not engaged:
-            assert time.monotonic() < deadline and run.poll() is None, 'never engaged'
-            if select.select([monitor], [], [], 0.5)[0]:
-                _, _, *f = monitor.recv(4096).decode().split(',')
-                engaged = any(float(v) != 0.0 for v in f)
-        emu.kill()
-        out = run.communicate(timeout=400)[0].decode(errors='replace')
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.communicate()
-        monitor.close()
+    out = _interrupt(run, monitor, emu.kill)
     assert run.returncode == 0, out
     assert (bag / 'summary.json').is_file(), out
-    states, texts = _bag(bag)
-    status = np.array([int(s.status) for s in states])                 # type: ignore
-    applied = np.array([list(s.applied_wrench) for s in states])        # type: ignore
+    status, applied, texts = _bag(bag)
     # the states from the kill to the end: FAULT (no service comes back to reconnect to; a stall of
     # the emulator on a loaded machine may have faulted some earlier states too)
     ok = np.flatnonzero(~status & FAULT)
     first = int(ok[-1]) + 1 if ok.size else 0
-    assert first < len(states), 'the run did not end in FAULT with the service gone'
+    assert first < len(status), 'the run did not end in FAULT with the service gone'
     assert not applied[first + 1:].any(), 'force written after the service was gone'
     assert applied[:first].any(), 'no force before the service was gone'
     reason = f'haply: the connection to ws://127.0.0.1:{emu.port}/ ended (the service '
@@ -166,31 +175,25 @@ def test_the_service_restarted_mid_run(tmp_path: Path) -> None:
     run = subprocess.Popen(_command(_params(tmp_path, options), bag, 20.0),
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            env=dict(os.environ))
-    second = None
-    try:
-        deadline = time.monotonic() + 300.0
-        engaged = False
-        while not engaged:
-            assert time.monotonic() < deadline and run.poll() is None, 'never engaged'
-            if select.select([monitor], [], [], 0.5)[0]:
-                _, _, *f = monitor.recv(4096).decode().split(',')
-                engaged = any(float(v) != 0.0 for v in f)
+    made: list[Emulator] = []
+
+    def restart() -> None:
         emu.kill()
-        second = Emulator(tmp_path / 'e1', (*grip, '--press', 'a@1-20', '--press',
-                                            'a@60-100000000'), monitor=where, port=emu.port)
-        out = run.communicate(timeout=400)[0].decode(errors='replace')
+        made.append(Emulator(tmp_path / 'e1', (*grip, '--press', 'a@1-20', '--press',
+                                               'a@60-100000000'), monitor=where,
+                             port=emu.port))
+
+    try:
+        out = _interrupt(run, monitor, restart)
     finally:
-        if run.poll() is None:
-            run.kill()
-            run.communicate()
-        monitor.close()
-        if second is not None:
-            second.stop()
+        for e in made:
+            e.stop()
     assert run.returncode == 0, out
-    assert second is not None and (bag / 'summary.json').is_file(), out
-    states, texts = _bag(bag)
-    status = np.array([int(s.status) for s in states])                 # type: ignore
-    applied = np.array([list(s.applied_wrench) for s in states])        # type: ignore
+    assert made and (bag / 'summary.json').is_file(), out
+    second = made[0]
+    # (the fault's reasons are not looked for among the 1 Hz /diagnostics: the phases may be
+    # shorter; test_haply_reconnect.py checks them cycle by cycle)
+    status, applied, _ = _bag(bag)
     fault = (status & FAULT) != 0
     edges = np.flatnonzero(np.diff(fault.astype(int)))
     assert len(edges) == 2, f'expected one run of FAULT states, edges at {edges}'
@@ -199,12 +202,6 @@ def test_the_service_restarted_mid_run(tmp_path: Path) -> None:
     assert not applied[first + 1:last + 1].any(), 'force written while the FAULT stood'
     assert status[last + 1] & int(vocab.DeviceStatus.WATCHDOG), 'no fade-in after the FAULT'
     assert applied[last + 1:].any(), 'no force after the grasp again'
-    peer = f'ws://127.0.0.1:{emu.port}/'
-    assert any(f'haply: the connection to {peer} ended' in t and 'reconnecting' in t
-               for t in texts), sorted(set(texts))
-    assert any(f'haply: reconnected to {peer}' in t and t.endswith(
-        'release and press the engage button (button 0) to grasp again') for t in texts), \
-        sorted(set(texts))
     _, _, f = read_log(second.log)
     assert len(f) > 60 and not f[:60].any() and f.any(), 'not zero before the press'
 
