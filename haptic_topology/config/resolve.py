@@ -34,7 +34,7 @@ from haptic_topology.control.safety import SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig
 from haptic_topology.device.watchdog import WatchdogConfig, WatchdogFallback
 from haptic_topology.errors import ConfigError
-from haptic_topology.vocabulary import Clock, ControlMode, TaskSpace
+from haptic_topology.vocabulary import Clock, ControlMode
 
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario
@@ -219,15 +219,13 @@ def resolve_passivity(setting: str, sc: Scenario) -> tuple[PassivityConfig, bool
     return replace(base, enabled=setting == 'enabled'), False
 
 
-def passivity_by_default(simulated: bool, task: TaskSpace) -> bool:
+def passivity_by_default(simulated: bool) -> bool:
     """Whether ``passivity: auto`` (with no ``passivity`` block in the scenario) turns the
-    passivity controller on: for a device that is not a simulation (``simulated``:
-    :attr:`~haptic_topology.device.backend.DeviceBackend.simulated`) rendering a point grasp
-    (``task.point``). Not for a rigid grasp: there the observer counts the energy the VT
-    returns through the coordination spring as generated, and the controller's damping then
-    fights the coordination (``spatial_arm4``: drift 0.5 mm without, 6.7-12.7 mm with;
-    docs/concepts.md)."""
-    return not simulated and task.point
+    passivity controller on: for every device that is not a simulation (``simulated``:
+    :attr:`~haptic_topology.device.backend.DeviceBackend.simulated`), point and rigid grasps
+    alike (the observer counts the energy the coupling takes in at the VT's end, so a rigid
+    grasp's coordination is not damped: :mod:`haptic_topology.control.passivity`)."""
+    return not simulated
 
 
 def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None
