@@ -221,13 +221,26 @@ def resolve_passivity(setting: str, sc: Scenario) -> tuple[PassivityConfig, bool
     return replace(base, enabled=setting == 'enabled'), False
 
 
-def passivity_by_default(simulated: bool) -> bool:
+def passivity_by_default(simulated: bool, velocity_filtered: bool = False) -> bool:
     """Whether ``passivity: auto`` (with no ``passivity`` block in the scenario) turns the
     passivity controller on: for every device that is not a simulation (``simulated``:
     :attr:`~haptic_topology.device.backend.DeviceBackend.simulated`), point and rigid grasps
     alike (the observer counts the energy the coupling takes in at the VT's end, so a rigid
-    grasp's coordination is not damped: :mod:`haptic_topology.control.passivity`)."""
-    return not simulated
+    grasp's coordination is not damped: :mod:`haptic_topology.control.passivity`), except a
+    device whose velocity is a low-pass filtered difference of its positions
+    (``velocity_filtered``, OpenHaptics): the controller's damping then acts on a velocity
+    that lags the motion and injects energy instead of dissipating it (fig8_point on the
+    OpenHaptics emulator's parameters: observer minimum -0.49 J and 14 mm drift with it,
+    -3 mJ and 1.1 mm without; :func:`AUTO_OFF_FILTERED` says so at configure)."""
+    return not simulated and not velocity_filtered
+
+
+#: What ``device_driver`` logs when ``passivity: auto`` leaves the controller off for a
+#: device with a filtered velocity.
+AUTO_OFF_FILTERED = ('passivity: auto: the passivity controller stays off on {backend}: its '
+                     'velocity is a low-pass filtered difference of encoder positions, and '
+                     'damping on a lagging velocity adds energy instead of removing it (the '
+                     'parameter passivity:=enabled turns it on)')
 
 
 def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None,
@@ -256,7 +269,8 @@ def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None
 
 
 def configure_hosted(c: ControllerConfig, energy: EnergyAccount, backend: DeviceBackend,
-                     warn: Callable[[str], Any]) -> None:
+                     warn: Callable[[str], Any],
+                     info: Callable[[str], Any] | None = None) -> None:
     """The hosted controller ``c`` on the driver's configured ``backend``: ``passivity:
     auto`` decided (:func:`passivity_by_default`) on ``c``'s ``energy`` account; for a vendor
     device with Z-width maps (:data:`haptic_topology.sim.zwidth.DEVICES`), every line of
@@ -265,7 +279,9 @@ def configure_hosted(c: ControllerConfig, energy: EnergyAccount, backend: Device
     from haptic_topology.sim.zwidth import DEVICES
 
     if c.passivity_auto:
-        energy.enable(passivity_by_default(backend.simulated))
+        energy.enable(passivity_by_default(backend.simulated, backend.velocity_filtered))
+        if info is not None and not backend.simulated and backend.velocity_filtered:
+            info(AUTO_OFF_FILTERED.format(backend=backend.name))
     if backend.name in DEVICES:
         for line in zwidth_warning(c, device=backend.name, passivity=bool(energy.params[0])):
             warn(line)

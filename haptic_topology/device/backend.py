@@ -156,6 +156,11 @@ class DeviceBackend(ABC):
     #: ``lmi_controller`` is on by default for a device that is not,
     #: :mod:`haptic_topology.control.passivity`). False: a real device, or one that may be.
     simulated: ClassVar[bool] = False
+    #: Whether the velocity the device reports is a low-pass filtered difference of its
+    #: encoder positions (OpenHaptics' ``HD_CURRENT_VELOCITY``): ``passivity: auto`` then
+    #: leaves the passivity controller off (damping on a lagging velocity injects energy:
+    #: :func:`haptic_topology.config.resolve.passivity_by_default`).
+    velocity_filtered: ClassVar[bool] = False
     #: Whether the device's own servo loop is the loop's clock (OpenHaptics' scheduler): the
     #: loop process then runs each cycle inside the device's callback (:meth:`run_clocked`)
     #: and does not pace itself. Such a backend still serves ``read``/``write`` called by a

@@ -158,6 +158,7 @@ class OpenHapticsBackend(DeviceBackend):
     name = 'openhaptics'
     lockstep = False
     drives_loop = True
+    velocity_filtered = True    # HD_CURRENT_VELOCITY: the driver's filtered difference
 
     @classmethod
     def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:

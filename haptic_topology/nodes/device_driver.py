@@ -146,7 +146,7 @@ class DeviceDriver(LifecycleNode):
                                        c.takeover_after)
             if self.hosted is not None:   # passivity: auto; the device's own Z-width map
                 configure_hosted(self.hosted.cfg, self.hosted.loop.ctrl.energy, self.backend,
-                                 self.get_logger().warn)
+                                 self.get_logger().warn, self.get_logger().info)
             self.layout = driver_layout(self, self.hosted)
         except Exception as exc:    # a backend's own code too: the fault
             why = error_line(exc, f'{getattr(self.backend, "name", c.backend)}: configure()')
