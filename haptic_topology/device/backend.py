@@ -244,16 +244,31 @@ class DeviceBackend(ABC):
         self.write(np.zeros(self.task_dim()))
         return self.read(dt)
 
+    #: The task of the newest successful :meth:`configure` (:meth:`keep_task`), else None.
+    _task: TaskSpace | None = None
+
+    def keep_task(self, config: BackendConfig) -> TaskSpace:
+        """Keep ``config.params.task`` as the configured task (what :meth:`task` and
+        :meth:`task_dim` answer from now on) and return it: a backend calls it in its
+        :meth:`configure`, once its own checks have passed."""
+        self._task = config.params.task
+        return self._task
+
     def task_dim(self) -> int:
-        """m of the task vectors (3 planar, 6 spatial, 2 planar_point, 3 spatial_point);
-        valid after ``configure``."""
-        raise DeviceError(f'{type(self).__name__} does not implement task_dim()')
+        """m of the task vectors (3 planar, 6 spatial, 2 planar_point, 3 spatial_point) of
+        :meth:`task`; before ``configure`` a :class:`~haptic_topology.errors.DeviceError`. A
+        backend that does not call :meth:`keep_task` overrides it."""
+        task = self.task()
+        if task is None:
+            raise DeviceError(f'{self.name}: used before configure()')
+        return task.dim
 
     def task(self) -> TaskSpace | None:
         """The task the backend was configured for (``config.params.task`` of
-        :meth:`configure`), or None: before ``configure``, or a backend that does not keep
-        it. m alone does not tell it (3 is ``planar`` or ``spatial_point``). Default: None."""
-        return None
+        :meth:`configure`, kept by :meth:`keep_task`), or None: before ``configure``, or a
+        backend that does not keep it. m alone does not tell it (3 is ``planar`` or
+        ``spatial_point``)."""
+        return self._task
 
     @property
     def hardware_id(self) -> str:
@@ -310,11 +325,6 @@ class SimMaglevBackend(DeviceBackend):
         del options
         return ALL_DEVICE_AXES
 
-    def task(self) -> TaskSpace | None:
-        """The scenario's task once configured (``hardware_id``: ``'sim_maglev <task>'``,
-        e.g. ``'sim_maglev planar_point'``)."""
-        return None if self._model is None else self._model.params.task
-
     def __init__(self) -> None:
         self._model: MaglevModel | None = None
         self._sensor: PositionSensor | None = None
@@ -344,6 +354,7 @@ class SimMaglevBackend(DeviceBackend):
         self._applied = np.zeros(m)
         self._t = 0.0
         self._f_h = self._user.wrench(0.0, self._model.pose, self._model.twist)
+        self.keep_task(config)          # hardware_id: 'sim_maglev <task>'
 
     def _require(self) -> tuple[MaglevModel, UserModel]:
         if self._model is None or self._user is None:
@@ -355,9 +366,6 @@ class SimMaglevBackend(DeviceBackend):
         assert self._sensor is not None
         pose, twist = self._sensor.measure(model.pose, model.twist, dt)
         return DeviceReading(pose, twist, self._f_h.copy(), status)
-
-    def task_dim(self) -> int:
-        return self._require()[0].params.task.dim
 
     def activate(self) -> None:
         self._require()

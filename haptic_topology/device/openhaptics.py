@@ -55,13 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from haptic_topology.device.backend import (
-    TRANSLATION_AXES,
-    BackendConfig,
-    DeviceAxes,
-    DeviceBackend,
-    DeviceReading,
-)
+from haptic_topology.device.backend import BackendConfig, DeviceReading
 from haptic_topology.device.openhaptics_hd import (
     BACKEND,
     HD_CALIBRATION_NEEDS_UPDATE,
@@ -89,9 +83,9 @@ from haptic_topology.device.openhaptics_hd import (
 )
 from haptic_topology.device.vendor import (
     DeviceIdentity,
-    VendorHand,
+    VendorBackend,
     VendorSupport,
-    parse_vendor_options,
+    optional_number,
 )
 from haptic_topology.errors import DeviceError
 from haptic_topology.vocabulary import DeviceStatus
@@ -148,7 +142,7 @@ def _open(hd: Any, options: Mapping[str, Any]) -> int:
                       'connected and its driver (Touch_Setup) configured?')
 
 
-class OpenHapticsBackend(DeviceBackend):
+class OpenHapticsBackend(VendorBackend):
     """A Touch / Touch X / Phantom Premium through OpenHaptics (module doc). Options: the
     vendor ones (:func:`~haptic_topology.device.vendor.parse_vendor_options`: ``axes``,
     ``origin``, ``scale``, ``force_scale``, ``engage_button``, ``clutch_button``,
@@ -156,14 +150,8 @@ class OpenHapticsBackend(DeviceBackend):
     Device``), ``max_force`` (N, below the device's own limit)."""
 
     name = 'openhaptics'
-    lockstep = False
     drives_loop = True
-
-    @classmethod
-    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
-        """3 translations sensed, 3 forces actuated: point tasks only."""
-        del options
-        return TRANSLATION_AXES
+    own_options = OWN_OPTIONS
 
     def preflight(self, config: BackendConfig) -> None:
         """Before ``run`` starts a node: the options, the library and the package
@@ -175,9 +163,7 @@ class OpenHapticsBackend(DeviceBackend):
         hd.close_device(_open(hd, self._own))
 
     def __init__(self) -> None:
-        self._hand: VendorHand | None = None
-        self._start = np.zeros(0)
-        self._m = 0
+        super().__init__()
         self._own: dict[str, Any] = dict(OWN_OPTIONS)
         self._option_max_force = math.inf
         self._lib: HdLibrary | None = None
@@ -190,7 +176,6 @@ class OpenHapticsBackend(DeviceBackend):
         self._last: DeviceReading | None = None
         self._fault = ''                 # from the errors drained since the last reading
         self._reason = ''
-        self._identity: DeviceIdentity | None = None
         self.buttons = 0
         self.inkwell = False
         self.errors = 0
@@ -202,40 +187,17 @@ class OpenHapticsBackend(DeviceBackend):
         self._dt = 0.0
 
     # -- configuration ---------------------------------------------------------------------
-    def configure(self, config: BackendConfig) -> None:
-        opts, own = parse_vendor_options(config.options, self.name, config.params.task,
-                                         OWN_OPTIONS)
-        max_force = own['max_force']
-        if max_force is not None and (isinstance(max_force, bool)
-                                      or not isinstance(max_force, int | float)
-                                      or not (math.isfinite(max_force) and max_force > 0.0)):
-            raise DeviceError(f'{self.name}: backend_options.max_force: expected a number > 0 '
-                              f'(N) or null (the device\'s own limit), got {max_force!r}')
+    def configure_own(self, own: dict[str, Any]) -> None:
+        max_force = optional_number(own['max_force'], 'max_force', self.name, 1000.0,
+                                    "N; null: the device's own limit")
         if not isinstance(own['device'], str) or not own['device']:
             raise DeviceError(f'{self.name}: backend_options.device: expected the OpenHaptics '
                               f'device name (Touch_Setup), got {own["device"]!r}')
         self._own = own
-        self._option_max_force = math.inf if max_force is None else float(max_force)
-        self._hand = VendorHand(opts, config.initial_pose)
-        self._start = np.array(config.initial_pose, dtype=float)
-        self._m = config.params.task.dim
-
-    def task_dim(self) -> int:
-        if self._hand is None:
-            raise DeviceError(f'{self.name}: used before configure()')
-        return self._m
-
-    @property
-    def hardware_id(self) -> str:
-        """``'openhaptics <model> serial <serial>'`` once the device was opened."""
-        if self._identity is None:
-            return super().hardware_id
-        return self._identity.hardware_id(self.name)
+        self._option_max_force = math.inf if max_force is None else max_force
 
     def values(self) -> dict[str, str]:
-        out = {} if self._identity is None else self._identity.values()
-        if self._hand is not None:
-            out.update(self._hand.values())
+        out = super().values()
         out.update({'openhaptics_buttons': str(self.buttons),
                     'openhaptics_inkwell': str(int(self.inkwell)),
                     'openhaptics_errors': str(self.errors),
@@ -263,7 +225,7 @@ class OpenHapticsBackend(DeviceBackend):
                 return
             self.errors += 1
             if not self._fault:
-                model = self._identity.model if self._identity else 'device'
+                model = self.identity.model if self.identity else 'device'
                 self._fault = f'{self.name}: {model}: {error_text(code)}'
 
     def _fail_on_error(self, what: str) -> None:
@@ -280,7 +242,7 @@ class OpenHapticsBackend(DeviceBackend):
         hd = self._lib.hd
         lib = hd._lib_hd
         self._handle = _open(hd, self._own)
-        self._identity = DeviceIdentity(_string(hd, HD_DEVICE_VENDOR), hd.get_model(),
+        self.identity = DeviceIdentity(_string(hd, HD_DEVICE_VENDOR), hd.get_model(),
                                         _string(hd, HD_DEVICE_SERIAL_NUMBER),
                                         f'OpenHaptics {_string(hd, HD_VERSION)}')
         self._check_calibration(lib)
@@ -308,7 +270,7 @@ class OpenHapticsBackend(DeviceBackend):
             lib.hdUpdateCalibration(int(style))
             state = int(lib.hdCheckCalibration())
         if state != HD_CALIBRATION_OK:
-            who = self._identity
+            who = self.identity
             assert who is not None
             raise DeviceError(f'{self.name}: {who.model} serial {who.serial} needs '
                               'calibration: put the stylus in the inkwell and activate again '
@@ -386,7 +348,7 @@ class OpenHapticsBackend(DeviceBackend):
         self.inkwell = bool(hd._get_integerv(HD_CURRENT_INKWELL_SWITCH, ctypes.c_int).value)
         self._drain_errors()
         if not all(math.isfinite(x) for x in (*p, *v)):
-            model = self._identity.model if self._identity else 'device'
+            model = self.identity.model if self.identity else 'device'
             self._fault = self._fault or f'{self.name}: {model}: non-finite position or velocity'
         if self._fault:
             self._reason, self._fault = self._fault, ''

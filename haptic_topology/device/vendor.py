@@ -20,6 +20,9 @@ package.
   reports now;
 * :class:`DeviceIdentity`: vendor, model, serial, SDK, workspace -> ``hardware_id`` and
   diagnostics values (which ``/diagnostics`` carries into the bag and ``summary.json``);
+* :class:`VendorBackend`: the base of a 3-axis vendor backend (its axes, the options and
+  the hand at ``configure``, ``hardware_id`` and diagnostics values from the identity);
+  :func:`optional_number` and :func:`flag_option` check a backend's own options;
 * :data:`VENDOR_BACKENDS`, :class:`VendorSupport`, :func:`vendor_support`,
   :func:`require_library`, :func:`probe`: the registry (backend name -> its support).
 
@@ -56,11 +59,17 @@ import importlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from haptic_topology.device.backend import DeviceReading
+from haptic_topology.device.backend import (
+    TRANSLATION_AXES,
+    BackendConfig,
+    DeviceAxes,
+    DeviceBackend,
+    DeviceReading,
+)
 from haptic_topology.device.topic_mapping import TopicMapping, option_error, parse_axes
 from haptic_topology.errors import DeviceError, HapticTopologyError, VendorLibraryMissing
 from haptic_topology.vocabulary import DeviceStatus, TaskSpace
@@ -261,6 +270,88 @@ class DeviceIdentity:
 #: The diagnostics keys of a :class:`DeviceIdentity`.
 IDENTITY_KEYS = ('device_vendor', 'device_model', 'device_serial', 'device_sdk',
                  'device_workspace')
+
+
+def optional_number(value: Any, key: str, backend: str, hi: float, meaning: str) -> float | None:
+    """A backend's own option that is a number in (0, ``hi``] or null (None; ``meaning``:
+    what null means, for the message); else a :class:`~haptic_topology.errors.DeviceError`
+    naming the field."""
+    if value is None:
+        return None
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or not (math.isfinite(value) and 0.0 < value <= hi)):
+        raise option_error(key, f'a number in (0, {hi:g}] or null ({meaning})', value, backend)
+    return float(value)
+
+
+def flag_option(value: Any, key: str, backend: str) -> bool:
+    """A backend's own option that is true or false."""
+    if not isinstance(value, bool):
+        raise option_error(key, 'true or false', value, backend)
+    return value
+
+
+class VendorBackend(DeviceBackend):
+    """The base of a 3-axis vendor device backend: it senses and actuates x, y, z forces
+    (:data:`~haptic_topology.device.backend.TRANSLATION_AXES`; point tasks only), runs on its
+    own clock, and at :meth:`configure` checks the common options (:data:`VENDOR_OPTIONS`)
+    and its own (:attr:`own_options`, checked by :meth:`configure_own`), then makes its
+    :class:`VendorHand` and keeps the task. Once a device is opened, :attr:`identity` (set by
+    the backend) gives ``hardware_id`` (``'<name> <model> serial <serial>'``) and the
+    diagnostics values, with the hand's."""
+
+    lockstep = False
+    #: The backend's own options (name -> default), besides :data:`VENDOR_OPTIONS`.
+    own_options: ClassVar[dict[str, Any]] = {}
+
+    def __init__(self) -> None:
+        self._hand: VendorHand | None = None
+        self._start = np.zeros(0)
+        self._m = 0
+        self.identity: DeviceIdentity | None = None
+
+    @classmethod
+    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
+        """x, y, z sensed and actuated (the device's rotations, where it has them, unused)."""
+        del options
+        return TRANSLATION_AXES
+
+    def configure(self, config: BackendConfig) -> None:
+        opts, own = parse_vendor_options(config.options, self.name, config.params.task,
+                                         self.own_options)
+        self.configure_own(own)
+        self._hand = VendorHand(opts, config.initial_pose)
+        self._start = np.array(config.initial_pose, dtype=float)
+        self._m = self.keep_task(config).dim
+
+    def configure_own(self, own: dict[str, Any]) -> None:
+        """Check and keep the backend's own options (``own``: :attr:`own_options` with what
+        ``backend_options`` set); raise :class:`~haptic_topology.errors.DeviceError` naming a
+        bad one. Default: nothing to check."""
+        del own
+
+    def hand(self) -> VendorHand:
+        """The hand (after ``configure``; else a :class:`~haptic_topology.errors.DeviceError`
+        saying so)."""
+        if self._hand is None:
+            raise DeviceError(f'{self.name}: used before configure()')
+        return self._hand
+
+    @property
+    def hardware_id(self) -> str:
+        """``'<name> <model> serial <serial>'`` once a device was opened; before,
+        ``'<name> <task>'`` (configured) or ``'<name>'``."""
+        if self.identity is None:
+            return super().hardware_id
+        return self.identity.hardware_id(self.name)
+
+    def values(self) -> dict[str, str]:
+        """The identity's values and the hand's (:meth:`VendorHand.values`); a backend adds
+        its own counters."""
+        out = {} if self.identity is None else self.identity.values()
+        if self._hand is not None:
+            out.update(self._hand.values())
+        return out
 
 
 # -- the registry ---------------------------------------------------------------------------

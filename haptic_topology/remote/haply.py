@@ -100,7 +100,7 @@ from haptic_topology.device.vendor import (
 )
 from haptic_topology.errors import DeviceError
 from haptic_topology.remote.websocket_client import WebSocketClient, connect
-from haptic_topology.vocabulary import DeviceStatus, TaskSpace
+from haptic_topology.vocabulary import DeviceStatus
 
 #: The Haply Inverse Service version whose documented protocol this backend follows.
 SERVICE_VERSION = '3.5.x'
@@ -165,7 +165,6 @@ class HaplyBackend(DeviceBackend):
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns
         self._m = 0
-        self._task: TaskSpace | None = None
         self._ws: WebSocketClient | None = None
         self._hand: VendorHand | None = None
         self._first = True
@@ -223,19 +222,9 @@ class HaplyBackend(DeviceBackend):
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 64:
             raise option_error('max_in_flight', 'an integer in [1, 64]', n, NAME)
         self.max_in_flight = n
-        self._m = config.params.task.dim
-        self._task = config.params.task
+        self._m = self.keep_task(config).dim
         self._start_pose = np.asarray(config.initial_pose, dtype=float)[:self._m].copy()
         self.peer = f'ws://{self.host}:{self.port}{self.path}'
-
-    def task_dim(self) -> int:
-        if not self._m:
-            raise DeviceError('haply: used before configure()')
-        return self._m
-
-    def task(self) -> TaskSpace | None:
-        """The point task configured (None before ``configure``)."""
-        return self._task
 
     @property
     def hardware_id(self) -> str:

@@ -322,8 +322,9 @@ def test_axes_point_tasks_only() -> None:
     with pytest.raises(DeviceError, match=r"backend_options.axes: expected .* got \['x', 'y', "
                                           r"'-z'\]"):
         _backend({'axes': ['x', 'y', '-z']})
-    with pytest.raises(DeviceError, match=r"backend_options.max_force: expected a number > 0 "
-                                          r"\(N\) or null"):
+    with pytest.raises(DeviceError, match=r"backend_options.max_force: expected a number in "
+                                          r"\(0, 1000\] or null \(N; null: the device's own "
+                                          r"limit\), got -1"):
         _backend({'max_force': -1})
     with pytest.raises(DeviceError, match="unknown option 'port'"):
         _backend({'port': 3})
