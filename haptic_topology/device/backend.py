@@ -218,6 +218,15 @@ class DeviceBackend(ABC):
     def read(self, dt: float) -> DeviceReading:
         """The device state ``dt`` s (measured) after the previous read."""
 
+    def written(self, wrench: np.ndarray) -> np.ndarray:
+        """The wrench (task vector, N, N m) the device was sent by the newest
+        ``write(wrench)``: what the driver records as applied (the trace's ``applied``, the
+        states' and bags'). Default: ``wrench`` itself. A backend whose device gets something
+        else (a vendor device while the hand does not grasp gets zero; a force faded in, or
+        limited by the device's own limit) returns that. Called once per cycle right after
+        ``write``: no I/O."""
+        return wrench
+
     def cleanup(self) -> None:
         """Release what ``configure`` and ``activate`` acquired and ``deactivate`` kept (a
         connection, a ROS node): the driver's lifecycle cleanup and its shutdown, always after

@@ -273,12 +273,14 @@ class ForceDimensionBackend(VendorBackend):
     def write(self, wrench: np.ndarray) -> None:
         if self._id < 0 or self._hand is None:
             raise DeviceError(f'{self.name}: write() while not active')
-        if self._fault:
+        if self._fault:                 # force is off: nothing reaches the device
+            self._hand.sent = np.zeros(self._m)
             return
         f = self._hand.force(wrench)
         rc = binding().dhd.setForce(f, self._id)
         if rc < 0:
             self._to_fault(f'dhdSetForce failed: {self._error()}')
+            self._hand.sent = np.zeros(self._m)
         elif rc == _MOTOR_SATURATED:
             self.saturated_writes += 1
             self._status_bits = _SATURATED

@@ -301,11 +301,8 @@ class OpenHapticsBackend(VendorBackend):
     def write(self, wrench: np.ndarray) -> None:
         if not self._active or self._hand is None:
             raise DeviceError(f'{self.name}: write() before activate()')
-        f = self._hand.force(wrench)        # zero while not grasping; faded in after a grasp
-        norm = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
-        if norm > self._max_force:          # the device's limit, the direction kept
-            k = self._max_force / norm
-            f = (k * f[0], k * f[1], k * f[2])
+        # Zero while not grasping, faded in after a grasp, within the device's limit.
+        f = self._hand.force(wrench, self._max_force)
         self._force = f
         if self._in_frame:
             self._require_hd().set_force(f)

@@ -182,6 +182,11 @@ class VendorHand:
         self.scale = 0.0                 # the fade of the force, 0..1
         self.grasps = 0                  # times the hand took hold
         self.clutched_cycles = 0         # cycles read while not grasping
+        #: The task wrench (N, ``m`` entries) of the newest :meth:`force`: what the device
+        #: was sent, in task terms (zero while not grasping, faded, limited).
+        self.sent = np.zeros(m)
+        #: Whether the newest :meth:`force` was limited in magnitude.
+        self.clamped = False
 
     def _wants(self, buttons: int) -> bool:
         o = self.opts
@@ -224,16 +229,28 @@ class VendorHand:
         """The task pose it reports now (where the hand holds the linkage, or held it)."""
         return np.array(self._held[:self._m])
 
-    def force(self, u: np.ndarray) -> tuple[float, float, float]:
+    def force(self, u: np.ndarray, limit: float = math.inf) -> tuple[float, float, float]:
         """The device force (device units and frame) of the task wrench ``u`` (N; already
         clamped and finite, ``m`` entries): zero while not grasping, faded in after a grasp
-        (module doc). Non-finite entries are taken as zero."""
+        (module doc), its magnitude limited to ``limit`` (device units; the direction kept:
+        the device's own force limit). Non-finite entries are taken as zero. What it amounts
+        to in task terms is kept in :attr:`sent` (the trace's ``applied``)."""
+        self.clamped = False
         if not self.grasping or self.scale <= 0.0:
+            self.sent = np.zeros(self._m)
             return 0.0, 0.0, 0.0
         k = self.scale
-        f = [float(x) if math.isfinite(x) else 0.0 for x in u]
+        f = [k * float(x) if math.isfinite(x) else 0.0 for x in u]
         fz = f[2] if self._m == 3 else 0.0
-        return self.opts.mapping.point_force((k * f[0], k * f[1], k * fz))
+        out = self.opts.mapping.point_force((f[0], f[1], fz))
+        norm = math.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2])
+        if norm > limit:                # the device's limit, the direction kept
+            c = limit / norm
+            self.clamped = True
+            out = (c * out[0], c * out[1], c * out[2])
+            f = [c * x for x in f]
+        self.sent = np.array(f[:self._m])
+        return out
 
     def values(self) -> dict[str, str]:
         """Diagnostics values: grasping, grasps, clutched cycles."""
@@ -344,6 +361,12 @@ class VendorBackend(DeviceBackend):
         if self.identity is None:
             return super().hardware_id
         return self.identity.hardware_id(self.name)
+
+    def written(self, wrench: np.ndarray) -> np.ndarray:
+        """The task wrench the device was sent by the newest ``write(wrench)``
+        (:attr:`VendorHand.sent`: zero while the hand does not grasp, faded after a grasp,
+        limited by the device's force limit)."""
+        return wrench if self._hand is None else self._hand.sent
 
     def values(self) -> dict[str, str]:
         """The identity's values and the hand's (:meth:`VendorHand.values`); a backend adds

@@ -383,13 +383,15 @@ class HaplyBackend(DeviceBackend):
         if not np.all(np.isfinite(w)):
             self.nonfinite_writes += 1
             w = np.where(np.isfinite(w), w, 0.0)
-        x, y, z = self._hand.force(w)
-        norm = math.sqrt(x * x + y * y + z * z)
-        if norm > self.max_force:
+        x, y, z = self._hand.force(w, self.max_force)
+        if self._hand.clamped:
             self.force_clamped += 1
-            k = self.max_force / norm
-            x, y, z = k * x, k * y, k * z
         self._send((x, y, z))
+
+    def written(self, wrench: np.ndarray) -> np.ndarray:
+        """What the newest ``write`` sent, in task terms (``VendorHand.sent``: zero while the
+        hand does not grasp, faded, limited by ``max_force``): the trace's ``applied``."""
+        return wrench if self._hand is None else self._hand.sent
 
     def read(self, dt: float) -> DeviceReading:
         ws = self._ws

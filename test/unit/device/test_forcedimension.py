@@ -259,6 +259,40 @@ def test_engage_button_gates_the_force() -> None:
         bench.release()
 
 
+def test_applied_is_what_the_device_got_released_and_fading_in() -> None:
+    """The loop's ``applied`` (the states', the trace's and the bag's) is what the device was
+    sent, not the controller's command: exactly zero while the engage button is released,
+    the faded force while the grasp fades in (``grasp_ramp_ms: 5``, 1 ms cycles: 0.2 of the
+    command more each cycle), the command once faded in, and zero again once released. The
+    emulated device's own force is the reference, cycle by cycle."""
+    with emulator() as lib:
+        bench = Bench(subject({'grasp_ramp_ms': 5, 'engage_button': 0}))
+        assert bench.dt == 0.001
+        bench.activate()
+        bench.engage()
+        u = np.array([0.5, -0.25])[:bench.m]
+
+        def cycle() -> np.ndarray:
+            bench.cycle(u)
+            got = bench.written[-1]
+            np.testing.assert_array_equal(got, applied(lib)[:bench.m])
+            return got
+
+        for _ in range(10):
+            assert not cycle().any(), 'applied while the engage button is released'
+        lib.fdemuSetButtons(1)
+        # The first cycle's read sees the button: its write went out before, as zero.
+        fractions = [float(cycle()[0] / u[0]) for _ in range(8)]
+        np.testing.assert_allclose(fractions, [0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.0, 1.0],
+                                   rtol=1e-12, atol=0.0)
+        assert all(0.0 < f < 1.0 for f in fractions[1:5])
+        np.testing.assert_array_equal(bench.written[-1], u)
+        lib.fdemuSetButtons(0)
+        cycle()                         # this cycle's read lets go
+        assert not cycle().any(), 'applied after the engage button was released'
+        bench.release()
+
+
 def test_the_devices_own_force_limit() -> None:
     """``max_force: 5``: the device saturates a 10 N command at 5 N (``dhdSetMaxForce``), and
     the states say so (SATURATED) and the diagnostics count it."""

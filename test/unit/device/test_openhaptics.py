@@ -308,6 +308,45 @@ def test_the_engage_button_grasps_and_the_clutch_lets_go() -> None:
         be.deactivate()
 
 
+def test_applied_is_what_the_device_got_released_fading_in_and_limited() -> None:
+    """The loop's ``applied`` (the trace's column) is what the motors were sent: exactly zero
+    while the engage button is released, the faded force while the grasp fades in
+    (``grasp_ramp_ms: 5``: 0.2 of the command more each 1 ms cycle), and within the Touch's
+    3.3 N once the faded command exceeds it (a 5 N command: 0.66 of it). The emulated
+    motors' committed force, in task axes, is the reference, cycle by cycle."""
+    lib = _emu()
+    lib.hdEmuSetButtons.argtypes = [ctypes.c_int, ctypes.c_int]
+    bench = Bench(Subject('openhaptics', EmulatedTouch,
+                          dict(OPTIONS, engage_button=0, grasp_ramp_ms=5.0),
+                          scenario='fig8_point'))
+    assert bench.dt == 0.001
+    u = np.array([4.0, -3.0])
+    try:
+        bench.activate()
+        bench.engage()
+
+        def cycle() -> np.ndarray:
+            bench.cycle(u)
+            got = bench.written[-1]
+            assert isinstance(bench.backend, OpenHapticsBackend)
+            np.testing.assert_allclose(got, bench.backend.task_force(applied()[0]),
+                                       rtol=0.0, atol=1e-12)
+            return got
+
+        for _ in range(10):
+            assert not cycle().any(), 'applied while the engage button is released'
+        lib.hdEmuSetButtons(1, 0)
+        fractions = [float(cycle()[0] / u[0]) for _ in range(7)]
+        np.testing.assert_allclose(fractions, [0.0, 0.2, 0.4, 0.6, 0.66, 0.66, 0.66],
+                                   rtol=1e-12, atol=0.0)
+        lib.hdEmuSetButtons(0, 0)
+        cycle()                         # this cycle's read lets go
+        assert not cycle().any(), 'applied after the engage button was released'
+    finally:
+        lib.hdEmuSetButtons(0, 0)
+        bench.release()
+
+
 def test_axes_point_tasks_only() -> None:
     """3 forces: fig8 (torque about z) is refused with check_axes' one line; configure
     refuses a rigid task too; options are checked naming the field."""
