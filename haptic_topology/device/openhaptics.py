@@ -37,6 +37,11 @@ The buttons (``HD_CURRENT_BUTTONS``) grasp and clutch (``engage_button``,
 answers the motion. Each force sent is clamped in magnitude to the device's
 ``HD_NOMINAL_MAX_FORCE`` (the direction kept; ``max_force``: a lower limit).
 
+**Several devices.** ``device`` names the OpenHaptics configuration to open (Touch_Setup's
+name, ``Default Device`` unless renamed); with ``serial``, ``device`` may list several names:
+each is opened, the one whose ``HD_DEVICE_SERIAL_NUMBER`` is ``serial`` is kept and the others
+closed (:func:`~haptic_topology.device.openhaptics_hd.open_device`).
+
 **Calibration.** A Touch needs its inkwell calibration after power-up: ``activate`` checks
 ``hdCheckCalibration``, asks ``hdUpdateCalibration`` when an update is due, and refuses to
 start otherwise, saying to put the stylus in the inkwell (or run ``Touch_Setup`` /
@@ -50,7 +55,7 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -68,7 +73,6 @@ from haptic_topology.device.openhaptics_hd import (
     HD_DEVICE_SERIAL_NUMBER,
     HD_DEVICE_VENDOR,
     HD_FORCE_OUTPUT,
-    HD_INVALID_HANDLE,
     HD_NOMINAL_MAX_FORCE,
     HD_SUCCESS,
     HD_VERSION,
@@ -79,7 +83,9 @@ from haptic_topology.device.openhaptics_hd import (
     STALL,
     HdLibrary,
     error_text,
+    hd_string,
     load_hd,
+    open_device,
 )
 from haptic_topology.device.vendor import (
     DeviceIdentity,
@@ -92,7 +98,7 @@ from haptic_topology.vocabulary import DeviceStatus
 
 #: The backend's own options (name -> default), besides the vendor ones
 #: (:data:`~haptic_topology.device.vendor.VENDOR_OPTIONS`).
-OWN_OPTIONS: dict[str, Any] = {'device': 'Default Device', 'max_force': None}
+OWN_OPTIONS: dict[str, Any] = {'device': 'Default Device', 'serial': None, 'max_force': None}
 
 
 def support() -> VendorSupport:
@@ -111,35 +117,22 @@ def list_devices() -> list[str]:
     """The device of the default configuration, opened briefly (``hdInitDevice``, no output
     enabled): ``'<model> serial <serial>'``."""
     hd = load_hd().hd
-    handle = _open(hd, OWN_OPTIONS)
+    handle = open_device(hd, (str(OWN_OPTIONS['device']),), None)
     try:
-        return [f'{hd.get_model()} serial {_string(hd, HD_DEVICE_SERIAL_NUMBER)}']
+        return [f'{hd.get_model()} serial {hd_string(hd, HD_DEVICE_SERIAL_NUMBER)}']
     finally:
         hd.close_device(handle)
 
 
-def _string(hd: Any, what: int) -> str:
-    lib = hd._lib_hd
-    lib.hdGetString.argtypes = [ctypes.c_uint]
-    lib.hdGetString.restype = ctypes.c_char_p
-    return (lib.hdGetString(what) or b'').decode(errors='replace')
-
-
-def _open(hd: Any, options: Mapping[str, Any]) -> int:
-    """``hdInitDevice`` of the configuration ``options['device']``: its handle, or a
-    :class:`~haptic_topology.errors.DeviceError` with the HD error (the error queue emptied:
-    pyOpenHaptics' own ``init_device`` compares with the wrong constant)."""
-    lib = hd._lib_hd
-    lib.hdInitDevice.argtypes = [ctypes.c_char_p]
-    lib.hdInitDevice.restype = ctypes.c_uint
-    handle = int(lib.hdInitDevice(str(options.get('device') or 'Default Device').encode()))
-    if handle != HD_INVALID_HANDLE:
-        return handle
-    code = int(hd._get_error().errorCode)
-    while int(hd._get_error().errorCode) != HD_SUCCESS:
-        pass
-    raise DeviceError(f'openhaptics: hdInitDevice failed: {error_text(code)}: is the Touch '
-                      'connected and its driver (Touch_Setup) configured?')
+def _names(value: Any) -> tuple[str, ...]:
+    """``backend_options.device``: one configuration name or a list of them."""
+    names = [value] if isinstance(value, str) else value
+    if (not isinstance(names, list) or not names or len(set(names)) != len(names)
+            or not all(isinstance(n, str) and n for n in names)):
+        raise DeviceError(f'{BACKEND}: backend_options.device: expected an OpenHaptics device '
+                          'name (Touch_Setup) or a list of different names, got '
+                          f'{value!r}')
+    return tuple(names)
 
 
 class OpenHapticsBackend(VendorBackend):
@@ -147,7 +140,9 @@ class OpenHapticsBackend(VendorBackend):
     vendor ones (:func:`~haptic_topology.device.vendor.parse_vendor_options`: ``axes``,
     ``origin``, ``scale``, ``force_scale``, ``engage_button``, ``clutch_button``,
     ``grasp_ramp_ms``), ``device`` (the OpenHaptics configuration name, default ``Default
-    Device``), ``max_force`` (N, below the device's own limit)."""
+    Device``, or a list of names), ``serial`` (the unit's HD_DEVICE_SERIAL_NUMBER: the one
+    of those devices to open, :func:`~haptic_topology.device.openhaptics_hd.open_device`;
+    null: the one name given), ``max_force`` (N, below the device's own limit)."""
 
     name = 'openhaptics'
     drives_loop = True
@@ -160,11 +155,12 @@ class OpenHapticsBackend(VendorBackend):
         opened and closed again (``hdInitDevice``, ``hdDisableDevice``: no output enabled)."""
         self.configure(config)
         hd = load_hd().hd
-        hd.close_device(_open(hd, self._own))
+        hd.close_device(open_device(hd, self._names, self._serial))
 
     def __init__(self) -> None:
         super().__init__()
-        self._own: dict[str, Any] = dict(OWN_OPTIONS)
+        self._names: tuple[str, ...] = (str(OWN_OPTIONS['device']),)
+        self._serial: str | None = None
         self._option_max_force = math.inf
         self._lib: HdLibrary | None = None
         self._handle: int | None = None
@@ -190,10 +186,19 @@ class OpenHapticsBackend(VendorBackend):
     def configure_own(self, own: dict[str, Any]) -> None:
         max_force = optional_number(own['max_force'], 'max_force', self.name, 1000.0,
                                     "N; null: the device's own limit")
-        if not isinstance(own['device'], str) or not own['device']:
-            raise DeviceError(f'{self.name}: backend_options.device: expected the OpenHaptics '
-                              f'device name (Touch_Setup), got {own["device"]!r}')
-        self._own = own
+        names = _names(own['device'])
+        serial = own['serial']
+        if isinstance(serial, int) and not isinstance(serial, bool) and serial >= 0:
+            serial = str(serial)
+        if serial is not None and (not isinstance(serial, str) or not serial):
+            raise DeviceError(f'{self.name}: backend_options.serial: expected the device\'s '
+                              'serial number (HD_DEVICE_SERIAL_NUMBER, text) or null, got '
+                              f'{own["serial"]!r}')
+        if serial is None and len(names) > 1:
+            raise DeviceError(f'{self.name}: backend_options.device: {len(names)} names need '
+                              'backend_options.serial to choose among them (or name one '
+                              'device)')
+        self._names, self._serial = names, serial
         self._option_max_force = math.inf if max_force is None else max_force
 
     def values(self) -> dict[str, str]:
@@ -241,10 +246,10 @@ class OpenHapticsBackend(VendorBackend):
         self._lib = load_hd()
         hd = self._lib.hd
         lib = hd._lib_hd
-        self._handle = _open(hd, self._own)
-        self.identity = DeviceIdentity(_string(hd, HD_DEVICE_VENDOR), hd.get_model(),
-                                        _string(hd, HD_DEVICE_SERIAL_NUMBER),
-                                        f'OpenHaptics {_string(hd, HD_VERSION)}')
+        self._handle = open_device(hd, self._names, self._serial)
+        self.identity = DeviceIdentity(hd_string(hd, HD_DEVICE_VENDOR), hd.get_model(),
+                                        hd_string(hd, HD_DEVICE_SERIAL_NUMBER),
+                                        f'OpenHaptics {hd_string(hd, HD_VERSION)}')
         self._check_calibration(lib)
         nominal = hd._get_doublev(HD_NOMINAL_MAX_FORCE, ctypes.c_double).value
         self._max_force = min(float(nominal) if nominal > 0 else math.inf,

@@ -50,7 +50,8 @@ from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 PARAMS = Path(__file__).resolve().parents[3] / 'config' / 'devices' / 'openhaptics_emulator.yaml'
 OPTIONS = {'engage_button': None, 'clutch_button': None, 'grasp_ramp_ms': 0.0}
 EMU_VARIABLES = ('HD_EMU_UNPLUG_AT', 'HD_EMU_NAN_AT', 'HD_EMU_NAN_FOR', 'HD_EMU_FAIL',
-                 'HD_EMU_CALIBRATION', 'HD_EMU_INKWELL', 'HD_EMU_MAX_FORCE', 'HD_EMU_BUTTONS')
+                 'HD_EMU_CALIBRATION', 'HD_EMU_INKWELL', 'HD_EMU_MAX_FORCE', 'HD_EMU_BUTTONS',
+                 'HD_EMU_DEVICES')
 
 pytestmark = pytest.mark.skipif(not EMULATOR.is_file(),
                                 reason=f'{EMULATOR} not built: run scripts/setup.sh')
@@ -345,6 +346,86 @@ def test_applied_is_what_the_device_got_released_fading_in_and_limited() -> None
     finally:
         lib.hdEmuSetButtons(0, 0)
         bench.release()
+
+
+THREE = 'Left Touch=EMU-L,Right Touch=EMU-R,Spare=EMU-S'
+NAMES = ['Left Touch', 'Right Touch', 'Spare']
+
+
+def test_a_device_is_chosen_among_several_by_serial(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three configured devices (the emulator's ``HD_EMU_DEVICES``): ``device`` lists their
+    names, ``serial`` picks one. Each name is opened and its HD_DEVICE_SERIAL_NUMBER read; the
+    matching one is kept and made current (its identity, its frames), the others are closed
+    (they open again at once); preflight does the same and closes it too."""
+    monkeypatch.setenv('HD_EMU_DEVICES', THREE)
+    sc = load_scenario('fig8_point')
+    OpenHapticsBackend().preflight(BackendConfig(
+        sc.device, initial_device_pose(sc), {},
+        dict(OPTIONS, device=NAMES, serial='EMU-R'), sc.source))
+    be = _backend({'device': NAMES, 'serial': 'EMU-R'})
+    be.activate()
+    try:
+        assert be.hardware_id == 'openhaptics Touch serial EMU-R'
+        assert be.values()['device_serial'] == 'EMU-R'
+        lib = ctypes.CDLL(str(EMULATOR))
+        lib.hdInitDevice.argtypes = [ctypes.c_char_p]
+        lib.hdInitDevice.restype = ctypes.c_uint
+        lib.hdGetCurrentDevice.restype = ctypes.c_uint
+        kept = lib.hdGetCurrentDevice()
+        for name in (b'Left Touch', b'Spare'):          # closed: they open again
+            other = lib.hdInitDevice(name)
+            assert other not in (kept, 0xFFFFFFFF), name
+            lib.hdDisableDevice(other)
+        lib.hdMakeCurrentDevice(kept)
+        be.write(np.zeros(2))
+        assert be.read(0.001).status == DeviceStatus.OK
+        be.write(np.array([0.5, -0.25]))
+        be.read(0.001)
+        np.testing.assert_array_equal(applied()[0], [0.5, -0.25, 0.0])
+    finally:
+        be.write(np.zeros(2))
+        be.deactivate()
+    # A serial number on its own (one name, the default configuration) is checked too.
+    be = _backend({'device': 'Spare', 'serial': 'EMU-S'})
+    be.activate()
+    try:
+        assert be.hardware_id == 'openhaptics Touch serial EMU-S'
+    finally:
+        be.deactivate()
+
+
+def test_no_device_with_that_serial_names_the_serials_found(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """No device with the serial asked for: one line naming each name's serial (or its HD
+    error), every device closed again (the next activation opens the right one)."""
+    monkeypatch.setenv('HD_EMU_DEVICES', THREE)
+    be = _backend({'device': [*NAMES, 'Elsewhere'], 'serial': 'EMU-X'})
+    with pytest.raises(DeviceError) as err:
+        be.activate()
+    assert str(err.value) == (
+        "openhaptics: no device with serial EMU-X among backend_options.device: found "
+        "'Left Touch' serial EMU-L; 'Right Touch' serial EMU-R; 'Spare' serial EMU-S; "
+        "'Elsewhere': HD_COMM_CONFIG_ERROR (0x303)")
+    be.deactivate()
+    be = _backend({'device': NAMES, 'serial': 'EMU-L'})
+    be.activate()
+    try:
+        assert be.hardware_id == 'openhaptics Touch serial EMU-L'
+    finally:
+        be.deactivate()
+
+
+@pytest.mark.parametrize(('options', 'text'), [
+    ({'device': NAMES}, 'openhaptics: backend_options.device: 3 names need '
+                        'backend_options.serial to choose among them'),
+    ({'device': ['a', 'a'], 'serial': 'x'}, r"backend_options.device: expected an OpenHaptics "
+                                            r"device name \(Touch_Setup\) or a list of "
+                                            r"different names, got \['a', 'a'\]"),
+    ({'serial': ['x']}, r"backend_options.serial: expected the device's serial number"),
+])
+def test_device_selection_options_name_the_field(options: dict, text: str) -> None:
+    with pytest.raises(DeviceError, match=text):
+        _backend(options)
 
 
 def test_axes_point_tasks_only() -> None:
