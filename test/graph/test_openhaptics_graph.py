@@ -11,6 +11,7 @@ wait has a deadline.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -31,16 +32,22 @@ PARAMS = Path(__file__).resolve().parents[2] / 'config' / 'devices' / 'openhapti
 REASON = 'device fault: openhaptics: Touch: HD_COMM_ERROR (0x302): output zero while it lasts'
 
 
-def test_a_run_on_the_emulated_touch_unplugged_mid_run(tmp_path: Path) -> None:
+@pytest.mark.parametrize('layout', ['hosted', 'thread'])
+def test_a_run_on_the_emulated_touch_unplugged_mid_run(tmp_path: Path, layout: str) -> None:
+    """``hosted``: the loop process on the servo clock (``run_clocked``); ``thread``
+    (``loop_process: false``): the driver's loop thread paces itself and each ``read``
+    exchanges a frame with the servo thread (``hdScheduleSynchronous``)."""
     bag = tmp_path / 'fig8_point'
     env = dict(os.environ, HD_EMU_UNPLUG_AT='1500', HAPTIC_TOPOLOGY_LIBHD=str(EMULATOR))
     proc = subprocess.run([sys.executable, '-m', 'haptic_topology.cli', 'run', 'fig8_point',
-                           '--params', str(PARAMS), '--duration', '2', '--out', str(bag)],
+                           '--params', str(PARAMS), '--duration', '2', '--out', str(bag),
+                           '--layout', layout],
                           capture_output=True, timeout=300, env=env, check=False)
     out = (proc.stdout + proc.stderr).decode(errors='replace')
     assert proc.returncode == 0, out
     assert '\ndevice: backend openhaptics, openhaptics Touch serial EMU-00001\n' in out, out
-    assert (bag / 'summary.json').is_file()
+    summary = json.loads((bag / 'summary.json').read_text())
+    assert summary['layout'] == layout
     trace = Trace.from_csv(bag / 'trace.parquet')
     fault = (trace.columns['status'].astype(int) & int(DeviceStatus.FAULT)) != 0
     assert not fault[0] and fault[-1], 'expected states before the unplug, FAULT at the end'
