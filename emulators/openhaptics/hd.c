@@ -49,6 +49,8 @@
  *                        HD_COMM_CONFIG_ERROR; hdEnable, hdStartScheduler, hdSetDoublev record
  *                        HD_INVALID_OPERATION and do nothing
  *   HD_EMU_BUTTONS       button mask (HD_CURRENT_BUTTONS), default 0
+ *   HD_EMU_BUTTON_TICKS=N1,N2,...  the buttons of HD_EMU_BUTTONS are held from servo tick N1,
+ *                        released from N2, held again from N3, ... (none before N1; at most 16)
  *   HD_EMU_INKWELL       1: the stylus is in the inkwell (HD_CURRENT_INKWELL_SWITCH)
  *   HD_EMU_CALIBRATION   ok | needs_update | needs_manual_input (hdCheckCalibration)
  *   HD_EMU_MAX_FORCE     HD_NOMINAL_MAX_FORCE in N (default 3.3, a Touch's)
@@ -184,6 +186,8 @@ static long long tick_count, unplug_at = -1, nan_at = -1, nan_for = -1, stall_at
 static double sim_t, mass = 0.1, damping = 1.0, hand_k = 100.0, hand_b = 2.0;
 static double hand_mm = 10.0, hand_hz = 0.5, resolution_mm = 0.055, max_force = 3.3;
 static int buttons, inkwell, calibration = HD_CALIBRATION_OK;
+static int button_mask, n_button_ticks;
+static long long button_ticks[16];
 static char fail_fn[64], model[64] = "Touch", serial[64] = "EMU-00001";
 static long long committed_ns, commits, tick_ns, skipped;
 
@@ -260,6 +264,11 @@ static void step_device(double dt) {
     }
     sim_t += dt;
     tick_count++;
+    if (n_button_ticks) {       /* HD_EMU_BUTTON_TICKS: held after an odd number of them */
+        int passed = 0;
+        while (passed < n_button_ticks && tick_count >= button_ticks[passed]) passed++;
+        buttons = passed % 2 ? button_mask : 0;
+    }
 }
 
 static void read_state(Snapshot *s) {
@@ -309,6 +318,14 @@ static void reset_device(void) {
     resolution_mm = env_double("HD_EMU_RESOLUTION_MM", 0.055);
     max_force = env_double("HD_EMU_MAX_FORCE", 3.3);
     buttons = (int)env_ll("HD_EMU_BUTTONS", 0);
+    button_mask = buttons;
+    n_button_ticks = 0;
+    for (const char *b = getenv("HD_EMU_BUTTON_TICKS"); b && *b && n_button_ticks < 16;) {
+        char *end;
+        button_ticks[n_button_ticks++] = strtoll(b, &end, 10);
+        b = *end == ',' ? end + 1 : NULL;
+    }
+    if (n_button_ticks) buttons = 0;
     inkwell = (int)env_ll("HD_EMU_INKWELL", 0);
     env_text("HD_EMU_MODEL", model, sizeof model, "Touch");
     env_text("HD_EMU_SERIAL", serial, sizeof serial, "EMU-00001");
