@@ -219,12 +219,9 @@ class DeviceBackend(ABC):
         """The device state ``dt`` s (measured) after the previous read."""
 
     def written(self, wrench: np.ndarray) -> np.ndarray:
-        """The wrench (task vector, N, N m) the device was sent by the newest
-        ``write(wrench)``: what the driver records as applied (the trace's ``applied``, the
-        states' and bags'). Default: ``wrench`` itself. A backend whose device gets something
-        else (a vendor device while the hand does not grasp gets zero; a force faded in, or
-        limited by the device's own limit) returns that. Called once per cycle right after
-        ``write``: no I/O."""
+        """What the device was sent by the newest ``write(wrench)`` (task vector, N, N m; the
+        states', bags' and traces' ``applied``), called right after it: ``wrench`` unless the
+        device gets something else (zero while a vendor hand does not grasp, a fade)."""
         return wrench
 
     def cleanup(self) -> None:
@@ -253,38 +250,33 @@ class DeviceBackend(ABC):
         self.write(np.zeros(self.task_dim()))
         return self.read(dt)
 
-    #: The task of the newest successful :meth:`configure` (:meth:`keep_task`), else None.
-    _task: TaskSpace | None = None
+    _task: TaskSpace | None = None      # the task kept by keep_task
 
     def keep_task(self, config: BackendConfig) -> TaskSpace:
-        """Keep ``config.params.task`` as the configured task (what :meth:`task` and
-        :meth:`task_dim` answer from now on) and return it: a backend calls it in its
-        :meth:`configure`, once its own checks have passed."""
+        """Keep and return ``config.params.task`` (:meth:`task`, :meth:`task_dim`): called by
+        a backend's :meth:`configure` once its own checks have passed."""
         self._task = config.params.task
         return self._task
 
     def task_dim(self) -> int:
-        """m of the task vectors (3 planar, 6 spatial, 2 planar_point, 3 spatial_point) of
-        :meth:`task`; before ``configure`` a :class:`~haptic_topology.errors.DeviceError`. A
-        backend that does not call :meth:`keep_task` overrides it."""
+        """m of :meth:`task` (3 planar, 6 spatial, 2 planar_point, 3 spatial_point); before
+        ``configure`` a DeviceError. A backend that does not :meth:`keep_task` overrides it."""
         task = self.task()
         if task is None:
             raise DeviceError(f'{self.name}: used before configure()')
         return task.dim
 
     def task(self) -> TaskSpace | None:
-        """The task the backend was configured for (``config.params.task`` of
-        :meth:`configure`, kept by :meth:`keep_task`), or None: before ``configure``, or a
-        backend that does not keep it. m alone does not tell it (3 is ``planar`` or
-        ``spatial_point``)."""
+        """The task configured (:meth:`keep_task`), or None: before ``configure``, or a
+        backend that does not keep it (m alone does not tell: 3 is planar or spatial_point)."""
         return self._task
 
     @property
     def hardware_id(self) -> str:
         """The device this backend drives, as ``DiagnosticStatus.hardware_id`` of the driver's
         diagnostics: ``'<name> <task>'`` once configured (e.g. ``'sim_maglev planar'``,
-        ``'sim_maglev spatial_point'``; the task of :meth:`task`, else named from
-        :meth:`task_dim` where one task has that m, else ``'<m>-dof'``), ``'<name>'`` before.
+        ``'sim_maglev spatial_point'``; the task of ``task()``, else named from ``task_dim()``
+        where one task has that m, else ``'<m>-dof'``), ``'<name>'`` before.
         A backend of a real device overrides it with what identifies the unit (model and
         serial number, port or address). Read from the diagnostics thread at 1 Hz, never in
         the device cycle: return text, do no I/O."""
@@ -328,13 +320,7 @@ class SimMaglevBackend(DeviceBackend):
     name = 'sim_maglev'
     simulated = True
 
-    @classmethod
-    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
-        """The simulated maglev renders any task: it senses and actuates every axis."""
-        del options
-        return ALL_DEVICE_AXES
-
-    def __init__(self) -> None:
+    def __init__(self) -> None:      # axes(): every axis (the default), any task
         self._model: MaglevModel | None = None
         self._sensor: PositionSensor | None = None
         self._user: UserModel | None = None

@@ -313,12 +313,13 @@ class VendorBackend(DeviceBackend):
     (:data:`~haptic_topology.device.backend.TRANSLATION_AXES`; point tasks only), runs on its
     own clock, and at :meth:`configure` checks the common options (:data:`VENDOR_OPTIONS`)
     and its own (:attr:`own_options`, checked by :meth:`configure_own`), then makes its
-    :class:`VendorHand` and keeps the task. Once a device is opened, :attr:`identity` (set by
+    :class:`VendorHand` and keeps the task. Once a device is opened, ``identity`` (set by
     the backend) gives ``hardware_id`` (``'<name> <model> serial <serial>'``) and the
     diagnostics values, with the hand's."""
 
     lockstep = False
-    #: The backend's own options (name -> default), besides :data:`VENDOR_OPTIONS`.
+    #: The backend's own options (name -> default), besides
+    #: :data:`~haptic_topology.device.vendor.VENDOR_OPTIONS`.
     own_options: ClassVar[dict[str, Any]] = {}
 
     def __init__(self) -> None:
@@ -369,7 +370,8 @@ class VendorBackend(DeviceBackend):
         return wrench if self._hand is None else self._hand.sent
 
     def values(self) -> dict[str, str]:
-        """The identity's values and the hand's (:meth:`VendorHand.values`); a backend adds
+        """The identity's values and the hand's
+        (:meth:`~haptic_topology.device.vendor.VendorHand.values`); a backend adds
         its own counters."""
         out = {} if self.identity is None else self.identity.values()
         if self._hand is not None:
