@@ -243,12 +243,13 @@ class VendorHand:
         f = [k * float(x) if math.isfinite(x) else 0.0 for x in u]
         fz = f[2] if self._m == 3 else 0.0
         out = self.opts.mapping.point_force((f[0], f[1], fz))
-        norm = math.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2])
-        if norm > limit:                # the device's limit, the direction kept
-            c = limit / norm
-            self.clamped = True
-            out = (c * out[0], c * out[1], c * out[2])
-            f = [c * x for x in f]
+        if limit < math.inf:
+            norm = math.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2])
+            if norm > limit:            # the device's limit, the direction kept
+                c = limit / norm
+                self.clamped = True
+                out = (c * out[0], c * out[1], c * out[2])
+                f = [c * x for x in f]
         self.sent = np.array(f[:self._m])
         return out
 
