@@ -445,8 +445,8 @@ class VendorProbe:
 
 
 def probe(name: str) -> VendorProbe:
-    """Load the vendor backend ``name``'s library and list its devices (a failure of either
-    is reported in the probe, never raised)."""
+    """Load the vendor backend ``name``'s library and list its devices (a failure of either,
+    a missing library or one that does not load, is reported in the probe, never raised)."""
     support = vendor_support(name)
     if support is None:
         raise DeviceError(f'{name}: not a vendor backend (expected one of '
@@ -455,6 +455,8 @@ def probe(name: str) -> VendorProbe:
         where = support.load()
     except VendorLibraryMissing as exc:
         return VendorProbe(support, False, exc.detail or str(exc))
+    except HapticTopologyError as exc:  # e.g. another copy of the library loaded already
+        return VendorProbe(support, False, str(exc))
     try:
         devices = tuple(support.devices())
     except HapticTopologyError as exc:
