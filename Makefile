@@ -22,7 +22,7 @@ export DEMO_CMD
 
 PYTEST_ARGS ?=
 
-.PHONY: help setup setup-tests test test-quick lint typecheck docs pytest demo bench soak clean colcon-check
+.PHONY: help setup setup-tests robots test test-quick lint typecheck docs pytest demo bench soak clean colcon-check
 
 help:
 	@echo 'make demo       set up the venv and run the demo'
@@ -31,6 +31,7 @@ help:
 	@echo 'make test-quick set up, then pytest -m "not graph" (no ROS 2 node processes, no lint)'
 	@echo 'make setup      create/update .venv (idempotent, seconds when nothing changed)'
 	@echo 'make setup-tests  make setup + what the tests add: Chromium (apt-get), npm ci of test/foxglove_client'
+	@echo 'make robots     make setup + the optional extra: example-robot-data (131 MB), robots by name'
 	@echo 'make lint | typecheck | pytest   one check (assumes setup)'
 	@echo 'make bench      loop, compute and recorder benchmarks -> bench/latest.json'
 	@echo 'make soak       an hour of run circle (SOAK_SECONDS=...): every process'"'"'s memory'
@@ -45,6 +46,11 @@ setup:
 # of the live-view test (Node.js >= 20 with npm). make demo and make docs do without them.
 setup-tests:
 	@bash scripts/setup.sh --for-tests
+
+# The optional extra "robots": example-robot-data (131 MB) for `linkage: {robot: NAME}` and
+# `--linkage robot:NAME` (requirements-robots.lock). Neither setup nor the tests need it.
+robots:
+	@bash scripts/setup.sh --robots
 
 test: setup-tests
 	@$(MAKE) --no-print-directory lint typecheck docs pytest

@@ -1,10 +1,22 @@
 """ament_python packaging of haptic_topology (also installable with pip into a venv)."""
 
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
 
 PACKAGE = 'haptic_topology'
+
+
+def tree(folder):
+    """``(share/haptic_topology/<dir>, [files])`` for every directory under ``folder`` (the
+    robot descriptions of config/robots/: URDF, SRDF, meshes, licences), in sorted order."""
+    out = []
+    for here, dirs, files in os.walk(folder):
+        dirs.sort()
+        if files:
+            out.append((f'share/{PACKAGE}/{here}', sorted(os.path.join(here, f) for f in files)))
+    return out
 
 setup(
     name=PACKAGE,
@@ -22,6 +34,7 @@ setup(
         (f'share/{PACKAGE}/config/meshes', sorted(glob('config/meshes/*.stl'))),
         (f'share/{PACKAGE}/config/devices', sorted(glob('config/devices/*.yaml'))),
         (f'share/{PACKAGE}/launch', sorted(glob('launch/*.launch.py'))),
+        *tree('config/robots'),
     ],
     install_requires=['setuptools'],
     zip_safe=False,

@@ -7,12 +7,15 @@ against the table and the box (coal GJK/EPA, through ``CoalPair.gap``), of one
 and of one 100 Hz VE update as ``ve_sim`` runs it (10 hand inputs of 1 ms, RK4, then the LMI
 snapshot), resting on the table and the box under the scenario's user wrench, with and
 without the contacts. CPU time of the calling thread (``time.thread_time_ns``), percentiles
-after a warm-up. Run: ``.venv/bin/python bench/mesh_contacts.py [--json OUT]``.
+after a warm-up. ``make bench`` runs it (:func:`section`, skipped with the reason where
+example-robot-data is not installed). Run alone: ``.venv/bin/python bench/mesh_contacts.py
+[--json OUT]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.metadata as md
 import json
 import time
 from typing import Any
@@ -21,6 +24,7 @@ import numpy as np
 
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics.contacts import ContactModel
+from haptic_topology.errors import HapticTopologyError
 from haptic_topology.sim import VirtualEnvironment, load_scenario
 
 CLOCK = time.thread_time_ns
@@ -100,17 +104,58 @@ def updates(name: str, contacts: bool, warm: int = 60, timed: int = 100) -> dict
     return out
 
 
-def run() -> dict[str, Any]:
-    return {name: {'queries': queries(name), 'with_contacts': updates(name, True),
-                   'without_contacts': updates(name, False)}
-            for name in ('panda_table', 'ur5_table')}
+#: The scenarios measured: robots of example-robot-data touching a mesh table and a box.
+SCENARIOS = ('panda_table', 'ur5_table')
+
+
+def run(n: int = 2000, warm: int = 60, timed: int = 100) -> dict[str, Any]:
+    return {name: {'queries': queries(name, n),
+                   'with_contacts': updates(name, True, warm, timed),
+                   'without_contacts': updates(name, False, warm, timed)}
+            for name in SCENARIOS}
+
+
+def section(n: int = 2000, warm: int = 60, timed: int = 100) -> dict[str, Any]:
+    """``make bench``'s mesh section: :func:`run`, or ``{'skipped': why}`` where
+    example-robot-data (the robots' URDFs and meshes, an optional extra) is not installed,
+    ``why`` the loader's own one-line error, which says how to install it."""
+    try:
+        md.distribution('example-robot-data')
+    except md.PackageNotFoundError:
+        why = 'example-robot-data is not installed'
+        try:
+            load_scenario(SCENARIOS[0])
+        except HapticTopologyError as exc:
+            why = str(exc)
+        return {'skipped': why}
+    return run(n, warm, timed)
+
+
+def table(res: dict[str, Any]) -> list[str]:
+    """The section's lines: per scenario the coal query (a link mesh's hull against the table
+    or the box) and the 100 Hz VE update with and without the contacts, p50/p99."""
+    if 'skipped' in res:
+        return [f'meshes (coal): skipped: {res["skipped"]}']
+    lines = ['meshes (coal)  hulls  query p50/p99 [us]  torques p50/p99 [us]  VE update '
+             'p50/p99 [ms] with / without contacts  fits 100 Hz']
+    for name, r in res.items():
+        q, w, wo = r['queries'], r['with_contacts'], r['without_contacts']
+        lines.append(
+            f'{name:13s}  {q["mesh_solids"]:5d}  {q["query"]["p50_us"]:8.1f} / '
+            f'{q["query"]["p99_us"]:6.1f}  {w["torques_call"]["p50_us"]:9.0f} / '
+            f'{w["torques_call"]["p99_us"]:7.0f}  {w["update"]["p50_us"] / 1e3:10.2f} / '
+            f'{w["update"]["p99_us"] / 1e3:5.2f}  {wo["update"]["p50_us"] / 1e3:7.2f} / '
+            f'{wo["update"]["p99_us"] / 1e3:5.2f}            '
+            f'{"yes" if w["fits_100hz"] else "NO"}')
+    return lines
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--json', help='also write the figures to this file')
     args = parser.parse_args()
-    res = run()
+    res = section()
+    print('\n'.join(table(res)))
     print(json.dumps(res, indent=2))
     if args.json:
         with open(args.json, 'w', encoding='utf-8') as f:

@@ -42,6 +42,10 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
    with ``sim_maglev``, ``forcedimension``, ``openhaptics`` and ``haply``, hosted,
    ``--loop-duration`` s each, and each one's figures as a ratio to ``sim_maglev``'s and to
    the floor. ``--vendors-only``: the floor and this section alone.
+10. Mesh contacts (``bench/mesh_contacts.py``, run after section 2): the Panda's and the UR5's
+    collision meshes against a mesh table and a box (``panda_table``, ``ur5_table``): one
+    coal query p50/p99, one ``ContactModel.torques``, and one 100 Hz VE update with and
+    without the contacts; skipped, with the reason, where example-robot-data is not installed.
 
 Then a table of every figure beside its goal (issues 11 and 26). Run: ``make bench`` (about
 26 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
@@ -72,6 +76,7 @@ sys.path.insert(0, str(BENCH))
 import core_costs  # noqa: E402
 import floor  # noqa: E402
 import link_auth  # noqa: E402
+import mesh_contacts  # noqa: E402
 import recorder_load  # noqa: E402
 import vendor_loops  # noqa: E402
 from chain_scenario import write_chain_scenario  # noqa: E402
@@ -315,6 +320,9 @@ def run(loop_duration: float, recorder_duration: float,
     res['fifo_permitted'] = fifo
     print('== controller and VE compute (no ROS) ...', flush=True)
     res['core'] = core_costs.run()
+    print('== mesh contacts: coal queries and VE updates with robot meshes (no ROS) ...',
+          flush=True)
+    res['meshes'] = mesh_contacts.section()
     _floors(res, loop_duration, fifo, 'floor')
     for key, layout, with_fifo, busy in LOOP_RUNS:
         if with_fifo and not fifo:
@@ -619,6 +627,8 @@ def table(res: dict[str, Any]) -> str:
         lines.extend(link_auth.table(res['link_auth']))
     if 'vendors' in res:
         lines.append(vendor_loops.table(res['vendors'], res.get('floor')))
+    if 'meshes' in res:
+        lines.extend(mesh_contacts.table(res['meshes']))
     return '\n'.join(lines)
 
 

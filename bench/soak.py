@@ -38,7 +38,8 @@ def _tool() -> str:
 def _phase_growth(samples: list[tuple[float, int]]) -> dict[str, Any]:
     """start/end/peak/slope of one series (the sampler's fit)."""
     s = RssSampler(lambda: {})
-    s.samples = {'p': samples}
+    for t, rss in samples:
+        s.add('p', t, rss)
     return s.growth()['p'] if samples else {}
 
 

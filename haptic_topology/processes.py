@@ -154,19 +154,85 @@ class Periodic:
             self.sample()
 
 
+class RssTrack:
+    """The resident-set samples of one process in bounded memory (a run may last hours).
+
+    Keeps the first, last and largest sample, one ``[s, MiB]`` point per ``series_step`` s,
+    every sample of the first ``2 * RSS_SETTLE`` s (the fit of a run shorter than that is over
+    its second half) and, from ``RSS_SETTLE`` s on, the running means and co-moments of time
+    and resident set (Welford's update) that the least-squares slope needs."""
+
+    __slots__ = ('first', 'last', 'peak', 'series', 'series_step', 'early', 'n', 't_mean',
+                 'r_mean', 'c_tr', 'm_tt')
+
+    def __init__(self, series_step: float = 10.0) -> None:
+        self.series_step = series_step
+        self.first: tuple[float, int] | None = None
+        self.last: tuple[float, int] = (0.0, 0)
+        self.peak = 0
+        self.series: list[list[float]] = []
+        self.early: list[tuple[float, int]] = []
+        self.n, self.t_mean, self.r_mean, self.c_tr, self.m_tt = 0, 0.0, 0.0, 0.0, 0.0
+
+    def add(self, t: float, rss: int) -> None:
+        """One sample: ``t`` s from the start, ``rss`` bytes (``t`` not decreasing)."""
+        if self.first is None:
+            self.first = (t, rss)
+        self.last = (t, rss)
+        self.peak = max(self.peak, rss)
+        if not self.series or t - self.series[-1][0] >= self.series_step:
+            self.series.append([round(t, 1), round(rss / 2 ** 20, 3)])
+        if t < 2.0 * RSS_SETTLE:
+            self.early.append((t, rss))
+        if t >= RSS_SETTLE:
+            self.n += 1
+            dt = t - self.t_mean
+            self.t_mean += dt / self.n
+            self.r_mean += (rss - self.r_mean) / self.n
+            self.c_tr += dt * (rss - self.r_mean)
+            self.m_tt += dt * (t - self.t_mean)
+
+    def slope(self, since: float) -> float | None:
+        """The least-squares slope (bytes/s) of the samples from ``since`` s on (``since`` is
+        ``RSS_SETTLE`` or, for a run shorter than ``2 * RSS_SETTLE``, half of it); None with
+        fewer than 3 samples or no spread in time."""
+        if since >= RSS_SETTLE:
+            n, c_tr, m_tt = self.n, self.c_tr, self.m_tt
+        else:
+            fit = [(t, r) for t, r in self.early if t >= since]
+            n = len(fit)
+            tm = sum(t for t, _ in fit) / n if n else 0.0
+            rm = sum(r for _, r in fit) / n if n else 0.0
+            c_tr = sum((t - tm) * (r - rm) for t, r in fit)
+            m_tt = sum((t - tm) ** 2 for t, _ in fit)
+        if n < 3 or m_tt <= 0.0:
+            return None
+        return c_tr / m_tt
+
+
 class RssSampler(Periodic):
     """Samples the resident set of named processes every ``period`` s in a thread of its own
-    (``pids()`` returns ``{name: pid}`` at each sample: a process may come and go).
+    (``pids()`` returns ``{name: pid}`` at each sample: a process may come and go), in
+    memory that does not grow with the run (:class:`RssTrack`).
 
     :meth:`growth` is the least-squares slope of each process's resident set (bytes/s) over
     its samples after :data:`RSS_SETTLE` s (or after half the run)."""
 
     name = 'rss_sampler'
 
-    def __init__(self, pids: Callable[[], dict[str, int]], period: float = 1.0) -> None:
+    def __init__(self, pids: Callable[[], dict[str, int]], period: float = 1.0,
+                 series_step: float = 10.0) -> None:
         super().__init__(period)
         self._pids = pids
-        self.samples: dict[str, list[tuple[float, int]]] = {}
+        self.series_step = series_step
+        self.tracks: dict[str, RssTrack] = {}
+
+    def add(self, name: str, t: float, rss: int) -> None:
+        """Record one sample of process ``name``: ``t`` s from the start, ``rss`` bytes."""
+        track = self.tracks.get(name)
+        if track is None:
+            track = self.tracks[name] = RssTrack(self.series_step)
+        track.add(t, rss)
 
     def sample(self) -> None:
         """Take one sample of every process now."""
@@ -174,34 +240,25 @@ class RssSampler(Periodic):
         for name, pid in self._pids().items():
             rss = rss_bytes(pid)
             if rss is not None:
-                self.samples.setdefault(name, []).append((t, rss))
+                self.add(name, t, rss)
 
-    def growth(self, series_step: float = 10.0) -> dict[str, dict[str, Any]]:
+    def growth(self) -> dict[str, dict[str, Any]]:
         """Per process: ``rss_mb`` (the last sample, MiB), ``start_mb`` and ``peak_mb`` (the
         first and the largest sample, MiB), ``growth_kb_s`` (kB/s, 1 kB = 1000 bytes),
         ``from_s`` (the fit's first second) and ``series`` (``[s, MiB]`` pairs at least
         ``series_step`` s apart); a process with fewer than 3 samples in the fit's window has
         no ``growth_kb_s``."""
         out: dict[str, dict[str, Any]] = {}
-        for name, pts in self.samples.items():
-            end = pts[-1][0]
-            since = min(RSS_SETTLE, 0.5 * end)
-            fit = [(t, r) for t, r in pts if t >= since]
-            series: list[list[float]] = []
-            for t, r in pts:
-                if not series or t - series[-1][0] >= series_step:
-                    series.append([round(t, 1), round(r / 2 ** 20, 3)])
-            entry: dict[str, Any] = {'rss_mb': round(pts[-1][1] / 2 ** 20, 2),
-                                     'start_mb': round(pts[0][1] / 2 ** 20, 2),
-                                     'peak_mb': round(max(r for _, r in pts) / 2 ** 20, 2),
-                                     'from_s': round(since, 1), 'series': series}
-            if len(fit) >= 3:
-                tm = sum(t for t, _ in fit) / len(fit)
-                rm = sum(r for _, r in fit) / len(fit)
-                den = sum((t - tm) ** 2 for t, _ in fit)
-                if den > 0.0:
-                    slope = sum((t - tm) * (r - rm) for t, r in fit) / den
-                    entry['growth_kb_s'] = round(slope / 1000.0, 3)
+        for name, tr in self.tracks.items():
+            assert tr.first is not None
+            since = min(RSS_SETTLE, 0.5 * tr.last[0])
+            entry: dict[str, Any] = {'rss_mb': round(tr.last[1] / 2 ** 20, 2),
+                                     'start_mb': round(tr.first[1] / 2 ** 20, 2),
+                                     'peak_mb': round(tr.peak / 2 ** 20, 2),
+                                     'from_s': round(since, 1), 'series': list(tr.series)}
+            slope = tr.slope(since)
+            if slope is not None:
+                entry['growth_kb_s'] = round(slope / 1000.0, 3)
             out[name] = entry
         return out
 

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Regenerate requirements.lock from requirements.in in a throw-away venv, so the lock holds the
-# resolver's answer for the direct requirements and nothing that happened to be in .venv.
+# resolver's answer for the direct requirements and nothing that happened to be in .venv; then
+# the optional extra's lock, requirements-robots.lock (requirements-robots.in resolved with
+# the new lock as constraints: only what the extra adds).
 #
-#   scripts/lock.sh [--keep-pins] [OUT]
+#   scripts/lock.sh [--keep-pins] [OUT]     (the extra's lock: beside OUT, requirements-robots.lock)
 #
 # --keep-pins: resolve with the current requirements.lock as constraints (pip -c), so every
 # distribution already locked keeps its version and only what requirements.in adds is
@@ -32,3 +34,8 @@ fi
 "$tmp/venv/bin/python" -m pip check
 "$tmp/venv/bin/python" "$root/scripts/freeze_lock.py" > "$out"
 echo "wrote $out"
+robots_out=$(dirname "$out")/requirements-robots.lock
+"$tmp/venv/bin/python" -m pip install -qq -r "$root/requirements-robots.in" -c "$out"
+"$tmp/venv/bin/python" -m pip check
+"$tmp/venv/bin/python" "$root/scripts/freeze_lock.py" --extra robots "$out" > "$robots_out"
+echo "wrote $robots_out"

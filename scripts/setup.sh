@@ -7,9 +7,13 @@
 #   scripts/setup.sh              what `make setup` and `make demo` need (steps 1-6): no browser,
 #                                 no Node.js, no root
 #   scripts/setup.sh --for-tests  the same, then what `make test` adds (steps 7-8)
+#   scripts/setup.sh --robots     the same, plus the optional extra "robots" (step 2b: what
+#                                 `make robots` runs; combines with --for-tests)
 #
 #   1. <venv> from python3.11, if missing
 #   2. pip install --no-deps -r requirements.lock                (stamp: hash of the lock)
+#   2b. --robots: pip install --no-deps -r requirements-robots.lock: example-robot-data, the
+#      robots by name (131 MB; never installed otherwise)      (stamp: both locks)
 #   3. build msg_schemas/ with cmake, install into the venv prefix (stamp: msg_schemas/ + lock)
 #      + msg_schemas/third_party/<pkg> (tf2_msgs) the same way, only where the wheels lack it
 #        (`import <pkg>.msg` fails)                (stamp: its files + lock)
@@ -30,11 +34,13 @@
 set -euo pipefail
 
 for_tests=0
+robots=0
 for arg in "$@"; do
   case $arg in
     --for-tests) for_tests=1 ;;
+    --robots) robots=1 ;;
     -h|--help) sed -n '2,/^set -euo/p' "${BASH_SOURCE[0]}" | sed -e '$d' -e 's/^# \{0,1\}//'; exit 0 ;;
-    *) printf 'setup: ERROR: unknown argument %s (expected --for-tests)\n' "$arg" >&2; exit 2 ;;
+    *) printf 'setup: ERROR: unknown argument %s (expected --for-tests or --robots)\n' "$arg" >&2; exit 2 ;;
   esac
 done
 
@@ -90,6 +96,17 @@ if ! stamp_ok lock "$lock_hash"; then
     if [[ -f "$f" ]]; then printf 'rebuild\n' > "$f"; fi
   done
   stamp_set lock "$lock_hash"
+fi
+
+# --- 2b. the optional extra "robots" (--robots) -----------------------------------------------
+if ((robots)); then
+  robots_hash=$(hash_files "$root/requirements.lock" "$root/requirements-robots.lock")
+  if ! stamp_ok robots "$robots_hash"; then
+    say "installing requirements-robots.lock (example-robot-data, 131 MB)"
+    "$vpy" -m pip install -qq --no-deps -r "$root/requirements-robots.lock"
+    "$vpy" -m pip check
+    stamp_set robots "$robots_hash"
+  fi
 fi
 
 # --- 3. haptic_topology_msgs (and stand-ins for interface packages the wheels lack) ----------

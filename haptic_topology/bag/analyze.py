@@ -23,6 +23,10 @@ from the state stamps). It writes into DIR:
   bags, the loop figures and ``skipped_messages``: the foreign or malformed messages on the
   graph's topics that were left out, per ``<kind>_<reason>`` (see
   :mod:`haptic_topology.bag.graph_trace`); the trace, plot and summary are written anyway.
+  A bag whose controller's last ``/diagnostics`` status was sent after the run's last state
+  has the controller's energy account too (:func:`controller_account`): ``energy_account``
+  as ``simulate`` writes it, and the observer's lowest and last value and the cycles the
+  passivity controller acted in the energy table.
 
 Reading a large bag shows a progress line on stderr (when stderr is a terminal, or the bag
 is larger than 20 MB). Inputs are read as a stream, one after the other: the memory used
@@ -42,7 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from haptic_topology.bag.graph_index import DEVICE_STATUS
+from haptic_topology.bag.graph_index import CONTROLLER_STATUS, DEVICE_STATUS
 from haptic_topology.bag.graph_trace import stream_graph_bag
 from haptic_topology.bag.reader import METADATA
 from haptic_topology.device.vendor import IDENTITY_KEYS
@@ -143,6 +147,22 @@ def _summary(sink: Summary, path: Path) -> dict[str, Any]:
         raise BagError(f'{path}: {exc}') from None
 
 
+def controller_account(diagnostics: dict[str, dict[str, str]]) -> dict[str, Any] | None:
+    """The controller's energy account at the run's last state, from the last
+    ``/diagnostics`` statuses of a bag (status name -> key/values): the controller's
+    ``energy_account`` (:meth:`~haptic_topology.control.passivity.EnergyAccount.summary`,
+    floats exact) when that status was sent after the controller had answered the device's
+    last state (its ``last_state_seq`` is the driver's ``seq``); None otherwise (no such
+    status, or one sent while the run went on: its figures would not be the run's)."""
+    ctl = diagnostics.get(CONTROLLER_STATUS, {})
+    dev = diagnostics.get(DEVICE_STATUS, {})
+    raw, seq = ctl.get('energy_account'), ctl.get('last_state_seq')
+    if raw is None or seq is None or seq != dev.get('seq') or dev.get('loop_running') != 'false':
+        return None
+    account: dict[str, Any] = json.loads(raw)
+    return account
+
+
 def reduce_bag(path: str | Path, scenario: str = '', dof: int | None = None,
                task_dim: int | None = None, linkage: Linkage | None = None,
                traces: tuple[Path, ...] = (), periods: bool = False, plot: bool = True,
@@ -161,7 +181,14 @@ def reduce_bag(path: str | Path, scenario: str = '', dof: int | None = None,
         loop.update(period.result())
     dev = result.diagnostics.get(DEVICE_STATUS, {})
     device = {k: dev[k] for k in ('hardware_id', *IDENTITY_KEYS) if dev.get(k)}
-    return Run(label_of(p), p, rows.trace or result.trace, _summary(summary, p), loop,
+    figures = _summary(summary, p)
+    account = controller_account(result.diagnostics)
+    if account is not None:
+        figures.update(energy_account=account,
+                       passivity_observer_min_j=account['passivity_observer_min_j'],
+                       passivity_observer_final_j=account['passivity_observer_j'],
+                       passivity_rows=account['passivity_cycles'])
+    return Run(label_of(p), p, rows.trace or result.trace, figures, loop,
                dict(result.skipped), result.graph_id, dict(result.foreign_messages),
                dict(result.foreign_publishers), device)
 

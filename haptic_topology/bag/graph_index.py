@@ -43,6 +43,7 @@ from haptic_topology.vocabulary import TaskSpace
 
 WATCHDOG = 4
 DEVICE_STATUS = 'device_driver: loop'
+CONTROLLER_STATUS = 'lmi_controller: loop'
 #: Topics the graph also publishes that newer bags have (not required to read a bag).
 PATH_TOPIC = vocab.TOPIC_VT_PATH
 #: Largest gap between consecutive state seqs within one run (10 s of 1 kHz states; a

@@ -34,7 +34,7 @@ from haptic_topology.control.safety import SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig
 from haptic_topology.device.watchdog import WatchdogConfig, WatchdogFallback
 from haptic_topology.errors import ConfigError
-from haptic_topology.vocabulary import Clock, ControlMode, TaskSpace
+from haptic_topology.vocabulary import Clock, ControlMode
 
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario
@@ -113,7 +113,11 @@ def run_backend(params: Path, backend: str | None, items: Sequence[str]
     """The backend name and parsed ``backend_options`` a run's ``device_driver`` will have:
     ``backend`` (``run --backend``) or the last ``-p device_driver:backend:=...`` item, else
     the params file's ``device_driver`` section (default ``sim_maglev``); the options
-    likewise. For :func:`check_device_axes` before anything starts."""
+    likewise. A ``-p`` value is read as ROS reads it (YAML: ``'{port: 10002}'`` is the text
+    ``{port: 10002}``); an unquoted mapping (``{port: 10002}``) is taken as the options too
+    (``run`` passes it on quoted: ``bringup.options.param_overrides``).
+    For :func:`check_device_axes` before anything starts."""
+    from haptic_topology.config.params import override_value
     from haptic_topology.validate import load_yaml
     found: dict[str, Any] = {}
     for section, body in load_yaml(params).items():
@@ -126,9 +130,12 @@ def run_backend(params: Path, backend: str | None, items: Sequence[str]
         target, _, value = item.partition(':=')
         node, _, name = target.rpartition(':')
         if node == 'device_driver' and name in ('backend', 'backend_options'):
-            found[name] = value
+            found[name] = override_value(value)
     name = backend or str(found.get('backend', 'sim_maglev'))
-    return name, parse_backend_options(str(found.get('backend_options', '') or ''))
+    options = found.get('backend_options', '')
+    if isinstance(options, dict):
+        return name, options
+    return name, parse_backend_options('' if options is None else str(options))
 
 
 def _point_alternative(sc: Scenario) -> str:
@@ -212,15 +219,13 @@ def resolve_passivity(setting: str, sc: Scenario) -> tuple[PassivityConfig, bool
     return replace(base, enabled=setting == 'enabled'), False
 
 
-def passivity_by_default(simulated: bool, task: TaskSpace) -> bool:
+def passivity_by_default(simulated: bool) -> bool:
     """Whether ``passivity: auto`` (with no ``passivity`` block in the scenario) turns the
-    passivity controller on: for a device that is not a simulation (``simulated``:
-    :attr:`~haptic_topology.device.backend.DeviceBackend.simulated`) rendering a point grasp
-    (``task.point``). Not for a rigid grasp: there the observer counts the energy the VT
-    returns through the coordination spring as generated, and the controller's damping then
-    fights the coordination (``spatial_arm4``: drift 0.5 mm without, 6.7-12.7 mm with;
-    docs/concepts.md)."""
-    return not simulated and task.point
+    passivity controller on: for every device that is not a simulation (``simulated``:
+    :attr:`~haptic_topology.device.backend.DeviceBackend.simulated`), point and rigid grasps
+    alike (the observer counts the energy the coupling takes in at the VT's end, so a rigid
+    grasp's coordination is not damped: :mod:`haptic_topology.control.passivity`)."""
+    return not simulated
 
 
 def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None

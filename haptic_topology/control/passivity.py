@@ -13,9 +13,25 @@ device's wrench limit, as the device applies it) times the displacement over tha
 i.e. ``sum F v dT`` with ``v dT`` measured as a displacement, which is the exact work of a
 wrench held over the period. Positive work drives the device. The device's own damping
 ``C_d`` of eq. 9 dissipates ``D = sum dx . C_d v``. The **passivity observer** is
-``E = D - (W - W_hand)``: the energy the law's feedback has taken from the device port since
-the run began, the work of the ``hand`` part ``W_hand`` left out (below). A passive law keeps
-``E >= 0`` (less what its springs store, which starts at zero).
+``E = D - (W - W_hand) + W_vt``: the energy the law has taken in since the run began, with
+the work of the ``hand`` part ``W_hand`` left out and the VT's end ``W_vt`` counted (below).
+A passive law keeps ``E >= 0``.
+
+**Two ports.** The coupling parts of a command (``penalty``, ``coordination``,
+``contacts``) are a spring and damper between two ends: the device's hand and the LMI's VT
+hand (``e = x_vt (-) x_h``, eqs. 13, 15-16). Energy enters such a coupling at the VT's end as
+well as at the device's: when the VT moves (pushed by the hand through the VE, eq. 17), the
+coupling pulls the device after it and hands the device energy that the VE gave it, not energy
+the law generated; and what the coupling holds between its two ends is stored, not generated.
+So the observer counts, for these parts, the work done at both ends: at the device's
+``u_c . dx`` (out of the law) and at the VT's ``W_vt = sum u_c . xd_vt dT`` (into it), the VT's
+motion over the period as the LMI integrates it (``xd_vt`` after the LMI's semi-implicit
+step, the period ``dT``). What the coupling then generates is what a sampled law adds on top
+(the held command lagging the motion, Colgate & Schenkel) and what a re-sync of the LMI to the
+VE injects: a re-sync moves the VT's end with no work counted at it (its jump is left out of
+``W_vt``), so the energy it puts into the coupling shows as generated when the coupling gives it
+to the device. With the VT at rest (a wall, a constrained direction) the observer is the
+device port's one-port observer.
 
 **Parts** of a command (their work adds up to ``W`` while no clamp cuts the command):
 ``penalty`` ``M_d P (k_tc e + b_tc edot)`` (eq. 13), ``coordination`` ``M_d L F_pc``
@@ -34,8 +50,9 @@ user accelerates a VT lighter than the device, so counting it would damp the ren
 the energy a sampled, delayed or too stiff law *generates* is in the feedback parts (penalty,
 coordination, contacts, damping). When ``E_w < 0`` it adds the damping ``-alpha xd_h`` to the
 command held over the next period, with ``alpha = -E_w / (dT max(|xd_h|^2, v_floor^2))`` (the
-floor keeps ``alpha`` finite at rest), at most ``damping_max`` and at most ``limit_i /
-|xd_h_i|`` on every axis (the added wrench never exceeds the wrench limit). It acts on the
+floor keeps ``alpha`` finite at rest), at most ``damping_max``, the added wrench clipped to
+the wrench limit on each axis (an axis moving fast against a small limit, a rotation, does
+not lower the damping of the others; the clipped damper still only dissipates). It acts on the
 total observer of the port, not per axis: energy the law moves between axes is not generated.
 The observer counts the command as the device applies it one period later, so the energy the
 damping dissipates is measured, not assumed; the delay of a VE update (the LMI's 100 or 25 Hz)
@@ -45,6 +62,7 @@ See ``docs/concepts/control.md``.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -58,9 +76,9 @@ from haptic_topology.validate import as_float, check_keys
 PARTS = ('penalty', 'coordination', 'contacts', 'damping', 'hand', 'passivity')
 _N_PARTS = len(PARTS)
 # The state vector's head (haptic_topology.control.energy).
-_HAVE, _WORK, _DISSIPATED, _OBSERVER, _WINDOWED, _ALPHA, _ACTED, _PEAK, _MINIMUM, _RING = (
-    range(10))
-_HEAD = 10
+(_HAVE, _WORK, _DISSIPATED, _OBSERVER, _WINDOWED, _ALPHA, _ACTED, _PEAK, _MINIMUM, _RING,
+ _VT_WORK) = range(11)
+_HEAD = 11
 _PARAMS = 4             # after the head: PC on, |v|^2 floor, damping cap, window; the limit
 
 
@@ -182,13 +200,18 @@ class EnergyAccount:
         return dict(zip(PARTS, (float(v) for v in self.state[at:at + _N_PARTS]), strict=True))
 
     @property
+    def vt_work(self) -> float:
+        """W_vt (J): the work of the coupling parts at the VT's end (module doc)."""
+        return float(self.state[_VT_WORK])
+
+    @property
     def dissipated(self) -> float:
         """D (J): energy the device damping ``C_d`` dissipated."""
         return float(self.state[_DISSIPATED])
 
     @property
     def observer(self) -> float:
-        """E = D - W + W_hand (J), the passivity observer."""
+        """E = D - W + W_hand + W_vt (J), the passivity observer."""
         return float(self.state[_OBSERVER])
 
     @property
@@ -209,6 +232,7 @@ class EnergyAccount:
             'port_work_axis_j': [float(v) for v in self.work_axis],
             'port_work_parts_j': self.work_parts,
             'device_damping_dissipated_j': self.dissipated,
+            'vt_work_j': self.vt_work,
             'passivity_observer_j': self.observer,
             'passivity_observer_min_j': float(s[_MINIMUM]),
             'passivity_controller': bool(self.params[0]),
@@ -220,16 +244,21 @@ class EnergyAccount:
         }
 
     def values(self) -> dict[str, str]:
-        """Diagnostics key/values (the live channel)."""
+        """Diagnostics key/values (the live channel): the figures rounded for reading, and
+        ``energy_account``, :meth:`summary` as JSON (floats exact), which a recorded run's
+        analysis reads from the controller's last status
+        (``haptic_topology.bag.analyze.controller_account``)."""
         s = self.state
         return {
             'port_work_j': f'{self.work:.6g}',
             'port_work_axis_j': ' '.join(f'{v:.4g}' for v in self.work_axis),
             **{f'work_{k}_j': f'{v:.4g}' for k, v in self.work_parts.items()},
+            'vt_work_j': f'{self.vt_work:.6g}',
             'passivity_observer_j': f'{self.observer:.6g}',
             'passivity_observer_min_j': f'{float(s[_MINIMUM]):.6g}',
             'passivity_windowed_j': f'{self.windowed:.6g}',
             'passivity_controller': 'on' if self.params[0] else 'off',
             'passivity_cycles': str(int(s[_ACTED])),
             'passivity_damping': f'{self.damping:.4g}',
+            'energy_account': json.dumps(self.summary()),
         }

@@ -46,6 +46,14 @@ from zero over ``grasp_ramp_ms`` (WATCHDOG while it does). At the start the task
 the scenario's hand (``initial_pose``): the first grasp is where the linkage is. With an
 explicit ``origin`` the first grasp keeps the absolute mapping (``c`` = 0) instead.
 
+**Letting go after a fault.** :meth:`VendorHand.release` (a backend calls it when its device
+comes back after a loss, e.g. a reconnection) lets go as the clutch does, and the hand then
+grasps again only after the buttons have asked to let go once: the engage button released
+and pressed again, or the clutch button pressed and released; a button held all along does
+not count. With neither button configured the hand stays released until the next
+activation (a new hand). The grasp that follows is an ordinary one: the task position goes
+on from where it stayed and the force fades in over ``grasp_ramp_ms``.
+
 Example (checked by ``test/unit/device/test_vendor.py``): ``spatial_point`` starting at
 (0.1, 0, 0), mm device (``scale: 0.001``), clutch on button 1. The handle at (10, 0, 0) mm
 reads (0.1, 0, 0) (the first grasp aligns it); moved to (20, 0, 0) mm it reads (0.11, 0, 0);
@@ -187,6 +195,7 @@ class VendorHand:
         self.sent = np.zeros(m)
         #: Whether the newest :meth:`force` was limited in magnitude.
         self.clamped = False
+        self.released = False            # let go by release(); waiting for a let-go request
 
     def _wants(self, buttons: int) -> bool:
         o = self.opts
@@ -202,6 +211,11 @@ class VendorHand:
         that ``p`` and ``v`` are finite (a device that reports NaN is at fault)."""
         mp = self.opts.mapping.point(p)
         wants = self._wants(buttons)
+        if self.released:
+            if wants:
+                wants = False            # still the grasp of before the release
+            else:
+                self.released = False    # the buttons let go: the next request grasps
         if wants and not self.grasping:
             if self._offset is None or not self._first:
                 self._offset = [h - q for h, q in zip(self._held, mp, strict=True)]
@@ -223,6 +237,25 @@ class VendorHand:
             twist = np.zeros(m)
         status = DeviceStatus.OK if self.scale >= 1.0 else DeviceStatus.WATCHDOG
         return DeviceReading(np.array(self._held[:m]), twist, np.zeros(m), status)
+
+    def release(self) -> None:
+        """Let go (zero force from now on) until the buttons have asked to let go once and
+        then to grasp (module doc, "Letting go after a fault")."""
+        self.released = True
+        self.grasping = False
+        self.scale = 0.0
+
+    def regrasp_hint(self) -> str:
+        """What the user does to grasp again after :meth:`release`, for an operator's
+        message."""
+        o = self.opts
+        if o.engage_button is not None:
+            return f'release and press the engage button (button {o.engage_button}) to grasp again'
+        if o.clutch_button is not None:
+            return (f'press and release the clutch button (button {o.clutch_button}) to grasp '
+                    'again')
+        return ('no engage or clutch button is configured: forces resume at the next '
+                'activation of device_driver')
 
     @property
     def pose(self) -> np.ndarray:

@@ -11,14 +11,17 @@ URDF takes the URDF's ``<collision>`` shapes instead, all modelled exactly: sphe
 capsules (``<capsule radius length>``, axis along the collision frame's z) as capsules, boxes
 and cylinders as solids (:mod:`haptic_topology.model.solids`; in a planar task a box, or a
 cylinder whose axis lies in the plane, as its projection, a convex polygon, and a cylinder
-along z as a disc), meshes (spatial tasks) as their convex hulls
+along z as a disc), meshes as their convex hulls
 (:mod:`haptic_topology.model.meshes`: the file found through ``package://``, the ament index,
 ``ROS_PACKAGE_PATH`` or the URDF's directory, and why the hull is the right shape for a
-penalty contact); a URDF link without ``<collision>`` does not collide. In a planar task a
-mesh, and a cylinder tilted out of the plane (its projection has elliptic ends), cannot be
-modelled without approximating it, so such a link is refused unless ``contacts.links.<name>``
-says what to do: ``radius: r`` (the default capsule along the link, also for YAML links) or
-``collide: false`` (the link does not collide); both also replace a spatial link's meshes.
+penalty contact; in a planar task the hull's projection, a convex polygon, as a box's: the
+planar obstacles extend along z, so every part of the link meets them where its projection
+does, which a section in the plane would miss); a URDF link without ``<collision>`` does
+not collide. In a planar task a cylinder tilted out of the plane (its projection has
+elliptic ends) cannot be modelled without approximating it, so such a link is refused unless
+``contacts.links.<name>`` says what to do: ``radius: r`` (the default capsule along the link,
+also for YAML links) or ``collide: false`` (the link does not collide); both also replace a
+link's meshes.
 A contact candidate is a point ``p_i`` on a capsule's axis with its signed gap ``g_i`` to an
 obstacle (m, negative: penetration depth ``delta_i = -g_i``) and the obstacle's normal ``n_i``
 (unit, world, from the obstacle towards the link). Against a half-plane or plane the
@@ -65,7 +68,7 @@ import pinocchio as pin
 
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage
-from haptic_topology.model.meshes import MeshGeometry, load_mesh, resolve_mesh
+from haptic_topology.model.meshes import MeshGeometry, capsule_shape, load_mesh, resolve_mesh
 from haptic_topology.model.obstacles import (
     EPS,
     Obstacle,
@@ -87,7 +90,8 @@ from haptic_topology.validate import as_bool, as_float, check_keys
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
 _ROUND = (ObstacleKind.DISC, ObstacleKind.SPHERE)
-#: Obstacles a box or cylinder meets through coal (a mesh solid meets every obstacle so).
+#: Obstacles a box or cylinder meets through coal (a mesh solid meets every obstacle so, a box
+#: also a sphere).
 _COAL = (ObstacleKind.BOX, ObstacleKind.MESH)
 #: Chains up to this many links take discs and spheres in scalar arithmetic.
 _SCALAR_LINKS = 8
@@ -127,8 +131,8 @@ class LinkSolid:
     length, m; axis along ``rotation[:, 2]``) at ``centre`` ((3,) m) with ``rotation``
     (link_R_solid); ``kind`` ``mesh`` (spatial tasks): the convex hull of ``mesh`` (``size``:
     its scale) with its frame at ``centre``, turned by ``rotation``; in a planar task ``kind``
-    ``polygon``: its projection on the link's xy plane, ``vertices`` (k x 3, z = 0,
-    counter-clockwise, link frame)."""
+    ``polygon``: the projection of a box, cylinder or mesh hull on the link's xy plane,
+    ``vertices`` (k x 3, z = 0, counter-clockwise, link frame)."""
 
     link: int
     kind: str
@@ -203,8 +207,8 @@ class ContactSettings:
     def shapes(self, linkage: Linkage) -> tuple[LinkShape, ...]:
         """Every link's contact shapes (see module doc), in link order. Raises ConfigError
         for a choice naming a link ``linkage`` lacks, and for a URDF collision shape that
-        cannot be modelled exactly (a mesh; planar: a cylinder tilted out of the plane) on a
-        link without a choice."""
+        cannot be modelled exactly (planar: a cylinder tilted out of the plane) on a link
+        without a choice."""
         planar = linkage.task.planar
         chosen = dict(self.links)
         unknown = sorted(set(chosen) - set(linkage.link_names))
@@ -249,12 +253,14 @@ class ContactSettings:
                                if planar else
                                LinkSolid(i, 'box', centre, rot, tuple(half_extents.tolist())))
                     continue
-                if shape.kind == 'mesh' and not planar:
+                if shape.kind == 'mesh':
                     where = f'{linkage.urdf_path}: link {shape.urdf_link!r} <mesh>'
                     base = linkage.urdf_path.parent if linkage.urdf_path else None
                     geometry = load_mesh(resolve_mesh(shape.mesh, base, where), (
                         shape.size[0], shape.size[1], shape.size[2]), where)
-                    out.append(LinkSolid(i, 'mesh', centre, rot, shape.size, mesh=geometry))
+                    out.append(LinkSolid(i, 'polygon', centre, rot, shape.size, convex_hull_xy(
+                        centre + geometry.vertices @ rot.T)) if planar else
+                               LinkSolid(i, 'mesh', centre, rot, shape.size, mesh=geometry))
                     continue
                 if shape.kind == 'cylinder':
                     radius, half_length = shape.size[0], 0.5 * shape.size[1]
@@ -275,11 +281,10 @@ class ContactSettings:
                 raise ConfigError(
                     f'{w}: the URDF gives link {link.name!r} a {what} collision shape (on '
                     f'{shape.urdf_link!r}, {linkage.urdf_path}); contacts model spheres, '
-                    f'capsules, boxes, cylinders and (spatial tasks) meshes exactly and '
-                    f'would have to approximate '
-                    f'it: set links.{link.name}.radius (m) in this contacts block for a '
-                    f'capsule along the link, or links.{link.name}.collide: false to leave '
-                    f'the link out')
+                    f'capsules, boxes, cylinders and meshes (their hulls) exactly and would '
+                    f'have to approximate it: set links.{link.name}.radius (m) in this '
+                    f'contacts block for a capsule along the link, or '
+                    f'links.{link.name}.collide: false to leave the link out')
         return tuple(out)
 
 
@@ -394,6 +399,9 @@ class ContactModel:
         self._cap_joint = [c.link + 1 for c in caps]
         self._cap_link = cap_link = np.array([c.link for c in caps], dtype=int)
         self._radii = radii = np.array([c.radius for c in caps], dtype=float)
+        # each capsule's coal shape (against boxes and meshes), made once
+        self._coal_caps = [capsule_shape(c.radius, float(np.linalg.norm(c.b - c.a)))
+                           for c in caps]
         n = self._ncaps = len(caps)
         # Candidate layout (static), by capsule: planes (row-major: end e times plane; the
         # ends are every capsule's b, then the a of every capsule that is neither a sphere nor
@@ -427,7 +435,9 @@ class ContactModel:
         # whose bounding-sphere distance is at least the query's limit is skipped (its gaps are
         # at least that). A box obstacle's coal query objects are made once.
         self._pairs_of = [[(k, CoalPair(sol.kind, sol.size, ob, sol.mesh)
-                            if ob.kind in _COAL or sol.mesh is not None else None)
+                            if ob.kind in _COAL or sol.mesh is not None
+                            or (sol.kind == 'box' and ob.kind is ObstacleKind.SPHERE)
+                            else None)
                            for k, ob in enumerate(obstacles)] for sol in solids]
         self._plane_of = {k: (float(ob.normal @ ob.point), ob.normal.tolist())
                           for k, ob in enumerate(obstacles) if ob.kind in _PLANES}
@@ -515,7 +525,8 @@ class ContactModel:
                 parts_n.append(normal)
         for ob in self._other:
             for i in range(self._ncaps):
-                for gap_i, s_i, n_i in capsule_gaps(ob, p0[i], p1[i], radii[i]):
+                for gap_i, s_i, n_i in capsule_gaps(ob, p0[i], p1[i], radii[i],
+                                                    self._coal_caps[i]):
                     parts_gap.append(np.array([gap_i]))
                     parts_s.append(np.array([s_i]))
                     parts_n.append(n_i[None, :])

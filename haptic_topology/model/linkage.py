@@ -35,9 +35,10 @@ Izz; spatial: ``[ixx, iyy, izz]``, ``[ixx, iyy, izz, ixy, ixz, iyz]`` or a 3x3 l
 
 Instead of ``links``, ``robot: NAME`` takes a robot of example-robot-data by name (an optional
 extra, :mod:`~haptic_topology.model.robots`; spatial, named NAME unless ``name`` says
-otherwise), and ``urdf: file.urdf`` reads the chain from a URDF (a path relative to the
-YAML file, or ``package://NAME/PATH`` for a file of an installed package, see
-``haptic_topology.paths.resolve_package_uri``; ``revolute``,
+otherwise, with its SRDF), and ``urdf: file.urdf`` reads the chain from a URDF (a path relative
+to the YAML file, or ``package://NAME/PATH`` for a file of an installed package, see
+``haptic_topology.paths.resolve_package_uri``; with it, ``srdf: file.srdf`` (the same kinds of
+path) gives the collision pairs the robot disables, ``Linkage.disabled_collisions``; ``revolute``,
 ``continuous``, ``prismatic`` and ``fixed`` joints; fixed links are merged into their parent).
 A URDF tree is reduced to the serial chain from the root through the grasped link, continued
 beyond it until the tree first branches; every other joint is locked at ``locked_joints:
@@ -68,7 +69,7 @@ from haptic_topology.errors import ConfigError, LinkageError
 from haptic_topology.model.build import LinkageModel, build_model
 from haptic_topology.model.links import CollisionShape, JointType, LinkSpec
 from haptic_topology.model.loops import LoopClosure, parse_loops
-from haptic_topology.model.robots import ROBOT_PREFIX, robot_urdf
+from haptic_topology.model.robots import ROBOT_PREFIX, read_srdf, robot_files
 from haptic_topology.model.urdf_import import UrdfSource, links_from_urdf, read_urdf
 from haptic_topology.paths import PACKAGE_URI, resolve_package_uri
 from haptic_topology.validate import (
@@ -127,6 +128,9 @@ class Linkage:
     urdf: UrdfSource | None = None
     #: Loop closures (:mod:`~haptic_topology.model.loops`): empty for a serial linkage.
     loops: tuple[LoopClosure, ...] = ()
+    #: Link pairs (names, each pair sorted) whose collisions the SRDF disables
+    #: (:func:`~haptic_topology.model.robots.read_srdf`); no self-collision is checked.
+    disabled_collisions: tuple[tuple[str, str], ...] = ()
 
     @property
     def dof(self) -> int:
@@ -303,14 +307,20 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     where = f'{source}: linkage'
     raw = check_keys(top['linkage'], where,
                      optional=('name', 'task', 'gravity', 'links', 'grasp', 'constraints',
-                               'urdf', 'robot', 'locked_joints', 'loops'), error=LinkageError)
+                               'urdf', 'srdf', 'robot', 'locked_joints', 'loops'),
+                     error=LinkageError)
     if 'robot' in raw:      # a robot of example-robot-data by name: its URDF, spatial
-        if 'urdf' in raw or 'links' in raw:
-            raise LinkageError(f'{where}: give one of robot, urdf and links')
+        if 'urdf' in raw or 'links' in raw or 'srdf' in raw:
+            raise LinkageError(f'{where}: give one of robot, urdf and links (a robot brings '
+                               'its own SRDF)')
         robot = as_str(raw['robot'], f'{where}.robot', error=LinkageError)
-        raw = {'name': robot, 'task': 'spatial', **raw,
-               'urdf': robot_urdf(robot, f'{where}.robot')}
+        urdf_uri, srdf_uri = robot_files(robot, f'{where}.robot')
+        raw = {'name': robot, 'task': 'spatial', **raw, 'urdf': urdf_uri}
+        if srdf_uri is not None:
+            raw['srdf'] = srdf_uri
         del raw['robot']
+    if 'srdf' in raw and 'urdf' not in raw:
+        raise LinkageError(f'{where}.srdf: only allowed with urdf (it names the URDF\'s links)')
     name = as_str(raw.get('name', Path(source).stem), f'{where}.name', error=LinkageError)
     task = TaskSpace(as_str(raw.get('task', 'planar'), f'{where}.task', TASK_NAMES,
                             error=LinkageError))
@@ -323,16 +333,11 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     urdf_path: Path | None = None
     urdf: UrdfSource | None = None
     notes: tuple[str, ...] = ()
+    disabled: tuple[tuple[str, str], ...] = ()
     if 'urdf' in raw:
         if 'links' in raw:
             raise LinkageError(f'{where}: give either links or urdf, not both')
-        urdf_ref = as_str(raw['urdf'], f'{where}.urdf', error=LinkageError)
-        if urdf_ref.startswith(PACKAGE_URI):
-            urdf_path = resolve_package_uri(urdf_ref, f'{where}.urdf', LinkageError)
-        else:
-            urdf_path = Path(urdf_ref)
-        if not urdf_path.is_absolute() and source != '<memory>':
-            urdf_path = Path(source).parent / urdf_path
+        urdf_path = _file_ref(raw['urdf'], f'{where}.urdf', source)
         locks = raw.get('locked_joints', {})
         if not isinstance(locks, dict):
             raise LinkageError(f'{where}.locked_joints: expected a mapping joint name -> '
@@ -342,6 +347,9 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
         urdf = read_urdf(urdf_path)
         links, notes = links_from_urdf(urdf, wanted_grasp, locked, f'{where}.locked_joints')
         urdf = replace(urdf, locked=tuple(locked.items()))
+        if 'srdf' in raw:
+            disabled = read_srdf(_file_ref(raw['srdf'], f'{where}.srdf', source),
+                                 urdf.link_names, f'{where}.srdf')
     else:
         if 'locked_joints' in raw:
             raise LinkageError(f'{where}.locked_joints: only allowed with urdf (a YAML chain '
@@ -374,9 +382,21 @@ def linkage_from_dict(doc: Any, source: str = '<memory>') -> Linkage:
     for note in notes:
         _LOG.info(note)
     linkage = Linkage(name, task, links, gravity, grasp_link, point, constraints, urdf_path,
-                      source, notes, urdf, loops)
+                      source, notes, urdf, loops, disabled)
     build_model(linkage)  # fail now, not later, on anything Pinocchio rejects
     return linkage
+
+
+def _file_ref(ref: Any, where: str, source: str) -> Path:
+    """A ``urdf:`` or ``srdf:`` file: ``package://NAME/PATH``, or a path relative to the YAML
+    file ``source``."""
+    text = as_str(ref, where, error=LinkageError)
+    if text.startswith(PACKAGE_URI):
+        return resolve_package_uri(text, where, LinkageError)
+    path = Path(text)
+    if not path.is_absolute() and source != '<memory>':
+        path = Path(source).parent / path
+    return path
 
 
 def load_linkage(path: str | Path) -> Linkage:

@@ -16,8 +16,10 @@ A file found nowhere is refused in one line naming it and every place looked at.
 
 **What.** :func:`load_mesh` reads the file once (STL, DAE, OBJ: whatever coal's assimp loader
 reads; a file it cannot read is refused in one line with coal's reason), scales it (URDF
-``scale``) and keeps its **convex hull** (``coal.Convex``, qhull): the contacts compute signed
-distances, witness points and normals between the hull and each obstacle with coal's GJK/EPA.
+``scale``, and a COLLADA file's ``<unit meter>``, as ROS's mesh loaders do; the file's
+``up_axis`` is ignored, as they do: a URDF's meshes are z up) and keeps its **convex hull**
+(``coal.Convex``, qhull): the contacts compute signed distances, witness points and normals
+between the hull and each obstacle with coal's GJK/EPA.
 A convex mesh is its own hull, so for convex meshes (most robots' collision meshes, made
 convex for collision checking) the result is exact to coal's tolerance. A non-convex mesh is
 rendered by its hull, also when apart: the contacts are a penalty model, whose force must be
@@ -33,11 +35,13 @@ decomposition): each is used exactly, and the sum of their penalty forces stays 
 from __future__ import annotations
 
 import importlib.metadata as md
+import math
 import os
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
+from xml.etree import ElementTree
 
 import coal
 import numpy as np
@@ -145,13 +149,39 @@ def load_mesh(path: Path, scale: tuple[float, float, float], where: str,
         raise error(f'{where}: {exc}') from None
 
 
+def _collada_unit(path: str) -> float:
+    """The length unit of a COLLADA file in metres (``<asset><unit meter="..."/>``, 1 without
+    one), which coal's loader does not apply and ROS's mesh loaders (rviz, MoveIt) do.
+    A file that is no XML is left to coal to refuse; a unit that is no number > 0 is refused
+    here (ConfigError)."""
+    try:
+        for _, element in ElementTree.iterparse(path):
+            tag = element.tag.rsplit('}', 1)[-1]
+            if tag == 'unit':
+                text = element.get('meter', '1')
+                try:
+                    meter = float(text)
+                except ValueError:
+                    meter = math.nan
+                if not (math.isfinite(meter) and meter > 0.0):
+                    raise ConfigError(f'the mesh {path}: <unit meter="{text}">: expected a '
+                                      f'number > 0 (metres per unit of the file)')
+                return meter
+            if tag == 'asset':      # the file's first asset has no unit: metres
+                return 1.0
+    except ElementTree.ParseError:
+        pass
+    return 1.0
+
+
 @lru_cache(maxsize=64)
 def _load(path: str, size: int, mtime_ns: int, scale: tuple[float, float, float]
           ) -> MeshGeometry:
     """:func:`load_mesh` of one file version (raises ConfigError, its message without the
     field)."""
+    unit = _collada_unit(path) if path.lower().endswith('.dae') else 1.0
     try:
-        bvh = coal.MeshLoader().load(path, np.array(scale, dtype=float))
+        bvh = coal.MeshLoader().load(path, unit * np.array(scale, dtype=float))
     except (ValueError, RuntimeError) as exc:
         lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
         reason = next((ln for ln in lines[1:] if not ln.startswith(
@@ -193,35 +223,48 @@ def distance_request() -> Any:
 
 
 _REQUEST = distance_request()
+_EYE = np.eye(3)
+
+
+def capsule_shape(radius: float, length: float) -> Any:
+    """coal's capsule of ``radius`` and ``length`` (m; a sphere below 1e-12 m). A link's
+    capsule is rigid: the contacts make its shape once (making one costs ten queries)."""
+    return coal.Sphere(radius) if length <= 1e-12 else coal.Capsule(radius, length)
 
 
 def capsule_convex_gap(geometry: Any, pose: Any, p0: np.ndarray, p1: np.ndarray,
-                       radius: float) -> tuple[float, float, np.ndarray]:
+                       radius: float, capsule: Any = None) -> tuple[float, float, np.ndarray]:
     """``(gap, s, normal)`` of the capsule ``p0 -> p1`` of ``radius`` (m, world) and the coal
     shape ``geometry`` placed at ``pose`` (a ``coal.Transform3s``): the signed distance, the
     contact at ``p0 + s (p1 - p0)`` on the axis (the projection of coal's witness point) and
-    the unit normal from the shape towards the capsule."""
-    d = p1 - p0
-    length = float(np.linalg.norm(d))
-    if length <= 1e-12:
-        capsule, rot = coal.Sphere(radius), np.eye(3)
-    else:
-        z = d / length
-        x = np.cross(z, np.eye(3)[int(np.argmin(np.abs(z)))])
-        x /= float(np.linalg.norm(x))
-        rot = np.column_stack((x, np.cross(z, x), z))
-        capsule = coal.Capsule(radius, length)
+    the unit normal from the shape towards the capsule. ``capsule``: the capsule's coal
+    shape (:func:`capsule_shape`) if made already."""
+    ax, ay, az = (float(v) for v in p0)
+    bx, by, bz = (float(v) for v in p1)
+    dx, dy, dz = bx - ax, by - ay, bz - az
+    length2 = dx * dx + dy * dy + dz * dz
+    length = math.sqrt(length2)
+    if capsule is None:
+        capsule = capsule_shape(radius, length)
+    rot = _EYE
+    if length > 1e-12:
+        # the capsule's frame: z along the axis, x across it (scalar arithmetic: a numpy
+        # cross product costs more than coal's query)
+        zx, zy, zz = dx / length, dy / length, dz / length
+        k = min(range(3), key=(abs(zx), abs(zy), abs(zz)).__getitem__)
+        ex, ey, ez = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))[k]
+        xx, xy, xz = zy * ez - zz * ey, zz * ex - zx * ez, zx * ey - zy * ex
+        n = math.sqrt(xx * xx + xy * xy + xz * xz)
+        xx, xy, xz = xx / n, xy / n, xz / n
+        rot = np.array([[xx, zy * xz - zz * xy, zx],
+                        [xy, zz * xx - zx * xz, zy],
+                        [xz, zx * xy - zy * xx, zz]])
     res = coal.DistanceResult()
-    dist = coal.distance(capsule, coal.Transform3s(rot, 0.5 * (p0 + p1)), geometry, pose,
-                         _REQUEST, res)
+    dist = coal.distance(capsule, coal.Transform3s(rot, np.array(
+        [0.5 * (ax + bx), 0.5 * (ay + by), 0.5 * (az + bz)])), geometry, pose, _REQUEST, res)
     s = 0.0
     if length > 1e-12:
-        s = min(max(float((np.array(res.getNearestPoint1()) - p0) @ d) / (length * length),
-                    0.0), 1.0)
+        wx, wy, wz = res.getNearestPoint1().tolist()
+        s = min(max(((wx - ax) * dx + (wy - ay) * dy + (wz - az) * dz) / length2, 0.0), 1.0)
     # coal's normal points from the first shape (the capsule) to the second
     return float(dist), s, -np.array(res.normal)
-
-
-def coal_pose(obstacle: Any) -> Any:
-    """The ``coal.Transform3s`` of an obstacle's ``(rotation, point)`` (world)."""
-    return coal.Transform3s(np.array(obstacle.rotation), np.array(obstacle.point))

@@ -34,6 +34,26 @@ A ``mesh`` obstacle (STL, DAE, OBJ) is placed with its file's frame at ``center`
 scenario file: :mod:`haptic_topology.model.meshes`), ``scale`` is 1 or 3 numbers (default 1;
 e.g. 0.001 for a file in mm). It is rendered by its convex hull (the module doc of
 :mod:`~haptic_topology.model.meshes` says why), through coal.
+
+**What coal computes and what is kept here.** A capsule against a box or a mesh obstacle is
+coal's signed distance of the two solids (GJK apart, EPA overlapping, tolerance
+``meshes.COAL_TOLERANCE``; the capsule's coal shape is made once per link), its witness point
+projected on the axis, and coal's normal. So a box obstacle and the same box as a mesh give
+the same contact, and once the axis is inside the box the depth is the translation that
+separates the two solids. Three closed forms stay, each because coal's answer is not the one
+the penalty contact needs:
+
+* **planes and half-planes**: one candidate per axis end. Coal gives one witness point, so a
+  link lying flat on a table would be held at one end (the witness jumping between the ends
+  as the link rocks), not at both.
+* **discs and spheres**: where the centre is on the capsule's axis coal returns the axis
+  direction as the normal with the depth across it (a sphere of radius 10 mm at the middle of
+  a 100 mm link along x of radius 10 mm: -0.02 m with normal (1, 0, 0)), a force along the
+  link for a depth across it; this form takes a perpendicular. Elsewhere the two agree to
+  1e-16 m, and ``ContactModel`` computes every capsule against a disc in one array operation.
+* **segments** (``_segment_params``): where the axis crosses the segment coal's normal is
+  zero (crossing at the axis' middle) or points away from the side the axis' middle is on,
+  and for parallel overlapping segments its witness is an end of the overlap, not its middle.
 """
 
 from __future__ import annotations
@@ -42,16 +62,17 @@ import enum
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import coal
 import numpy as np
 
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.meshes import (
     MeshGeometry,
     capsule_convex_gap,
-    coal_pose,
     load_mesh,
     resolve_mesh,
 )
@@ -60,8 +81,6 @@ from haptic_topology.vocabulary import TaskSpace
 
 #: Lengths (m) below this count as zero: degenerate axes, coincident points, touching segments.
 EPS = 1e-12
-#: Stopping width of the box's search along the axis (fraction of the axis).
-_S_TOL = 1e-12
 
 Gap = tuple[float, float, np.ndarray]
 
@@ -281,66 +300,8 @@ def _segment_params(p0: np.ndarray, d1: np.ndarray, a: np.ndarray, d2: np.ndarra
     return s, t
 
 
-def box_local(x: float, y: float, z: float, h: tuple[float, float, float]
-               ) -> tuple[float, float, float, float]:
-    """Box sdf at the local point (x, y, z) and its gradient (the nearest feature's normal).
-
-    ``sdf = |max(q, 0)| + min(max q_i, 0)`` with ``q = |p| - h``. Outside, the gradient is
-    ``p - clamp(p, -h, h)`` normalised; inside or on the surface, the axis of the largest
-    ``q_i`` with the sign of ``p_i``. Python floats: this runs ~40 times per call.
-    """
-    qx, qy, qz = abs(x) - h[0], abs(y) - h[1], abs(z) - h[2]
-    ox = math.copysign(qx, x) if qx > 0.0 else 0.0
-    oy = math.copysign(qy, y) if qy > 0.0 else 0.0
-    oz = math.copysign(qz, z) if qz > 0.0 else 0.0
-    dist = math.sqrt(ox * ox + oy * oy + oz * oz)
-    if dist > 0.0:
-        return dist, ox / dist, oy / dist, oz / dist
-    if qx >= qy and qx >= qz:
-        return qx, (-1.0 if x < 0.0 else 1.0), 0.0, 0.0
-    if qy >= qz:
-        return qy, 0.0, (-1.0 if y < 0.0 else 1.0), 0.0
-    return qz, 0.0, 0.0, (-1.0 if z < 0.0 else 1.0)
-
-
-def _box_gap(obstacle: Obstacle, p0: np.ndarray, d: np.ndarray, radius: float) -> Gap:
-    """Minimise the convex ``sdf(p0 + s d)`` over [0, 1] by bisection on the sign of its slope.
-
-    The slope ``grad . d`` keeps its sign to rounding near a smooth minimum, unlike values of
-    the sdf, which are flat there to rounding over ~1e-8 in s; bisection stops at
-    ``|ds| < 1e-12`` (40 steps). A minimum at an end is found by the slopes there.
-    """
-    rot, (hx, hy, hz) = obstacle.rotation, obstacle.half_extents.tolist()
-    h = (hx, hy, hz)
-    ax, ay, az = (rot.T @ (p0 - obstacle.point)).tolist()
-    bx, by, bz = (rot.T @ d).tolist()
-
-    def slope(s: float) -> float:
-        _, gx, gy, gz = box_local(ax + s * bx, ay + s * by, az + s * bz, h)
-        return gx * bx + gy * by + gz * bz
-
-    if slope(0.0) >= 0.0:
-        s = 0.0
-    elif slope(1.0) <= 0.0:
-        s = 1.0
-    else:
-        lo, hi = 0.0, 1.0
-        while hi - lo > _S_TOL:
-            mid = 0.5 * (lo + hi)
-            m = slope(mid)
-            if m == 0.0:
-                lo = hi = mid
-            elif m > 0.0:
-                hi = mid
-            else:
-                lo = mid
-        s = 0.5 * (lo + hi)
-    sdf, gx, gy, gz = box_local(ax + s * bx, ay + s * by, az + s * bz, h)
-    return sdf - radius, s, rot @ np.array([gx, gy, gz])
-
-
-def capsule_gaps(obstacle: Obstacle, p0: np.ndarray, p1: np.ndarray, radius: float
-                 ) -> list[Gap]:
+def capsule_gaps(obstacle: Obstacle, p0: np.ndarray, p1: np.ndarray, radius: float,
+                 capsule: Any = None) -> list[Gap]:
     """Candidate contacts ``(gap, s, normal)`` of a capsule and ``obstacle`` (world frame, m).
 
     The capsule has axis ``p0 -> p1`` ((3,) each; ``p0 == p1`` is a sphere) and ``radius``
@@ -381,7 +342,24 @@ def capsule_gaps(obstacle: Obstacle, p0: np.ndarray, p1: np.ndarray, radius: flo
         if float(n @ (p0 + 0.5 * d - a)) < -EPS:
             n = -n
         return [(-radius - obstacle.radius, s, n)]
+    return [capsule_convex_gap(*coal_geometry(obstacle), p0, p1, radius, capsule)]
+
+
+@lru_cache(maxsize=256)
+def coal_geometry(obstacle: Obstacle) -> tuple[Any, Any]:
+    """``(shape, pose)``: a spatial obstacle as coal computes with it (a plane as a
+    ``Halfspace``, a sphere, a box, a mesh's convex hull) and its placement
+    (``coal.Transform3s``, world); made once per obstacle."""
+    kind = obstacle.kind
+    if kind is ObstacleKind.PLANE:
+        n = np.array(obstacle.normal)
+        return coal.Halfspace(n, float(n @ obstacle.point)), coal.Transform3s()
+    pose = coal.Transform3s(np.array(obstacle.rotation), np.array(obstacle.point))
+    if kind is ObstacleKind.SPHERE:
+        return coal.Sphere(obstacle.radius), pose
+    if kind is ObstacleKind.BOX:
+        return coal.Box(*(2.0 * obstacle.half_extents)), pose
     if kind is ObstacleKind.MESH:
         assert obstacle.mesh is not None
-        return [capsule_convex_gap(obstacle.mesh.convex, coal_pose(obstacle), p0, p1, radius)]
-    return [_box_gap(obstacle, p0, d, radius)]
+        return obstacle.mesh.convex, pose
+    raise ValueError(f'coal_geometry: a spatial obstacle, not {kind.value}')

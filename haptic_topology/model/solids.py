@@ -18,12 +18,26 @@ Against a plane or half-plane (the gap is linear in the position of a point of t
 the candidates are the points of the solid that can be deepest: a box's 8 vertices (a
 polygon's k vertices), a cylinder's 2 rim points deepest along the plane's normal (one per end
 cap; a cap parallel to the plane gives its centre). A box lying on a table is held at its 4
-lower corners, as a capsule lying flat is held at both ends. Against a sphere or disc the
-candidate is the point of the solid closest to the centre (the solid's signed distance
-function, closed form); against a box obstacle (spatial) it is the witness point of the signed
-distance between the two convex solids, computed by coal's GJK/EPA (``meshes.COAL_TOLERANCE``);
-against a segment obstacle (planar, ``radius`` ρ) the signed distance of the polygon and the
+lower corners, as a capsule lying flat is held at both ends. Against a sphere the candidate is
+the point of the solid closest to the centre; against a box or mesh obstacle (spatial) it is
+the witness point of the signed distance between the two convex solids. Both are computed by
+coal (GJK/EPA, ``meshes.COAL_TOLERANCE``), but for a cylinder and a sphere; against a segment
+obstacle (planar, ``radius`` ρ) the candidate is the signed distance of the polygon and the
 segment (closest features when apart, the separating-axis minimum when they overlap) less ρ.
+
+**Kept here, because coal's answer is not the penalty contact's:**
+
+* a box's corners and a cylinder's rim points against a plane (:func:`box_vertices`,
+  :func:`cylinder_rims`): coal gives one witness point, so a box lying on a table would be
+  held at one corner, not at its four lower corners (``box_table``);
+* a cylinder against a sphere (:func:`cylinder_sdf`): once the sphere's centre is inside the
+  cylinder coal's depth is not their signed distance (on the axis: -0.021 m with a zero normal
+  where -0.006 m is right; off by up to 32 mm in 20-27 % of random such poses), while the
+  sphere's signed distance to a convex solid is the solid's at its centre less its radius,
+  closed form here;
+* polygons (planar tasks: :func:`convex_hull_xy`, :func:`rectangle_of_cylinder`,
+  :func:`polygon_segment`): a polygon in the plane has no volume, so coal can build no convex
+  hull of it (qhull needs a volume) and EPA gives no depth for it.
 
 Each ``gap`` is the signed distance of the two shapes (or of a point of the solid to a plane),
 so ``d gap / dt = n^T (v_p - 0)`` for the link's velocity ``v_p`` at ``point`` (the envelope
@@ -41,7 +55,7 @@ import coal
 import numpy as np
 
 from haptic_topology.model.meshes import MeshGeometry, distance_request
-from haptic_topology.model.obstacles import EPS, Obstacle, ObstacleKind, box_local
+from haptic_topology.model.obstacles import EPS, Obstacle, ObstacleKind, coal_geometry
 
 #: (gap m, point (3,) m world, normal (3,) unit world from the obstacle towards the link)
 SolidGap = tuple[float, np.ndarray, np.ndarray]
@@ -95,15 +109,6 @@ def convex_hull_xy(points: np.ndarray) -> np.ndarray:
         upper.append(p)
     hull = lower[:-1] + upper[:-1]
     return np.array([[x, y, 0.0] for x, y in hull])
-
-
-def box_sdf(point: np.ndarray, centre: np.ndarray, rotation: np.ndarray, half: np.ndarray
-            ) -> tuple[float, np.ndarray]:
-    """Signed distance (m) from ``point`` to the box and its gradient (unit, world): the
-    outward normal of the nearest feature."""
-    x, y, z = (rotation.T @ (point - centre)).tolist()
-    sdf, gx, gy, gz = box_local(x, y, z, (float(half[0]), float(half[1]), float(half[2])))
-    return sdf, rotation @ np.array([gx, gy, gz])
 
 
 def cylinder_sdf(point: np.ndarray, centre: np.ndarray, rotation: np.ndarray, radius: float,
@@ -236,25 +241,6 @@ def polygon_segment(vertices: np.ndarray, a: np.ndarray, b: np.ndarray
     return sd, np.array([px, py, 0.0]), np.array([nx, ny, 0.0])
 
 
-def coal_geometry(obstacle: Obstacle) -> tuple[Any, Any]:
-    """``(shape, pose)``: a spatial obstacle as coal computes with it (a plane as a
-    ``Halfspace``, a sphere, a box, a mesh's convex hull) and its placement
-    (``coal.Transform3s``, world)."""
-    kind = obstacle.kind
-    if kind is ObstacleKind.PLANE:
-        n = np.array(obstacle.normal)
-        return coal.Halfspace(n, float(n @ obstacle.point)), coal.Transform3s()
-    pose = coal.Transform3s(np.array(obstacle.rotation), np.array(obstacle.point))
-    if kind is ObstacleKind.SPHERE:
-        return coal.Sphere(obstacle.radius), pose
-    if kind is ObstacleKind.BOX:
-        return coal.Box(*(2.0 * obstacle.half_extents)), pose
-    if kind is ObstacleKind.MESH:
-        assert obstacle.mesh is not None
-        return obstacle.mesh.convex, pose
-    raise ValueError(f'coal_geometry: a spatial obstacle, not {kind.value}')
-
-
 class CoalPair:
     """A link solid (box, cylinder, or a mesh's convex hull: ``mesh``) against a spatial
     obstacle: coal's signed distance with nearest points (GJK when apart, EPA when
@@ -305,11 +291,10 @@ def solid_gaps(obstacle: Obstacle, kind: str, centre: np.ndarray, rotation: np.n
         points = (box_vertices(centre, rotation, np.array(size)) if kind == 'box'
                   else cylinder_rims(centre, rotation, size[0], size[1], n))
         return [(float(n @ (p - obstacle.point)), p, n.copy()) for p in points]
-    if ok is ObstacleKind.SPHERE:
-        sdf, grad = (box_sdf(obstacle.point, centre, rotation, np.array(size)) if kind == 'box'
-                     else cylinder_sdf(obstacle.point, centre, rotation, size[0], size[1]))
+    if ok is ObstacleKind.SPHERE and kind == 'cylinder':
+        sdf, grad = cylinder_sdf(obstacle.point, centre, rotation, size[0], size[1])
         return [(sdf - obstacle.radius, obstacle.point - sdf * grad, -grad)]
-    if ok in (ObstacleKind.BOX, ObstacleKind.MESH):
+    if ok in (ObstacleKind.SPHERE, ObstacleKind.BOX, ObstacleKind.MESH):
         return [(pair or CoalPair(kind, size, obstacle)).gap(centre, rotation)]
     raise ValueError(f'solid_gaps: a {kind} meets spatial obstacles, not {ok.value}')
 

@@ -146,8 +146,8 @@ class DeviceDriver(LifecycleNode):
                                        c.takeover_after)
             if self.hosted is not None and self.hosted.cfg.passivity_auto:
                 # lmi_controller's passivity: auto (config.resolve.passivity_by_default)
-                self.hosted.loop.ctrl.energy.enable(passivity_by_default(
-                    self.backend.simulated, c.scenario.linkage.task))
+                self.hosted.loop.ctrl.energy.enable(
+                    passivity_by_default(self.backend.simulated))
             self.layout = driver_layout(self, self.hosted)
         except Exception as exc:    # a backend's own code too: the fault
             why = error_line(exc, f'{getattr(self.backend, "name", c.backend)}: configure()')

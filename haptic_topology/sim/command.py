@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--csv', action='store_true',
                         help='also write the trace as trace.csv')
     parser.add_argument('--linkage', help='replace the scenario linkage (YAML or URDF file, '
-                        'or robot:NAME, a robot of example-robot-data, e.g. robot:ur5)')
+                        'or robot:NAME, a robot of example-robot-data, e.g. robot:ur5: an '
+                        'optional extra, make robots)')
     parser.add_argument('--q0', metavar='Q,Q,...',
                         help='initial joint positions (rad / m), comma-separated, e.g. '
                         "--q0=0,pi/6,-pi/3; needed with a --linkage of another number of joints")

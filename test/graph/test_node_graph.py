@@ -131,7 +131,7 @@ def test_other_layouts_equal_hosted_layout_and_offline(
 
 def test_lockstep_graph_equals_offline_simulation_spatial(
         lockstep_runs: dict[tuple[str, ...], GraphRun]) -> None:
-    """The same agreement in 6-D: the Panda of example-robot-data held at a middle link
+    """The same agreement in 6-D: the Panda (config/robots/) held at a middle link
     (J_h 6 x 7, t >= 2), a 6-DOF device with an orientation stop, eq. 14, for 0.5 s."""
     graph = lockstep_runs[SPATIAL].trace
     assert graph.task_dim == 6

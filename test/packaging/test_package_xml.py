@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 #: python3-pytest, python3-pytest-timeout, python3-pytest-xdist, python3-hypothesis,
 #: python3-catkin-pkg-modules,
 #: python3-rosbags-pip, mcap-ros2-support) and the Jazzy distribution (ROS packages,
-#: pinocchio, coal, example-robot-data). ``mcap`` and ``zstandard`` have no key of their own: the
+#: pinocchio, coal). ``mcap`` and ``zstandard`` have no key of their own: the
 #: mcap-ros2-support key installs them (pip: mcap-ros2-support -> mcap -> zstandard).
 #: An import of a ROS interface package (``*_msgs``, ``*_interfaces``, ``*_srvs``) maps to
 #: the package of that name without being listed here.
@@ -58,9 +58,13 @@ NO_ROSDEP_KEY = {
     'pyOpenHaptics': 'pyOpenHaptics (PyPI',     # backend openhaptics
 }
 #: Declared dependencies that no import shows, and where they are used.
-NOT_IMPORTED = {
-    # config/linkages/panda_link4.yaml loads package://example-robot-data/...
-    'example-robot-data': 'package://example-robot-data/',
+NOT_IMPORTED: dict[str, str] = {}
+#: Licences of third-party files shipped in the package (REP 149: one <license file=...> each).
+SHIPPED_LICENSES = {
+    'config/robots/example-robot-data/LICENSE': ('BSD-2-Clause', 'BSD 2-Clause License'),
+    'config/robots/example-robot-data/robots/panda_description/LICENSE': (
+        'Apache-2.0', 'Apache License'),
+    'config/robots/example-robot-data/robots/ur_description/README.md': ('BSD', 'license: BSD'),
 }
 FIRST_PARTY = {'haptic_topology'}
 PLACEHOLDERS = ('dev@haptic.local', 'haptic-dev', 'todo', 'example.com')
@@ -183,7 +187,13 @@ def test_maintainer_and_license_agree_with_setup_py(manifest: str) -> None:
     assert re.fullmatch(r'[^@\s]+@[^@\s]+\.[a-z]+', setup['maintainer_email'])
     for text in (setup['maintainer'], setup['maintainer_email']):
         assert not any(p in text.lower() for p in PLACEHOLDERS), text
-    assert [e.text for e in root.iter('license')] == [setup['license']] == ['Apache-2.0']
+    own = [e.text for e in root.iter('license') if e.get('file') is None]
+    assert own == [setup['license']] == ['Apache-2.0']
+    shipped = {e.get('file'): e.text for e in root.iter('license') if e.get('file')}
+    assert shipped == ({f: spdx for f, (spdx, _) in SHIPPED_LICENSES.items()}
+                       if manifest == 'package.xml' else {})
+    for f, (_, words) in SHIPPED_LICENSES.items():
+        assert words in (ROOT / f).read_text(encoding='utf-8'), f'{f} is not its licence'
     license_text = (ROOT / 'LICENSE').read_bytes()
     assert hashlib.sha256(license_text).hexdigest() == APACHE_2_SHA256
     assert b'Apache License\n                           Version 2.0, January 2004' in \

@@ -103,4 +103,4 @@ def test_an_unknown_argument_is_refused() -> None:
     run = subprocess.run(['bash', str(SETUP), '--for-test'], capture_output=True, text=True,
                          timeout=60, stdin=subprocess.DEVNULL)
     assert run.returncode == 2
-    assert 'unknown argument --for-test (expected --for-tests)' in run.stderr
+    assert 'unknown argument --for-test (expected --for-tests or --robots)' in run.stderr

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+import tracemalloc
 from pathlib import Path
 
 import pytest
@@ -41,26 +42,32 @@ def test_children_and_cmdline_of_a_child() -> None:
     assert rss_bytes(p.pid) is None
 
 
+def _add(s: RssSampler, name: str, pts: list[tuple[float, int]]) -> None:
+    for t, r in pts:
+        s.add(name, t, r)
+
+
 def test_growth_is_the_slope_after_the_settling_time() -> None:
     s = RssSampler(lambda: {})
     # 10 kB/s before RSS_SETTLE (left out), then 2.5 kB/s; one process with too few samples
     t_end = RSS_SETTLE + 100.0
     pts = [(float(t), 10_000 * t if t < RSS_SETTLE else 10_000 * RSS_SETTLE
             + 2_500 * (t - RSS_SETTLE)) for t in range(0, int(t_end) + 1)]
-    s.samples = {'a': [(t, int(r)) for t, r in pts], 'b': [(0.0, 1 << 20), (1.0, 1 << 20)]}
+    _add(s, 'a', [(t, int(r)) for t, r in pts])
+    _add(s, 'b', [(0.0, 1 << 20), (1.0, 1 << 20)])
     g = s.growth()
     assert g['a']['growth_kb_s'] == pytest.approx(2.5, abs=1e-9)
     assert g['a']['from_s'] == RSS_SETTLE
     assert g['a']['rss_mb'] == round(pts[-1][1] / 2 ** 20, 2)
     assert 'growth_kb_s' not in g['b'] and g['b']['rss_mb'] == 1.0
     # first and largest sample (a bump in the middle is the peak)
-    s.samples['c'] = [(0.0, 3 << 20), (1.0, 5 << 20), (2.0, 4 << 20)]
+    _add(s, 'c', [(0.0, 3 << 20), (1.0, 5 << 20), (2.0, 4 << 20)])
     assert (s.growth()['c']['start_mb'], s.growth()['c']['peak_mb']) == (3.0, 5.0)
 
 
 def test_a_short_run_is_fitted_over_its_second_half() -> None:
     s = RssSampler(lambda: {})
-    s.samples = {'a': [(float(t), 1000 * t * t) for t in range(21)]}
+    _add(s, 'a', [(float(t), 1000 * t * t) for t in range(21)])
     g = s.growth()['a']
     assert g['from_s'] == 10.0
     # d(t^2)/dt over t in [10, 20] by least squares: 2 * 15 = 30 (1000 bytes/s units)
@@ -71,12 +78,12 @@ def test_the_sampler_samples_a_live_process() -> None:
     s = RssSampler(lambda: {'me': os.getpid(), 'gone': 2 ** 22 + 1}, period=0.01)
     s.start()
     try:
-        while len(s.samples.get('me', [])) < 3:
+        while 'me' not in s.tracks or len(s.tracks['me'].early) < 3:
             s.sample()
     finally:
         s.stop()
-    assert 'gone' not in s.samples
-    assert all(r > 0 for _, r in s.samples['me'])
+    assert 'gone' not in s.tracks
+    assert all(r > 0 for _, r in s.tracks['me'].early)
 
 
 def test_run_usage_finds_the_child_and_leaves_its_start_up_out() -> None:
@@ -119,10 +126,36 @@ def test_run_usage_finds_the_child_and_leaves_its_start_up_out() -> None:
 
 def test_the_series_keeps_a_sample_every_step() -> None:
     s = RssSampler(lambda: {})
-    s.samples = {'a': [(0.5 * k, (1 << 20) * (1 + k)) for k in range(61)]}     # 30 s
-    series = s.growth(series_step=10.0)['a']['series']
+    _add(s, 'a', [(0.5 * k, (1 << 20) * (1 + k)) for k in range(61)])     # 30 s
+    series = s.growth()['a']['series']
     assert [t for t, _ in series] == [0.0, 10.0, 20.0, 30.0]
     assert series[1][1] == 21.0      # MiB at 10 s
+
+
+def test_an_hours_samples_take_no_more_memory_than_ten_minutes() -> None:
+    """``run`` samples every process every second for as long as it runs: what it keeps
+    must not grow with the run (it grew 3.1 kB/s over an hour's soak), while the fit still
+    equals the least squares over every sample after the settling time."""
+    def kept(seconds: int) -> tuple[int, float]:
+        s = RssSampler(lambda: {})
+        tracemalloc.start()
+        before = tracemalloc.get_traced_memory()[0]
+        for k in range(seconds):
+            for name in ('recorder', 've_sim', 'device_driver', 'loop_process', 'run'):
+                s.add(name, float(k), 300_000_000 + 1234 * k + (k * 7919) % 5000)
+        used = tracemalloc.get_traced_memory()[0] - before
+        tracemalloc.stop()
+        return used, s.growth()['run']['growth_kb_s']
+    used_10min, _ = kept(600)
+    used_hour, slope = kept(3600)
+    # the only part that grows: one series point per 10 s (5 processes x 300 points)
+    assert used_hour - used_10min < 5 * 300 * 200, (used_10min, used_hour)
+    ts = [float(k) for k in range(int(RSS_SETTLE), 3600)]
+    rs = [300_000_000 + 1234 * k + (k * 7919) % 5000 for k in range(int(RSS_SETTLE), 3600)]
+    tm, rm = sum(ts) / len(ts), sum(rs) / len(rs)
+    expect = (sum((t - tm) * (r - rm) for t, r in zip(ts, rs, strict=True))
+              / sum((t - tm) ** 2 for t in ts))
+    assert slope == round(expect / 1000.0, 3)
 
 
 def test_run_starts_a_node_in_its_session_and_a_process_group_of_its_own(

@@ -11,7 +11,6 @@ import pytest
 
 from haptic_topology.control.compiled import PENALTY, ZERO
 from haptic_topology.control.passivity import EnergyAccount, PassivityConfig
-from haptic_topology.vocabulary import TaskSpace
 
 T = 1e-3          # s, the device period of every scenario
 
@@ -49,7 +48,7 @@ def wall_observer_min(k: float, b_wall: float, b_device: float, v: float = 0.05,
 def account_step(account: EnergyAccount, c_d: np.ndarray, ml: np.ndarray, x: np.ndarray,
                  xd: np.ndarray, zero: np.ndarray, u: np.ndarray, mode: int = PENALTY) -> None:
     from haptic_topology.control.energy import account as step
-    step(0, mode, ml, c_d, x, xd, zero, zero, zero, u, T, account.state)
+    step(0, mode, ml, c_d, x, xd, zero, zero, zero, zero, u, T, account.state)
 
 
 def boundary(k: float, b_wall: float) -> float:
@@ -116,6 +115,25 @@ def test_passivity_controller_dissipates_the_deficit() -> None:
     assert big[0] == pytest.approx(-10.0, rel=1e-12)
 
 
+def test_a_fast_axis_against_a_small_limit_leaves_the_others_damped() -> None:
+    """Two axes, one moving fast against a small limit (a rotation spinning at 1 rad/s,
+    0.1 N m): the added wrench is clipped to that limit on that axis alone; the other axis
+    gets the whole damping ``alpha = -E / (T |v|^2)`` (not ``0.1 / 1``, which a common cap
+    by the fastest axis would leave it)."""
+    account = EnergyAccount(2, PassivityConfig(enabled=True, window=0.0), T, np.eye(2))
+    account.set_limit(np.array([10.0, 0.1]))
+    zero, ml, c_d = np.zeros(2), np.zeros((2, 2)), np.zeros((2, 2))
+    v = np.array([0.1, 1.0])
+    account_step(account, c_d, ml, np.zeros(2), v, zero, np.array([2.0, 0.0]))
+    u = np.zeros(2)
+    account_step(account, c_d, ml, v * T, v, zero, u)
+    deficit = 2.0 * v[0] * T                        # the held 2 N along axis 0
+    alpha = deficit / (T * float(v @ v))
+    assert account.damping == pytest.approx(alpha, rel=1e-12)
+    assert u[0] == pytest.approx(-alpha * v[0], rel=1e-12)
+    assert u[1] == -0.1
+
+
 def test_zero_mode_accounts_nothing() -> None:
     """Mode ZERO: no part of the command, no work, whatever the device does."""
     account = EnergyAccount(2, PassivityConfig(enabled=True), T, np.eye(2))
@@ -144,17 +162,13 @@ def test_passivity_setting_and_backends() -> None:
     assert not backend_class('network').simulated
 
 
-def test_auto_turns_the_controller_on_for_a_real_device_rendering_a_point_grasp() -> None:
-    """``auto`` with no scenario block: on for a device that is not simulated and a point
-    grasp (every vendor backend's 3-axis device); off for a rigid grasp, where the observer
-    counts the VT's coordination energy as generated (docs/concepts.md), and off for the
-    simulated maglev."""
+def test_auto_turns_the_controller_on_for_every_real_device() -> None:
+    """``auto`` with no scenario block: on for every backend that is not a simulation, point
+    and rigid grasps alike (the two-port observer leaves a rigid grasp's coordination alone:
+    test_energy_sim's spatial_arm4), off for the simulated maglev."""
     from haptic_topology.config.resolve import passivity_by_default
     from haptic_topology.device.backend import backend_class
 
-    cases = {(backend, task): passivity_by_default(backend_class(backend).simulated, task)
-             for backend in ('sim_maglev', 'network', 'forcedimension', 'openhaptics', 'haply')
-             for task in TaskSpace}
-    assert {key for key, on in cases.items() if on} == {
-        (backend, task) for backend in ('network', 'forcedimension', 'openhaptics', 'haply')
-        for task in (TaskSpace.PLANAR_POINT, TaskSpace.SPATIAL_POINT)}
+    backends = ('sim_maglev', 'network', 'forcedimension', 'openhaptics', 'haply')
+    on = {b for b in backends if passivity_by_default(backend_class(b).simulated)}
+    assert on == {'network', 'forcedimension', 'openhaptics', 'haply'}

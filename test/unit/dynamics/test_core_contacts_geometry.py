@@ -41,8 +41,8 @@ def single(obs: Obstacle, p0: Any, p1: Any, r: float) -> tuple[float, float, np.
 
 
 def check(cand: tuple[float, float, np.ndarray], gap: float, s: float | None,
-          normal: Any, s_tol: float = 1e-12) -> None:
-    assert cand[0] == pytest.approx(gap, abs=1e-12)
+          normal: Any, s_tol: float = 1e-12, tol: float = 1e-12) -> None:
+    assert cand[0] == pytest.approx(gap, abs=tol)
     if s is not None:
         assert cand[1] == pytest.approx(s, abs=s_tol)
     assert_allclose(cand[2], normal, atol=1e-9)
@@ -151,33 +151,35 @@ def test_segment_degenerate_capsule_and_degenerate_obstacle() -> None:
 
 # --- box ------------------------------------------------------------------------------------
 
+#: coal's GJK/EPA tolerance (m): a box obstacle's gaps are coal's signed distances.
+COAL = 1e-10
 BOX = {'type': 'box', 'center': [0, 0, 0], 'half_extents': [0.1, 0.05, 0.02]}
 
 
 def test_box_outside_face_edge_and_corner() -> None:
     box = one(BOX, SPATIAL)
     # above the top face z = 0.02, axis going up: 0.05 - 0.02 - 0.01
-    check(single(box, [0, 0, 0.05], [0, 0, 0.15], 0.01), 0.02, 0.0, [0, 0, 1])
+    check(single(box, [0, 0, 0.05], [0, 0, 0.15], 0.01), 0.02, 0.0, [0, 0, 1], tol=COAL)
     # off the edge (x = 0.1, z = 0.02): q = (0.03, -0.05, 0.04) -> sqrt(0.03^2 + 0.04^2) = 0.05
-    check(single(box, [0.13, 0, 0.06], [0.23, 0, 0.16], 0.01), 0.04, 0.0, [0.6, 0, 0.8])
+    check(single(box, [0.13, 0, 0.06], [0.23, 0, 0.16], 0.01), 0.04, 0.0, [0.6, 0, 0.8], tol=COAL)
     # corner: q = (0.02, 0.02, 0.02) -> 0.02 sqrt(3)
     check(single(box, [0.12, 0.07, 0.04], [0.22, 0.17, 0.14], 0.0), 0.02 * math.sqrt(3), 0.0,
-          np.ones(3) / math.sqrt(3))
+          np.ones(3) / math.sqrt(3), tol=COAL)
     # axis on x + y = 0.25 (z = 0) passes the xy corner (0.1, 0.05) at |0.15 - 0.25|/sqrt2;
     # its foot (0.15, 0.1) is the axis' middle
     check(single(box, [0.2, 0.05, 0], [0.1, 0.15, 0], 0.01), 0.1 / S2 - 0.01, 0.5,
-          [1 / S2, 1 / S2, 0])
+          [1 / S2, 1 / S2, 0], tol=COAL)
 
 
 def test_box_inside_is_minus_the_nearest_face_distance() -> None:
     box = one(BOX, SPATIAL)
     # q = (|x| - 0.1, 0.01 - 0.05, 0.005 - 0.02): the top face is nearest along the whole axis
     check(single(box, [-0.02, 0.01, 0.005], [0.03, 0.01, 0.005], 0.01), -0.015 - 0.01, None,
-          [0, 0, 1])
+          [0, 0, 1], tol=COAL)
     check(single(box, [-0.02, 0.01, -0.005], [0.03, 0.01, -0.005], 0.0), -0.015, None,
-          [0, 0, -1])
+          [0, 0, -1], tol=COAL)
     p = [0.09, 0.01, 0.0]  # q = (-0.01, -0.04, -0.02): the +x face at 0.01
-    check(single(box, p, p, 0.005), -0.015, 0.0, [1, 0, 0])
+    check(single(box, p, p, 0.005), -0.015, 0.0, [1, 0, 0], tol=COAL)
 
 
 def test_box_rotated_45_degrees_about_z() -> None:
@@ -186,10 +188,10 @@ def test_box_rotated_45_degrees_about_z() -> None:
     # the corner local (0.05, -0.05) sits at world (0.05 sqrt2, 0); the axis x = 0.15 passes it
     # at 0.15 - 0.0707107 = 0.0792893 (at y = 0, s = 0.5), normal = world +x
     check(single(box, [0.15, -0.1, 0], [0.15, 0.1, 0], 0.01), 0.15 - 0.05 * S2 - 0.01, 0.5,
-          [1, 0, 0])
+          [1, 0, 0], s_tol=1e-9, tol=COAL)
     # (0.1, 0.1, 0) is local (0.1 sqrt2, 0, 0): 0.1 sqrt2 - 0.05 off the local +x face
     p = [0.1, 0.1, 0.0]
-    check(single(box, p, p, 0.0), 0.1 * S2 - 0.05, 0.0, [1 / S2, 1 / S2, 0])
+    check(single(box, p, p, 0.0), 0.1 * S2 - 0.05, 0.0, [1 / S2, 1 / S2, 0], tol=COAL)
 
 
 # --- sampled cross-check --------------------------------------------------------------------
@@ -252,7 +254,8 @@ def test_gap_matches_sampled_minimum(kind: ObstacleKind) -> None:
         cands = capsule_gaps(obs, p0, p1, r)
         gap = min(c[0] for c in cands)
         sampled = sampled_min(obs, p0, p1, r)
-        if kind is ObstacleKind.MESH and sampled < 0.0:
+        coal_kind = kind in (ObstacleKind.BOX, ObstacleKind.MESH)
+        if coal_kind and sampled < 0.0:
             # coal's depth is the shortest translation that separates the two (EPA), at least
             # the depth of the capsule's deepest point, which is -sampled
             assert gap <= sampled + 1e-9, (trial, obs)
@@ -262,12 +265,37 @@ def test_gap_matches_sampled_minimum(kind: ObstacleKind) -> None:
             assert 0.0 <= s <= 1.0 and np.linalg.norm(n) == pytest.approx(1.0)
             assert n[2] == 0.0 or kind.task is SPATIAL
             x = p0 + s * (p1 - p0)
-            tol = 1e-9 if kind is ObstacleKind.MESH else 1e-12     # coal: GJK tolerance
+            tol = 1e-9 if coal_kind else 1e-12     # coal: GJK tolerance
             assert g == pytest.approx(pointwise(obs, x[None])[0] - r, abs=tol)  # gap at s
         if gap + r > 1e-3:  # apart: moving the link along the normal opens the gap 1:1
             h = 1e-6
             moved = min(c[0] for c in capsule_gaps(obs, p0 + h * n, p1 + h * n, r))
             assert (moved - gap) / h == pytest.approx(1.0, abs=1e-3), (trial, obs)
+
+
+def test_a_box_obstacle_is_the_same_box_as_a_mesh() -> None:
+    """A capsule against a box obstacle and against the 12-triangle unit cube scaled and
+    placed as that box: the same gap (the two solids' signed distance, to coal's tolerance)
+    at poses apart, overlapping, and with the capsule's axis deep inside the box (there the
+    depth is the translation that separates the solids, beyond that of the axis' deepest
+    point), and the same normal where it is unique."""
+    rng = np.random.default_rng(58)
+    deep = 0
+    for _ in range(200):
+        centre, half = rng.uniform(-0.02, 0.02, 3), rng.uniform(0.01, 0.05, 3)
+        rpy = rng.uniform(-math.pi, math.pi, 3).tolist()
+        box = one({'type': 'box', 'center': centre.tolist(), 'half_extents': half.tolist(),
+                   'rpy': rpy}, SPATIAL)
+        mesh = one({'type': 'mesh', 'file': str(BOX12), 'center': centre.tolist(),
+                    'scale': (2.0 * half).tolist(), 'rpy': rpy}, SPATIAL)
+        p0, p1 = rng.uniform(-0.06, 0.06, 3), rng.uniform(-0.06, 0.06, 3)
+        r = float(rng.uniform(0.0, 0.01))
+        (a,), (b,) = capsule_gaps(box, p0, p1, r), capsule_gaps(mesh, p0, p1, r)
+        assert a[0] == pytest.approx(b[0], abs=1e-9)
+        deep += a[0] < sampled_min(box, p0, p1, r) - 1e-6
+        if abs(a[0]) > 1e-6:
+            assert_allclose(a[2], b[2], atol=1e-6)
+    assert deep > 10        # poses where the axis' deepest point is not the depth
 
 
 # --- config ---------------------------------------------------------------------------------

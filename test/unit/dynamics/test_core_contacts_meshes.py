@@ -244,6 +244,76 @@ def test_gap_rate_of_mesh_contacts_is_the_normal_velocity(tmp_path: Path) -> Non
                                    atol=2e-6)
 
 
+#: The 12 triangles (outward) of the 8 corners ``(sx, sy, sz)``, x slowest, of a box.
+_BOX_FACES = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1), (2, 3, 7),
+              (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3)]
+#: An off-centre box, 0.1 x 0.2 x 0.3 m (three different sizes: a turn would show).
+_CORNERS = np.array([[sx * 0.05, sy * 0.1, sz * 0.15] for sx in (-1, 1) for sy in (-1, 1)
+                     for sz in (-1, 1)]) + np.array([0.01, 0.02, 0.03])
+
+
+def _dae(vertices: np.ndarray, up: str = 'Z_UP', meter: str = '1') -> str:
+    """A COLLADA file of the box ``vertices`` (in the file's unit) as 12 triangles."""
+    pos = ' '.join(f'{v:.17g}' for v in vertices.ravel())
+    idx = ' '.join(str(i) for face in _BOX_FACES for i in face)
+    xyz = ''.join(f'<param name="{a}" type="float"/>' for a in 'XYZ')
+    return f'''<?xml version="1.0" encoding="utf-8"?>
+<COLLADA xmlns="http://www.collada.org/2005/11/COLLADASchema" version="1.4.1">
+  <asset><unit name="u" meter="{meter}"/><up_axis>{up}</up_axis></asset>
+  <library_geometries><geometry id="g"><mesh>
+    <source id="p"><float_array id="pa" count="24">{pos}</float_array><technique_common>
+      <accessor source="#pa" count="8" stride="3">{xyz}</accessor></technique_common></source>
+    <vertices id="v"><input semantic="POSITION" source="#p"/></vertices>
+    <triangles count="12"><input semantic="VERTEX" source="#v" offset="0"/><p>{idx}</p>
+    </triangles></mesh></geometry></library_geometries>
+  <library_visual_scenes><visual_scene id="s"><node id="n"><instance_geometry url="#g"/>
+  </node></visual_scene></library_visual_scenes>
+  <scene><instance_visual_scene url="#s"/></scene>
+</COLLADA>
+'''
+
+
+def _obj(vertices: np.ndarray) -> str:
+    return (''.join(f'v {x:.17g} {y:.17g} {z:.17g}\n' for x, y, z in vertices)
+            + ''.join(f'f {a + 1} {b + 1} {c + 1}\n' for a, b, c in _BOX_FACES))
+
+
+def test_dae_and_obj_meshes_load_as_the_urdf_describes(tmp_path: Path) -> None:
+    """The same off-centre box as COLLADA (z up; y up; in millimetres, ``<unit
+    meter="0.001">``) and as OBJ, on a URDF link with and without ``scale``: the link's hull is
+    the box's 8 corners (m, mesh frame) times the scale, as ROS's mesh loaders read these
+    files (the unit applied, the up axis ignored: a URDF's meshes are z up), and its gap to a
+    plane is the lowest corner's height."""
+    files = {'z.dae': _dae(_CORNERS), 'y.dae': _dae(_CORNERS, 'Y_UP'),
+             'mm.dae': _dae(1000.0 * _CORNERS, meter='0.001'), 'box.obj': _obj(_CORNERS)}
+    plane = [{'type': 'plane', 'point': [0.0, 0.0, -1.0], 'normal': [0.0, 0.0, 1.0]}]
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        for scale in ((1.0, 1.0, 1.0), (2.0, 3.0, 4.0)):
+            attr = ' '.join(str(v) for v in scale)
+            collision = (f'<collision><geometry><mesh filename="{name}" scale="{attr}"/>'
+                         '</geometry></collision>')
+            linkage = _urdf(tmp_path, collision, name=f'{name}.urdf')
+            dyn, cm = _contacts(linkage, plane)
+            (solid,) = [s for s in cm._solids if s.link == 0]
+            assert solid.mesh is not None
+            want = _CORNERS * np.array(scale)
+            got = solid.mesh.vertices
+            assert got.shape == (8, 3), name
+            # assimp reads single precision: a relative 1e-7
+            np.testing.assert_allclose(got[np.lexsort(got.T)], want[np.lexsort(want.T)],
+                                       rtol=1e-7, atol=1e-12, err_msg=f'{name} scale {scale}')
+            cs = cm.detect(np.zeros(2), margin=10.0)
+            assert cs.gaps[cs.links == 0].min() == pytest.approx(1.0 + want[:, 2].min(),
+                                                                  abs=1e-7)
+    (tmp_path / 'bad.dae').write_text(_dae(_CORNERS, meter='0'))
+    raw = [{'type': 'mesh', 'file': 'bad.dae', 'center': [0, 0, 0]}]
+    with pytest.raises(ConfigError) as err:
+        obstacles_from_config(raw, 'w', SPATIAL, tmp_path)
+    assert str(err.value) == (f'w[0].file: the mesh {tmp_path}/bad.dae: <unit meter="0">: '
+                              f'expected a number > 0 (metres per unit of the file)')
+
+
 def test_missing_and_unreadable_meshes_are_refused_in_one_line(tmp_path: Path) -> None:
     bad = tmp_path / 'bad.stl'
     bad.write_text('this is not a mesh\n')

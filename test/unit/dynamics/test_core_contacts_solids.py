@@ -9,6 +9,7 @@ Expected numbers are worked out by hand in each docstring, not with the code und
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,6 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.model import Linkage, load_linkage
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.model.solids import (
-    box_sdf,
     convex_hull_xy,
     cylinder_rims,
     cylinder_sdf,
@@ -38,6 +38,7 @@ from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology.vocabulary import TaskSpace
 
+BOX12 = Path(__file__).resolve().parents[2] / 'fixtures' / 'meshes' / 'box12.stl'
 RY90 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])   # local z -> world x
 SQUARE = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.1, 0.1, 0.0], [0.0, 0.1, 0.0]])
 
@@ -54,17 +55,23 @@ def _obstacle(raw: dict, task: TaskSpace = TaskSpace.SPATIAL):
 # ----------------------------------------------------------------------------- geometry
 
 
-def test_box_sdf_by_hand() -> None:
+def test_box_against_a_sphere_by_hand() -> None:
     """Box at (0.1, 0.2, 0.3), turned 90 deg about z, half extents (0.05, 0.02, 0.01): in the
-    world it spans +-0.02 in x, +-0.05 in y, +-0.01 in z."""
-    c, rot, half = np.array([0.1, 0.2, 0.3]), _rz(math.pi / 2), np.array([0.05, 0.02, 0.01])
+    world it spans +-0.02 in x, +-0.05 in y, +-0.01 in z; a sphere of radius 1 mm off a face,
+    an edge, inside and off the bottom (through coal): the gap is the box's signed distance
+    at the sphere's centre less 1 mm, the point the centre moved onto the surface, the normal
+    from the sphere towards the box."""
+    c, rot, half = np.array([0.1, 0.2, 0.3]), _rz(math.pi / 2), (0.05, 0.02, 0.01)
     for offset, sdf, grad in (([0.05, 0.0, 0.0], 0.03, [1.0, 0.0, 0.0]),          # face
                               ([0.05, 0.09, 0.0], 0.05, [0.6, 0.8, 0.0]),         # edge
                               ([0.0, 0.045, 0.0], -0.005, [0.0, 1.0, 0.0]),       # inside
                               ([0.0, 0.0, -0.012], 0.002, [0.0, 0.0, -1.0])):
-        got, g = box_sdf(c + np.array(offset), c, rot, half)
-        assert got == pytest.approx(sdf, abs=1e-15)
-        np.testing.assert_allclose(g, grad, atol=1e-15)
+        centre = c + np.array(offset)
+        sphere = _obstacle({'type': 'sphere', 'center': centre.tolist(), 'radius': 0.001})
+        ((gap, point, normal),) = solid_gaps(sphere, 'box', c, rot, half)
+        assert gap == pytest.approx(sdf - 0.001, abs=1e-15)
+        np.testing.assert_allclose(normal, -np.array(grad), atol=1e-12)
+        np.testing.assert_allclose(point, centre - sdf * np.array(grad), atol=1e-15)
 
 
 def test_cylinder_sdf_and_rims_by_hand() -> None:
@@ -283,23 +290,51 @@ def test_planar_urdf_solids_are_polygons(tmp_path: Path) -> None:
     np.testing.assert_allclose(cs.points[k], [0.14, 0.01, 0.0], atol=1e-15)
 
 
-def test_planar_meshes_and_tilted_planar_cylinders_are_refused(tmp_path: Path) -> None:
-    """In a planar task a mesh is not modelled (spatial: ``test_core_contacts_meshes``), nor
-    a cylinder tilted out of the plane (its projection has elliptic ends): refused naming the
-    link and both choices."""
-    mesh = '<collision><geometry><mesh filename="package://x/l.stl"/></geometry></collision>'
+def test_planar_meshes_are_the_projection_of_their_hull(tmp_path: Path) -> None:
+    """In a planar task a mesh is the projection of its convex hull, as a box is: the
+    12-triangle unit cube scaled and turned as a box on each link gives the box's polygon and,
+    at random configurations, the box's candidates against a half-plane, a disc and a segment
+    (planar obstacles extend along z, so the whole link meets them where its projection
+    does)."""
+    turned = '<origin xyz="0.05 0.01 0.02" rpy="0.3 -0.4 0.5"/>'
+
+    def box(mesh: bool) -> str:
+        geometry = (f'<mesh filename="{BOX12}" scale="0.1 0.02 0.03"/>' if mesh
+                    else '<box size="0.1 0.02 0.03"/>')
+        return f'<collision>{turned}<geometry>{geometry}</geometry></collision>'
+
+    prim = _urdf(tmp_path, box(False), box(False), planar=True, name='pb.urdf')
+    mesh = _urdf(tmp_path, box(True), box(True), planar=True, name='pm.urdf')
+    shapes = [ContactSettings(ContactParams(), (), where='t').shapes(k) for k in (prim, mesh)]
+    assert [s.kind for s in shapes[1]] == ['polygon', 'polygon']
+    for a, b in zip(*shapes, strict=True):
+        assert a.vertices is not None and b.vertices is not None
+        np.testing.assert_allclose(b.vertices, a.vertices, atol=1e-15)
+    _, cm_p = _contacts(prim, PLANAR_OBSTACLES)
+    _, cm_m = _contacts(mesh, PLANAR_OBSTACLES)
+    for q in np.random.default_rng(58).uniform(-2.0, 2.0, (20, 2)):
+        a, b = cm_p.detect(q, margin=1.0), cm_m.detect(q, margin=1.0)
+        np.testing.assert_array_equal(b.obstacles, a.obstacles)
+        np.testing.assert_allclose(b.gaps, a.gaps, atol=1e-15)
+        np.testing.assert_allclose(b.points, a.points, atol=1e-15)
+
+
+def test_tilted_planar_cylinders_are_refused(tmp_path: Path) -> None:
+    """In a planar task a cylinder tilted out of the plane (its projection has elliptic ends)
+    is not modelled: refused in one line naming the link and both choices."""
     tilted = ('<collision><origin rpy="0.4 0 0"/><geometry><cylinder radius="0.01" '
               'length="0.05"/></geometry></collision>')
-    for l2, planar, what in ((mesh, True, 'a mesh collision shape'),
-                             (tilted, True, 'a cylinder tilted out of the plane')):
-        linkage = _urdf(tmp_path, l2=l2, planar=planar, name=f'bad{len(what)}.urdf')
-        with pytest.raises(ConfigError, match=(
-                rf"c.links.l2: the URDF gives link 'l2' {what}.*set links.l2.radius \(m\) in "
-                r'this contacts block .*or links.l2.collide: false')):
-            ContactSettings.from_config({'obstacles': []}, 'c', linkage)
-        ok = ContactSettings.from_config({'obstacles': [], 'links': {'l2': {'radius': 0.01}}},
-                                         'c', linkage)
-        assert [type(s) for s in ok.shapes(linkage)] == [LinkSolid, LinkCapsule]
+    linkage = _urdf(tmp_path, l2=tilted, planar=True, name='bad.urdf')
+    with pytest.raises(ConfigError) as err:
+        ContactSettings.from_config({'obstacles': []}, 'c', linkage)
+    assert '\n' not in str(err.value)
+    assert re.search(r"^c.links.l2: the URDF gives link 'l2' a cylinder tilted out of the "
+                     r'plane \(axis z = 0.921061 in the link frame, whose projection has '
+                     r'elliptic ends\) collision shape .*set links.l2.radius \(m\) in this '
+                     r'contacts block .*or links.l2.collide: false', str(err.value))
+    ok = ContactSettings.from_config({'obstacles': [], 'links': {'l2': {'radius': 0.01}}},
+                                     'c', linkage)
+    assert [type(s) for s in ok.shapes(linkage)] == [LinkSolid, LinkCapsule]
 
 
 # ----------------------------------------------------------------------------- dynamics

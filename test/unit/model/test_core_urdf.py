@@ -232,6 +232,8 @@ def test_urdf_linkage_publishes_the_users_file_with_side_branches() -> None:
 def test_locked_side_branch_joints_stand_at_the_yaml_positions(tmp_path: Path) -> None:
     src = yaml.safe_load((LINKAGES / 'panda_link4.yaml').read_text())
     src['linkage']['locked_joints'] = {'panda_finger_joint1': 0.03}
+    for key in ('urdf', 'srdf'):    # relative to the shipped file, not to tmp_path
+        src['linkage'][key] = str((LINKAGES / src['linkage'][key]).resolve())
     path = tmp_path / 'panda_open.yaml'
     path.write_text(yaml.safe_dump(src))
     lk = load_linkage(path)

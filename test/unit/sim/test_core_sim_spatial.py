@@ -1,5 +1,6 @@
 """Spatial end to end: the 6-DOF device on spatial_arm4 and on a public robot arm's URDF
-(example-robot-data's Panda, held at a middle link), offline; package:// references."""
+(example-robot-data's Panda as shipped in config/robots/, held at a middle link), offline;
+package:// references."""
 
 from __future__ import annotations
 
@@ -20,7 +21,9 @@ from haptic_topology.sim.plots import plot_trace
 from haptic_topology.sim.trace_io import read_trace
 from haptic_topology.vocabulary import ControlMode
 
-PANDA = 'package://example-robot-data/robots/panda_description/urdf/panda.urdf'
+#: A file of an installed cmeel wheel (coal, a dependency of pin) by package:// URI.
+COAL_HOOK = 'package://coal/hook/python_path.dsv'
+REPO = Path(__file__).resolve().parents[3]
 
 
 @pytest.fixture(scope='module', params=['spatial_arm4', 'panda_link4'])
@@ -56,14 +59,13 @@ def test_spatial_plot_has_both_projections(runs: dict[ControlMode, Trace],
     assert out.stat().st_size > 50_000
 
 
-def test_panda_is_loaded_unchanged_from_the_installed_package() -> None:
+def test_panda_is_loaded_unchanged_from_the_shipped_copy() -> None:
+    """panda_link4 needs no optional extra: its URDF is config/robots/'s copy of
+    example-robot-data's (test_robots checks the bytes), its meshes beside it."""
     sc = load_scenario('panda_link4')
     lk = sc.linkage
-    assert lk.urdf_path is not None and lk.urdf_path.is_file()
-    dist = md.distribution('example-robot-data')
-    assert lk.urdf_path.resolve() == Path(str(dist.locate_file(
-        'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf'
-    ))).resolve()
+    assert lk.urdf_path is not None and lk.urdf_path.resolve() == (
+        REPO / 'config/robots/example-robot-data/robots/panda_description/urdf/panda.urdf')
     assert lk.dof == 7 and lk.grasp_link == 'panda_link4'
     assert any('panda_finger_joint1' in note for note in lk.notes)
     from haptic_topology.dynamics import LinkageDynamics
@@ -77,15 +79,16 @@ def test_package_uri_errors_name_the_field() -> None:
     with pytest.raises(ConfigError, match=r"f\.urdf: package 'no-such-pkg-xyz' is not "
                                           r'installed .*pip install no-such-pkg-xyz'):
         resolve_package_uri('package://no-such-pkg-xyz/a.urdf', 'f.urdf')
-    with pytest.raises(ConfigError, match=r"f\.urdf: package 'example-robot-data' 6\.0\.0 has "
-                                          r'no file share/example-robot-data/robots/x\.urdf'):
-        resolve_package_uri('package://example-robot-data/robots/x.urdf', 'f.urdf')
+    coal = md.distribution('coal').version
+    with pytest.raises(ConfigError) as err:
+        resolve_package_uri('package://coal/robots/x.urdf', 'f.urdf')
+    assert str(err.value) == f"f.urdf: package 'coal' {coal} has no file share/coal/robots/x.urdf"
     with pytest.raises(ConfigError, match=r"f\.urdf: expected package://NAME/PATH, got "
-                                          r"'package://example-robot-data'"):
-        resolve_package_uri('package://example-robot-data', 'f.urdf')
+                                          r"'package://coal'"):
+        resolve_package_uri('package://coal', 'f.urdf')
     with pytest.raises(LinkageError, match=r'<memory>: linkage\.urdf: package '):
         linkage_from_dict({'linkage': {'task': 'spatial', 'urdf': 'package://nope-x/a.urdf'}})
-    assert resolve_package_uri(PANDA, 'f').name == 'panda.urdf'
+    assert resolve_package_uri(COAL_HOOK, 'f').name == 'python_path.dsv'
 
 
 def test_simulate_command_runs_a_spatial_scenario(tmp_path: Path) -> None:
