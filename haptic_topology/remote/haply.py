@@ -124,7 +124,7 @@ from haptic_topology.device.vendor import (
 from haptic_topology.errors import DeviceError
 from haptic_topology.remote.redial import Redial
 from haptic_topology.remote.websocket_client import WebSocketClient, connect
-from haptic_topology.vocabulary import DeviceStatus, TaskSpace
+from haptic_topology.vocabulary import DeviceStatus
 
 #: The Haply Inverse Service version whose documented protocol this backend follows.
 SERVICE_VERSION = '3.5.x'
@@ -189,7 +189,6 @@ class HaplyBackend(DeviceBackend):
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns
         self._m = 0
-        self._task: TaskSpace | None = None
         self._ws: WebSocketClient | None = None
         self._hand: VendorHand | None = None
         self._first = True
@@ -257,19 +256,9 @@ class HaplyBackend(DeviceBackend):
         if isinstance(r, bool) or r != 0:
             r = _number(opts, 'reconnect_max_ms', 0.0, 600_000.0)
         self.redial_max_ns = round(1e6 * r)
-        self._m = config.params.task.dim
-        self._task = config.params.task
+        self._m = self.keep_task(config).dim
         self._start_pose = np.asarray(config.initial_pose, dtype=float)[:self._m].copy()
         self.peer = f'ws://{self.host}:{self.port}{self.path}'
-
-    def task_dim(self) -> int:
-        if not self._m:
-            raise DeviceError('haply: used before configure()')
-        return self._m
-
-    def task(self) -> TaskSpace | None:
-        """The point task configured (None before ``configure``)."""
-        return self._task
 
     @property
     def hardware_id(self) -> str:
@@ -436,13 +425,15 @@ class HaplyBackend(DeviceBackend):
         if not np.all(np.isfinite(w)):
             self.nonfinite_writes += 1
             w = np.where(np.isfinite(w), w, 0.0)
-        x, y, z = self._hand.force(w)
-        norm = math.sqrt(x * x + y * y + z * z)
-        if norm > self.max_force:
+        x, y, z = self._hand.force(w, self.max_force)
+        if self._hand.clamped:
             self.force_clamped += 1
-            k = self.max_force / norm
-            x, y, z = k * x, k * y, k * z
         self._send((x, y, z))
+
+    def written(self, wrench: np.ndarray) -> np.ndarray:
+        """What the newest ``write`` sent, in task terms (``VendorHand.sent``: zero while the
+        hand does not grasp, faded, limited by ``max_force``): the trace's ``applied``."""
+        return wrench if self._hand is None else self._hand.sent
 
     def read(self, dt: float) -> DeviceReading:
         ws = self._ws

@@ -126,7 +126,7 @@ class WebSocketClient:
         except (BlockingIOError, InterruptedError):
             return False
         except OSError as exc:
-            self._end(f'send failed: {exc.strerror or type(exc).__name__}')
+            self._send_failed(exc)
             return False
         self._out = self._out[n:]
         return not self._out
@@ -142,7 +142,7 @@ class WebSocketClient:
         except (BlockingIOError, InterruptedError):
             n = 0
         except OSError as exc:
-            self._end(f'send failed: {exc.strerror or type(exc).__name__}')
+            self._send_failed(exc)
             return False
         if n < len(data):
             self.partial_sends += 1
@@ -154,6 +154,16 @@ class WebSocketClient:
         """Send one text message (UTF-8 bytes) without waiting; False when not sent (the
         connection has ended, or the previous frame is still unfinished: module doc)."""
         return self._send_frame(_TEXT, text)
+
+    def _send_failed(self, exc: OSError) -> None:
+        # A service that ends is seen by whichever call meets it first: a reset or a closed
+        # stream reads the same from a send as from a receive (_drain).
+        if isinstance(exc, ConnectionResetError):
+            self._end('the service reset the connection')
+        elif isinstance(exc, BrokenPipeError):
+            self._end('the service closed the connection')
+        else:
+            self._end(f'send failed: {exc.strerror or type(exc).__name__}')
 
     # -- receiving ---------------------------------------------------------------------------
     def _end(self, why: str) -> None:
