@@ -155,11 +155,11 @@ class DeviceBackend(ABC):
     #: Whether the backend uses rclpy itself (a node of its own in the driver's process): then
     #: it cannot run in the loop process (``loop_process``), which imports no rclpy.
     needs_ros: ClassVar[bool] = False
-    #: Whether the device is a simulation (False: a real device, or one that may be), and
-    #: whether its velocity is a filtered difference of positions (OpenHaptics): ``passivity:
-    #: auto`` turns the passivity controller on for a device that is neither
-    #: (:func:`haptic_topology.config.resolve.passivity_by_default`).
+    #: Whether the device is a simulation (False: a real device, or one that may be).
     simulated: ClassVar[bool] = False
+    #: Whether its velocity is a filtered difference of positions (OpenHaptics); ``passivity:
+    #: auto`` turns the passivity controller on for a device that is neither this nor
+    #: :attr:`simulated` (:func:`haptic_topology.config.resolve.passivity_by_default`).
     velocity_filtered: ClassVar[bool] = False
     #: Whether the device's own servo loop is the loop's clock (OpenHaptics' scheduler): the
     #: loop process then runs each cycle inside its callback (:meth:`run_clocked`); it still
