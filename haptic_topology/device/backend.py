@@ -158,8 +158,8 @@ class DeviceBackend(ABC):
     #: Whether the device is a simulation (False: a real device, or one that may be).
     simulated: ClassVar[bool] = False
     #: Whether its velocity is a filtered difference of positions (OpenHaptics); ``passivity:
-    #: auto`` turns the passivity controller on for a device that is neither this nor
-    #: :attr:`simulated` (:func:`haptic_topology.config.resolve.passivity_by_default`).
+    #: auto`` then leaves the passivity controller off, as for a simulated device
+    #: (:func:`haptic_topology.config.resolve.passivity_by_default`).
     velocity_filtered: ClassVar[bool] = False
     #: Whether the device's own servo loop is the loop's clock (OpenHaptics' scheduler): the
     #: loop process then runs each cycle inside its callback (:meth:`run_clocked`); it still
