@@ -33,7 +33,7 @@ extensions = [
 
 source_suffix = {'.md': 'markdown', '.rst': 'restructuredtext'}
 root_doc = 'index'
-exclude_patterns = ['_build', 'Thumbs.db', '.DS_Store']
+exclude_patterns = ['_build', 'Thumbs.db', '.DS_Store', 'img/**']
 # foxglove.md belongs to the Foxglove page of another change; it joins the toctree there.
 myst_heading_anchors = 3
 # Quotes in this documentation are mostly YAML, shell and Python quoting (parameter descriptions

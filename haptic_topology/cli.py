@@ -107,8 +107,8 @@ COMMANDS: tuple[Command, ...] = (
             _info),
     Command('simulate', 'offline lock-step simulation of a scenario: trace, plot, summary',
             simulate_command.add_arguments, simulate_command.run),
-    Command('zwidth', 'Z-width maps of the penalty: k_tc x b_tc swept under eq. 14, passive / '
-            'stable / unstable, with and without the passivity controller',
+    Command('zwidth', 'Z-width maps: k_tc x b_tc (and contact stiffness x damping) swept: '
+            'passive / stable / unstable, with and without the passivity controller',
             zwidth_command.add_arguments, zwidth_command.run),
     Command('run', 'start the ROS 2 node graph (device, controller, VE, recorder): bag, '
             'summary, loop figures', run_command.add_arguments, run_command.run),

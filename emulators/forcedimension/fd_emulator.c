@@ -18,7 +18,9 @@
  * Faults (for tests): FDEMU_UNPLUG_AFTER=N: from the N-th dhdSetForce on, every call to an
  * open device fails (-1, DHD_ERROR_COM) and the device applies no force; FDEMU_FAIL=<function>:<N>: that function fails
  * from its N-th call on (DHD_ERROR); FDEMU_NAN_AFTER=N: from the N-th dhdSetForce on, the
- * position reads NaN. FDEMU_DEVICES (default 1, 0: none found), FDEMU_SERIAL (first serial,
+ * position reads NaN; FDEMU_VELOCITY_TIMEOUT=N: the first N calls of dhdGetLinearVelocity after
+ * a device opens fail with DHD_ERROR_TIMEOUT (too few positions in the SDK's velocity window
+ * yet, as right after opening). FDEMU_DEVICES (default 1, 0: none found), FDEMU_SERIAL (first serial,
  * default 11029), FDEMU_MODEL (system name, default omega.3), FDEMU_UNINITIALIZED=1 (the
  * device needs drdAutoInit), FDEMU_BUTTONS (the button mask). Emulator-only functions:
  * fdemuReset, fdemuStep, fdemuSetClock, fdemuSetButtons, fdemuAppliedForce, fdemuForceEnabled,
@@ -39,7 +41,7 @@
 
 enum { E_NONE = 0, E_ERROR = 1, E_COM = 2, E_NO_DEVICE = 5, E_NOT_AVAILABLE = 6,
        E_NOT_IMPLEMENTED = 10, E_DEVICE_NOT_READY = 12, E_INVALID_INDEX = 15,
-       E_NOT_ENABLED = 19 };
+       E_TIMEOUT = 7, E_NOT_ENABLED = 19 };
 
 typedef struct {
     int serial;
@@ -47,7 +49,7 @@ typedef struct {
     double p[3], v[3], cmd[3], applied[3];
     double max_force, effector_mass, t, last_wall;
     unsigned int buttons;
-    long set_force_calls;
+    long set_force_calls, velocity_calls;
 } Device;
 
 static Device devs[MAX_DEVICES];
@@ -57,6 +59,7 @@ static char model[64];
 static double mass, damping, workspace, max_force_hw, hand_k, hand_radius, hand_hz, resolution;
 static bool step_clock = false;
 static long unplug_after = -1, nan_after = -1, fail_after = -1, fail_calls = 0;
+static long velocity_timeouts = 0;
 static char fail_name[64] = "";
 
 static double env_num(const char *name, double dflt) {
@@ -94,6 +97,7 @@ static void setup(void) {
     step_clock = c && strcmp(c, "step") == 0;
     unplug_after = (long)env_num("FDEMU_UNPLUG_AFTER", -1);
     nan_after = (long)env_num("FDEMU_NAN_AFTER", -1);
+    velocity_timeouts = (long)env_num("FDEMU_VELOCITY_TIMEOUT", 0);
     const char *f = getenv("FDEMU_FAIL");
     fail_after = -1;
     fail_calls = 0;
@@ -208,6 +212,7 @@ static int open_index(int i) {
     Device *d = &devs[i];
     d->open = true;
     d->force_on = false;
+    d->velocity_calls = 0;
     memset(d->cmd, 0, sizeof d->cmd);
     memset(d->applied, 0, sizeof d->applied);
     d->last_wall = 0.0;
@@ -335,6 +340,10 @@ FDEMU_API int dhdGetPosition(double *px, double *py, double *pz, char id) {
 FDEMU_API int dhdGetLinearVelocity(double *vx, double *vy, double *vz, char id) {
     Device *d = dev(id, "dhdGetLinearVelocity");
     if (!d) return -1;
+    if (d->velocity_calls++ < velocity_timeouts) {
+        set_error(E_TIMEOUT, "timeout: too few positions for the velocity estimate");
+        return -1;
+    }
     *vx = d->v[0]; *vy = d->v[1]; *vz = d->v[2];
     return 0;
 }

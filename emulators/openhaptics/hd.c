@@ -10,8 +10,13 @@
  * hdScheduler.h (HDErrorInfo returned by value; HHD, HDenum, HDerror unsigned int; HDboolean
  * unsigned char; HDulong unsigned long). Semantics as documented for the HDAPI:
  *
- *  - hdInitDevice opens the (one) device and makes it current; it returns HD_INVALID_HANDLE
- *    and records an error when it cannot. hdDisableDevice stops the scheduler and closes it.
+ *  - hdInitDevice(name) opens the device of that configuration name and makes it current; it
+ *    returns HD_INVALID_HANDLE and records an error when it cannot (an unknown name:
+ *    HD_COMM_CONFIG_ERROR; a device open already: HD_DEVICE_ALREADY_INITIATED). Without
+ *    HD_EMU_DEVICES there is one device, whatever the name; with it, the devices it lists
+ *    (HD_DEFAULT_DEVICE, a null name, is the first). hdMakeCurrentDevice selects the device that
+ *    hdGetString, hdGetDoublev, ... answer for. hdDisableDevice closes one; closing the last one
+ *    stops the scheduler. The devices share one simulated mechanism (drive one at a time).
  *  - hdStartScheduler starts the servo thread: every 1/rate s (hdSetSchedulerRate, default
  *    1000 Hz; absolute deadlines on CLOCK_MONOTONIC) it advances the simulated device by one
  *    period with the force committed last, then calls the scheduled callbacks in order of
@@ -44,10 +49,14 @@
  *                        HD_COMM_CONFIG_ERROR; hdEnable, hdStartScheduler, hdSetDoublev record
  *                        HD_INVALID_OPERATION and do nothing
  *   HD_EMU_BUTTONS       button mask (HD_CURRENT_BUTTONS), default 0
+ *   HD_EMU_BUTTON_TICKS=N1,N2,...  the buttons of HD_EMU_BUTTONS are held from servo tick N1,
+ *                        released from N2, held again from N3, ... (none before N1; at most 16)
  *   HD_EMU_INKWELL       1: the stylus is in the inkwell (HD_CURRENT_INKWELL_SWITCH)
  *   HD_EMU_CALIBRATION   ok | needs_update | needs_manual_input (hdCheckCalibration)
  *   HD_EMU_MAX_FORCE     HD_NOMINAL_MAX_FORCE in N (default 3.3, a Touch's)
  *   HD_EMU_MODEL, HD_EMU_SERIAL   the identity strings
+ *   HD_EMU_DEVICES="<name>=<serial>,..."  several devices (at most 8), by configuration name,
+ *                        each with its serial number (HD_DEVICE_SERIAL_NUMBER)
  * and the exported hdEmuApplied() (the newest committed force and when), hdEmuSetButtons(),
  * hdEmuTicks() and hdEmuTickNs() (when the newest servo tick began) for tests and benches.
  */
@@ -134,7 +143,7 @@ typedef struct {
 #define HD_CALLBACK_DONE 0
 #define HD_CALLBACK_CONTINUE 1
 #define HD_INVALID_HANDLE 0xFFFFFFFFu
-#define HANDLE 1u
+#define MAX_DEVICES 8
 
 #define MAX_ERRORS 32
 #define MAX_CALLBACKS 32
@@ -158,7 +167,12 @@ typedef struct {
 static pthread_mutex_t lock = PTHREAD_MUTEX_INITIALIZER;
 static pthread_cond_t cond = PTHREAD_COND_INITIALIZER;
 static pthread_t thread;
-static int initialized, running, stopping, force_enabled, clamping = 1;
+static int running, stopping, force_enabled, clamping = 1;
+/* The devices: configuration names and serials (HD_EMU_DEVICES), which are open, the current
+ * one (a handle is index + 1). n_devices 0: one device, any name, serial HD_EMU_SERIAL. */
+static char dev_name[MAX_DEVICES][64], dev_serial[MAX_DEVICES][64];
+static int n_devices, dev_open[MAX_DEVICES], n_open;
+static HHD current_dev = HD_INVALID_HANDLE;
 static unsigned long rate = 1000;
 static Callback callbacks[MAX_CALLBACKS];
 static int n_callbacks;
@@ -172,6 +186,8 @@ static long long tick_count, unplug_at = -1, nan_at = -1, nan_for = -1, stall_at
 static double sim_t, mass = 0.1, damping = 1.0, hand_k = 100.0, hand_b = 2.0;
 static double hand_mm = 10.0, hand_hz = 0.5, resolution_mm = 0.055, max_force = 3.3;
 static int buttons, inkwell, calibration = HD_CALIBRATION_OK;
+static int button_mask, n_button_ticks;
+static long long button_ticks[16];
 static char fail_fn[64], model[64] = "Touch", serial[64] = "EMU-00001";
 static long long committed_ns, commits, tick_ns, skipped;
 
@@ -191,7 +207,7 @@ static void push_error(HDerror code, int internal) {
     if (n_errors < MAX_ERRORS) {
         errors[n_errors].errorCode = code;
         errors[n_errors].internalErrorCode = internal;
-        errors[n_errors].hHD = initialized ? HANDLE : HD_INVALID_HANDLE;
+        errors[n_errors].hHD = current_dev;
         n_errors++;
     }
     pthread_mutex_unlock(&lock);
@@ -248,6 +264,11 @@ static void step_device(double dt) {
     }
     sim_t += dt;
     tick_count++;
+    if (n_button_ticks) {       /* HD_EMU_BUTTON_TICKS: held after an odd number of them */
+        int passed = 0;
+        while (passed < n_button_ticks && tick_count >= button_ticks[passed]) passed++;
+        buttons = passed % 2 ? button_mask : 0;
+    }
 }
 
 static void read_state(Snapshot *s) {
@@ -263,18 +284,27 @@ static void read_state(Snapshot *s) {
 }
 
 /* ---- device ------------------------------------------------------------------------------ */
-HHD hdInitDevice(HDstring pConfigName) {
-    (void)pConfigName;
-    env_text("HD_EMU_FAIL", fail_fn, sizeof fail_fn, "");
-    if (fails("hdInitDevice")) {
-        push_error(HD_COMM_CONFIG_ERROR, -1);
-        return HD_INVALID_HANDLE;
+static int is_open(HHD h) { return h >= 1 && h <= MAX_DEVICES && dev_open[h - 1]; }
+
+/* HD_EMU_DEVICES="<name>=<serial>,...": the devices by name (none: one device, any name). */
+static void read_devices(void) {
+    const char *s = getenv("HD_EMU_DEVICES");
+    n_devices = 0;
+    while (s && *s && n_devices < MAX_DEVICES) {
+        const char *end = strchr(s, ',');
+        size_t len = end ? (size_t)(end - s) : strlen(s);
+        const char *eq = memchr(s, '=', len);
+        size_t name_len = eq ? (size_t)(eq - s) : len;
+        snprintf(dev_name[n_devices], sizeof dev_name[0], "%.*s", (int)name_len, s);
+        snprintf(dev_serial[n_devices], sizeof dev_serial[0], "%.*s",
+                 eq ? (int)(len - name_len - 1) : 0, eq ? eq + 1 : "");
+        n_devices++;
+        s = end ? end + 1 : NULL;
     }
-    if (initialized) {
-        push_error(HD_DEVICE_ALREADY_INITIATED, 0);
-        return HD_INVALID_HANDLE;
-    }
-    pthread_mutex_lock(&lock);
+}
+
+/* The settings and the simulated mechanism, anew (at the first hdInitDevice, none open). */
+static void reset_device(void) {
     unplug_at = env_ll("HD_EMU_UNPLUG_AT", -1);
     nan_at = env_ll("HD_EMU_NAN_AT", -1);
     nan_for = env_ll("HD_EMU_NAN_FOR", -1);
@@ -288,6 +318,14 @@ HHD hdInitDevice(HDstring pConfigName) {
     resolution_mm = env_double("HD_EMU_RESOLUTION_MM", 0.055);
     max_force = env_double("HD_EMU_MAX_FORCE", 3.3);
     buttons = (int)env_ll("HD_EMU_BUTTONS", 0);
+    button_mask = buttons;
+    n_button_ticks = 0;
+    for (const char *b = getenv("HD_EMU_BUTTON_TICKS"); b && *b && n_button_ticks < 16;) {
+        char *end;
+        button_ticks[n_button_ticks++] = strtoll(b, &end, 10);
+        b = *end == ',' ? end + 1 : NULL;
+    }
+    if (n_button_ticks) buttons = 0;
     inkwell = (int)env_ll("HD_EMU_INKWELL", 0);
     env_text("HD_EMU_MODEL", model, sizeof model, "Touch");
     env_text("HD_EMU_SERIAL", serial, sizeof serial, "EMU-00001");
@@ -308,34 +346,73 @@ HHD hdInitDevice(HDstring pConfigName) {
     n_errors = 0;
     force_enabled = 0;
     clamping = 1;
-    initialized = 1;
-    pthread_mutex_unlock(&lock);
-    return HANDLE;
 }
 
-HHD hdGetCurrentDevice(void) { return initialized ? HANDLE : HD_INVALID_HANDLE; }
+HHD hdInitDevice(HDstring pConfigName) {
+    env_text("HD_EMU_FAIL", fail_fn, sizeof fail_fn, "");
+    if (fails("hdInitDevice")) {
+        push_error(HD_COMM_CONFIG_ERROR, -1);
+        return HD_INVALID_HANDLE;
+    }
+    pthread_mutex_lock(&lock);
+    int first = n_open == 0;
+    if (first) read_devices();
+    int index = 0;
+    if (n_devices > 0 && pConfigName && *pConfigName) {
+        while (index < n_devices && strcmp(dev_name[index], pConfigName) != 0) index++;
+    }
+    int known = n_devices == 0 || index < n_devices;
+    int already = known && dev_open[index];
+    pthread_mutex_unlock(&lock);
+    if (!known) {
+        push_error(HD_COMM_CONFIG_ERROR, -3);
+        return HD_INVALID_HANDLE;
+    }
+    if (already) {
+        push_error(HD_DEVICE_ALREADY_INITIATED, 0);
+        return HD_INVALID_HANDLE;
+    }
+    pthread_mutex_lock(&lock);
+    if (first) reset_device();
+    dev_open[index] = 1;
+    n_open++;
+    current_dev = (HHD)(index + 1);
+    pthread_mutex_unlock(&lock);
+    return current_dev;
+}
+
+HHD hdGetCurrentDevice(void) { return current_dev; }
 
 void hdMakeCurrentDevice(HHD hHD) {
-    if (!initialized || hHD != HANDLE) push_error(HD_BAD_HANDLE, 0);
+    if (!is_open(hHD)) push_error(HD_BAD_HANDLE, 0);
+    else current_dev = hHD;
 }
 
 void hdStopScheduler(void);
 
 void hdDisableDevice(HHD hHD) {
-    if (!initialized || hHD != HANDLE) {
+    if (!is_open(hHD)) {
         push_error(HD_BAD_HANDLE, 0);
         return;
     }
-    hdStopScheduler();
+    if (n_open == 1) hdStopScheduler();
     pthread_mutex_lock(&lock);
-    memset(committed, 0, sizeof committed);
-    force_enabled = 0;
-    initialized = 0;
+    dev_open[hHD - 1] = 0;
+    n_open--;
+    if (current_dev == hHD) {
+        current_dev = HD_INVALID_HANDLE;
+        for (int i = 0; i < MAX_DEVICES; i++)
+            if (dev_open[i]) current_dev = (HHD)(i + 1);
+    }
+    if (n_open == 0) {
+        memset(committed, 0, sizeof committed);
+        force_enabled = 0;
+    }
     pthread_mutex_unlock(&lock);
 }
 
 HDErrorInfo hdGetError(void) {
-    HDErrorInfo e = {HD_SUCCESS, 0, initialized ? HANDLE : HD_INVALID_HANDLE};
+    HDErrorInfo e = {HD_SUCCESS, 0, current_dev};
     pthread_mutex_lock(&lock);
     if (n_errors > 0) {
         e = errors[0];
@@ -366,7 +443,8 @@ HDstring hdGetString(HDenum pname) {
     switch (pname) {
     case HD_DEVICE_MODEL_TYPE: return model;
     case HD_DEVICE_VENDOR: return "haptic_topology emulator of OpenHaptics";
-    case HD_DEVICE_SERIAL_NUMBER: return serial;
+    case HD_DEVICE_SERIAL_NUMBER:
+        return n_devices > 0 && is_open(current_dev) ? dev_serial[current_dev - 1] : serial;
     case HD_DEVICE_DRIVER_VERSION: return "emulator";
     case HD_DEVICE_FIRMWARE_VERSION: return "emulator";
     case HD_VERSION: return "3.4.0 (emulator)";
@@ -417,7 +495,7 @@ void hdUpdateCalibration(HDenum style) {
 
 /* ---- frames ------------------------------------------------------------------------------ */
 void hdBeginFrame(HHD hHD) {
-    if (!initialized || hHD != HANDLE) {
+    if (!is_open(hHD)) {
         push_error(HD_BAD_HANDLE, 0);
         return;
     }
@@ -431,7 +509,7 @@ void hdBeginFrame(HHD hHD) {
 }
 
 void hdEndFrame(HHD hHD) {
-    if (!initialized || hHD != HANDLE) {
+    if (!is_open(hHD)) {
         push_error(HD_BAD_HANDLE, 0);
         return;
     }

@@ -10,6 +10,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
+from haptic_topology.config.params import override_value
 from haptic_topology.errors import ConfigError
 from haptic_topology.validate import load_yaml
 
@@ -24,7 +25,9 @@ FOXGLOVE_NODE = 'foxglove_bridge'
 
 def param_overrides(items: list[str]) -> list[str]:
     """``-p NODE:NAME:=VALUE`` items as ROS arguments (each checked for its form here; the
-    node checks the name and the value when it starts)."""
+    node checks the name and the value when it starts). A VALUE that is a YAML mapping
+    (``device_driver:backend_options:={port: 10002}``) is passed on quoted, as the string
+    parameter that carries it: ROS takes no mapping as a parameter value."""
     out: list[str] = []
     known = (*NODES, FOXGLOVE_NODE)
     for item in items:
@@ -33,6 +36,8 @@ def param_overrides(items: list[str]) -> list[str]:
         if not sep or not colon or node not in known or not name or not value.strip():
             raise ConfigError(f'-p: expected NODE:NAME:=VALUE with NODE one of '
                               f'{", ".join(known)}, got {item!r}')
+        if isinstance(override_value(value), dict):
+            item = f"{target}:='{value.replace(chr(39), chr(39) * 2)}'"
         out += ['-p', item]
     return out
 

@@ -176,7 +176,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('-p', '--param', action='append', default=[],
                         metavar='NODE:NAME:=VALUE',
                         help='a node parameter over the params file, e.g. '
-                        "'device_driver:sched_priority:=50' or 've_sim:nice:=0'; repeatable")
+                        "'device_driver:sched_priority:=50' or 've_sim:nice:=0'; the backend's "
+                        "options as a mapping: 'device_driver:backend_options:={port: 10002}' "
+                        '(it replaces the params file\'s backend_options whole); repeatable')
 
 
 def _read(path: Path) -> str:

@@ -30,6 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from haptic_topology.errors import ConfigError
 from haptic_topology.validate import load_yaml
 
@@ -166,6 +168,9 @@ def _check_section(where: str, params: Mapping[str, Any],
     for key, value in params.items():
         at = f'{where}.ros__parameters.{key}'
         if isinstance(value, dict):
+            if any(key in s and s[key].kind() == 'string' for _, s in known_nodes):
+                raise ConfigError(f'{at}: expected a string, got a mapping: write it in quotes '
+                                  f"({key}: '{{...}}')")
             raise ConfigError(f'{at}: nested parameter groups are not used by these nodes')
         owners = [(n, s[key]) for n, s in known_nodes if key in s]
         if not owners and key in ROS_BUILTIN:
@@ -201,6 +206,15 @@ def check_overrides(args: Sequence[str], known: Mapping[str, NodeParams | None],
             if name not in spec and name not in ROS_BUILTIN:
                 raise ConfigError(f'-p {item}: unknown parameter of {n} (expected one of: '
                                   f'{", ".join(sorted(spec))})')
+
+
+def override_value(value: str) -> Any:
+    """The value of a ``-p NODE:NAME:=VALUE`` item as ROS reads it: YAML (``50`` an integer,
+    ``'{port: 10002}'`` a string); text that is not YAML stays text."""
+    try:
+        return yaml.safe_load(value)
+    except yaml.YAMLError:
+        return value
 
 
 def params_files(args: Sequence[str]) -> list[str]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -37,6 +37,8 @@ from haptic_topology.errors import ConfigError
 from haptic_topology.vocabulary import Clock, ControlMode
 
 if TYPE_CHECKING:
+    from haptic_topology.control.passivity import EnergyAccount
+    from haptic_topology.device.backend import DeviceBackend
     from haptic_topology.sim.scenario import Scenario
 
 
@@ -113,7 +115,11 @@ def run_backend(params: Path, backend: str | None, items: Sequence[str]
     """The backend name and parsed ``backend_options`` a run's ``device_driver`` will have:
     ``backend`` (``run --backend``) or the last ``-p device_driver:backend:=...`` item, else
     the params file's ``device_driver`` section (default ``sim_maglev``); the options
-    likewise. For :func:`check_device_axes` before anything starts."""
+    likewise. A ``-p`` value is read as ROS reads it (YAML: ``'{port: 10002}'`` is the text
+    ``{port: 10002}``); an unquoted mapping (``{port: 10002}``) is taken as the options too
+    (``run`` passes it on quoted: ``bringup.options.param_overrides``).
+    For :func:`check_device_axes` before anything starts."""
+    from haptic_topology.config.params import override_value
     from haptic_topology.validate import load_yaml
     found: dict[str, Any] = {}
     for section, body in load_yaml(params).items():
@@ -126,9 +132,12 @@ def run_backend(params: Path, backend: str | None, items: Sequence[str]
         target, _, value = item.partition(':=')
         node, _, name = target.rpartition(':')
         if node == 'device_driver' and name in ('backend', 'backend_options'):
-            found[name] = value
+            found[name] = override_value(value)
     name = backend or str(found.get('backend', 'sim_maglev'))
-    return name, parse_backend_options(str(found.get('backend_options', '') or ''))
+    options = found.get('backend_options', '')
+    if isinstance(options, dict):
+        return name, options
+    return name, parse_backend_options('' if options is None else str(options))
 
 
 def _point_alternative(sc: Scenario) -> str:
@@ -212,30 +221,70 @@ def resolve_passivity(setting: str, sc: Scenario) -> tuple[PassivityConfig, bool
     return replace(base, enabled=setting == 'enabled'), False
 
 
-def passivity_by_default(simulated: bool) -> bool:
+def passivity_by_default(simulated: bool, velocity_filtered: bool = False) -> bool:
     """Whether ``passivity: auto`` (with no ``passivity`` block in the scenario) turns the
     passivity controller on: for every device that is not a simulation (``simulated``:
     :attr:`~haptic_topology.device.backend.DeviceBackend.simulated`), point and rigid grasps
     alike (the observer counts the energy the coupling takes in at the VT's end, so a rigid
-    grasp's coordination is not damped: :mod:`haptic_topology.control.passivity`)."""
-    return not simulated
+    grasp's coordination is not damped: :mod:`haptic_topology.control.passivity`), except a
+    device whose velocity is a low-pass filtered difference of its positions
+    (``velocity_filtered``, OpenHaptics): the controller's damping then acts on a velocity
+    that lags the motion and injects energy instead of dissipating it (fig8_point on the
+    OpenHaptics emulator's parameters: observer minimum -0.49 J and 14 mm drift with it,
+    -3 mJ and 1.1 mm without; :func:`AUTO_OFF_FILTERED` says so at configure)."""
+    return not simulated and not velocity_filtered
 
 
-def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None
-                   ) -> str | None:
-    """Why ``c``'s penalty gains lie outside the Z-width map of its scenario (at the
-    scenario's LMI update period, with the passivity controller as configured), naming the
-    gain and the bound; None inside, or without a map. ``maps``: default the shipped ones
-    (``config/zwidth.json``, written by ``haptic-topology zwidth``). A warning, not a refusal:
-    the edge of the map is for probing on purpose."""
+#: What ``device_driver`` logs when ``passivity: auto`` leaves the controller off for a
+#: device with a filtered velocity.
+AUTO_OFF_FILTERED = ('passivity: auto: the passivity controller stays off on {backend}: its '
+                     'velocity is a low-pass filtered difference of encoder positions, and '
+                     'damping on a lagging velocity adds energy instead of removing it (the '
+                     'parameter passivity:=enabled turns it on)')
+
+
+def zwidth_warning(c: ControllerConfig, maps: list[dict[str, Any]] | None = None,
+                   device: str = 'scenario', passivity: bool | None = None) -> list[str]:
+    """Why ``c``'s gains lie outside the Z-width maps of its scenario on ``device`` (the
+    scenario's own, or a vendor device of :data:`haptic_topology.sim.zwidth.DEVICES`), at
+    the scenario's LMI update period with the passivity controller as configured: one line
+    per gain (eq. 13's ``k_tc``, ``b_tc``; a scenario with obstacles also
+    ``contacts.stiffness``, ``contacts.damping``) naming the gain and the bound; empty
+    inside, or without a map. ``maps``: default the shipped ones (``config/zwidth.json``,
+    written by ``haptic-topology zwidth``). A warning, not a refusal: the edge of the map is
+    for probing on purpose. ``passivity``: whether the passivity controller is on (default:
+    as ``c`` configures it; ``passivity: auto`` is decided by the driver's backend)."""
     from haptic_topology.paths import config_dir
     from haptic_topology.sim.zwidth import load_maps, outside_map
 
     if maps is None:
         maps = load_maps(config_dir() / 'zwidth.json')
-    on = c.passivity is not None and c.passivity.enabled
-    return outside_map(maps, c.scenario.name, c.scenario.update_period, on, c.gains.k_tc,
-                       c.gains.b_tc)
+    on = (c.passivity is not None and c.passivity.enabled) if passivity is None else passivity
+    gains = {'k_tc': float(c.gains.k_tc), 'b_tc': float(c.gains.b_tc)}
+    contacts = c.scenario.contacts
+    if contacts is not None:
+        gains['contacts.stiffness'] = float(contacts.params.stiffness)
+        gains['contacts.damping'] = float(contacts.params.damping)
+    return outside_map(maps, c.scenario.name, c.scenario.update_period, on, gains, device)
+
+
+def configure_hosted(c: ControllerConfig, energy: EnergyAccount, backend: DeviceBackend,
+                     warn: Callable[[str], Any],
+                     info: Callable[[str], Any] | None = None) -> None:
+    """The hosted controller ``c`` on the driver's configured ``backend``: ``passivity:
+    auto`` decided (:func:`passivity_by_default`) on ``c``'s ``energy`` account; for a vendor
+    device with Z-width maps (:data:`haptic_topology.sim.zwidth.DEVICES`), every line of
+    :func:`zwidth_warning` for that device and controller passed to ``warn`` (the
+    scenario's own device: ``lmi_controller`` warns itself)."""
+    from haptic_topology.sim.zwidth import DEVICES
+
+    if c.passivity_auto:
+        energy.enable(passivity_by_default(backend.simulated, backend.velocity_filtered))
+        if info is not None and not backend.simulated and backend.velocity_filtered:
+            info(AUTO_OFF_FILTERED.format(backend=backend.name))
+    if backend.name in DEVICES:
+        for line in zwidth_warning(c, device=backend.name, passivity=bool(energy.params[0])):
+            warn(line)
 
 
 def resolve_lmi_controller(s: LmiControllerSettings, sc: Scenario) -> ControllerConfig:

@@ -1,5 +1,8 @@
 """Device backends: the seam between ``device_driver`` and a haptic device (real or simulated).
 
+(One module of ~505 lines on purpose: the backend contract, the registry and the simulated
+maglev that every other backend is checked against belong together.)
+
 A backend is one class derived from :class:`DeviceBackend`, modelled on ros2_control's
 ``SystemInterface``: a lifecycle (:meth:`~DeviceBackend.configure` ->
 :meth:`~DeviceBackend.activate` -> cycles -> :meth:`~DeviceBackend.deactivate`) and, once per
@@ -152,14 +155,15 @@ class DeviceBackend(ABC):
     #: Whether the backend uses rclpy itself (a node of its own in the driver's process): then
     #: it cannot run in the loop process (``loop_process``), which imports no rclpy.
     needs_ros: ClassVar[bool] = False
-    #: Whether the device is a simulation (the passivity controller of the hosted
-    #: ``lmi_controller`` is on by default for a device that is not,
-    #: :mod:`haptic_topology.control.passivity`). False: a real device, or one that may be.
+    #: Whether the device is a simulation (False: a real device, or one that may be).
     simulated: ClassVar[bool] = False
+    #: Whether its velocity is a filtered difference of positions (OpenHaptics); ``passivity:
+    #: auto`` then leaves the passivity controller off, as for a simulated device
+    #: (:func:`haptic_topology.config.resolve.passivity_by_default`).
+    velocity_filtered: ClassVar[bool] = False
     #: Whether the device's own servo loop is the loop's clock (OpenHaptics' scheduler): the
-    #: loop process then runs each cycle inside the device's callback (:meth:`run_clocked`)
-    #: and does not pace itself. Such a backend still serves ``read``/``write`` called by a
-    #: loop that paces itself (the in-process layouts, the conformance checks).
+    #: loop process then runs each cycle inside its callback (:meth:`run_clocked`); it still
+    #: serves ``read``/``write`` to a loop that paces itself (in-process layouts, conformance).
     drives_loop: ClassVar[bool] = False
 
     def run_clocked(self, period: float, cycle: Callable[[float], None],
@@ -218,6 +222,12 @@ class DeviceBackend(ABC):
     def read(self, dt: float) -> DeviceReading:
         """The device state ``dt`` s (measured) after the previous read."""
 
+    def written(self, wrench: np.ndarray) -> np.ndarray:
+        """What the device was sent by the newest ``write(wrench)`` (task vector, N, N m; the
+        states', bags' and traces' ``applied``), called right after it: ``wrench`` unless the
+        device gets something else (zero while a vendor hand does not grasp, a fade)."""
+        return wrench
+
     def cleanup(self) -> None:
         """Release what ``configure`` and ``activate`` acquired and ``deactivate`` kept (a
         connection, a ROS node): the driver's lifecycle cleanup and its shutdown, always after
@@ -244,23 +254,33 @@ class DeviceBackend(ABC):
         self.write(np.zeros(self.task_dim()))
         return self.read(dt)
 
+    _task: TaskSpace | None = None      # the task kept by keep_task
+
+    def keep_task(self, config: BackendConfig) -> TaskSpace:
+        """Keep and return ``config.params.task`` (:meth:`task`, :meth:`task_dim`): called by
+        a backend's :meth:`configure` once its own checks have passed."""
+        self._task = config.params.task
+        return self._task
+
     def task_dim(self) -> int:
-        """m of the task vectors (3 planar, 6 spatial, 2 planar_point, 3 spatial_point);
-        valid after ``configure``."""
-        raise DeviceError(f'{type(self).__name__} does not implement task_dim()')
+        """m of :meth:`task` (3 planar, 6 spatial, 2 planar_point, 3 spatial_point); before
+        ``configure`` a DeviceError. A backend that does not :meth:`keep_task` overrides it."""
+        task = self.task()
+        if task is None:
+            raise DeviceError(f'{self.name}: used before configure()')
+        return task.dim
 
     def task(self) -> TaskSpace | None:
-        """The task the backend was configured for (``config.params.task`` of
-        :meth:`configure`), or None: before ``configure``, or a backend that does not keep
-        it. m alone does not tell it (3 is ``planar`` or ``spatial_point``). Default: None."""
-        return None
+        """The task configured (:meth:`keep_task`), or None: before ``configure``, or a
+        backend that does not keep it (m alone does not tell: 3 is planar or spatial_point)."""
+        return self._task
 
     @property
     def hardware_id(self) -> str:
         """The device this backend drives, as ``DiagnosticStatus.hardware_id`` of the driver's
         diagnostics: ``'<name> <task>'`` once configured (e.g. ``'sim_maglev planar'``,
-        ``'sim_maglev spatial_point'``; the task of :meth:`task`, else named from
-        :meth:`task_dim` where one task has that m, else ``'<m>-dof'``), ``'<name>'`` before.
+        ``'sim_maglev spatial_point'``; the task of ``task()``, else named from ``task_dim()``
+        where one task has that m, else ``'<m>-dof'``), ``'<name>'`` before.
         A backend of a real device overrides it with what identifies the unit (model and
         serial number, port or address). Read from the diagnostics thread at 1 Hz, never in
         the device cycle: return text, do no I/O."""
@@ -304,18 +324,7 @@ class SimMaglevBackend(DeviceBackend):
     name = 'sim_maglev'
     simulated = True
 
-    @classmethod
-    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
-        """The simulated maglev renders any task: it senses and actuates every axis."""
-        del options
-        return ALL_DEVICE_AXES
-
-    def task(self) -> TaskSpace | None:
-        """The scenario's task once configured (``hardware_id``: ``'sim_maglev <task>'``,
-        e.g. ``'sim_maglev planar_point'``)."""
-        return None if self._model is None else self._model.params.task
-
-    def __init__(self) -> None:
+    def __init__(self) -> None:      # axes(): every axis (the default), any task
         self._model: MaglevModel | None = None
         self._sensor: PositionSensor | None = None
         self._user: UserModel | None = None
@@ -344,6 +353,7 @@ class SimMaglevBackend(DeviceBackend):
         self._applied = np.zeros(m)
         self._t = 0.0
         self._f_h = self._user.wrench(0.0, self._model.pose, self._model.twist)
+        self.keep_task(config)          # hardware_id: 'sim_maglev <task>'
 
     def _require(self) -> tuple[MaglevModel, UserModel]:
         if self._model is None or self._user is None:
@@ -355,9 +365,6 @@ class SimMaglevBackend(DeviceBackend):
         assert self._sensor is not None
         pose, twist = self._sensor.measure(model.pose, model.twist, dt)
         return DeviceReading(pose, twist, self._f_h.copy(), status)
-
-    def task_dim(self) -> int:
-        return self._require()[0].params.task.dim
 
     def activate(self) -> None:
         self._require()

@@ -39,23 +39,18 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
-from haptic_topology.device.backend import (
-    TRANSLATION_AXES,
-    BackendConfig,
-    DeviceAxes,
-    DeviceBackend,
-    DeviceReading,
-)
+from haptic_topology.device.backend import BackendConfig, DeviceReading
 from haptic_topology.device.vendor import (
     DeviceIdentity,
+    VendorBackend,
     VendorHand,
     VendorSupport,
-    parse_vendor_options,
+    flag_option,
+    optional_number,
 )
 from haptic_topology.errors import DeviceError
 from haptic_topology.vocabulary import DeviceStatus
@@ -146,42 +141,16 @@ def list_devices() -> list[str]:
     return out
 
 
-def _option_number(value: Any, key: str, hi: float) -> float | None:
-    if value is None:
-        return None
-    if (isinstance(value, bool) or not isinstance(value, int | float)
-            or not (math.isfinite(value) and 0.0 < value <= hi)):
-        raise DeviceError(f'{BACKEND}: backend_options.{key}: expected a number in (0, {hi:g}] '
-                          f'or null, got {value!r}')
-    return float(value)
-
-
-def _option_bool(value: Any, key: str) -> bool:
-    if not isinstance(value, bool):
-        raise DeviceError(f'{BACKEND}: backend_options.{key}: expected true or false, got '
-                          f'{value!r}')
-    return value
-
-
-class ForceDimensionBackend(DeviceBackend):
+class ForceDimensionBackend(VendorBackend):
     """A Force Dimension device (module doc)."""
 
     name = BACKEND
-    lockstep = False
-
-    @classmethod
-    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
-        """A Force Dimension device in this backend senses and actuates x, y, z forces (its
-        rotations and gripper, where it has them, are not used)."""
-        del options
-        return TRANSLATION_AXES
+    own_options = OWN_OPTIONS
 
     def __init__(self) -> None:
-        self._hand: VendorHand | None = None
+        super().__init__()
         self._id = -1
-        self._m = 0
         self._fault = ''
-        self._identity: DeviceIdentity | None = None
         self._last: DeviceReading | None = None
         self._status_bits = 0
         self.saturated_writes = 0
@@ -193,9 +162,7 @@ class ForceDimensionBackend(DeviceBackend):
         self._auto_init = False
 
     # -- configuration -----------------------------------------------------------------------
-    def configure(self, config: BackendConfig) -> None:
-        opts, own = parse_vendor_options(config.options, self.name, config.params.task,
-                                         OWN_OPTIONS)
+    def configure_own(self, own: dict[str, Any]) -> None:
         serial = own['serial']
         if serial is not None and (isinstance(serial, bool) or not isinstance(serial, int)
                                    or not 0 <= serial <= 65535):
@@ -203,18 +170,14 @@ class ForceDimensionBackend(DeviceBackend):
                               f'serial number (0-65535) or null (the first device), got '
                               f'{serial!r}')
         self._serial = serial
-        self._max_force = _option_number(own['max_force'], 'max_force', 1000.0)
-        self._mass = _option_number(own['effector_mass'], 'effector_mass', 100.0)
-        self._gravity = _option_bool(own['gravity_compensation'], 'gravity_compensation')
-        self._auto_init = _option_bool(own['auto_init'], 'auto_init')
-        self._hand = VendorHand(opts, config.initial_pose)
-        self._m = config.params.task.dim
+        self._max_force = optional_number(own['max_force'], 'max_force', self.name, 1000.0,
+                                          "the device's default")
+        self._mass = optional_number(own['effector_mass'], 'effector_mass', self.name, 100.0,
+                                     "the device's default")
+        self._gravity = flag_option(own['gravity_compensation'], 'gravity_compensation',
+                                    self.name)
+        self._auto_init = flag_option(own['auto_init'], 'auto_init', self.name)
         binding()           # a missing SDK: refused at configure, before anything moves
-
-    def task_dim(self) -> int:
-        if self._hand is None:
-            raise DeviceError(f'{self.name}: used before configure()')
-        return self._m
 
     # -- lifecycle ---------------------------------------------------------------------------
     def _error(self) -> str:
@@ -256,7 +219,7 @@ class ForceDimensionBackend(DeviceBackend):
         name = str(dhd.getSystemName(ident) or 'unknown')
         serial = dhd.getSerialNumber(ident)
         model = next((w for k, w in WORKSPACES.items() if name.startswith(k)), '')
-        self._identity = DeviceIdentity('Force Dimension', name,
+        self.identity = DeviceIdentity('Force Dimension', name,
                                         str(serial) if serial >= 0 else '',
                                         str(dhd.getSDKVersion()), model)
         if not drd.isInitialized(ident):
@@ -310,12 +273,14 @@ class ForceDimensionBackend(DeviceBackend):
     def write(self, wrench: np.ndarray) -> None:
         if self._id < 0 or self._hand is None:
             raise DeviceError(f'{self.name}: write() while not active')
-        if self._fault:
+        if self._fault:                 # force is off: nothing reaches the device
+            self._hand.sent = np.zeros(self._m)
             return
         f = self._hand.force(wrench)
         rc = binding().dhd.setForce(f, self._id)
         if rc < 0:
             self._to_fault(f'dhdSetForce failed: {self._error()}')
+            self._hand.sent = np.zeros(self._m)
         elif rc == _MOTOR_SATURATED:
             self.saturated_writes += 1
             self._status_bits = _SATURATED
@@ -366,20 +331,8 @@ class ForceDimensionBackend(DeviceBackend):
         return r
 
     # -- reporting ---------------------------------------------------------------------------
-    @property
-    def hardware_id(self) -> str:
-        """``'forcedimension <model> serial <n>'`` once a device was opened; before,
-        ``'forcedimension <task>'`` (configured) or ``'forcedimension'``."""
-        if self._identity is None:
-            if self._hand is None:
-                return self.name
-            return f'{self.name} {self._hand.opts.task.value}'
-        return self._identity.hardware_id(self.name)
-
     def values(self) -> dict[str, str]:
-        out = {} if self._identity is None else self._identity.values()
-        if self._hand is not None:
-            out.update(self._hand.values())
+        out = super().values()
         out['device_saturated_writes'] = str(self.saturated_writes)
         out['velocity_timeouts'] = str(self.velocity_timeouts)
         return out

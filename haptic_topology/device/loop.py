@@ -294,8 +294,9 @@ class DeviceLoop:
             if saturated or saturated_out:
                 status |= _SATURATED_BIT
                 self.saturated_cycles += 1
-            _max_abs_into(u, self.max_applied)
             self.backend.write(u)
+            u = self.backend.written(u)     # what the device got (a vendor's grasp gates it)
+            _max_abs_into(u, self.max_applied)
             reading = self.backend.read(dt)
         fault = int(reading.status) & _FAULT_BIT != 0
         if fault and not self.fault_active:

@@ -37,6 +37,11 @@ The buttons (``HD_CURRENT_BUTTONS``) grasp and clutch (``engage_button``,
 answers the motion. Each force sent is clamped in magnitude to the device's
 ``HD_NOMINAL_MAX_FORCE`` (the direction kept; ``max_force``: a lower limit).
 
+**Several devices.** ``device`` names the OpenHaptics configuration to open (Touch_Setup's
+name, ``Default Device`` unless renamed); with ``serial``, ``device`` may list several names:
+each is opened, the one whose ``HD_DEVICE_SERIAL_NUMBER`` is ``serial`` is kept and the others
+closed (:func:`~haptic_topology.device.openhaptics_hd.open_device`).
+
 **Calibration.** A Touch needs its inkwell calibration after power-up: ``activate`` checks
 ``hdCheckCalibration``, asks ``hdUpdateCalibration`` when an update is due, and refuses to
 start otherwise, saying to put the stylus in the inkwell (or run ``Touch_Setup`` /
@@ -50,18 +55,12 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from haptic_topology.device.backend import (
-    TRANSLATION_AXES,
-    BackendConfig,
-    DeviceAxes,
-    DeviceBackend,
-    DeviceReading,
-)
+from haptic_topology.device.backend import BackendConfig, DeviceReading
 from haptic_topology.device.openhaptics_hd import (
     BACKEND,
     HD_CALIBRATION_NEEDS_UPDATE,
@@ -74,7 +73,6 @@ from haptic_topology.device.openhaptics_hd import (
     HD_DEVICE_SERIAL_NUMBER,
     HD_DEVICE_VENDOR,
     HD_FORCE_OUTPUT,
-    HD_INVALID_HANDLE,
     HD_NOMINAL_MAX_FORCE,
     HD_SUCCESS,
     HD_VERSION,
@@ -85,20 +83,22 @@ from haptic_topology.device.openhaptics_hd import (
     STALL,
     HdLibrary,
     error_text,
+    hd_string,
     load_hd,
+    open_device,
 )
 from haptic_topology.device.vendor import (
     DeviceIdentity,
-    VendorHand,
+    VendorBackend,
     VendorSupport,
-    parse_vendor_options,
+    optional_number,
 )
 from haptic_topology.errors import DeviceError
 from haptic_topology.vocabulary import DeviceStatus
 
 #: The backend's own options (name -> default), besides the vendor ones
 #: (:data:`~haptic_topology.device.vendor.VENDOR_OPTIONS`).
-OWN_OPTIONS: dict[str, Any] = {'device': 'Default Device', 'max_force': None}
+OWN_OPTIONS: dict[str, Any] = {'device': 'Default Device', 'serial': None, 'max_force': None}
 
 
 def support() -> VendorSupport:
@@ -117,53 +117,37 @@ def list_devices() -> list[str]:
     """The device of the default configuration, opened briefly (``hdInitDevice``, no output
     enabled): ``'<model> serial <serial>'``."""
     hd = load_hd().hd
-    handle = _open(hd, OWN_OPTIONS)
+    handle = open_device(hd, (str(OWN_OPTIONS['device']),), None)
     try:
-        return [f'{hd.get_model()} serial {_string(hd, HD_DEVICE_SERIAL_NUMBER)}']
+        return [f'{hd.get_model()} serial {hd_string(hd, HD_DEVICE_SERIAL_NUMBER)}']
     finally:
         hd.close_device(handle)
 
 
-def _string(hd: Any, what: int) -> str:
-    lib = hd._lib_hd
-    lib.hdGetString.argtypes = [ctypes.c_uint]
-    lib.hdGetString.restype = ctypes.c_char_p
-    return (lib.hdGetString(what) or b'').decode(errors='replace')
+def _names(value: Any) -> tuple[str, ...]:
+    """``backend_options.device``: one configuration name or a list of them."""
+    names = [value] if isinstance(value, str) else value
+    if (not isinstance(names, list) or not names or len(set(names)) != len(names)
+            or not all(isinstance(n, str) and n for n in names)):
+        raise DeviceError(f'{BACKEND}: backend_options.device: expected an OpenHaptics device '
+                          'name (Touch_Setup) or a list of different names, got '
+                          f'{value!r}')
+    return tuple(names)
 
 
-def _open(hd: Any, options: Mapping[str, Any]) -> int:
-    """``hdInitDevice`` of the configuration ``options['device']``: its handle, or a
-    :class:`~haptic_topology.errors.DeviceError` with the HD error (the error queue emptied:
-    pyOpenHaptics' own ``init_device`` compares with the wrong constant)."""
-    lib = hd._lib_hd
-    lib.hdInitDevice.argtypes = [ctypes.c_char_p]
-    lib.hdInitDevice.restype = ctypes.c_uint
-    handle = int(lib.hdInitDevice(str(options.get('device') or 'Default Device').encode()))
-    if handle != HD_INVALID_HANDLE:
-        return handle
-    code = int(hd._get_error().errorCode)
-    while int(hd._get_error().errorCode) != HD_SUCCESS:
-        pass
-    raise DeviceError(f'openhaptics: hdInitDevice failed: {error_text(code)}: is the Touch '
-                      'connected and its driver (Touch_Setup) configured?')
-
-
-class OpenHapticsBackend(DeviceBackend):
+class OpenHapticsBackend(VendorBackend):
     """A Touch / Touch X / Phantom Premium through OpenHaptics (module doc). Options: the
     vendor ones (:func:`~haptic_topology.device.vendor.parse_vendor_options`: ``axes``,
     ``origin``, ``scale``, ``force_scale``, ``engage_button``, ``clutch_button``,
     ``grasp_ramp_ms``), ``device`` (the OpenHaptics configuration name, default ``Default
-    Device``), ``max_force`` (N, below the device's own limit)."""
+    Device``, or a list of names), ``serial`` (the unit's HD_DEVICE_SERIAL_NUMBER: the one
+    of those devices to open, :func:`~haptic_topology.device.openhaptics_hd.open_device`;
+    null: the one name given), ``max_force`` (N, below the device's own limit)."""
 
     name = 'openhaptics'
-    lockstep = False
     drives_loop = True
-
-    @classmethod
-    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
-        """3 translations sensed, 3 forces actuated: point tasks only."""
-        del options
-        return TRANSLATION_AXES
+    velocity_filtered = True    # HD_CURRENT_VELOCITY: the driver's filtered difference
+    own_options = OWN_OPTIONS
 
     def preflight(self, config: BackendConfig) -> None:
         """Before ``run`` starts a node: the options, the library and the package
@@ -172,13 +156,12 @@ class OpenHapticsBackend(DeviceBackend):
         opened and closed again (``hdInitDevice``, ``hdDisableDevice``: no output enabled)."""
         self.configure(config)
         hd = load_hd().hd
-        hd.close_device(_open(hd, self._own))
+        hd.close_device(open_device(hd, self._names, self._serial))
 
     def __init__(self) -> None:
-        self._hand: VendorHand | None = None
-        self._start = np.zeros(0)
-        self._m = 0
-        self._own: dict[str, Any] = dict(OWN_OPTIONS)
+        super().__init__()
+        self._names: tuple[str, ...] = (str(OWN_OPTIONS['device']),)
+        self._serial: str | None = None
         self._option_max_force = math.inf
         self._lib: HdLibrary | None = None
         self._handle: int | None = None
@@ -190,7 +173,6 @@ class OpenHapticsBackend(DeviceBackend):
         self._last: DeviceReading | None = None
         self._fault = ''                 # from the errors drained since the last reading
         self._reason = ''
-        self._identity: DeviceIdentity | None = None
         self.buttons = 0
         self.inkwell = False
         self.errors = 0
@@ -202,40 +184,26 @@ class OpenHapticsBackend(DeviceBackend):
         self._dt = 0.0
 
     # -- configuration ---------------------------------------------------------------------
-    def configure(self, config: BackendConfig) -> None:
-        opts, own = parse_vendor_options(config.options, self.name, config.params.task,
-                                         OWN_OPTIONS)
-        max_force = own['max_force']
-        if max_force is not None and (isinstance(max_force, bool)
-                                      or not isinstance(max_force, int | float)
-                                      or not (math.isfinite(max_force) and max_force > 0.0)):
-            raise DeviceError(f'{self.name}: backend_options.max_force: expected a number > 0 '
-                              f'(N) or null (the device\'s own limit), got {max_force!r}')
-        if not isinstance(own['device'], str) or not own['device']:
-            raise DeviceError(f'{self.name}: backend_options.device: expected the OpenHaptics '
-                              f'device name (Touch_Setup), got {own["device"]!r}')
-        self._own = own
-        self._option_max_force = math.inf if max_force is None else float(max_force)
-        self._hand = VendorHand(opts, config.initial_pose)
-        self._start = np.array(config.initial_pose, dtype=float)
-        self._m = config.params.task.dim
-
-    def task_dim(self) -> int:
-        if self._hand is None:
-            raise DeviceError(f'{self.name}: used before configure()')
-        return self._m
-
-    @property
-    def hardware_id(self) -> str:
-        """``'openhaptics <model> serial <serial>'`` once the device was opened."""
-        if self._identity is None:
-            return super().hardware_id
-        return self._identity.hardware_id(self.name)
+    def configure_own(self, own: dict[str, Any]) -> None:
+        max_force = optional_number(own['max_force'], 'max_force', self.name, 1000.0,
+                                    "N; null: the device's own limit")
+        names = _names(own['device'])
+        serial = own['serial']
+        if isinstance(serial, int) and not isinstance(serial, bool) and serial >= 0:
+            serial = str(serial)
+        if serial is not None and (not isinstance(serial, str) or not serial):
+            raise DeviceError(f'{self.name}: backend_options.serial: expected the device\'s '
+                              'serial number (HD_DEVICE_SERIAL_NUMBER, text) or null, got '
+                              f'{own["serial"]!r}')
+        if serial is None and len(names) > 1:
+            raise DeviceError(f'{self.name}: backend_options.device: {len(names)} names need '
+                              'backend_options.serial to choose among them (or name one '
+                              'device)')
+        self._names, self._serial = names, serial
+        self._option_max_force = math.inf if max_force is None else max_force
 
     def values(self) -> dict[str, str]:
-        out = {} if self._identity is None else self._identity.values()
-        if self._hand is not None:
-            out.update(self._hand.values())
+        out = super().values()
         out.update({'openhaptics_buttons': str(self.buttons),
                     'openhaptics_inkwell': str(int(self.inkwell)),
                     'openhaptics_errors': str(self.errors),
@@ -263,7 +231,7 @@ class OpenHapticsBackend(DeviceBackend):
                 return
             self.errors += 1
             if not self._fault:
-                model = self._identity.model if self._identity else 'device'
+                model = self.identity.model if self.identity else 'device'
                 self._fault = f'{self.name}: {model}: {error_text(code)}'
 
     def _fail_on_error(self, what: str) -> None:
@@ -279,10 +247,10 @@ class OpenHapticsBackend(DeviceBackend):
         self._lib = load_hd()
         hd = self._lib.hd
         lib = hd._lib_hd
-        self._handle = _open(hd, self._own)
-        self._identity = DeviceIdentity(_string(hd, HD_DEVICE_VENDOR), hd.get_model(),
-                                        _string(hd, HD_DEVICE_SERIAL_NUMBER),
-                                        f'OpenHaptics {_string(hd, HD_VERSION)}')
+        self._handle = open_device(hd, self._names, self._serial)
+        self.identity = DeviceIdentity(hd_string(hd, HD_DEVICE_VENDOR), hd.get_model(),
+                                        hd_string(hd, HD_DEVICE_SERIAL_NUMBER),
+                                        f'OpenHaptics {hd_string(hd, HD_VERSION)}')
         self._check_calibration(lib)
         nominal = hd._get_doublev(HD_NOMINAL_MAX_FORCE, ctypes.c_double).value
         self._max_force = min(float(nominal) if nominal > 0 else math.inf,
@@ -308,7 +276,7 @@ class OpenHapticsBackend(DeviceBackend):
             lib.hdUpdateCalibration(int(style))
             state = int(lib.hdCheckCalibration())
         if state != HD_CALIBRATION_OK:
-            who = self._identity
+            who = self.identity
             assert who is not None
             raise DeviceError(f'{self.name}: {who.model} serial {who.serial} needs '
                               'calibration: put the stylus in the inkwell and activate again '
@@ -339,11 +307,8 @@ class OpenHapticsBackend(DeviceBackend):
     def write(self, wrench: np.ndarray) -> None:
         if not self._active or self._hand is None:
             raise DeviceError(f'{self.name}: write() before activate()')
-        f = self._hand.force(wrench)        # zero while not grasping; faded in after a grasp
-        norm = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
-        if norm > self._max_force:          # the device's limit, the direction kept
-            k = self._max_force / norm
-            f = (k * f[0], k * f[1], k * f[2])
+        # Zero while not grasping, faded in after a grasp, within the device's limit.
+        f = self._hand.force(wrench, self._max_force)
         self._force = f
         if self._in_frame:
             self._require_hd().set_force(f)
@@ -386,7 +351,7 @@ class OpenHapticsBackend(DeviceBackend):
         self.inkwell = bool(hd._get_integerv(HD_CURRENT_INKWELL_SWITCH, ctypes.c_int).value)
         self._drain_errors()
         if not all(math.isfinite(x) for x in (*p, *v)):
-            model = self._identity.model if self._identity else 'device'
+            model = self.identity.model if self.identity else 'device'
             self._fault = self._fault or f'{self.name}: {model}: non-finite position or velocity'
         if self._fault:
             self._reason, self._fault = self._fault, ''

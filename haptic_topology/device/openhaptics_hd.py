@@ -6,7 +6,13 @@ computer without it.
 
 pyOpenHaptics loads ``CDLL("libHD.so")`` by its bare name when it is imported; :func:`load_hd`
 loads the library first, by path, with ``RTLD_GLOBAL``, so that the package's own load finds
-it (a library whose soname is ``libHD.so``, as OpenHaptics' and the emulator's are)."""
+it (a library whose soname is ``libHD.so``, as OpenHaptics' and the emulator's are).
+
+**Opening a device** (:func:`open_device`): OpenHaptics names devices by their configuration
+(``hdInitDevice(name)``, the names set up with Touch_Setup; ``Default Device`` unless renamed)
+and tells a unit by ``hdGetString(HD_DEVICE_SERIAL_NUMBER)``. Given a serial number, every
+name given is opened in turn, its serial read, the matching one kept (made current) and the
+others closed; none matching is one line naming the serials found."""
 
 from __future__ import annotations
 
@@ -112,3 +118,59 @@ def load_hd() -> HdLibrary:
         raise missing(f'package pyOpenHaptics: {exc}') from None
     _loaded.append(HdLibrary(path, hd, scheduling))
     return _loaded[0]
+
+
+def hd_string(hd: Any, what: int) -> str:
+    """``hdGetString(what)`` of the current device (``pyOpenHaptics.hd`` ``hd``) as text."""
+    lib = hd._lib_hd
+    lib.hdGetString.argtypes = [ctypes.c_uint]
+    lib.hdGetString.restype = ctypes.c_char_p
+    return (lib.hdGetString(what) or b'').decode(errors='replace')
+
+
+def _init(hd: Any, name: str) -> int | str:
+    """``hdInitDevice(name)``: the handle, or the HD error's text (the error queue emptied:
+    pyOpenHaptics' own ``init_device`` compares with the wrong constant)."""
+    lib = hd._lib_hd
+    lib.hdInitDevice.argtypes = [ctypes.c_char_p]
+    lib.hdInitDevice.restype = ctypes.c_uint
+    handle = int(lib.hdInitDevice(name.encode()))
+    if handle != HD_INVALID_HANDLE:
+        return handle
+    code = int(hd._get_error().errorCode)
+    while int(hd._get_error().errorCode) != HD_SUCCESS:
+        pass
+    return error_text(code)
+
+
+def open_device(hd: Any, names: tuple[str, ...], serial: str | None) -> int:
+    """Open a device (module doc) and make it current: the handle of ``names[0]`` when
+    ``serial`` is None, else of the one among ``names`` whose serial number is ``serial``.
+    :class:`~haptic_topology.errors.DeviceError` (one line) when it does not open or none
+    matches (naming what each name gave)."""
+    if serial is None:
+        got = _init(hd, names[0])
+        if isinstance(got, int):
+            return got
+        raise DeviceError(f'{BACKEND}: hdInitDevice failed: {got}: is the Touch connected and '
+                          'its driver (Touch_Setup) configured?')
+    kept: int | None = None
+    found = []
+    for name in names:
+        got = _init(hd, name)
+        if isinstance(got, str):
+            found.append(f'{name!r}: {got}')
+            continue
+        its = hd_string(hd, HD_DEVICE_SERIAL_NUMBER)
+        if kept is None and its == serial:
+            kept = got
+        else:
+            hd.close_device(got)
+            found.append(f'{name!r} serial {its}')
+    if kept is None:
+        raise DeviceError(f'{BACKEND}: no device with serial {serial} among '
+                          f'backend_options.device: found {"; ".join(found)}')
+    lib = hd._lib_hd
+    lib.hdMakeCurrentDevice.argtypes = [ctypes.c_uint]
+    lib.hdMakeCurrentDevice(kept)
+    return kept

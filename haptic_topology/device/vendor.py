@@ -20,6 +20,9 @@ package.
   reports now;
 * :class:`DeviceIdentity`: vendor, model, serial, SDK, workspace -> ``hardware_id`` and
   diagnostics values (which ``/diagnostics`` carries into the bag and ``summary.json``);
+* :class:`VendorBackend`: the base of a 3-axis vendor backend (its axes, the options and
+  the hand at ``configure``, ``hardware_id`` and diagnostics values from the identity);
+  :func:`optional_number` and :func:`flag_option` check a backend's own options;
 * :data:`VENDOR_BACKENDS`, :class:`VendorSupport`, :func:`vendor_support`,
   :func:`require_library`, :func:`probe`: the registry (backend name -> its support).
 
@@ -43,6 +46,14 @@ from zero over ``grasp_ramp_ms`` (WATCHDOG while it does). At the start the task
 the scenario's hand (``initial_pose``): the first grasp is where the linkage is. With an
 explicit ``origin`` the first grasp keeps the absolute mapping (``c`` = 0) instead.
 
+**Letting go after a fault.** :meth:`VendorHand.release` (a backend calls it when its device
+comes back after a loss, e.g. a reconnection) lets go as the clutch does, and the hand then
+grasps again only after the buttons have asked to let go once: the engage button released
+and pressed again, or the clutch button pressed and released; a button held all along does
+not count. With neither button configured the hand stays released until the next
+activation (a new hand). The grasp that follows is an ordinary one: the task position goes
+on from where it stayed and the force fades in over ``grasp_ramp_ms``.
+
 Example (checked by ``test/unit/device/test_vendor.py``): ``spatial_point`` starting at
 (0.1, 0, 0), mm device (``scale: 0.001``), clutch on button 1. The handle at (10, 0, 0) mm
 reads (0.1, 0, 0) (the first grasp aligns it); moved to (20, 0, 0) mm it reads (0.11, 0, 0);
@@ -56,11 +67,17 @@ import importlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from haptic_topology.device.backend import DeviceReading
+from haptic_topology.device.backend import (
+    TRANSLATION_AXES,
+    BackendConfig,
+    DeviceAxes,
+    DeviceBackend,
+    DeviceReading,
+)
 from haptic_topology.device.topic_mapping import TopicMapping, option_error, parse_axes
 from haptic_topology.errors import DeviceError, HapticTopologyError, VendorLibraryMissing
 from haptic_topology.vocabulary import DeviceStatus, TaskSpace
@@ -173,6 +190,12 @@ class VendorHand:
         self.scale = 0.0                 # the fade of the force, 0..1
         self.grasps = 0                  # times the hand took hold
         self.clutched_cycles = 0         # cycles read while not grasping
+        #: The task wrench (N, ``m`` entries) of the newest :meth:`force`: what the device
+        #: was sent, in task terms (zero while not grasping, faded, limited).
+        self.sent = np.zeros(m)
+        #: Whether the newest :meth:`force` was limited in magnitude.
+        self.clamped = False
+        self.released = False            # let go by release(); waiting for a let-go request
 
     def _wants(self, buttons: int) -> bool:
         o = self.opts
@@ -188,6 +211,11 @@ class VendorHand:
         that ``p`` and ``v`` are finite (a device that reports NaN is at fault)."""
         mp = self.opts.mapping.point(p)
         wants = self._wants(buttons)
+        if self.released:
+            if wants:
+                wants = False            # still the grasp of before the release
+            else:
+                self.released = False    # the buttons let go: the next request grasps
         if wants and not self.grasping:
             if self._offset is None or not self._first:
                 self._offset = [h - q for h, q in zip(self._held, mp, strict=True)]
@@ -210,21 +238,53 @@ class VendorHand:
         status = DeviceStatus.OK if self.scale >= 1.0 else DeviceStatus.WATCHDOG
         return DeviceReading(np.array(self._held[:m]), twist, np.zeros(m), status)
 
+    def release(self) -> None:
+        """Let go (zero force from now on) until the buttons have asked to let go once and
+        then to grasp (module doc, "Letting go after a fault")."""
+        self.released = True
+        self.grasping = False
+        self.scale = 0.0
+
+    def regrasp_hint(self) -> str:
+        """What the user does to grasp again after :meth:`release`, for an operator's
+        message."""
+        o = self.opts
+        if o.engage_button is not None:
+            return f'release and press the engage button (button {o.engage_button}) to grasp again'
+        if o.clutch_button is not None:
+            return (f'press and release the clutch button (button {o.clutch_button}) to grasp '
+                    'again')
+        return ('no engage or clutch button is configured: forces resume at the next '
+                'activation of device_driver')
+
     @property
     def pose(self) -> np.ndarray:
         """The task pose it reports now (where the hand holds the linkage, or held it)."""
         return np.array(self._held[:self._m])
 
-    def force(self, u: np.ndarray) -> tuple[float, float, float]:
+    def force(self, u: np.ndarray, limit: float = math.inf) -> tuple[float, float, float]:
         """The device force (device units and frame) of the task wrench ``u`` (N; already
         clamped and finite, ``m`` entries): zero while not grasping, faded in after a grasp
-        (module doc). Non-finite entries are taken as zero."""
+        (module doc), its magnitude limited to ``limit`` (device units; the direction kept:
+        the device's own force limit). Non-finite entries are taken as zero. What it amounts
+        to in task terms is kept in :attr:`sent` (the trace's ``applied``)."""
+        self.clamped = False
         if not self.grasping or self.scale <= 0.0:
+            self.sent = np.zeros(self._m)
             return 0.0, 0.0, 0.0
         k = self.scale
-        f = [float(x) if math.isfinite(x) else 0.0 for x in u]
+        f = [k * float(x) if math.isfinite(x) else 0.0 for x in u]
         fz = f[2] if self._m == 3 else 0.0
-        return self.opts.mapping.point_force((k * f[0], k * f[1], k * fz))
+        out = self.opts.mapping.point_force((f[0], f[1], fz))
+        if limit < math.inf:
+            norm = math.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2])
+            if norm > limit:            # the device's limit, the direction kept
+                c = limit / norm
+                self.clamped = True
+                out = (c * out[0], c * out[1], c * out[2])
+                f = [c * x for x in f]
+        self.sent = np.array(f[:self._m])
+        return out
 
     def values(self) -> dict[str, str]:
         """Diagnostics values: grasping, grasps, clutched cycles."""
@@ -261,6 +321,96 @@ class DeviceIdentity:
 #: The diagnostics keys of a :class:`DeviceIdentity`.
 IDENTITY_KEYS = ('device_vendor', 'device_model', 'device_serial', 'device_sdk',
                  'device_workspace')
+
+
+def optional_number(value: Any, key: str, backend: str, hi: float, meaning: str) -> float | None:
+    """A backend's own option that is a number in (0, ``hi``] or null (None; ``meaning``:
+    what null means, for the message); else a :class:`~haptic_topology.errors.DeviceError`
+    naming the field."""
+    if value is None:
+        return None
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or not (math.isfinite(value) and 0.0 < value <= hi)):
+        raise option_error(key, f'a number in (0, {hi:g}] or null ({meaning})', value, backend)
+    return float(value)
+
+
+def flag_option(value: Any, key: str, backend: str) -> bool:
+    """A backend's own option that is true or false."""
+    if not isinstance(value, bool):
+        raise option_error(key, 'true or false', value, backend)
+    return value
+
+
+class VendorBackend(DeviceBackend):
+    """The base of a 3-axis vendor device backend: it senses and actuates x, y, z forces
+    (:data:`~haptic_topology.device.backend.TRANSLATION_AXES`; point tasks only), runs on its
+    own clock, and at :meth:`configure` checks the common options (:data:`VENDOR_OPTIONS`)
+    and its own (:attr:`own_options`, checked by :meth:`configure_own`), then makes its
+    :class:`VendorHand` and keeps the task. Once a device is opened, ``identity`` (set by
+    the backend) gives ``hardware_id`` (``'<name> <model> serial <serial>'``) and the
+    diagnostics values, with the hand's."""
+
+    lockstep = False
+    #: The backend's own options (name -> default), besides
+    #: :data:`~haptic_topology.device.vendor.VENDOR_OPTIONS`.
+    own_options: ClassVar[dict[str, Any]] = {}
+
+    def __init__(self) -> None:
+        self._hand: VendorHand | None = None
+        self._start = np.zeros(0)
+        self._m = 0
+        self.identity: DeviceIdentity | None = None
+
+    @classmethod
+    def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
+        """x, y, z sensed and actuated (the device's rotations, where it has them, unused)."""
+        del options
+        return TRANSLATION_AXES
+
+    def configure(self, config: BackendConfig) -> None:
+        opts, own = parse_vendor_options(config.options, self.name, config.params.task,
+                                         self.own_options)
+        self.configure_own(own)
+        self._hand = VendorHand(opts, config.initial_pose)
+        self._start = np.array(config.initial_pose, dtype=float)
+        self._m = self.keep_task(config).dim
+
+    def configure_own(self, own: dict[str, Any]) -> None:
+        """Check and keep the backend's own options (``own``: :attr:`own_options` with what
+        ``backend_options`` set); raise :class:`~haptic_topology.errors.DeviceError` naming a
+        bad one. Default: nothing to check."""
+        del own
+
+    def hand(self) -> VendorHand:
+        """The hand (after ``configure``; else a :class:`~haptic_topology.errors.DeviceError`
+        saying so)."""
+        if self._hand is None:
+            raise DeviceError(f'{self.name}: used before configure()')
+        return self._hand
+
+    @property
+    def hardware_id(self) -> str:
+        """``'<name> <model> serial <serial>'`` once a device was opened; before,
+        ``'<name> <task>'`` (configured) or ``'<name>'``."""
+        if self.identity is None:
+            return super().hardware_id
+        return self.identity.hardware_id(self.name)
+
+    def written(self, wrench: np.ndarray) -> np.ndarray:
+        """The task wrench the device was sent by the newest ``write(wrench)``
+        (:attr:`VendorHand.sent`: zero while the hand does not grasp, faded after a grasp,
+        limited by the device's force limit)."""
+        return wrench if self._hand is None else self._hand.sent
+
+    def values(self) -> dict[str, str]:
+        """The identity's values and the hand's
+        (:meth:`~haptic_topology.device.vendor.VendorHand.values`); a backend adds
+        its own counters."""
+        out = {} if self.identity is None else self.identity.values()
+        if self._hand is not None:
+            out.update(self._hand.values())
+        return out
 
 
 # -- the registry ---------------------------------------------------------------------------
@@ -328,8 +478,8 @@ class VendorProbe:
 
 
 def probe(name: str) -> VendorProbe:
-    """Load the vendor backend ``name``'s library and list its devices (a failure of either
-    is reported in the probe, never raised)."""
+    """Load the vendor backend ``name``'s library and list its devices (a failure of either,
+    a missing library or one that does not load, is reported in the probe, never raised)."""
     support = vendor_support(name)
     if support is None:
         raise DeviceError(f'{name}: not a vendor backend (expected one of '
@@ -338,6 +488,8 @@ def probe(name: str) -> VendorProbe:
         where = support.load()
     except VendorLibraryMissing as exc:
         return VendorProbe(support, False, exc.detail or str(exc))
+    except HapticTopologyError as exc:  # e.g. another copy of the library loaded already
+        return VendorProbe(support, False, str(exc))
     try:
         devices = tuple(support.devices())
     except HapticTopologyError as exc:

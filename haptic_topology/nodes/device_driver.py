@@ -56,7 +56,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from haptic_topology.config import node_params
-from haptic_topology.config.resolve import passivity_by_default, resolve_device_driver
+from haptic_topology.config.resolve import configure_hosted, resolve_device_driver
 from haptic_topology.config.settings import DeviceDriverSettings
 from haptic_topology.device.backend import DeviceBackend, create_backend, zero_and_release
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, device_report, hardware_id
@@ -144,10 +144,9 @@ class DeviceDriver(LifecycleNode):
                 self.loop = DeviceLoop(self.backend, c.wrench_limit,
                                        CommandWatchdog(c.watchdog, c.task_dim), c.period,
                                        c.takeover_after)
-            if self.hosted is not None and self.hosted.cfg.passivity_auto:
-                # lmi_controller's passivity: auto (config.resolve.passivity_by_default)
-                self.hosted.loop.ctrl.energy.enable(
-                    passivity_by_default(self.backend.simulated))
+            if self.hosted is not None:   # passivity: auto; the device's own Z-width map
+                configure_hosted(self.hosted.cfg, self.hosted.loop.ctrl.energy, self.backend,
+                                 self.get_logger().warn, self.get_logger().info)
             self.layout = driver_layout(self, self.hosted)
         except Exception as exc:    # a backend's own code too: the fault
             why = error_line(exc, f'{getattr(self.backend, "name", c.backend)}: configure()')

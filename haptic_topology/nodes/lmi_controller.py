@@ -103,7 +103,7 @@ class LmiController(Node):
         s = declare_settings(self, LmiControllerSettings,
                                     scenario_defaults(LmiControllerSettings, sc))
         self.cfg = c = resolve_lmi_controller(s, sc)
-        for line in filter(None, [zwidth_warning(c)]):    # outside the map: warn, not refuse
+        for line in zwidth_warning(c):          # outside the map: warn, not refuse
             self.get_logger().warn(line)
         lockstep = c.clock is Clock.LOCKSTEP
         self.loop = build_controller_loop(sc, c.mode, c.guard, c.max_dt, c.resync_max_jump,

@@ -123,19 +123,13 @@ class RosTopicBackend(DeviceBackend):
         self._opts = parse_topic_options(config.options, config.params.task)
         # Until the device has sent a valid pose, a faulted reading reports the initial one.
         self._last_pose = np.array(config.initial_pose, dtype=float)
-        self._zero = np.zeros(config.params.task.dim)
+        self._zero = np.zeros(self.keep_task(config).dim)
 
     @property
     def options(self) -> TopicOptions:
         if self._opts is None:
             raise DeviceError(f'{self.name}: used before configure()')
         return self._opts
-
-    def task_dim(self) -> int:
-        return self.options.mapping.task.dim
-
-    def task(self) -> TaskSpace | None:
-        return self._opts.mapping.task if self._opts is not None else None
 
     @property
     def hardware_id(self) -> str:

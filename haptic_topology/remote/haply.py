@@ -4,9 +4,9 @@ WebSocket/JSON simulation channel, as Haply documents it for service version 3.5
 module follows is :data:`SERVICE_VERSION`). The closed serial protocol between the service
 and the device is not used.
 
-(One module of ~560 lines on purpose: the options, the lifecycle, the per-cycle path and the
-counters share the connection's state and are read together; its vendor registry entry is
-at the end.)
+(One module of ~650 lines on purpose: the options, the lifecycle, the per-cycle path, the
+reconnection and the counters share the connection's state and are read together; its vendor
+registry entry is at the end.)
 
 **The protocol** (3.5.x). The service listens on ``ws://localhost:10001``. On connection it
 sends an inventory: ``{"session_id": ..., "inverse3": [{"device_id", "config", "state",
@@ -36,9 +36,32 @@ then writes zero from the next cycle on and fades back in when it clears) while 
 state is older than ``stale_ms``, the newest message is not a valid state of the device (not
 JSON, fields missing, NaN/inf), the device is missing from it (unplugged), or the connection
 has ended (service stopped); :meth:`HaplyBackend.fault_reason` says which, naming the
-address. A faulted reading repeats the newest valid position with zero velocity. A closed
-connection is not reopened: the run goes on at zero force with the fault, and the next
-activation connects again.
+address. A faulted reading repeats the newest valid position with zero velocity.
+
+**A lost connection** (the service stopped, crashed or restarted) is a FAULT that stands
+until the user grasps again; meanwhile the backend reconnects:
+
+1. the cycle that finds the connection ended reads FAULT (``the connection to ... ended
+   (...); reconnecting``); the driver writes zero from the next cycle on;
+2. each cycle then advances the reconnection without waiting
+   (:class:`~haptic_topology.remote.redial.Redial`: to the address of the connection lost,
+   attempts 50 ms after the loss and then after twice the previous delay, at most
+   ``reconnect_max_ms`` apart, each abandoned after ``connect_timeout_ms``), FAULT all
+   along with the newest attempt's failure in the reason;
+3. once the service answers again with the same device in its inventory, the backend sends
+   it a zero force (a new session), the link is up again (``haply_link``:
+   ``up, waiting for a re-engage``; ``haply_reconnects`` counts it) and the reading is still
+   FAULT, its reason saying what to do: the hand was let go
+   (:meth:`~haptic_topology.device.vendor.VendorHand.release`), so no force resumes by
+   itself;
+4. the user grasps again deliberately, on the states that came after the reconnection: the
+   engage button released and pressed again (or the clutch pressed and released); the
+   reading is then no longer FAULT, the position goes on from where it stayed, the force
+   fades in over ``grasp_ramp_ms`` (and the driver's watchdog ramp). With neither button
+   configured the FAULT stands until the next activation.
+
+``reconnect_max_ms: 0`` turns the reconnection off: the run goes on at zero force with the
+fault, and the next activation connects again.
 
 **Lifecycle.** ``configure`` checks the options (no I/O). ``preflight`` (``run``, before any
 node starts) connects, takes the inventory and chooses the device, then closes without a
@@ -69,8 +92,8 @@ Options (``backend_options``; every one optional): the vendor layer's
 (:data:`~haptic_topology.device.vendor.VENDOR_OPTIONS`) and ``host`` (127.0.0.1), ``port``
 (10001), ``path`` (``/``), ``device_id`` (the only Inverse3), ``grip_id`` (the first
 VerseGrip), ``max_force`` (N, norm; default 10), ``stale_ms`` (20), ``connect_timeout_ms``
-(2000), ``max_in_flight`` (4), ``profile`` (the session profile name). A bad one is refused
-naming it.
+(2000), ``max_in_flight`` (4), ``reconnect_max_ms`` (2000; 0: no reconnection), ``profile``
+(the session profile name). A bad one is refused naming it.
 """
 
 from __future__ import annotations
@@ -99,8 +122,9 @@ from haptic_topology.device.vendor import (
     parse_vendor_options,
 )
 from haptic_topology.errors import DeviceError
+from haptic_topology.remote.redial import Redial
 from haptic_topology.remote.websocket_client import WebSocketClient, connect
-from haptic_topology.vocabulary import DeviceStatus, TaskSpace
+from haptic_topology.vocabulary import DeviceStatus
 
 #: The Haply Inverse Service version whose documented protocol this backend follows.
 SERVICE_VERSION = '3.5.x'
@@ -112,7 +136,7 @@ SERVICE_VARIABLE = 'HAPLY_INVERSE_SERVICE'
 OWN_OPTIONS: dict[str, Any] = {
     'host': '127.0.0.1', 'port': DEFAULT_PORT, 'path': '/', 'device_id': '', 'grip_id': '',
     'max_force': 10.0, 'stale_ms': 20.0, 'connect_timeout_ms': 2000.0, 'max_in_flight': 4,
-    'profile': 'haptic_topology',
+    'reconnect_max_ms': 2000.0, 'profile': 'haptic_topology',
 }
 NAME = 'haply'
 _FAULT = DeviceStatus.FAULT
@@ -165,7 +189,6 @@ class HaplyBackend(DeviceBackend):
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns
         self._m = 0
-        self._task: TaskSpace | None = None
         self._ws: WebSocketClient | None = None
         self._hand: VendorHand | None = None
         self._first = True
@@ -183,6 +206,10 @@ class HaplyBackend(DeviceBackend):
         self.peer = ''
         self._sent = 0
         self._answers = 0
+        self._redial: Redial | None = None
+        self._rejoin = False             # reconnected; the hand waits for a re-grasp
+        self._rejoin_states = 0          # self.states at the reconnection
+        self._lost = ''                  # why the newest connection ended
         # counters (read by the diagnostics thread as they are)
         self.states = 0
         self.malformed = 0
@@ -194,6 +221,8 @@ class HaplyBackend(DeviceBackend):
         self.force_clamped = 0
         self.stale_cycles = 0
         self.fault_reads = 0
+        self.reconnects = 0
+        self.reconnect_attempts = 0      # of the reconnections finished
 
     @classmethod
     def axes(cls, options: Mapping[str, Any]) -> DeviceAxes:
@@ -223,19 +252,13 @@ class HaplyBackend(DeviceBackend):
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 64:
             raise option_error('max_in_flight', 'an integer in [1, 64]', n, NAME)
         self.max_in_flight = n
-        self._m = config.params.task.dim
-        self._task = config.params.task
+        r = opts['reconnect_max_ms']
+        if isinstance(r, bool) or r != 0:
+            r = _number(opts, 'reconnect_max_ms', 0.0, 600_000.0)
+        self.redial_max_ns = round(1e6 * r)
+        self._m = self.keep_task(config).dim
         self._start_pose = np.asarray(config.initial_pose, dtype=float)[:self._m].copy()
         self.peer = f'ws://{self.host}:{self.port}{self.path}'
-
-    def task_dim(self) -> int:
-        if not self._m:
-            raise DeviceError('haply: used before configure()')
-        return self._m
-
-    def task(self) -> TaskSpace | None:
-        """The point task configured (None before ``configure``)."""
-        return self._task
 
     @property
     def hardware_id(self) -> str:
@@ -329,6 +352,7 @@ class HaplyBackend(DeviceBackend):
         self._bad = self._reason = ''
         self._hand = VendorHand(self._vendor, self._start_pose)
         self._last = None
+        self._rejoin = False
         self._send((0.0, 0.0, 0.0), force=True)
         while not self._state_ns:
             msg = ws.wait_text(self._left(start))
@@ -362,6 +386,10 @@ class HaplyBackend(DeviceBackend):
         self._close()
 
     def _close(self) -> None:
+        if self._redial is not None:
+            self.reconnect_attempts += self._redial.attempts
+            self._redial.close()
+            self._redial = None
         if self._ws is not None:
             self._ws.close()
             self._ws = None
@@ -370,6 +398,9 @@ class HaplyBackend(DeviceBackend):
     def _send(self, f_dev: Sequence[float], force: bool = False) -> None:
         ws = self._ws
         assert ws is not None
+        if ws.closed:
+            self.not_sent += 1
+            return
         if not force and self._sent - self._answers >= self.max_in_flight:
             self.throttled += 1
             return
@@ -394,13 +425,15 @@ class HaplyBackend(DeviceBackend):
         if not np.all(np.isfinite(w)):
             self.nonfinite_writes += 1
             w = np.where(np.isfinite(w), w, 0.0)
-        x, y, z = self._hand.force(w)
-        norm = math.sqrt(x * x + y * y + z * z)
-        if norm > self.max_force:
+        x, y, z = self._hand.force(w, self.max_force)
+        if self._hand.clamped:
             self.force_clamped += 1
-            k = self.max_force / norm
-            x, y, z = k * x, k * y, k * z
         self._send((x, y, z))
+
+    def written(self, wrench: np.ndarray) -> np.ndarray:
+        """What the newest ``write`` sent, in task terms (``VendorHand.sent``: zero while the
+        hand does not grasp, faded, limited by ``max_force``): the trace's ``applied``."""
+        return wrench if self._hand is None else self._hand.sent
 
     def read(self, dt: float) -> DeviceReading:
         ws = self._ws
@@ -460,10 +493,11 @@ class HaplyBackend(DeviceBackend):
         self.states += 1
 
     def _reading(self, now: int, ws: WebSocketClient, dt: float) -> DeviceReading:
-        assert self._hand is not None
+        hand = self._hand
+        assert hand is not None
         age = now - self._state_ns
         if ws.closed:
-            self._reason = f'haply: the connection to {self.peer} ended ({ws.closed})'
+            self._reason = self._reconnect(now, ws)
         elif self._bad:
             self._reason = f'haply: {self._bad}'
         elif age > self.stale_ns:
@@ -471,13 +505,73 @@ class HaplyBackend(DeviceBackend):
             self._reason = (f'haply: no state from {self.peer} for {age * 1e-6:.1f} ms '
                             f'(stale_ms {self.stale_ns * 1e-6:g}): the service is stalled or '
                             'stopped')
-        else:
-            self._last = self._hand.reading(self._pos, self._vel, self._buttons, dt)
+        elif not self._rejoin:
+            self._last = hand.reading(self._pos, self._vel, self._buttons, dt)
             return self._last
+        elif self.states == self._rejoin_states:
+            self._reason = (f'haply: reconnected to {self.peer} after {self._lost}: waiting '
+                            'for its first state')
+        else:
+            # Reconnected: the buttons of the states since then decide (module doc, 4.).
+            self._last = hand.reading(self._pos, self._vel, self._buttons, dt)
+            if hand.grasping:
+                self._rejoin = False
+                return self._last
+            self._reason = (f'haply: reconnected to {self.peer} after {self._lost}: '
+                            f'{hand.regrasp_hint()}')
         self.fault_reads += 1
         m = self._m
         pose = self._last.pose if self._last is not None else self._start_pose.copy()
         return DeviceReading(pose, np.zeros(m), np.zeros(m), _FAULT)
+
+    def _reconnect(self, now: int, ws: WebSocketClient) -> str:
+        """The fault reason of a cycle with the connection ``ws`` ended, after advancing the
+        reconnection (module doc, "A lost connection")."""
+        ended = f'haply: the connection to {self.peer} ended ({ws.closed})'
+        redial = self._redial
+        if redial is None:
+            self._lost = f'the connection ended ({ws.closed})'
+            if not self.redial_max_ns or ws.address is None:
+                return ended
+            redial = self._redial = Redial(ws.address, self.host, self.port, self.path,
+                                           self.redial_max_ns,
+                                           round(1e9 * self.connect_timeout), now)
+        got = redial.step(now)
+        if got is not None:
+            client, first = got
+            try:
+                ids = [str(d['device_id']) for d in json.loads(first)['inverse3']]
+            except (ValueError, KeyError, TypeError):
+                ids = None
+            if ids is not None and self.device_id in ids:
+                self._resume(client, now)
+                return (f'haply: reconnected to {self.peer} after {self._lost}: waiting for '
+                        'its first state')
+            client.close()
+            redial.retry_later(f'the Inverse3 {self.device_id} is not in the inventory '
+                               f'(it has {", ".join(ids) or "none"})' if ids is not None
+                               else f'no inventory: {first[:80]!r}', now)
+        n = redial.attempts
+        return f'{ended}; reconnecting' + (
+            f' ({n} attempt{"s" * (n > 1)}, the newest: {redial.error})' if redial.error else '')
+
+    def _resume(self, client: WebSocketClient, now: int) -> None:
+        """Take the new connection ``client``: a new session, a zero force, the hand let go
+        (module doc, "A lost connection", 3.)."""
+        assert self._ws is not None and self._redial is not None and self._hand is not None
+        self.reconnect_attempts += self._redial.attempts
+        self._redial = None
+        self._ws.close()
+        self._ws = client
+        self._first = True
+        self._sent = self._answers = 0
+        self._bad = ''
+        self._state_ns = now                 # staleness counts from the reconnection
+        self._hand.release()
+        self._rejoin = True
+        self._rejoin_states = self.states
+        self.reconnects += 1
+        self._send((0.0, 0.0, 0.0), force=True)
 
     # -- figures -----------------------------------------------------------------------------
     def counters(self) -> dict[str, int]:
@@ -488,14 +582,29 @@ class HaplyBackend(DeviceBackend):
                 'commands_sent': self._sent, 'throttled': self.throttled,
                 'not_sent': self.not_sent, 'nonfinite_writes': self.nonfinite_writes,
                 'force_clamped': self.force_clamped, 'stale_cycles': self.stale_cycles,
-                'fault_reads': self.fault_reads,
+                'fault_reads': self.fault_reads, 'reconnects': self.reconnects,
+                'reconnect_attempts': self.reconnect_attempts,
                 'skipped': ws.skipped if ws is not None else 0,
                 'partial_sends': ws.partial_sends if ws is not None else 0}
+
+    def link(self) -> str:
+        """The link to the service: ``up``, ``up, waiting for a re-engage`` (reconnected,
+        module doc), ``down, reconnecting: <why the newest attempt failed>``, ``down`` (not
+        reconnecting) or ``closed`` (not active)."""
+        ws, redial = self._ws, self._redial
+        if ws is None:
+            return 'closed'
+        if ws.closed:
+            if redial is None:
+                return 'down'
+            return 'down, reconnecting' + (f': {redial.error}' if redial.error else '')
+        return 'up, waiting for a re-engage' if self._rejoin else 'up'
 
     def values(self) -> dict[str, str]:
         """Counters, the device's identity, the grasp, the service session (diagnostics)."""
         out = {f'haply_{k}': str(v) for k, v in self.counters().items()}
         out['haply_session_id'] = str(self.session_id)
+        out['haply_link'] = self.link()
         if self.identity is not None:
             out.update(self.identity.values())
         if self._hand is not None:

@@ -103,7 +103,7 @@ from haptic_topology.remote.protocol import (
     encode_command,
     new_session,
 )
-from haptic_topology.vocabulary import DeviceStatus, TaskSpace
+from haptic_topology.vocabulary import DeviceStatus
 
 #: Options and their defaults (module doc).
 DEFAULTS: dict[str, Any] = {
@@ -160,7 +160,6 @@ class NetworkBackend(DeviceBackend):
     def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock_ns = clock_ns
         self._m = 0
-        self._task: TaskSpace | None = None
         self._sock: socket.socket | None = None
         self._buf = bytearray(2048)
         self._state: State | None = None
@@ -240,20 +239,11 @@ class NetworkBackend(DeviceBackend):
                               'device protocol carries the rigid tasks only (m = 3 planar, 6 '
                               'spatial; its packets name m, not the task, so a device serving '
                               'another task of the same m could not be told apart)')
-        self._task = task
-        self._m = task.dim
+        self._m = self.keep_task(config).dim
         self._initial_pose = np.array(config.initial_pose, dtype=float)
         self._zero = np.zeros(self._m)
         self._follower = SessionFollower(self.stale_ns * 1e-9, remember_all=self.key is not None)
         self._state = None
-
-    def task_dim(self) -> int:
-        if not self._m:
-            raise DeviceError('network: used before configure()')
-        return self._m
-
-    def task(self) -> TaskSpace | None:
-        return self._task
 
     @property
     def hardware_id(self) -> str:

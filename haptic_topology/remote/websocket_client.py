@@ -24,17 +24,23 @@ whatever has arrived, so the framing is done here, inline, on a non-blocking soc
   it too.
 * :meth:`WebSocketClient.wait_text` (blocking, bounded): the next text message, for the
   connection's start.
+* :class:`Dialer`: the same opening as :func:`connect`, to an address resolved before (no
+  name lookup), without ever waiting: a non-blocking TCP connect, then the handshake, one
+  :meth:`Dialer.step` at a time (for a device cycle that reconnects; the caller bounds how
+  long it lets an attempt take).
 """
 
 from __future__ import annotations
 
 import base64
+import errno
 import hashlib
 import os
 import select
 import socket
 import struct
 import time
+from typing import Any
 
 from haptic_topology.errors import DeviceError
 
@@ -88,6 +94,9 @@ class WebSocketClient:
         self._frag = bytearray()
         #: Why the connection ended ('' while open).
         self.closed = ''
+        #: ``(family, sockaddr)`` of the service (set by :func:`connect` and
+        #: :class:`Dialer`): where a :class:`Dialer` reconnects to without a name lookup.
+        self.address: tuple[int, Any] | None = None
         # counters
         self.frames_sent = 0
         self.partial_sends = 0
@@ -117,7 +126,7 @@ class WebSocketClient:
         except (BlockingIOError, InterruptedError):
             return False
         except OSError as exc:
-            self._end(f'send failed: {exc.strerror or type(exc).__name__}')
+            self._send_failed(exc)
             return False
         self._out = self._out[n:]
         return not self._out
@@ -133,7 +142,7 @@ class WebSocketClient:
         except (BlockingIOError, InterruptedError):
             n = 0
         except OSError as exc:
-            self._end(f'send failed: {exc.strerror or type(exc).__name__}')
+            self._send_failed(exc)
             return False
         if n < len(data):
             self.partial_sends += 1
@@ -145,6 +154,16 @@ class WebSocketClient:
         """Send one text message (UTF-8 bytes) without waiting; False when not sent (the
         connection has ended, or the previous frame is still unfinished: module doc)."""
         return self._send_frame(_TEXT, text)
+
+    def _send_failed(self, exc: OSError) -> None:
+        # A service that ends is seen by whichever call meets it first: a reset or a closed
+        # stream reads the same from a send as from a receive (_drain).
+        if isinstance(exc, ConnectionResetError):
+            self._end('the service reset the connection')
+        elif isinstance(exc, BrokenPipeError):
+            self._end('the service closed the connection')
+        else:
+            self._end(f'send failed: {exc.strerror or type(exc).__name__}')
 
     # -- receiving ---------------------------------------------------------------------------
     def _end(self, why: str) -> None:
@@ -271,6 +290,38 @@ class WebSocketClient:
             pass
 
 
+def _request(host: str, port: int, path: str, origin: str) -> tuple[bytes, bytes]:
+    """The opening handshake's request (RFC 6455 4.1) and its ``Sec-WebSocket-Key``."""
+    key = base64.b64encode(os.urandom(16))
+    request = (f'GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n'
+               'Connection: Upgrade\r\nSec-WebSocket-Version: 13\r\n'
+               f'Sec-WebSocket-Key: {key.decode()}\r\n'
+               + (f'Origin: {origin}\r\n' if origin else '') + '\r\n')
+    return request.encode(), key
+
+
+def _answer(peer: str, key: bytes, data: bytes) -> bytes | None:
+    """The bytes after the handshake's answer once ``data`` holds all of it (None: not yet);
+    a :class:`~haptic_topology.errors.DeviceError` when it refuses or is not the right one."""
+    if b'\r\n\r\n' not in data:
+        if len(data) > _HEADER_MAX:
+            raise DeviceError(f'{peer}: a handshake answer of more than {_HEADER_MAX} bytes')
+        return None
+    head, _, rest = data.partition(b'\r\n\r\n')
+    lines = head.decode('latin-1').split('\r\n')
+    status = lines[0].split(' ', 2)
+    if len(status) < 2 or status[1] != '101':
+        raise DeviceError(f'{peer}: the service refused the WebSocket handshake: '
+                          f'{lines[0]!r}')
+    fields = {k.strip().lower(): v.strip() for k, _, v in
+              (line.partition(':') for line in lines[1:])}
+    expect = base64.b64encode(hashlib.sha1(key + _GUID).digest()).decode()
+    if fields.get('sec-websocket-accept') != expect:
+        raise DeviceError(f'{peer}: a WebSocket handshake answer without the right '
+                          'Sec-WebSocket-Accept')
+    return rest
+
+
 def connect(host: str, port: int, path: str, timeout: float, origin: str = '') -> WebSocketClient:
     """Open a connection to ``ws://host:port/path`` within ``timeout`` s (module doc); a
     :class:`~haptic_topology.errors.DeviceError` naming the address and why when it cannot."""
@@ -282,14 +333,11 @@ def connect(host: str, port: int, path: str, timeout: float, origin: str = '') -
         raise DeviceError(f'cannot connect to {peer}: {exc.strerror or exc}') from None
     try:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        key = base64.b64encode(os.urandom(16))
-        request = (f'GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n'
-                   'Connection: Upgrade\r\nSec-WebSocket-Version: 13\r\n'
-                   f'Sec-WebSocket-Key: {key.decode()}\r\n'
-                   + (f'Origin: {origin}\r\n' if origin else '') + '\r\n')
-        sock.sendall(request.encode())
+        address = (sock.family, sock.getpeername())
+        request, key = _request(host, port, path, origin)
+        sock.sendall(request)
         data = b''
-        while b'\r\n\r\n' not in data:
+        while (rest := _answer(peer, key, data)) is None:
             left = deadline - time.monotonic()
             if left <= 0.0:
                 raise DeviceError(f'{peer}: no answer to the WebSocket handshake within '
@@ -300,20 +348,6 @@ def connect(host: str, port: int, path: str, timeout: float, origin: str = '') -
                 raise DeviceError(f'{peer}: the connection closed during the WebSocket '
                                   'handshake')
             data += chunk
-            if len(data) > _HEADER_MAX:
-                raise DeviceError(f'{peer}: a handshake answer of more than {_HEADER_MAX} bytes')
-        head, _, rest = data.partition(b'\r\n\r\n')
-        lines = head.decode('latin-1').split('\r\n')
-        status = lines[0].split(' ', 2)
-        if len(status) < 2 or status[1] != '101':
-            raise DeviceError(f'{peer}: the service refused the WebSocket handshake: '
-                              f'{lines[0]!r}')
-        fields = {k.strip().lower(): v.strip() for k, _, v in
-                  (line.partition(':') for line in lines[1:])}
-        expect = base64.b64encode(hashlib.sha1(key + _GUID).digest()).decode()
-        if fields.get('sec-websocket-accept') != expect:
-            raise DeviceError(f'{peer}: a WebSocket handshake answer without the right '
-                              'Sec-WebSocket-Accept')
         sock.setblocking(False)
     except (DeviceError, OSError) as exc:
         sock.close()
@@ -321,4 +355,75 @@ def connect(host: str, port: int, path: str, timeout: float, origin: str = '') -
             raise
         raise DeviceError(f'{peer}: WebSocket handshake failed: {exc.strerror or exc}'
                           ) from None
-    return WebSocketClient(sock, rest, peer)
+    client = WebSocketClient(sock, rest, peer)
+    client.address = address
+    return client
+
+
+class Dialer:
+    """One attempt to open ``ws://host:port/path`` at ``address`` (``(family, sockaddr)``, e.g.
+    :attr:`WebSocketClient.address` of an earlier connection), never waiting: the socket is
+    non-blocking from the start, and each :meth:`step` does what can be done now. The caller
+    bounds the attempt's duration (and :meth:`close` s it)."""
+
+    def __init__(self, address: tuple[int, Any], host: str, port: int, path: str,
+                 origin: str = '') -> None:
+        self.peer = f'ws://{host}:{port}{path}'
+        self._address = address
+        self._request, self._key = _request(host, port, path, origin)
+        self._data = b''
+        self._sock: socket.socket | None = socket.socket(address[0], socket.SOCK_STREAM)
+        self._sock.setblocking(False)
+        err = self._sock.connect_ex(address[1])
+        if err not in (0, errno.EINPROGRESS, errno.EAGAIN, errno.EALREADY):
+            self.close()
+            raise DeviceError(f'cannot connect to {self.peer}: {os.strerror(err)}')
+
+    def step(self) -> WebSocketClient | None:
+        """Advance the attempt without waiting: the open connection once the handshake is
+        done (this dialer is then spent), None while it is under way; a
+        :class:`~haptic_topology.errors.DeviceError` naming the address when it failed (the
+        socket is closed then)."""
+        sock = self._sock
+        if sock is None:
+            raise DeviceError(f'{self.peer}: this connection attempt is over')
+        try:
+            if self._request:
+                if not select.select([], [sock], [], 0.0)[1]:
+                    return None                     # the TCP connect is under way
+                err = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+                if err:
+                    raise DeviceError(f'cannot connect to {self.peer}: {os.strerror(err)}')
+                n = sock.send(self._request)
+                self._request = self._request[n:]
+                return None
+            try:
+                chunk = sock.recv(4096)
+            except (BlockingIOError, InterruptedError):
+                return None
+            if not chunk:
+                raise DeviceError(f'{self.peer}: the connection closed during the WebSocket '
+                                  'handshake')
+            self._data += chunk
+            rest = _answer(self.peer, self._key, self._data)
+            if rest is None:
+                return None
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        except (BlockingIOError, InterruptedError):
+            return None
+        except (DeviceError, OSError) as exc:
+            self.close()
+            if isinstance(exc, DeviceError):
+                raise
+            raise DeviceError(f'{self.peer}: WebSocket handshake failed: '
+                              f'{exc.strerror or exc}') from None
+        self._sock = None
+        client = WebSocketClient(sock, rest, self.peer)
+        client.address = self._address
+        return client
+
+    def close(self) -> None:
+        """Abandon the attempt (harmless when it is over)."""
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None

@@ -24,20 +24,22 @@ carry those stamps, computes with the same numbers. Deterministic: no clocks, no
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from haptic_topology.control.controller import HapticController
 from haptic_topology.control.laws import ControlGains
 from haptic_topology.control.lmi import LmiSnapshot
-from haptic_topology.control.loop import Answer, ControllerLoop
+from haptic_topology.control.loop import Answer, ControllerLoop, HandSample
 from haptic_topology.control.passivity import PassivityConfig
 from haptic_topology.control.safety import SyncGuard, SyncGuardConfig
 from haptic_topology.device.backend import BackendConfig, SimMaglevBackend
-from haptic_topology.device.hosted import HostedCycle
+from haptic_topology.device.hosted import HostedCycle, state_sample
 from haptic_topology.device.loop import DeviceLoop, DeviceTick, ns_to_seconds, period_ns
+from haptic_topology.device.maglev import DeviceParams
 from haptic_topology.device.watchdog import CommandWatchdog, WatchdogConfig
 from haptic_topology.dynamics.contacts import ContactModel
 from haptic_topology.dynamics.linkage_dynamics import LinkageDynamics
@@ -109,7 +111,8 @@ class SimStep:
 def simulate(scenario: Scenario, mode: ControlMode | None = None,
              observer: Callable[[SimStep], None] | None = None,
              passivity: PassivityConfig | None = None,
-             gains: ControlGains | None = None) -> Trace:
+             gains: ControlGains | None = None, device: DeviceParams | None = None,
+             ve_delay: int = 0, device_delay: int = 0) -> Trace:
     """Run ``scenario`` with ``mode`` (default: the scenario's) and return its trace, with
     the controller's energy account in its columns
     (:data:`~haptic_topology.sim.trace.ENERGY_FLOATS`) and its final figures in
@@ -120,28 +123,62 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
 
     ``observer``: called once per step, after the VE took the step's hand input and before
     the trace records the step, with a :class:`SimStep` (for figures the trace does not hold,
-    e.g. ``bench/penalty_direction.py``); it must not change what it is given."""
+    e.g. ``bench/penalty_direction.py``); it must not change what it is given.
+
+    Another device and links (for the Z-width maps, :mod:`haptic_topology.sim.zwidth`):
+    ``device``: the simulated device's own parameters (eq. 9's ``M_d``, friction, sensor,
+    wrench limit) where they differ from the scenario's ``device``, which the controller
+    keeps as its model (as with a real device); ``ve_delay``: device cycles each hand input
+    takes to the VE and each LMI update back (a VE on another host, one way);
+    ``device_delay``: device cycles between the controller's answer and the device taking it
+    (a device behind a link: the round trip of state and command). Deterministic: the
+    delays are whole cycles, without jitter or loss."""
+    if ve_delay < 0 or device_delay < 0:
+        raise ValueError(f've_delay and device_delay must be >= 0 cycles, got {ve_delay} and '
+                         f'{device_delay}')
     sc = scenario
     mode = sc.mode if mode is None else mode
     task = sc.linkage.task
     ve = virtual_environment(sc)
     dyn = ve.dyn
-    cycle = HostedCycle(build_device_loop(sc),
-                        build_controller_loop(sc, mode, update_period=sc.update_period,
+    # With the VE behind a link the controller does not wait for its updates (as on a
+    # wall clock): they come ve_delay cycles late.
+    cycle = HostedCycle(build_device_loop(sc if device is None else replace(sc, device=device)),
+                        build_controller_loop(sc, mode, update_period=None if ve_delay
+                                              else sc.update_period,
                                               gains=gains, passivity=passivity))
     account = cycle.controller.ctrl.energy
     first = ve.snapshot(seq=0)
     cycle.offer_update(first)
     step_ns = period_ns(sc.dt)
 
-    def step(t: float) -> tuple[DeviceTick, Answer]:
-        done = cycle.step(t, sc.dt, t)
-        if done.answer is None:
-            raise RuntimeError(f'controller did not answer state {done.tick.seq}')
-        return done.tick, done.answer
+    answers: deque[Answer] = deque()        # answers on their way to the device
 
-    # Engagement: one idle state, answered in the controller's mode.
+    def step(t: float) -> tuple[DeviceTick, Answer]:
+        if not device_delay:
+            done = cycle.step(t, sc.dt, t)
+            if done.answer is None:
+                raise RuntimeError(f'controller did not answer state {done.tick.seq}')
+            return done.tick, done.answer
+        cycle.apply_updates()
+        tick = cycle.device.tick(t, sc.dt)
+        ans = cycle.controller.on_state(state_sample(tick, t))
+        if ans is None:
+            raise RuntimeError(f'controller did not answer state {tick.seq}')
+        answers.append(ans)
+        if len(answers) > device_delay:
+            late = answers.popleft()
+            cycle.device.on_command(late.state_seq, int(late.out.mode), late.out.wrench, t,
+                                    env_wrench=late.out.env_wrench)
+        return tick, ans
+
+    # Engagement: one idle state, answered in the controller's mode (behind a device link:
+    # idle states until the answer has come).
     step(0.0)
+    for _ in range(device_delay):
+        if cycle.device.engaged:
+            break
+        step(0.0)
     n = int(round(sc.duration / sc.dt)) + 1
     trace = Trace.empty(n, task.dim, dyn.dof, sc.contacts is not None, mode=mode.label,
                         scenario=sc.name, dt=sc.dt, task=task.value, energy=True,
@@ -149,6 +186,8 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
     vt_pose = dyn.hand_pose(ve.q)
     inputs = 0
     update_seq = 1
+    to_ve: deque[tuple[int, HandSample]] = deque()     # (due step, input) behind the VE link
+    to_ctrl: deque[tuple[int, LmiSnapshot]] = deque()  # (due step, update) on the way back
     # (row, depth m, energy J) per update; the VE's initial state describes the first row
     contact_rows = [(0, _depth(first), first.contact_energy)]
     count_rows = [(0, first.constraint_count)]      # (row, t) per update, as the graph's
@@ -157,7 +196,11 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
         if cycle.waiting_for_update():
             raise RuntimeError(f'state {k}: the VE update was not taken')
         tick, ans = step(t)
-        hand = ans.hand
+        while to_ctrl and to_ctrl[0][0] <= k:
+            cycle.offer_update(to_ctrl.popleft()[1])
+        if ans.hand is not None:
+            to_ve.append((k + ve_delay, ans.hand))
+        hand = to_ve.popleft()[1] if to_ve and to_ve[0][0] <= k else None
         if hand is not None:
             ve.push_input(hand.state_seq, hand.stamp, hand.vt_wrench)
             inputs += 1
@@ -178,7 +221,10 @@ def simulate(scenario: Scenario, mode: ControlMode | None = None,
         if hand is not None and inputs % sc.update_period == 0:
             # Applied at the start of the next step, before its state: as the graph does.
             snap = ve.snapshot(seq=update_seq)
-            cycle.offer_update(snap)
+            if ve_delay:
+                to_ctrl.append((k + ve_delay, snap))
+            else:
+                cycle.offer_update(snap)
             update_seq += 1
             # It describes the VE after the input before this one: at this row's state.
             contact_rows.append((k, _depth(snap), snap.contact_energy))

@@ -351,3 +351,9 @@ def check_lifecycle(bench: Bench, cycles: int = 40) -> None:
         assert np.any(np.abs(got - u).max(axis=1) <= ROUND_TRIP * bench.limit.max()), \
             f'activation {k + 1}: the device never got the command'
         assert np.all(_zero(got[-1])), f'activation {k + 1}: not zero after deactivate'
+
+
+#: The checks by name (a test parametrized over some of them).
+CHECKS: dict[str, Callable[[Bench], None]] = {
+    'clamping': check_clamping, 'nonfinite': check_nonfinite, 'watchdog': check_watchdog,
+    'lifecycle': check_lifecycle}

@@ -3,7 +3,8 @@ fault-injecting UDP relay, a raw protocol client. Host and port are parameters e
 the same helpers can run across a network namespace pair.
 
 :class:`ServerProcess` starts ``python -m haptic_topology.remote.server_command`` and waits for
-its ready file (no log lines are parsed); :meth:`ServerProcess.stop` sends SIGINT and reads
+its ready file (no log lines are parsed; the process handling is ``service_process.py``'s,
+shared with the Haply emulator's harness); :meth:`ServerProcess.stop` sends SIGINT and reads
 the counters (``--summary``) and the per-cycle applied-wrench log (``--log``).
 
 :class:`Relay` sits between a client and the server and mutates the datagrams by their index
@@ -16,13 +17,9 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import select
-import signal
 import socket
 import struct
-import subprocess
-import sys
 import threading
 import time
 import zlib
@@ -31,10 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from service_process import MonitoredDevice, ServiceProcess
 
 from haptic_topology.remote import protocol as P
-
-REPO = Path(__file__).resolve().parents[2]
 
 #: Relay actions by datagram index modulo 50 (in each direction); the others pass unchanged.
 PATTERN = {7: 'drop', 13: 'duplicate', 21: 'reorder', 29: 'delay', 37: 'corrupt', 43: 'nan',
@@ -69,57 +65,28 @@ class ServerResult:
     status: np.ndarray
 
 
-class ServerProcess:
+class ServerProcess(ServiceProcess):
     """``haptic-topology device-server`` in its own process (see module doc)."""
 
     def __init__(self, tmp: Path, scenario: str = 'fig8', port: int = 0,
                  host: str = '127.0.0.1', extra: tuple[str, ...] = (),
                  tag: str = 'server') -> None:
         self.dir = tmp
-        self.ready = tmp / f'{tag}.ready.json'
         self.summary = tmp / f'{tag}.summary.json'
         self.log = tmp / f'{tag}.log.csv'
-        for p in (self.ready, self.summary, self.log):
+        for p in (self.summary, self.log):
             p.unlink(missing_ok=True)
-        cmd = [sys.executable, '-m', 'haptic_topology.remote.server_command',
-               '--scenario', scenario, '--host', host, '--port', str(port),
-               '--ready-file', str(self.ready), '--summary', str(self.summary),
-               '--log', str(self.log), *extra]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     cwd=REPO, env=dict(os.environ))
-        deadline = time.monotonic() + 120.0
-        while not self.ready.exists():
-            if self.proc.poll() is not None:
-                out = self.proc.communicate()[0].decode(errors='replace')
-                raise AssertionError(f'device server ended with {self.proc.returncode}: {out}')
-            if time.monotonic() > deadline:
-                self.kill()
-                raise AssertionError('device server not ready within 120 s')
-            time.sleep(0.02)
-        info = json.loads(self.ready.read_text())
-        self.host = str(info['host'])
-        self.port = int(info['port'])
-        self.session = int(info['session'])
-        self.pid = int(info['pid'])
+        super().__init__('haptic_topology.remote.server_command',
+                         ['--scenario', scenario, '--host', host, '--port', str(port),
+                          '--summary', str(self.summary), '--log', str(self.log), *extra],
+                         tmp, tag, 'device server')
+        self.host = str(self.info['host'])
+        self.session = int(self.info['session'])
+        self.pid = int(self.info['pid'])
 
-    def kill(self) -> None:
-        """SIGKILL (a crash: no summary, no log); nothing when it has ended already."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.communicate()
-
-    def stop(self, timeout: float = 20.0) -> ServerResult:
+    def stop(self, timeout: float = 20.0) -> ServerResult:  # type: ignore[override]
         """SIGINT, wait, read summary and log."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-        try:
-            out = self.proc.communicate(timeout=timeout)[0]
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out = self.proc.communicate()[0]
-            raise AssertionError(f'device server did not stop on SIGINT within {timeout} s: '
-                                 f'{out.decode(errors="replace")}') from None
-        text = out.decode(errors='replace')
+        text = super().stop(timeout)
         counters = json.loads(self.summary.read_text())
         _, session, seq, u, status = read_log(self.log)
         return ServerResult(self.proc.returncode, text, counters, session, seq, u, status)
@@ -331,53 +298,32 @@ class Relay:
 
 
 # -- the server process as a conformance DeviceSide ----------------------------------------------
-class ServerDevice:
-    """The device server process as a :class:`backend_conformance.DeviceSide`: ``poll``
-    takes its monitor stream (``--monitor``: a copy of every cycle's STATE, stamped with the
-    cycle's monotonic time, comparable with this process's ``time.monotonic_ns``), ``got``
-    looks at the newest; ``log`` stops the process and reads its per-cycle log (``t_ns``,
+class ServerDevice(MonitoredDevice):
+    """The device server process as a :class:`backend_conformance.DeviceSide`
+    (:class:`service_process.MonitoredDevice`): its monitor stream (``--monitor``) is a copy of
+    every cycle's STATE, stamped with the cycle's monotonic time, the wrench its
+    ``applied_wrench``; ``log`` stops the process and reads its per-cycle log (``t_ns``,
     applied wrench)."""
 
     def __init__(self, tmp: Path, scenario: str = 'fig8', extra: tuple[str, ...] = ()) -> None:
         from haptic_topology.sim.scenario import load_scenario
 
+        super().__init__()
         self.m = load_scenario(scenario).linkage.task.dim
-        self.monitor = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.monitor.bind(('127.0.0.1', 0))
-        self.server = ServerProcess(tmp, scenario, extra=(
-            '--monitor', f'127.0.0.1:{self.monitor.getsockname()[1]}', *extra), tag='device')
+        self.service = self.server = ServerProcess(tmp, scenario,
+                                                   extra=(*self.monitor_arg, *extra),
+                                                   tag='device')
         self.port = self.server.port
-        self.newest: P.State | None = None
         self.result: ServerResult | None = None
 
-    def after_cycle(self, backend: object) -> None:
-        pass
-
-    def poll(self, seconds: float) -> None:
-        """Take every monitor state that has come, waiting up to ``seconds`` for the first."""
-        wait = seconds
-        while select.select([self.monitor], [], [], wait)[0]:
-            st = P.decode(self.monitor.recv(4096), self.m, P.PacketType.STATE)
-            assert isinstance(st, P.State)
-            if self.newest is None or st.seq > self.newest.seq:
-                self.newest = st
-            wait = 0.0
-        if self.server.proc.poll() is not None and self.result is None:
-            raise AssertionError(f'device server exited ({self.server.proc.returncode})')
-
-    def got(self, expected: np.ndarray, after_ns: int) -> bool:
-        st = self.newest
-        return (st is not None and st.stamp_ns >= after_ns
-                and bool(np.all(np.abs(st.applied_wrench - expected)
-                                <= 1e-12 * (1.0 + np.abs(expected)))))
+    def take(self, data: bytes) -> tuple[int, np.ndarray]:
+        st = P.decode(data, self.m, P.PacketType.STATE)
+        assert isinstance(st, P.State)
+        return st.stamp_ns, st.applied_wrench
 
     def log(self) -> tuple[np.ndarray, np.ndarray]:
         if self.result is None:
+            self.stopped = True
             self.result = self.server.stop()
         t, _, _, u, _ = read_log(self.server.log)
         return t, u
-
-    def close(self) -> None:
-        if self.server.proc.poll() is None:
-            self.server.kill()
-        self.monitor.close()

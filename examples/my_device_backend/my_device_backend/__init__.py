@@ -30,7 +30,7 @@ import numpy as np
 from haptic_topology.device.backend import BackendConfig, DeviceBackend, DeviceReading
 from haptic_topology.device.users import UserModel, user_from_config
 from haptic_topology.errors import DeviceError
-from haptic_topology.vocabulary import DeviceStatus, TaskSpace
+from haptic_topology.vocabulary import DeviceStatus
 
 DEFAULTS = {'mass': 0.2, 'stiffness': 50.0, 'damping': 2.0, 'max_force': 10.0,
             'travel': 0.05}
@@ -62,7 +62,6 @@ class SpringBackend(DeviceBackend):
         self._reason = ''
         self._hand: UserModel | None = None     # the simulated hand (simulation only)
         self._t = 0.0
-        self._task: TaskSpace | None = None
 
     def configure(self, config: BackendConfig) -> None:
         unknown = sorted(set(config.options) - set(DEFAULTS) - {'hand'})
@@ -79,7 +78,7 @@ class SpringBackend(DeviceBackend):
         self.damping = _option(opts, 'damping', False)
         self.max_force = _option(opts, 'max_force', True)
         self.travel = _option(opts, 'travel', True)
-        self._task = config.params.task        # hardware_id names it (m alone may not)
+        self.keep_task(config)      # task() and task_dim() answer it (hardware_id names it)
         self._x0 = np.array(config.initial_pose, dtype=float)
         self._x = self._x0.copy()
         self._v = np.zeros_like(self._x0)
@@ -90,14 +89,6 @@ class SpringBackend(DeviceBackend):
         self._hand = (user_from_config(config.user, config.params.task, 'scenario.user',
                                        self._x0) if hand == 'scenario' and config.user
                       else None)
-
-    def task_dim(self) -> int:
-        if not self._x0.size:
-            raise DeviceError('my_spring: used before configure()')
-        return int(self._x0.size)
-
-    def task(self) -> TaskSpace | None:
-        return self._task
 
     @property
     def hardware_id(self) -> str:

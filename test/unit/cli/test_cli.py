@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from haptic_topology import cli
+from haptic_topology.errors import ConfigError
 
 
 def test_commands_are_registered_once_with_help() -> None:
@@ -130,3 +132,42 @@ def test_help_lists_every_shipped_scenario(command: str) -> None:
     sub = next(a for a in parser._actions if a.__class__.__name__ == '_SubParsersAction')
     text = ' '.join(sub.choices[command].format_help().split())
     assert f'scenario name ({", ".join(names)}) or ' in text
+
+
+def test_run_takes_backend_options_as_ros_reads_them(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``-p device_driver:backend_options:=...``: quoted (the string parameter ROS reads) or an
+    unquoted mapping, run's own check takes the options and passes them on as the string
+    parameter (ROS takes no mapping); the example params file for a Haply on another port."""
+    from haptic_topology.bringup.options import param_overrides
+    from haptic_topology.config.node_params import KNOWN
+    from haptic_topology.config.params import check_params_file
+    from haptic_topology.config.resolve import run_backend
+    from haptic_topology.paths import config_dir
+
+    params = config_dir() / 'haptic_topology.yaml'
+    for value in ("'{port: 10002, device_id: \"04B2\"}'", '{port: 10002, device_id: "04B2"}'):
+        item = f'device_driver:backend_options:={value}'
+        assert run_backend(params, 'haply', [item]) == (
+            'haply', {'port': 10002, 'device_id': '04B2'})
+        assert param_overrides([item]) == [
+            '-p', 'device_driver:backend_options:=\'{port: 10002, device_id: "04B2"}\'']
+    assert param_overrides(["device_driver:backend_options:={path: '/x'}"]) == [
+        '-p', "device_driver:backend_options:='{path: ''/x''}'"]
+    example = Path(__file__).resolve().parents[3] / 'config' / 'devices' / 'haply_other_port.yaml'
+    check_params_file(example, KNOWN)
+    assert run_backend(example, None, []) == ('haply', {
+        'host': '127.0.0.1', 'port': 10002, 'device_id': '0E31', 'reconnect_max_ms': 2000.0})
+    # as a user types it: the options reach the backend's check (the port is named)
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        port = s.getsockname()[1]
+    assert cli.main(['run', 'fig8_point', '--backend', 'haply', '-p',
+                     f"device_driver:backend_options:='{{port: {port}}}'"]) == 1
+    assert capsys.readouterr().err.startswith(
+        f'haptic-topology run: error: device: haply: cannot connect to ws://127.0.0.1:{port}/')
+    bad = tmp_path / 'p.yaml'
+    bad.write_text('device_driver:\n  ros__parameters:\n    backend_options: {port: 1}\n')
+    with pytest.raises(ConfigError, match=r"backend_options: expected a string, got a mapping: "
+                       r"write it in quotes \(backend_options: '\{\.\.\.\}'\)$"):
+        check_params_file(bad, KNOWN)

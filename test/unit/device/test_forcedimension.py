@@ -112,6 +112,38 @@ def test_the_emulator_backend_follows_the_lockstep_clock() -> None:
     assert np.ptp(first[0][:, 0]) > 1e-3
 
 
+def test_a_velocity_timeout_falls_back_to_the_positions_difference() -> None:
+    """Right after opening, the SDK's velocity estimate may have too few positions in its
+    window: ``dhdGetLinearVelocity`` fails with DHD_ERROR_TIMEOUT (the emulator's
+    ``FDEMU_VELOCITY_TIMEOUT=5``: its first 5 calls). That is no fault: the twist is the
+    difference of the newest two positions over ``dt`` (zero at the first reading), counted
+    in ``velocity_timeouts``; then the device's own estimate again."""
+    with emulator(velocity_timeout=5):
+        be = create_backend('forcedimension_emulator', lockstep=True)
+        assert isinstance(be, ForceDimensionBackend)
+        sc = load_scenario(SCENARIO)
+        be.configure(BackendConfig(sc.device, initial_device_pose(sc), {}, dict(OPTIONS),
+                                   sc.source))
+        be.activate()
+        try:
+            dt = 0.001
+            readings = []
+            for _ in range(8):
+                be.write(np.array([2.0, 0.0]))      # pushes the handle along x
+                readings.append(be.read(dt))
+            assert [r.status for r in readings] == [DeviceStatus.OK] * 8
+            np.testing.assert_array_equal(readings[0].twist, np.zeros(2))
+            for prev, r in zip(readings[:4], readings[1:5], strict=True):
+                np.testing.assert_allclose(r.twist, (r.pose - prev.pose) / dt, rtol=0.0,
+                                           atol=1e-9)
+            assert readings[4].twist[0] > 0.0, 'the device did not move'
+            assert be.values()['velocity_timeouts'] == '5'
+            assert all(np.all(np.isfinite(r.twist)) for r in readings)
+        finally:
+            be.write(np.zeros(2))
+            be.deactivate()
+
+
 def test_identity_reaches_hardware_id_and_values() -> None:
     with emulator(serial=4321, model='delta.3'):
         bench = Bench(subject())
@@ -256,6 +288,40 @@ def test_engage_button_gates_the_force() -> None:
         bench.cycle(u)
         bench.cycle(u)
         assert not applied(lib).any()
+        bench.release()
+
+
+def test_applied_is_what_the_device_got_released_and_fading_in() -> None:
+    """The loop's ``applied`` (the states', the trace's and the bag's) is what the device was
+    sent, not the controller's command: exactly zero while the engage button is released,
+    the faded force while the grasp fades in (``grasp_ramp_ms: 5``, 1 ms cycles: 0.2 of the
+    command more each cycle), the command once faded in, and zero again once released. The
+    emulated device's own force is the reference, cycle by cycle."""
+    with emulator() as lib:
+        bench = Bench(subject({'grasp_ramp_ms': 5, 'engage_button': 0}))
+        assert bench.dt == 0.001
+        bench.activate()
+        bench.engage()
+        u = np.array([0.5, -0.25])[:bench.m]
+
+        def cycle() -> np.ndarray:
+            bench.cycle(u)
+            got = bench.written[-1]
+            np.testing.assert_array_equal(got, applied(lib)[:bench.m])
+            return got
+
+        for _ in range(10):
+            assert not cycle().any(), 'applied while the engage button is released'
+        lib.fdemuSetButtons(1)
+        # The first cycle's read sees the button: its write went out before, as zero.
+        fractions = [float(cycle()[0] / u[0]) for _ in range(8)]
+        np.testing.assert_allclose(fractions, [0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.0, 1.0],
+                                   rtol=1e-12, atol=0.0)
+        assert all(0.0 < f < 1.0 for f in fractions[1:5])
+        np.testing.assert_array_equal(bench.written[-1], u)
+        lib.fdemuSetButtons(0)
+        cycle()                         # this cycle's read lets go
+        assert not cycle().any(), 'applied after the engage button was released'
         bench.release()
 
 

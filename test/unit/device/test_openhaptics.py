@@ -50,7 +50,8 @@ from haptic_topology.vocabulary import DeviceStatus, TaskSpace
 PARAMS = Path(__file__).resolve().parents[3] / 'config' / 'devices' / 'openhaptics_emulator.yaml'
 OPTIONS = {'engage_button': None, 'clutch_button': None, 'grasp_ramp_ms': 0.0}
 EMU_VARIABLES = ('HD_EMU_UNPLUG_AT', 'HD_EMU_NAN_AT', 'HD_EMU_NAN_FOR', 'HD_EMU_FAIL',
-                 'HD_EMU_CALIBRATION', 'HD_EMU_INKWELL', 'HD_EMU_MAX_FORCE', 'HD_EMU_BUTTONS')
+                 'HD_EMU_CALIBRATION', 'HD_EMU_INKWELL', 'HD_EMU_MAX_FORCE', 'HD_EMU_BUTTONS',
+                 'HD_EMU_DEVICES')
 
 pytestmark = pytest.mark.skipif(not EMULATOR.is_file(),
                                 reason=f'{EMULATOR} not built: run scripts/setup.sh')
@@ -212,10 +213,11 @@ def test_an_unplugged_device_is_a_fault_with_its_reason_and_no_force(
 
 
 def test_a_nan_state_is_a_fault_and_never_passed_on(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A NaN position for 5 servo ticks: FAULT readings at the last valid pose with zero
-    twist, then the readings are valid again."""
+    """A NaN position for 300 servo ticks (0.3 s: long enough that a reading lands in it
+    however late this thread runs): FAULT readings at the last valid pose with zero twist,
+    then the readings are valid again."""
     monkeypatch.setenv('HD_EMU_NAN_AT', '100')
-    monkeypatch.setenv('HD_EMU_NAN_FOR', '5')
+    monkeypatch.setenv('HD_EMU_NAN_FOR', '300')
     be = _backend()
     be.activate()
     try:
@@ -229,9 +231,12 @@ def test_a_nan_state_is_a_fault_and_never_passed_on(monkeypatch: pytest.MonkeyPa
         np.testing.assert_array_equal(r.pose, last)
         np.testing.assert_array_equal(r.twist, np.zeros(2))
         assert be.fault_reason() == 'openhaptics: Touch: non-finite position or velocity'
-        for _ in range(50):
+        for _ in range(5000):
             r = be.read(0.001)
-        assert r.status == DeviceStatus.OK and np.all(np.isfinite(r.pose))
+            assert np.all(np.isfinite(r.pose)) and np.all(np.isfinite(r.twist))
+            if r.status == DeviceStatus.OK:
+                break
+        assert r.status == DeviceStatus.OK
     finally:
         be.write(np.zeros(2))
         be.deactivate()
@@ -308,6 +313,125 @@ def test_the_engage_button_grasps_and_the_clutch_lets_go() -> None:
         be.deactivate()
 
 
+def test_applied_is_what_the_device_got_released_fading_in_and_limited() -> None:
+    """The loop's ``applied`` (the trace's column) is what the motors were sent: exactly zero
+    while the engage button is released, the faded force while the grasp fades in
+    (``grasp_ramp_ms: 5``: 0.2 of the command more each 1 ms cycle), and within the Touch's
+    3.3 N once the faded command exceeds it (a 5 N command: 0.66 of it). The emulated
+    motors' committed force, in task axes, is the reference, cycle by cycle."""
+    lib = _emu()
+    lib.hdEmuSetButtons.argtypes = [ctypes.c_int, ctypes.c_int]
+    bench = Bench(Subject('openhaptics', EmulatedTouch,
+                          dict(OPTIONS, engage_button=0, grasp_ramp_ms=5.0),
+                          scenario='fig8_point'))
+    assert bench.dt == 0.001
+    u = np.array([4.0, -3.0])
+    try:
+        bench.activate()
+        bench.engage()
+
+        def cycle() -> np.ndarray:
+            bench.cycle(u)
+            got = bench.written[-1]
+            assert isinstance(bench.backend, OpenHapticsBackend)
+            np.testing.assert_allclose(got, bench.backend.task_force(applied()[0]),
+                                       rtol=0.0, atol=1e-12)
+            return got
+
+        for _ in range(10):
+            assert not cycle().any(), 'applied while the engage button is released'
+        lib.hdEmuSetButtons(1, 0)
+        fractions = [float(cycle()[0] / u[0]) for _ in range(7)]
+        np.testing.assert_allclose(fractions, [0.0, 0.2, 0.4, 0.6, 0.66, 0.66, 0.66],
+                                   rtol=1e-12, atol=0.0)
+        lib.hdEmuSetButtons(0, 0)
+        cycle()                         # this cycle's read lets go
+        assert not cycle().any(), 'applied after the engage button was released'
+    finally:
+        lib.hdEmuSetButtons(0, 0)
+        bench.release()
+
+
+THREE = 'Left Touch=EMU-L,Right Touch=EMU-R,Spare=EMU-S'
+NAMES = ['Left Touch', 'Right Touch', 'Spare']
+
+
+def test_a_device_is_chosen_among_several_by_serial(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three configured devices (the emulator's ``HD_EMU_DEVICES``): ``device`` lists their
+    names, ``serial`` picks one. Each name is opened and its HD_DEVICE_SERIAL_NUMBER read; the
+    matching one is kept and made current (its identity, its frames), the others are closed
+    (they open again at once); preflight does the same and closes it too."""
+    monkeypatch.setenv('HD_EMU_DEVICES', THREE)
+    sc = load_scenario('fig8_point')
+    OpenHapticsBackend().preflight(BackendConfig(
+        sc.device, initial_device_pose(sc), {},
+        dict(OPTIONS, device=NAMES, serial='EMU-R'), sc.source))
+    be = _backend({'device': NAMES, 'serial': 'EMU-R'})
+    be.activate()
+    try:
+        assert be.hardware_id == 'openhaptics Touch serial EMU-R'
+        assert be.values()['device_serial'] == 'EMU-R'
+        lib = ctypes.CDLL(str(EMULATOR))
+        lib.hdInitDevice.argtypes = [ctypes.c_char_p]
+        lib.hdInitDevice.restype = ctypes.c_uint
+        lib.hdGetCurrentDevice.restype = ctypes.c_uint
+        kept = lib.hdGetCurrentDevice()
+        for name in (b'Left Touch', b'Spare'):          # closed: they open again
+            other = lib.hdInitDevice(name)
+            assert other not in (kept, 0xFFFFFFFF), name
+            lib.hdDisableDevice(other)
+        lib.hdMakeCurrentDevice(kept)
+        be.write(np.zeros(2))
+        assert be.read(0.001).status == DeviceStatus.OK
+        be.write(np.array([0.5, -0.25]))
+        be.read(0.001)
+        np.testing.assert_array_equal(applied()[0], [0.5, -0.25, 0.0])
+    finally:
+        be.write(np.zeros(2))
+        be.deactivate()
+    # A serial number on its own (one name, the default configuration) is checked too.
+    be = _backend({'device': 'Spare', 'serial': 'EMU-S'})
+    be.activate()
+    try:
+        assert be.hardware_id == 'openhaptics Touch serial EMU-S'
+    finally:
+        be.deactivate()
+
+
+def test_no_device_with_that_serial_names_the_serials_found(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """No device with the serial asked for: one line naming each name's serial (or its HD
+    error), every device closed again (the next activation opens the right one)."""
+    monkeypatch.setenv('HD_EMU_DEVICES', THREE)
+    be = _backend({'device': [*NAMES, 'Elsewhere'], 'serial': 'EMU-X'})
+    with pytest.raises(DeviceError) as err:
+        be.activate()
+    assert str(err.value) == (
+        "openhaptics: no device with serial EMU-X among backend_options.device: found "
+        "'Left Touch' serial EMU-L; 'Right Touch' serial EMU-R; 'Spare' serial EMU-S; "
+        "'Elsewhere': HD_COMM_CONFIG_ERROR (0x303)")
+    be.deactivate()
+    be = _backend({'device': NAMES, 'serial': 'EMU-L'})
+    be.activate()
+    try:
+        assert be.hardware_id == 'openhaptics Touch serial EMU-L'
+    finally:
+        be.deactivate()
+
+
+@pytest.mark.parametrize(('options', 'text'), [
+    ({'device': NAMES}, 'openhaptics: backend_options.device: 3 names need '
+                        'backend_options.serial to choose among them'),
+    ({'device': ['a', 'a'], 'serial': 'x'}, r"backend_options.device: expected an OpenHaptics "
+                                            r"device name \(Touch_Setup\) or a list of "
+                                            r"different names, got \['a', 'a'\]"),
+    ({'serial': ['x']}, r"backend_options.serial: expected the device's serial number"),
+])
+def test_device_selection_options_name_the_field(options: dict, text: str) -> None:
+    with pytest.raises(DeviceError, match=text):
+        _backend(options)
+
+
 def test_axes_point_tasks_only() -> None:
     """3 forces: fig8 (torque about z) is refused with check_axes' one line; configure
     refuses a rigid task too; options are checked naming the field."""
@@ -322,8 +446,9 @@ def test_axes_point_tasks_only() -> None:
     with pytest.raises(DeviceError, match=r"backend_options.axes: expected .* got \['x', 'y', "
                                           r"'-z'\]"):
         _backend({'axes': ['x', 'y', '-z']})
-    with pytest.raises(DeviceError, match=r"backend_options.max_force: expected a number > 0 "
-                                          r"\(N\) or null"):
+    with pytest.raises(DeviceError, match=r"backend_options.max_force: expected a number in "
+                                          r"\(0, 1000\] or null \(N; null: the device's own "
+                                          r"limit\), got -1"):
         _backend({'max_force': -1})
     with pytest.raises(DeviceError, match="unknown option 'port'"):
         _backend({'port': 3})
@@ -346,6 +471,22 @@ def test_a_missing_library_stops_run_before_anything_starts(
     with pytest.raises(VendorLibraryMissing):
         OpenHapticsBackend().preflight(BackendConfig(sc.device, initial_device_pose(sc), {},
                                                      dict(OPTIONS)))
+
+
+def test_devices_reports_a_library_that_cannot_load_here_and_goes_on(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A process that holds the emulator's libHD asked to load ``libHD.so`` from the loader's
+    path (another copy): ``haptic-topology devices`` lists openhaptics as not loading, with
+    the reason, and the other backends (exit status 0), instead of stopping at it."""
+    from haptic_topology.device.openhaptics_hd import load_hd
+
+    load_hd()                           # the emulator, by its path (the fixture's variable)
+    monkeypatch.delenv('HAPTIC_TOPOLOGY_LIBHD')
+    assert cli_main(['devices']) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.startswith('openhaptics '))
+    assert f'this process has loaded {EMULATOR}; cannot load libHD.so too' in line, line
+    assert '\nforcedimension ' in out and '\nhaply ' in out, out
 
 
 def test_without_libhd_on_the_loaders_path_run_says_what_to_install() -> None:

@@ -75,6 +75,48 @@ def test_engage_button_grasps_and_the_force_fades_in() -> None:
     assert h.force(u) == (0.0, 0.0, 0.0)
 
 
+@pytest.mark.parametrize(('options', 'buttons', 'hint'), [
+    ({'engage_button': 0}, (0b1, 0b1, 0b0, 0b0, 0b1),
+     'release and press the engage button (button 0) to grasp again'),
+    ({'clutch_button': 1}, (0b0, 0b0, 0b10, 0b10, 0b0),
+     'press and release the clutch button (button 1) to grasp again')])
+def test_a_released_hand_grasps_again_only_after_letting_go(
+        options: dict, buttons: tuple[int, ...], hint: str) -> None:
+    """``release()`` (a device back after a loss): whatever the buttons said before, the hand
+    grasps again only once they have asked to let go and then to grasp; the position goes on
+    from where it stayed and the force fades in again."""
+    h = hand({'scale': 0.001, 'grasp_ramp_ms': 2.0, **options})
+    u = np.array([1.0, 0.0, 0.0])
+    grasp = buttons[0]
+    h.reading((10.0, 0.0, 0.0), (0.0, 0.0, 0.0), grasp, DT)
+    h.reading((10.0, 0.0, 0.0), (0.0, 0.0, 0.0), grasp, DT)
+    assert h.grasping and h.force(u) == (1.0, 0.0, 0.0)
+    h.release()
+    assert not h.grasping and h.force(u) == (0.0, 0.0, 0.0)
+    assert h.regrasp_hint() == hint
+    got = []
+    for k, b in enumerate(buttons[1:]):        # the handle moved 30 mm meanwhile
+        r = h.reading((40.0 + k, 0.0, 0.0), (0.0, 0.0, 0.0), b, DT)
+        got.append((h.grasping, h.force(u)[0], r.status))
+    W = DeviceStatus.WATCHDOG
+    assert got == [(False, 0.0, W), (False, 0.0, W), (False, 0.0, W), (True, 0.5, W)]
+    np.testing.assert_allclose(r.pose, [0.1, 0.0, 0.0], rtol=0, atol=1e-15)
+    r = h.reading((41.0 + k, 0.0, 0.0), (0.0, 0.0, 0.0), buttons[-1], DT)
+    assert r.status == DeviceStatus.OK and h.force(u) == (1.0, 0.0, 0.0) and h.grasps == 2
+    np.testing.assert_allclose(r.pose, [0.101, 0.0, 0.0], rtol=0, atol=1e-15)
+
+
+def test_a_released_hand_without_buttons_stays_released() -> None:
+    h = hand({})
+    h.reading((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0, DT)
+    h.release()
+    for _ in range(5):
+        h.reading((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0, DT)
+    assert not h.grasping and h.force(np.ones(3)) == (0.0, 0.0, 0.0)
+    assert h.regrasp_hint() == ('no engage or clutch button is configured: forces resume at '
+                                'the next activation of device_driver')
+
+
 def test_axes_scale_and_force_scale_map_both_ways() -> None:
     """``axes: [y, -x, z]`` (task x is device y), mm, force in units of 0.5 N: the handle at
     device (10, 20, 0) mm moves by task (0.020, -0.010, 0); a task force (1, 0, 0) N is device

@@ -309,7 +309,8 @@ def test_a_bad_state_is_a_fault_until_a_good_one(tmp_path: Path, emulators: list
     ('hang@200', r'haply: no state from ws://127\.0\.0\.1:\d+/ for [\d.]+ ms \(stale_ms 50\): '
      'the service is stalled or stopped', {'stale_ms': 50.0}),
     ('stop@200', r'haply: the connection to ws://127\.0\.0\.1:\d+/ ended \(the service '
-     r'(closed|reset) the connection\)', {})])
+     r'(closed|reset) the connection\); reconnecting( \(\d+ attempts?, the newest: cannot '
+     r'connect to ws://127\.0\.0\.1:\d+/: Connection refused\))?', {})])
 def test_a_lasting_fault_holds_zero(tmp_path: Path, emulators: list[Emulator], fault: str,
                                     reason: str, options: dict[str, Any]) -> None:
     bench, device, first, statuses = _run_to_fault(tmp_path, emulators, fault, True, **options)

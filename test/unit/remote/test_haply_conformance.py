@@ -18,44 +18,21 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from backend_conformance import (
-    Bench,
-    Subject,
-    check_clamping,
-    check_lifecycle,
-    check_nonfinite,
-    check_watchdog,
-)
+from backend_conformance import CHECKS, Bench, Subject
 from haply_harness import EmulatorDevice
+from service_process import made_devices, paced
 
 from haptic_topology.device.backend import backend_class
-from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.remote.haply import HaplyBackend
 from haptic_topology.sim.scenario import load_scenario
 
-CHECKS: dict[str, Callable[[Bench], None]] = {
-    'clamping': check_clamping, 'nonfinite': check_nonfinite, 'watchdog': check_watchdog,
-    'lifecycle': check_lifecycle}
 OPTIONS = {'stale_ms': 2000.0, 'max_force': 1000.0, 'grasp_ramp_ms': 0.0}
-
-
-def _paced() -> Callable[[], None]:
-    pacer = DeadlinePacer(0.001)
-    return lambda: None if pacer.wait() else None
 
 
 @pytest.fixture
 def device_factory(tmp_path: Path) -> Iterator[Callable[[str], EmulatorDevice]]:
-    made: list[EmulatorDevice] = []
-
-    def make(scenario: str) -> EmulatorDevice:
-        dev = EmulatorDevice(tmp_path / f'd{len(made)}', load_scenario(scenario).linkage.task.dim)
-        made.append(dev)
-        return dev
-
-    yield make
-    for dev in made:
-        dev.close()
+    yield from made_devices(tmp_path, lambda d, scenario: EmulatorDevice(
+        d, load_scenario(scenario).linkage.task.dim))
 
 
 def test_haply_is_a_built_in_backend() -> None:
@@ -70,7 +47,7 @@ def test_backend_conforms(scenario: str, check: str,
                           device_factory: Callable[[str], EmulatorDevice]) -> None:
     device = device_factory(scenario)
     opts: dict[str, Any] = {'port': device.port, **OPTIONS}
-    bench = Bench(Subject('haply', lambda: device, opts, scenario, _paced()), device)
+    bench = Bench(Subject('haply', lambda: device, opts, scenario, paced()), device)
     CHECKS[check](bench)
     out = device.emulator.output
     assert '"bad_messages": 0' in out and '"unknown_device": 0' in out, out

@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from network_harness import REPO, Relay, ServerProcess, wait_for
+from network_harness import Relay, ServerProcess, wait_for
+from service_process import REPO
 
 from haptic_topology.device.backend import BackendConfig
 from haptic_topology.device.pacing import DeadlinePacer

@@ -22,48 +22,22 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from backend_conformance import (
-    Bench,
-    Subject,
-    check_clamping,
-    check_lifecycle,
-    check_nonfinite,
-    check_watchdog,
-)
+from backend_conformance import CHECKS, Bench, Subject
 from network_harness import MALFORMING, Relay, ServerDevice, wait_for
+from service_process import made_devices, paced
 
 from haptic_topology.device.backend import backend_class
-from haptic_topology.device.pacing import DeadlinePacer
 from haptic_topology.remote.network import NetworkBackend
 
-CHECKS: dict[str, Callable[[Bench], None]] = {
-    'clamping': check_clamping, 'nonfinite': check_nonfinite, 'watchdog': check_watchdog,
-    'lifecycle': check_lifecycle}
 #: Generous device timeouts (module doc).
 OPTIONS = {'stale_ms': 2000.0, 'command_ttl_ms': 2000.0}
 SERVER = ('--command-timeout-ms', '2000')
 
 
-def _paced() -> Callable[[], None]:
-    pacer = DeadlinePacer(0.001)
-    return lambda: None if pacer.wait() else None
-
-
 @pytest.fixture
 def device_factory(tmp_path: Path) -> Iterator[Callable[[str], ServerDevice]]:
-    made: list[ServerDevice] = []
-
-    def make(scenario: str) -> ServerDevice:
-        dev = ServerDevice(tmp_path / f'd{len(made)}', scenario, SERVER)
-        made.append(dev)
-        return dev
-
-    (tmp_path / 'd0').mkdir()
-    for k in range(1, 3):
-        (tmp_path / f'd{k}').mkdir()
-    yield make
-    for dev in made:
-        dev.close()
+    yield from made_devices(
+        tmp_path, lambda d, scenario: ServerDevice(d, scenario, SERVER))
 
 
 def test_network_is_a_built_in_backend() -> None:
@@ -77,7 +51,7 @@ def test_backend_conforms(scenario: str, check: str,
                           device_factory: Callable[[str], ServerDevice]) -> None:
     device = device_factory(scenario)
     opts: dict[str, Any] = {'port': device.port, **OPTIONS}
-    bench = Bench(Subject('network', lambda: device, opts, scenario, _paced()), device)
+    bench = Bench(Subject('network', lambda: device, opts, scenario, paced()), device)
     CHECKS[check](bench)
     res = device.result
     assert res is not None and res.returncode == 0, res
@@ -93,7 +67,7 @@ def test_backend_conforms_through_a_faulty_network(
     relay = Relay(('127.0.0.1', device.port))
     try:
         opts: dict[str, Any] = {'port': relay.port, **OPTIONS}
-        bench = Bench(Subject('network', lambda: device, opts, 'fig8', _paced()), device)
+        bench = Bench(Subject('network', lambda: device, opts, 'fig8', paced()), device)
         CHECKS[check](bench)
         wait_for(lambda: relay.idle, 5.0, 'the relay to flush what it held')
     finally:

@@ -8,6 +8,7 @@ socket's buffer."""
 from __future__ import annotations
 
 import os
+import select
 import socket
 import struct
 import threading
@@ -105,6 +106,29 @@ def test_the_end_of_the_stream_ends_the_connection() -> None:
     peer.close()
     ws.poll()
     assert ws.closed == 'the service closed the connection'
+
+
+def test_a_service_gone_reads_the_same_from_a_send_as_from_a_receive() -> None:
+    """The service's end is met by a send as often as by a receive (whichever comes first in
+    the cycle): a closed stream and a reset give the receive's words, never 'send failed'."""
+    ws, peer = _pair()
+    peer.close()
+    assert not ws.send_text(b'x')       # AF_UNIX: EPIPE
+    assert ws.closed == 'the service closed the connection'
+    srv = socket.socket()
+    srv.bind(('127.0.0.1', 0))
+    srv.listen()
+    c = socket.create_connection(srv.getsockname())
+    c.setblocking(False)
+    s, _ = srv.accept()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack('ii', 1, 0))
+    s.close()                           # a reset (RST)
+    srv.close()
+    select.select([c], [], [], 10.0)    # the reset has arrived
+    ws = WebSocketClient(c, b'', 'ws://reset/')
+    assert not ws.send_text(b'x')
+    assert ws.closed == 'the service reset the connection'
+    c.close()
 
 
 def test_a_frame_the_socket_cannot_take_is_finished_before_the_next() -> None:
