@@ -17,12 +17,14 @@ EXACT_COLUMNS = ('device_pose', 'device_twist', 'hand_wrench', 'command', 'appli
                  'vt_pose', 'lmi_pose')
 
 
-def assert_equals_offline(graph: Trace, scenario: str, mode: str, duration: float) -> None:
+def assert_equals_offline(graph: Trace, scenario: str, mode: str, duration: float,
+                          offline: Trace | None = None) -> None:
     """``graph`` (a lock-step run's trace) equals ``simulate()`` of the same scenario, mode
-    and duration: same rows and times, the exact columns to 1e-9 at every cycle, the drift
-    summary to 1e-9 relative."""
+    and duration (``offline``: that run, made already): same rows and times, the exact
+    columns to 1e-9 at every cycle, the drift summary to 1e-9 relative."""
     sc = load_scenario(scenario)
-    offline = simulate(replace(sc, duration=duration), ControlMode.parse(mode))
+    if offline is None:
+        offline = simulate(replace(sc, duration=duration), ControlMode.parse(mode))
     assert len(graph) == len(offline) == round(duration / sc.dt) + 1
     if scenario in ('fig6', 'fig8'):        # the run crosses the LMI's rank switch
         assert np.any(np.diff(offline.columns['lmi_constraint_count']))
