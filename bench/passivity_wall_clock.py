@@ -21,7 +21,6 @@ from dataclasses import replace
 from pathlib import Path
 
 from haptic_topology.bag.graph_trace import read_graph_bag
-from haptic_topology.bag.reader import decoder, iter_messages, open_bag
 from haptic_topology.bringup.options import param_overrides
 from haptic_topology.bringup.run import run_graph
 from haptic_topology.bringup.watch import CONTROLLER_STATUS
@@ -31,17 +30,6 @@ from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 
 K_TC, B_TC = 1e4, 0.0
-
-
-def last_controller_status(bag: Path) -> dict[str, str]:
-    """The key/values of the controller's last ``/diagnostics`` status in ``bag``."""
-    decode = decoder()
-    last: dict[str, str] = {}
-    for raw in iter_messages(open_bag(bag), ['/diagnostics']):
-        for status in decode(raw).status:
-            if status.name == CONTROLLER_STATUS:
-                last = {kv.key: kv.value for kv in status.values}
-    return last
 
 
 def main() -> None:
@@ -67,8 +55,8 @@ def main() -> None:
                               f'lmi_controller:passivity:={"enabled" if on else "disabled"}']))
         if any(codes.values()):
             raise SystemExit(f'run {bag}: exit codes {codes}')
-        st = last_controller_status(bag)
         graph = read_graph_bag(bag)
+        st = graph.diagnostics.get(CONTROLLER_STATUS, {})    # its last status
         run = graph.trace.summary()
         answered = graph.loop.get('device_answered_fraction')
         rows.append(('run (wall clock)', on, 1e3 * float(st['passivity_observer_min_j']),
