@@ -66,6 +66,8 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from haptic_topology.dynamics import contact_bounds as bounds
+from haptic_topology.dynamics.contact_bounds import near_pairs
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage
 from haptic_topology.model.meshes import MeshGeometry, capsule_shape, load_mesh, resolve_mesh
@@ -301,27 +303,44 @@ def _bounding_sphere(solid: LinkSolid, corners: np.ndarray | None
     return centre, float(np.max(np.linalg.norm(corners - centre, axis=1)))
 
 
-def _lower_bounds(obstacle: Obstacle, points: np.ndarray) -> np.ndarray:
-    """The signed distances (m) from ``points`` (n x 3) to ``obstacle`` (a box or mesh
-    obstacle: to the box around it): less a solid's bounding radius, a lower bound of the gaps
-    of the solid around each point (the distance is 1-Lipschitz)."""
+def _solid_row(solid: LinkSolid, corners: np.ndarray | None) -> np.ndarray:
+    """``solid``'s row of the broad phase (:data:`contact_bounds.SOLID_COLUMNS`, link frame):
+    its bounding sphere and, but for a polygon, its oriented box (a box; a cylinder's; the box
+    around a mesh's hull)."""
+    row = np.zeros(bounds.SOLID_COLUMNS)
+    row[0:3], row[3] = _bounding_sphere(solid, corners)
+    if solid.kind == 'polygon':
+        return row
+    centre, half = solid.centre, np.array(solid.size)
+    if solid.mesh is not None:
+        centre, half = solid.centre + solid.rotation @ solid.mesh.box_centre, solid.mesh.box_half
+    elif solid.kind == 'cylinder':
+        half = np.array([solid.size[0], solid.size[0], solid.size[1]])
+    row[4:7], row[7:16], row[16:19], row[19] = centre, solid.rotation.ravel(), half, 1.0
+    return row
+
+
+def _obstacle_row(obstacle: Obstacle) -> np.ndarray:
+    """``obstacle``'s row of the broad phase (:data:`contact_bounds.OBSTACLE_COLUMNS`, world;
+    a mesh: the box around it)."""
+    row = np.zeros(bounds.OBSTACLE_COLUMNS)
     kind = obstacle.kind
     if kind in _PLANES:
-        return points @ obstacle.normal - float(obstacle.normal @ obstacle.point)
-    if kind in _ROUND:
-        return np.linalg.norm(points - obstacle.point, axis=1) - obstacle.radius
-    if kind is ObstacleKind.SEGMENT:
-        d = obstacle.end - obstacle.point
-        t = np.clip((points - obstacle.point) @ d / float(d @ d), 0.0, 1.0)
-        return (np.linalg.norm(points - obstacle.point - t[:, None] * d, axis=1)
-                - obstacle.radius)
-    centre, half = obstacle.point, obstacle.half_extents
-    if obstacle.mesh is not None:
-        centre = obstacle.rotation @ obstacle.mesh.box_centre + obstacle.point
-        half = obstacle.mesh.box_half
-    q = np.abs((points - centre) @ obstacle.rotation) - half
-    return (np.linalg.norm(np.maximum(q, 0.0), axis=1)
-            + np.minimum(q.max(axis=1), 0.0))
+        row[0], row[1:4], row[16] = (bounds.PLANE, obstacle.normal,
+                                     float(obstacle.normal @ obstacle.point))
+    elif kind in _ROUND:
+        row[0], row[1:4], row[16] = bounds.ROUND, obstacle.point, obstacle.radius
+    elif kind is ObstacleKind.SEGMENT:
+        row[0], row[1:4], row[13:16], row[16] = (bounds.SEGMENT, obstacle.point, obstacle.end,
+                                                 obstacle.radius)
+    else:
+        centre, half = obstacle.point, obstacle.half_extents
+        if obstacle.mesh is not None:
+            centre = obstacle.rotation @ obstacle.mesh.box_centre + obstacle.point
+            half = obstacle.mesh.box_half
+        row[0], row[1:4], row[4:13], row[13:16] = (bounds.BOX, centre,
+                                                   obstacle.rotation.ravel(), half)
+    return row
 
 
 @dataclass(frozen=True)
@@ -432,8 +451,8 @@ class ContactModel:
                                          + [np.full(n, k) for k in other_k]).astype(int)
         self._links = cap_link[self._caps]
         # Solid candidates (after the capsules'), solid by solid, obstacle by obstacle; a pair
-        # whose bounding-sphere distance is at least the query's limit is skipped (its gaps are
-        # at least that). A box obstacle's coal query objects are made once.
+        # whose lower bound (bounding sphere, box) is at least the query's limit is skipped
+        # (its gaps are at least that). A coal pair's query objects are made once.
         self._pairs_of = [[(k, CoalPair(sol.kind, sol.size, ob, sol.mesh)
                             if ob.kind in _COAL or sol.mesh is not None
                             or (sol.kind == 'box' and ob.kind is ObstacleKind.SPHERE)
@@ -444,27 +463,17 @@ class ContactModel:
         self._corners_local = [
             None if sol.kind in ('cylinder', 'mesh') else sol.vertices if sol.vertices is not None
             else box_vertices(sol.centre, sol.rotation, np.array(sol.size)) for sol in solids]
-        self._bounds = [_bounding_sphere(sol, corners)
-                        for sol, corners in zip(solids, self._corners_local, strict=True)]
-        self._bound_radii = np.array([r for _, r in self._bounds], dtype=float)
-        rounds = [k for k, ob in enumerate(obstacles) if ob.kind in _ROUND]
-        boxes = [k for k, ob in enumerate(obstacles) if ob.kind in _COAL]
-        self._bound_groups = (planes, rounds, boxes,
-                              [k for k, ob in enumerate(obstacles) if ob.kind is
-                               ObstacleKind.SEGMENT])
-        self._round_bound = (np.array([obstacles[k].point for k in rounds]).reshape(-1, 3),
-                             np.array([obstacles[k].radius for k in rounds]))
-        self._box_bound = (
-            np.array([ob.point if ob.mesh is None else ob.rotation @ ob.mesh.box_centre
-                      + ob.point for ob in (obstacles[k] for k in boxes)]).reshape(-1, 3),
-            np.array([obstacles[k].rotation for k in boxes]).reshape(-1, 3, 3),
-            np.array([ob.half_extents if ob.mesh is None else ob.mesh.box_half
-                      for ob in (obstacles[k] for k in boxes)]).reshape(-1, 3))
-        self._bound_centres = np.array([c for c, _ in self._bounds], dtype=float).reshape(-1, 3)
+        # the broad phase's rows (contact_bounds), its output, made once
+        self._solid_rows = np.array([_solid_row(sol, corners) for sol, corners in zip(
+            solids, self._corners_local, strict=True)]).reshape(-1, bounds.SOLID_COLUMNS)
+        self._obstacle_rows = np.array([_obstacle_row(ob) for ob in obstacles]).reshape(
+            -1, bounds.OBSTACLE_COLUMNS)
+        self._near = np.empty(len(solids) * len(obstacles), dtype=np.int64)
         # the joints carrying solids, and each solid's index among them
         self._solid_joints = sorted({sol.link + 1 for sol in solids})
         self._solid_slot = np.array([self._solid_joints.index(sol.link + 1) for sol in solids],
-                                    dtype=int)
+                                    dtype=np.int64)
+        self._slot_of = self._solid_slot.tolist()
 
     def _axes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World ends of every capsule's axis (n x 3 each) at ``q`` (forward kinematics;
@@ -565,79 +574,61 @@ class ContactModel:
             normals.append([vx / dist, vy / dist, vz / dist])
         return np.array(gaps), np.array(ss), np.array(normals)
 
-    def _pair_bounds(self, centres: np.ndarray) -> np.ndarray:
-        """Lower bounds (m) of the gaps of every solid (bounding spheres at ``centres``, s x
-        3, world) and obstacle, s x (obstacles): :func:`_lower_bounds` less the solids'
-        bounding radii, with planes, spheres and box-like obstacles (boxes, the boxes around
-        meshes) each in one array operation."""
-        out = np.empty((centres.shape[0], len(self.settings.obstacles)))
-        planes, rounds, boxes, others = self._bound_groups
-        if planes:
-            out[:, planes] = centres @ self._plane_n.T - self._plane_offset
-        if rounds:
-            centre, radius = self._round_bound
-            out[:, rounds] = (np.linalg.norm(centres[:, None, :] - centre[None], axis=2)
-                              - radius)
-        if boxes:
-            centre, rotation, half = self._box_bound
-            q = np.abs(np.einsum('sbj,bjk->sbk', centres[:, None, :] - centre[None],
-                                 rotation)) - half
-            out[:, boxes] = (np.linalg.norm(np.maximum(q, 0.0), axis=2)
-                             + np.minimum(q.max(axis=2), 0.0))
-        for k in others:
-            out[:, k] = _lower_bounds(self.settings.obstacles[k], centres)
-        return out - self._bound_radii[:, None]
-
     def _solid_hits(self, limit: float) -> tuple[list[int], list[int], list[list[float]],
                                                   list[float], list[list[float]]]:
         """The solid candidates with ``gap < limit`` (``limit >= 0``) at the placements of the
         last :meth:`_axes`: ``(links, obstacles, points, gaps, normals)``, solid by solid and
         obstacle by obstacle, each pair's candidates in the order of
         :func:`~haptic_topology.model.solids.solid_gaps` (the same numbers, tested). A pair is
-        skipped when a lower bound of its gaps, the obstacle's distance to the solid's bounding
-        sphere, is at least ``limit``: then the two are apart by at least that much (the
-        bound is the distance of every point of the solid, and the signed distance of two
-        disjoint shapes is their distance). Runs at every RK4 stage."""
+        skipped when a lower bound of its gaps is at least ``limit``: the obstacle's distance
+        to the solid's bounding sphere, or (spatial) to the solid's box, less 1e-9 m
+        (:mod:`~haptic_topology.dynamics.contact_bounds`): then the two are apart by at least
+        that much (the bound is at most the signed distance of every point of the solid, and
+        the signed distance of two disjoint shapes is their distance), and coal's gap of a
+        pair that far apart is not below ``limit``. Runs at every RK4 stage."""
         links: list[int] = []
         obs: list[int] = []
         points: list[list[float]] = []
         gaps: list[float] = []
         normals: list[list[float]] = []
-        oMi = self.data.oMi
         obstacles = self.settings.obstacles
         if not obstacles:
             return links, obs, points, gaps, normals
-        # every solid's bounding-sphere centre (world), one placement per link
-        rots = np.array([oMi[j].rotation for j in self._solid_joints])
-        origins = np.array([oMi[j].translation for j in self._solid_joints])
-        centres_b = (np.einsum('sij,sj->si', rots[self._solid_slot], self._bound_centres)
-                     + origins[self._solid_slot])
-        if self._planar:
-            centres_b[:, 2] = 0.0
-        # lower bounds of every pair's gaps (solid x obstacle), the bounding radii taken off;
-        # the pairs left, solid by solid, obstacle by obstacle
-        near = np.argwhere(self._pair_bounds(centres_b) < limit).tolist()
+        # the joints' placements (world), then the pairs whose lower bounds are below the
+        # limit, solid by solid, obstacle by obstacle (contact_bounds)
+        oMi = self.data.oMi.tolist()
+        placements = np.array([oMi[j].homogeneous for j in self._solid_joints])
+        count = near_pairs(placements, self._solid_slot, self._solid_rows,
+                           self._obstacle_rows, self._planar, limit, self._near)
+        if not count:
+            return links, obs, points, gaps, normals
+        # every joint's rotation and origin, laid out as numpy's products need them to give
+        # the same bits as ever (C order: a Pinocchio rotation is a column-major view)
+        rots = placements[:, :3, :3].copy()
+        origins = placements[:, :3, 3].copy()
+        n_ob = len(obstacles)
         placed: tuple[np.ndarray, np.ndarray] | None = None
-        for n, (j, k) in enumerate(near):
+        last = -1
+        for index in self._near[:count].tolist():
+            j, k = divmod(index, n_ob)
             sol, pair, ob = self._solids[j], self._pairs_of[j][k][1], obstacles[k]
-            slot = self._solid_slot[j]
-            rot, origin = rots[slot], origins[slot]
-            if n == 0 or near[n - 1][0] != j:
-                placed = None
+            rot, origin = rots[self._slot_of[j]], origins[self._slot_of[j]]
+            if j != last:
+                placed, last = None, j
             local = self._corners_local[j]
             if local is None or ob.kind not in _PLANES:
                 if placed is None:
                     placed = (rot @ sol.centre + origin, rot @ sol.rotation)
                 centre, rotation = placed
             found: list[tuple[float, list[float], list[float]]]
-            if pair is not None and sol.mesh is not None:
-                gap, point, normal = pair.gap(centre, rotation)
+            if pair is not None:        # coal: a mesh, or a box or cylinder with solid_gaps'
+                gap, point_t, normal_t = pair.gap_floats(centre, rotation)
                 if gap < limit:
                     links.append(sol.link)
                     obs.append(k)
-                    points.append(point.tolist())
+                    points.append(point_t)
                     gaps.append(gap)
-                    normals.append(normal.tolist())
+                    normals.append(normal_t)
                 continue
             if ob.kind in _PLANES:
                 if local is not None:
@@ -717,13 +708,14 @@ class ContactModel:
         origin), and the torques ``J^T (sum F, sum a x F)`` (``sum_i J_i^T F_i`` with
         :meth:`detect`'s ``J_i``, to rounding)."""
         p0, p1 = self._axes(q)
-        caps, _, s, gaps, normals = self.candidates(p0, p1)
-        active = np.flatnonzero(gaps < 0.0)
         # (joint, point, gap, normal) of every penetrating candidate, capsules then solids
-        hits: list[tuple[int, Any, float, Any]] = [
-            (self._cap_joint[int(caps[i])],
-             (p0[caps[i]] + s[i] * (p1[caps[i]] - p0[caps[i]])).tolist(), float(gaps[i]),
-             normals[i].tolist()) for i in active.tolist()]
+        hits: list[tuple[int, Any, float, Any]] = []
+        if self._ncaps:
+            caps, _, s, gaps, normals = self.candidates(p0, p1)
+            hits = [(self._cap_joint[int(caps[i])],
+                     (p0[caps[i]] + s[i] * (p1[caps[i]] - p0[caps[i]])).tolist(),
+                     float(gaps[i]), normals[i].tolist())
+                    for i in np.flatnonzero(gaps < 0.0).tolist()]
         if self._solids:
             s_links, _, s_points, s_gaps, s_normals = self._solid_hits(0.0)
             hits += [(link + 1, point, gap, normal) for link, point, gap, normal in zip(
@@ -737,9 +729,10 @@ class ContactModel:
         for joint, point, gap, normal in hits:
             by_joint.setdefault(joint, []).append((point, gap, normal))
         power = 0.0
+        placements = data.oMi.tolist()
         for joint, items in by_joint.items():
             j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, self.dof)
-            ox, oy, oz = data.oMi[joint].translation.tolist()
+            ox, oy, oz = placements[joint].translation.tolist()
             v0x, v0y, v0z, wx, wy, wz = (j6 @ dq).tolist()
             fx_sum = fy_sum = fz_sum = mx = my = mz = 0.0
             for point, gap, normal in items:

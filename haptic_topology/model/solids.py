@@ -245,7 +245,9 @@ class CoalPair:
     """A link solid (box, cylinder, or a mesh's convex hull: ``mesh``) against a spatial
     obstacle: coal's signed distance with nearest points (GJK when apart, EPA when
     overlapping), tolerance ``meshes.COAL_TOLERANCE``, no cached guess (every query is independent
-    of the previous one, so runs repeat exactly)."""
+    of the previous one, so runs repeat exactly). The solid's placement and the result are
+    coal objects made once and overwritten by each query (the result cleared first: coal
+    keeps a smaller distance already in it)."""
 
     def __init__(self, kind: str, size: tuple[float, ...], obstacle: Obstacle,
                  mesh: MeshGeometry | None = None) -> None:
@@ -254,14 +256,31 @@ class CoalPair:
                                    else coal.Cylinder(size[0], 2.0 * size[1]))
         self.obstacle_geometry, self.obstacle_pose = coal_geometry(obstacle)
         self.request = distance_request()
+        self._pose = coal.Transform3s()
+        self._result = coal.DistanceResult()
 
     def gap(self, centre: np.ndarray, rotation: np.ndarray) -> SolidGap:
         """``(gap, point, normal)`` of the solid placed at ``(centre, rotation)``."""
-        res = coal.DistanceResult()
-        dist = coal.distance(self.link_geometry, coal.Transform3s(rotation, centre),
-                             self.obstacle_geometry, self.obstacle_pose, self.request, res)
+        dist, res = self._query(centre, rotation)
         # coal's normal points from the first shape (the link) to the second
-        return float(dist), np.array(res.getNearestPoint1()), -np.array(res.normal)
+        return dist, np.array(res.getNearestPoint1()), -np.array(res.normal)
+
+    def gap_floats(self, centre: np.ndarray, rotation: np.ndarray
+                   ) -> tuple[float, list[float], list[float]]:
+        """:meth:`gap` in Python floats (the same numbers): the VE's path, at every RK4
+        stage."""
+        dist, res = self._query(centre, rotation)
+        nx, ny, nz = res.normal.tolist()
+        return dist, res.getNearestPoint1().tolist(), [-nx, -ny, -nz]
+
+    def _query(self, centre: np.ndarray, rotation: np.ndarray) -> tuple[float, Any]:
+        """coal's signed distance (m) and its result (read before the next query)."""
+        pose, res = self._pose, self._result
+        pose.setRotation(rotation)
+        pose.setTranslation(centre)
+        res.clear()
+        return float(coal.distance(self.link_geometry, pose, self.obstacle_geometry,
+                                   self.obstacle_pose, self.request, res)), res
 
 
 def solid_gaps(obstacle: Obstacle, kind: str, centre: np.ndarray, rotation: np.ndarray,
