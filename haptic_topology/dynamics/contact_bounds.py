@@ -47,8 +47,9 @@ SOLID_COLUMNS = 20
 #: a), axes (world_R_box, row-major) 4:13, half extents (segment: its end b) 13:16, radius
 #: (plane: its offset n.p) 16.
 OBSTACLE_COLUMNS = 17
-#: Cross products of two edges shorter than this (near parallel edges) give no axis.
-_PARALLEL = 1e-9
+#: Two edges whose cross product's squared length is below this (within 1e-6 rad of
+#: parallel) give no axis: the axis's rounding, divided by its length, would exceed SLACK.
+_PARALLEL = 1e-12
 
 
 @njit(float64(float64, float64, float64, float64[:], float64[:, :], float64[:]), cache=True)
@@ -68,36 +69,38 @@ def _box_point(px: float, py: float, pz: float, c: np.ndarray, a: np.ndarray,
     return math.sqrt(outside) + min(inside, 0.0)
 
 
-@njit(float64(float64[:], float64[:, :], float64[:], float64[:], float64[:, :], float64[:]),
-      cache=True)
+@njit(float64(float64[:], float64[:, :], float64[:], float64[:], float64[:, :], float64[:],
+              float64[:, :]), cache=True)
 def _separation(c1: np.ndarray, a1: np.ndarray, h1: np.ndarray, c2: np.ndarray,
-                a2: np.ndarray, h2: np.ndarray) -> float:
+                a2: np.ndarray, h2: np.ndarray, r: np.ndarray) -> float:
     """The largest separation (m) of two boxes (centre ``c``, axes the columns of ``a``,
     half extents ``h``) over the 15 axes of the separating-axis test: at most their signed
-    distance."""
+    distance. ``r``: 3 x 3 scratch (``a1^T a2``)."""
+    tx, ty, tz = c2[0] - c1[0], c2[1] - c1[1], c2[2] - c1[2]
     best = -math.inf
-    axis = np.empty(3)
-    for n in range(15):
-        if n < 3:
-            axis[:] = a1[:, n]
-        elif n < 6:
-            axis[:] = a2[:, n - 3]
-        else:
-            u, v = a1[:, (n - 6) // 3], a2[:, (n - 6) % 3]
-            axis[0] = u[1] * v[2] - u[2] * v[1]
-            axis[1] = u[2] * v[0] - u[0] * v[2]
-            axis[2] = u[0] * v[1] - u[1] * v[0]
-            norm = math.sqrt(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2])
-            if norm < _PARALLEL:
+    for i in range(3):          # box 1's faces
+        for j in range(3):
+            r[i, j] = a1[0, i] * a2[0, j] + a1[1, i] * a2[1, j] + a1[2, i] * a2[2, j]
+        sep = (abs(tx * a1[0, i] + ty * a1[1, i] + tz * a1[2, i]) - h1[i]
+               - h2[0] * abs(r[i, 0]) - h2[1] * abs(r[i, 1]) - h2[2] * abs(r[i, 2]))
+        best = max(best, sep)
+    for j in range(3):          # box 2's faces
+        sep = (abs(tx * a2[0, j] + ty * a2[1, j] + tz * a2[2, j]) - h2[j]
+               - h1[0] * abs(r[0, j]) - h1[1] * abs(r[1, j]) - h1[2] * abs(r[2, j]))
+        best = max(best, sep)
+    for i in range(3):          # edge i of box 1 x edge j of box 2: L = a1_i x a2_j
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        t1 = tx * a1[0, i1] + ty * a1[1, i1] + tz * a1[2, i1]
+        t2 = tx * a1[0, i2] + ty * a1[1, i2] + tz * a1[2, i2]
+        for j in range(3):
+            sine2 = 1.0 - r[i, j] * r[i, j]         # |L|^2
+            if sine2 < _PARALLEL:
                 continue
-            axis /= norm
-        sep = abs(axis[0] * (c2[0] - c1[0]) + axis[1] * (c2[1] - c1[1])
-                  + axis[2] * (c2[2] - c1[2]))
-        for i in range(3):
-            sep -= h1[i] * abs(axis[0] * a1[0, i] + axis[1] * a1[1, i] + axis[2] * a1[2, i])
-            sep -= h2[i] * abs(axis[0] * a2[0, i] + axis[1] * a2[1, i] + axis[2] * a2[2, i])
-        if sep > best:
-            best = sep
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            sep = (abs(t2 * r[i1, j] - t1 * r[i2, j])
+                   - h1[i1] * abs(r[i2, j]) - h1[i2] * abs(r[i1, j])
+                   - h2[j1] * abs(r[i, j2]) - h2[j2] * abs(r[i, j1])) / math.sqrt(sine2)
+            best = max(best, sep)
     return best
 
 
@@ -117,6 +120,7 @@ def near_pairs(placements: np.ndarray, slot: np.ndarray, solids: np.ndarray,
     box_a = np.empty((3, 3))
     ob_c = np.empty(3)
     ob_a = np.empty((3, 3))
+    scratch = np.empty((3, 3))
     for s in range(solids.shape[0]):
         m = placements[slot[s]]
         row = solids[s]
@@ -165,7 +169,7 @@ def near_pairs(placements: np.ndarray, slot: np.ndarray, solids: np.ndarray,
                 elif kind == ROUND:
                     bound = _box_point(o[1], o[2], o[3], box_c, box_a, half) - o[16]
                 elif kind == BOX:       # ob_c, ob_a: filled for the sphere bound above
-                    bound = _separation(box_c, box_a, half, ob_c, ob_a, o[13:16])
+                    bound = _separation(box_c, box_a, half, ob_c, ob_a, o[13:16], scratch)
                 if bound - SLACK >= limit:
                     continue
             out[count] = s * n_ob + k

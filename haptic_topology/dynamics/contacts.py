@@ -406,6 +406,9 @@ class ContactModel:
     def __init__(self, model: pin.Model, linkage: Linkage, settings: ContactSettings) -> None:
         self.model = model
         self.data = model.createData()
+        # the joints' world placements: references into self.data (forwardKinematics
+        # updates them), one list made once
+        self._oMi = self.data.oMi.tolist()
         self.settings = settings
         self.params = settings.params
         self.dof = linkage.dof
@@ -596,7 +599,7 @@ class ContactModel:
             return links, obs, points, gaps, normals
         # the joints' placements (world), then the pairs whose lower bounds are below the
         # limit, solid by solid, obstacle by obstacle (contact_bounds)
-        oMi = self.data.oMi.tolist()
+        oMi = self._oMi
         placements = np.array([oMi[j].homogeneous for j in self._solid_joints])
         count = near_pairs(placements, self._solid_slot, self._solid_rows,
                            self._obstacle_rows, self._planar, limit, self._near)
@@ -729,7 +732,7 @@ class ContactModel:
         for joint, point, gap, normal in hits:
             by_joint.setdefault(joint, []).append((point, gap, normal))
         power = 0.0
-        placements = data.oMi.tolist()
+        placements = self._oMi
         for joint, items in by_joint.items():
             j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, self.dof)
             ox, oy, oz = placements[joint].translation.tolist()

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import coal
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -19,6 +20,7 @@ from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics import contact_bounds as bounds
 from haptic_topology.dynamics.contacts import ContactModel, ContactParams, ContactSettings
 from haptic_topology.model import load_linkage
+from haptic_topology.model.meshes import distance_request
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.model.solids import CoalPair, solid_gaps
 from haptic_topology.sim.scenario import load_scenario
@@ -211,3 +213,42 @@ def test_a_coal_pair_answers_each_query_afresh() -> None:
             assert got[0] == want[0]
             assert got[1].tolist() == want[1].tolist() and got[2].tolist() == want[2].tolist()
             assert pair.gap_floats(then, rot) == (want[0], want[1].tolist(), want[2].tolist())
+
+
+def test_no_bound_exceeds_the_signed_distance() -> None:
+    """2000 random boxes (half extents 5-100 mm, any rotation, apart, touching, overlapping)
+    against a random box, sphere and plane: a pair whose signed distance (coal, by the
+    placement; a plane's: the deepest corner by hand) is ``g`` is a candidate at every limit
+    above ``g`` (at ``g + 1e-12`` m)."""
+    rng = np.random.default_rng(17)
+    out = np.empty(3, dtype=np.int64)
+    request = distance_request()
+    for _ in range(2000):
+        rots = [np.array(pin.exp3(rng.normal(size=3))) for _ in range(3)]
+        halves = rng.uniform(0.005, 0.1, size=(2, 3))
+        centres = rng.uniform(-0.15, 0.15, size=(3, 3))
+        solid = np.zeros(bounds.SOLID_COLUMNS)
+        solid[0:3], solid[3] = centres[0], float(np.linalg.norm(halves[0]))
+        solid[4:7], solid[7:16], solid[16:19], solid[19] = (centres[0], rots[0].ravel(),
+                                                            halves[0], 1.0)
+        box = np.zeros(bounds.OBSTACLE_COLUMNS)
+        box[0], box[1:4], box[4:13], box[13:16] = (bounds.BOX, centres[1], rots[1].ravel(),
+                                                  halves[1])
+        sphere = np.zeros(bounds.OBSTACLE_COLUMNS)
+        sphere[0], sphere[1:4], sphere[16] = bounds.ROUND, centres[2], 0.03
+        normal = rots[2][:, 2]
+        plane = np.zeros(bounds.OBSTACLE_COLUMNS)
+        plane[0], plane[1:4], plane[16] = bounds.PLANE, normal, float(normal @ centres[2])
+        pose = coal.Transform3s(rots[0], centres[0])
+        gaps = []
+        for shape, at in ((coal.Box(*(2.0 * halves[1])), coal.Transform3s(rots[1], centres[1])),
+                          (coal.Sphere(0.03), coal.Transform3s(np.eye(3), centres[2]))):
+            gaps.append(coal.distance(coal.Box(*(2.0 * halves[0])), pose, shape, at, request,
+                                      coal.DistanceResult()))
+        corners = centres[0] + (np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1)
+                                          for z in (-1, 1)]) * halves[0]) @ rots[0].T
+        gaps.append(float(np.min(corners @ normal)) - plane[16])
+        for k, (ob, gap) in enumerate(zip((box, sphere, plane), gaps, strict=True)):
+            n = bounds.near_pairs(np.eye(4)[None].copy(), np.zeros(1, dtype=np.int64),
+                                  solid[None], ob[None], False, gap + 1e-12, out)
+            assert n == 1, (k, gap)
