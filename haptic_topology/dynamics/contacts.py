@@ -1,6 +1,6 @@
 """Contacts between the linkage and static obstacles: the ``sum_i J_i^T F_i`` of eqs. 1, 2, 17.
 
-(One module of ~720 lines on purpose: the contact candidates, gaps, forces and torques of every
+(One module of ~820 lines on purpose: the contact candidates, gaps, forces and torques of every
 shape pair share one set of arrays per step, which the VE and the LMI both run.)
 
 **Geometry.** Each link carries capsules (a sphere is a capsule of zero length); obstacles
@@ -584,11 +584,12 @@ class ContactModel:
         obstacle by obstacle, each pair's candidates in the order of
         :func:`~haptic_topology.model.solids.solid_gaps` (the same numbers, tested). A pair is
         skipped when a lower bound of its gaps is at least ``limit``: the obstacle's distance
-        to the solid's bounding sphere, or (spatial) to the solid's box, less 1e-9 m
-        (:mod:`~haptic_topology.dynamics.contact_bounds`): then the two are apart by at least
-        that much (the bound is at most the signed distance of every point of the solid, and
-        the signed distance of two disjoint shapes is their distance), and coal's gap of a
-        pair that far apart is not below ``limit``. Runs at every RK4 stage."""
+        to the solid's bounding sphere, or (spatial) its separation from the solid's box less
+        1e-9 m (:mod:`~haptic_topology.dynamics.contact_bounds`). Then the two are apart by
+        at least that much (each bound is at most the signed distance of the solid and the
+        obstacle, and the signed distance of two disjoint shapes is their distance), and
+        coal's gap of a pair that far apart is not below ``limit`` (GJK's distance is at
+        least the true one, its tolerance 1e-10 m). Runs at every RK4 stage."""
         links: list[int] = []
         obs: list[int] = []
         points: list[list[float]] = []
