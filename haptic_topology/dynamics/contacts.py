@@ -66,8 +66,6 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from haptic_topology.dynamics import contact_bounds as bounds
-from haptic_topology.dynamics.contact_bounds import near_pairs
 from haptic_topology.errors import ConfigError
 from haptic_topology.model.linkage import Linkage
 from haptic_topology.model.meshes import MeshGeometry, capsule_shape, load_mesh, resolve_mesh
@@ -307,6 +305,7 @@ def _solid_row(solid: LinkSolid, corners: np.ndarray | None) -> np.ndarray:
     """``solid``'s row of the broad phase (:data:`contact_bounds.SOLID_COLUMNS`, link frame):
     its bounding sphere and, but for a polygon, its oriented box (a box; a cylinder's; the box
     around a mesh's hull)."""
+    from haptic_topology.dynamics import contact_bounds as bounds  # numba: see ContactModel
     row = np.zeros(bounds.SOLID_COLUMNS)
     row[0:3], row[3] = _bounding_sphere(solid, corners)
     if solid.kind == 'polygon':
@@ -323,6 +322,7 @@ def _solid_row(solid: LinkSolid, corners: np.ndarray | None) -> np.ndarray:
 def _obstacle_row(obstacle: Obstacle) -> np.ndarray:
     """``obstacle``'s row of the broad phase (:data:`contact_bounds.OBSTACLE_COLUMNS`, world;
     a mesh: the box around it)."""
+    from haptic_topology.dynamics import contact_bounds as bounds
     row = np.zeros(bounds.OBSTACLE_COLUMNS)
     kind = obstacle.kind
     if kind in _PLANES:
@@ -466,7 +466,10 @@ class ContactModel:
         self._corners_local = [
             None if sol.kind in ('cylinder', 'mesh') else sol.vertices if sol.vertices is not None
             else box_vertices(sol.centre, sol.rotation, np.array(sol.size)) for sol in solids]
-        # the broad phase's rows (contact_bounds), its output, made once
+        # the broad phase (contact_bounds; imported here, not with this module: reading a
+        # scenario's contacts block loads no numba), its rows and output made once
+        from haptic_topology.dynamics import contact_bounds as bounds
+        self._near_pairs = bounds.near_pairs
         self._solid_rows = np.array([_solid_row(sol, corners) for sol, corners in zip(
             solids, self._corners_local, strict=True)]).reshape(-1, bounds.SOLID_COLUMNS)
         self._obstacle_rows = np.array([_obstacle_row(ob) for ob in obstacles]).reshape(
@@ -602,8 +605,8 @@ class ContactModel:
         # limit, solid by solid, obstacle by obstacle (contact_bounds)
         oMi = self._oMi
         placements = np.array([oMi[j].homogeneous for j in self._solid_joints])
-        count = near_pairs(placements, self._solid_slot, self._solid_rows,
-                           self._obstacle_rows, self._planar, limit, self._near)
+        count = self._near_pairs(placements, self._solid_slot, self._solid_rows,
+                                 self._obstacle_rows, self._planar, limit, self._near)
         if not count:
             return links, obs, points, gaps, normals
         # every joint's rotation and origin, laid out as numpy's products need them to give
