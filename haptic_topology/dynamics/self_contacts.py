@@ -129,6 +129,11 @@ def _coal_shape(shape: LinkShape) -> tuple[Any, np.ndarray, np.ndarray, np.ndarr
     corners = (box_vertices(shape.centre, shape.rotation, np.array(shape.size))
                if shape.kind == 'box' else None)
     bound, radius = _bounding_sphere(shape, corners)
+    if shape.mesh is not None:      # the sphere around the hull's box where it is smaller
+        around_box = float(np.max(np.linalg.norm(shape.mesh.vertices - shape.mesh.box_centre,
+                                                 axis=1)))
+        if around_box < radius:
+            bound, radius = shape.centre + shape.rotation @ shape.mesh.box_centre, around_box
     return geometry, shape.rotation, shape.centre, bound, radius
 
 
@@ -155,7 +160,9 @@ class SelfContacts:
         self._geometry = [m[0] for m in made]
         self._rotation = [m[1] for m in made]
         self._centre = [m[2] for m in made]
-        self._bound_centre = np.array([m[3] for m in made], dtype=float).reshape(-1, 3)
+        # homogeneous (x, y, z, 1): placed by a joint's 3 x 4 [R | o] in one product
+        self._bound_centre = np.hstack((np.array([m[3] for m in made], dtype=float).reshape(
+            -1, 3), np.ones((len(made), 1))))
         bound_radius = np.array([m[4] for m in made], dtype=float)
         self._bound_radii = bound_radius[self._a] + bound_radius[self._b] if pairs else None
         self._request = distance_request()
@@ -168,19 +175,18 @@ class SelfContacts:
         forward kinematics current), pair by pair in a fixed order."""
         if not self.pairs:
             return []
-        rots = np.array([oMi[j].rotation for j in self._joints])
-        origins = np.array([oMi[j].translation for j in self._joints])
+        frames = np.array([oMi[j].homogeneous for j in self._joints])[:, :3, :]
         slot = self._joint_slot
-        centres = np.einsum('sij,sj->si', rots[slot], self._bound_centre) + origins[slot]
-        bounds = (np.linalg.norm(centres[self._a] - centres[self._b], axis=1)
-                  - self._bound_radii)
+        centres = np.einsum('sij,sj->si', frames[slot], self._bound_centre)
+        apart = centres[self._a] - centres[self._b]
+        bounds = np.sqrt(np.einsum('ij,ij->i', apart, apart)) - self._bound_radii
         out: list[SelfHit] = []
         placed: dict[int, Any] = {}
         for n in np.flatnonzero(bounds < limit).tolist():
             a, b = self.pairs[n]
             for k in (a, b):
                 if k not in placed:
-                    rot, origin = rots[slot[k]], origins[slot[k]]
+                    rot, origin = frames[slot[k], :, :3], frames[slot[k], :, 3]
                     placed[k] = coal.Transform3s(rot @ self._rotation[k],
                                                  rot @ self._centre[k] + origin)
             res = coal.DistanceResult()
