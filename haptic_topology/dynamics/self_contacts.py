@@ -64,7 +64,7 @@ import pinocchio as pin
 from haptic_topology.dynamics.contacts import (
     ContactParams,
     LinkCapsule,
-    LinkShape,
+    LinkSolid,
     _bounding_sphere,
     _force,
     point_jacobian,
@@ -80,7 +80,8 @@ _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 SelfHit = tuple[int, int, np.ndarray, np.ndarray, float, np.ndarray]
 
 
-def self_pairs(linkage: Linkage, shapes: Sequence[LinkShape]) -> list[tuple[int, int]]:
+def self_pairs(linkage: Linkage, shapes: Sequence[LinkCapsule | LinkSolid]
+               ) -> list[tuple[int, int]]:
     """The pairs ``(i, j)``, ``i < j``, of ``shapes`` (indices) checked against each other:
     on different links, not adjacent, not disabled by the SRDF (see the module doc)."""
     names = linkage.link_names
@@ -109,7 +110,8 @@ def _along_z(d: np.ndarray) -> np.ndarray:
     return np.column_stack((x, np.cross(d, x), d))
 
 
-def _coal_shape(shape: LinkShape) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, float]:
+def _coal_shape(shape: LinkCapsule | LinkSolid
+                ) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, float]:
     """``(geometry, rotation, centre, bound_centre, bound_radius)`` of a link shape for coal:
     its coal geometry placed at ``(centre, rotation)`` in the link's joint frame, and a sphere
     around it (link frame, m)."""
@@ -142,7 +144,7 @@ class SelfContacts:
     module doc). Works on the link placements ``oMi`` of a Pinocchio ``Data`` whose forward
     kinematics are current (the :class:`~haptic_topology.dynamics.contacts.ContactModel`'s)."""
 
-    def __init__(self, linkage: Linkage, shapes: Sequence[LinkShape]) -> None:
+    def __init__(self, linkage: Linkage, shapes: Sequence[LinkCapsule | LinkSolid]) -> None:
         if linkage.task.planar:
             raise ValueError('SelfContacts: self-collisions are for spatial tasks')
         pairs = self_pairs(linkage, shapes)
