@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from pathlib import Path
 from typing import Any
 
 import mesh_contacts
@@ -38,17 +39,20 @@ def run(warm: int = 60, timed: int = 100) -> dict[str, Any]:
             for name in mesh_contacts.SCENARIOS}
 
 
+def _pair(r: dict[str, Any], key: str, scale: float = 1.0) -> str:
+    """``p50 / p99`` of ``r[key]`` (us, divided by ``scale``)."""
+    return f'{r[key]["p50_us"] / scale:.1f} / {r[key]["p99_us"] / scale:.1f}'
+
+
 def table(res: dict[str, Any]) -> list[str]:
-    lines = ['self-collisions  pairs  torques p50/p99 [us] with / without  VE update p50/p99 '
-             '[ms] with / without']
+    """Per scenario: the pairs, a torques call (us) and a VE update (ms), p50 / p99."""
+    lines = ['self-collisions: pairs; torques call [us] with, without; VE update [ms] with, '
+             'without (p50 / p99)']
     for name, r in res.items():
         w, wo = r['with_self'], r['without_self']
-        lines.append(
-            f'{name:15s}  {r["pairs"]:5d}  {w["torques_call"]["p50_us"]:7.0f} / '
-            f'{w["torques_call"]["p99_us"]:4.0f}  {wo["torques_call"]["p50_us"]:7.0f} / '
-            f'{wo["torques_call"]["p99_us"]:4.0f}  {w["update"]["p50_us"] / 1e3:11.2f} / '
-            f'{w["update"]["p99_us"] / 1e3:5.2f}  {wo["update"]["p50_us"] / 1e3:7.2f} / '
-            f'{wo["update"]["p99_us"] / 1e3:5.2f}')
+        lines.append(f'{name}: {r["pairs"]}; {_pair(w, "torques_call")}, '
+                     f'{_pair(wo, "torques_call")}; {_pair(w, "update", 1e3)}, '
+                     f'{_pair(wo, "update", 1e3)}')
     return lines
 
 
@@ -59,8 +63,7 @@ def main() -> None:
     res = run()
     print('\n'.join(table(res)))
     if args.json:
-        with open(args.json, 'w', encoding='utf-8') as f:
-            json.dump(res, f, indent=2)
+        Path(args.json).write_text(json.dumps(res, indent=2), encoding='utf-8')
 
 
 if __name__ == '__main__':
