@@ -191,10 +191,12 @@ def test_gap_rate_is_the_relative_normal_velocity_and_the_lmi_equals_the_ve() ->
     np.testing.assert_allclose(lmi.contact_torques, tau, rtol=1e-12, atol=1e-15)
 
 
-def _urdf(tmp_path: Path, disabled: tuple[str, str] | None) -> Linkage:
+def _urdf(tmp_path: Path, disabled: tuple[str, str] | None, l1: str = '', l3: str = '',
+          tip: str = '') -> Linkage:
     """l1 (capsule along x, 0.1 m), l2 (at l1's tip, a short capsule), l3 (at l2's tip, a
     capsule of 0.06 m) and ``tip``, fixed to l3 at x = 0.1 with a sphere: a URDF link merged
-    into the chain link l3. ``disabled``: the SRDF's one pair."""
+    into the chain link l3. ``disabled``: the SRDF's one pair; ``l1``, ``l3``, ``tip``: other
+    ``<collision>`` elements for those links."""
     inertial = ('<inertial><mass value="0.1"/><inertia ixx="1e-4" iyy="1e-4" izz="1e-4" '
                 'ixy="0" ixz="0" iyz="0"/></inertial>')
 
@@ -203,15 +205,15 @@ def _urdf(tmp_path: Path, disabled: tuple[str, str] | None) -> Linkage:
                 f'<geometry><capsule radius="{RADIUS}" length="{length}"/></geometry>'
                 f'</collision>')
 
+    sphere = f'<collision><geometry><sphere radius="{RADIUS}"/></geometry></collision>'
     limit = '<limit lower="-4" upper="4" effort="1" velocity="1"/>'
     urdf = tmp_path / 'fold.urdf'
     urdf.write_text(f'''<robot name="fold">
   <link name="base"/>
-  <link name="l1">{inertial}{capsule(0.1)}</link>
+  <link name="l1">{inertial}{l1 or capsule(0.1)}</link>
   <link name="l2">{inertial}{capsule(0.03)}</link>
-  <link name="l3">{inertial}{capsule(0.06)}</link>
-  <link name="tip">{inertial}<collision><geometry><sphere radius="{RADIUS}"/></geometry>
-    </collision></link>
+  <link name="l3">{inertial}{l3 or capsule(0.06)}</link>
+  <link name="tip">{inertial}{tip or sphere}</link>
   <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
     <axis xyz="0 0 1"/>{limit}</joint>
   <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
@@ -257,6 +259,44 @@ def test_a_disabled_pair_of_the_srdf_is_not_checked(tmp_path: Path,
     assert len(near) == (1 if disabled == ('l1', 'l3') else 2)
 
 
+BOX12 = Path(__file__).resolve().parents[2] / 'fixtures' / 'meshes' / 'box12.stl'
+
+
+def test_gap_rate_of_solid_pairs_is_the_relative_normal_velocity(tmp_path: Path) -> None:
+    """A box on l1, a cylinder on l3 and a mesh box (12 triangles) on the merged ``tip``: at
+    random poses, apart and overlapping, every pair's ``dg/dq`` (central differences) is
+    ``n^T (J_a(p_a) - J_b(p_b))`` at coal's witness points (EPA's too), the gap's gradient
+    that makes the force passive and the LMI's linearisation right."""
+    linkage = _urdf(
+        tmp_path, None,
+        l1='<collision><origin xyz="0.05 0 0" rpy="0.1 -0.2 0.3"/><geometry>'
+           '<box size="0.1 0.02 0.03"/></geometry></collision>',
+        l3='<collision><origin xyz="0.03 0 0" rpy="0 1.4 0.2"/><geometry>'
+           '<cylinder radius="0.012" length="0.06"/></geometry></collision>',
+        tip=f'<collision><origin rpy="0.3 -0.1 0.2"/><geometry><mesh filename="{BOX12}" '
+            f'scale="0.03 0.02 0.025"/></geometry></collision>')
+    kinds = [getattr(s, 'kind', 'capsule') for s in
+             ContactSettings(ContactParams(), (), RADIUS).shapes(linkage)]
+    assert kinds == ['box', 'capsule', 'cylinder', 'mesh']
+    dyn, cm = _model(linkage)
+    rng = np.random.default_rng(5)
+    overlapping = 0
+    for _ in range(30):
+        q = np.array([0.0, math.pi / 2, math.pi / 2]) + rng.uniform(-0.6, 0.6, 3)
+        cs = cm.detect(q, margin=10.0)
+        assert len(cs) == 2             # l1-l3 and l1-tip
+        overlapping += int(np.sum(cs.gaps < 0.0))
+        fd = np.zeros((2, 3))
+        for j in range(3):
+            e = np.zeros(3)
+            e[j] = 1e-6
+            fd[:, j] = (cm.detect(q + e, margin=10.0).gaps
+                        - cm.detect(q - e, margin=10.0).gaps) / 2e-6
+        np.testing.assert_allclose(np.einsum('ci,cid->cd', cs.normals, cs.jacobians), fd,
+                                   atol=1e-6)
+    assert overlapping >= 5
+
+
 def test_adjacent_links_are_never_checked() -> None:
     """Adjacent capsules overlap at their joint (coal: gap -2 r), yet no pair of adjacent
     links is checked: the stretched linkage has no self-contact, no torque, no energy; only
@@ -280,6 +320,12 @@ def test_adjacent_links_are_never_checked() -> None:
     assert near.links.tolist() == [0] and near.gaps[0] == pytest.approx(0.03 - 2 * RADIUS)
     tau, power = cm.torques(q, np.array([1.0, -2.0, 3.0]))
     assert not np.any(tau) and power == 0.0 and cm.potential(q) == 0.0
+    # a loop closure joining l3's tip to l1's base makes l1 and l3 adjacent too
+    looped = linkage_from_dict({'linkage': {'name': 'fold', 'task': 'spatial', 'links': [
+        _link('l1', 0.1), _link('l2', 0.03), _link('l3', 0.1)], 'loops': [
+        {'name': 'c', 'link': 'l3', 'point': [0.1, 0.0, 0.0], 'to': 'l1',
+         'to_point': [0.0, 0.0, 0.0], 'kind': 'spherical'}]}})
+    assert self_pairs(looped, ContactSettings(ContactParams(), (), RADIUS).shapes(looped)) == []
 
 
 def test_self_collisions_are_for_spatial_tasks_in_one_line() -> None:
