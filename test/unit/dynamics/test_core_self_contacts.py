@@ -20,6 +20,7 @@ import coal
 import numpy as np
 import pinocchio as pin
 import pytest
+import yaml
 
 from haptic_topology.control.lmi import LocalModel
 from haptic_topology.dynamics import LinkageDynamics
@@ -30,6 +31,7 @@ from haptic_topology.model import Linkage, load_linkage
 from haptic_topology.model.linkage import linkage_from_dict
 from haptic_topology.model.meshes import capsule_shape, distance_request
 from haptic_topology.paths import config_dir
+from haptic_topology.sim.lockstep import simulate
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology.vocabulary import TaskSpace
@@ -364,3 +366,34 @@ def test_the_broad_phase_keeps_every_pair_within_the_limit() -> None:
             want = every.hits(cm.data.oMi, limit)
             got = culled.hits(cm.data.oMi, limit)
             assert [(h[0], h[1], h[4]) for h in got] == [(h[0], h[1], h[4]) for h in want]
+
+
+def test_simulate_counts_self_contacts_in_penetration_and_injected_energy(tmp_path: Path
+                                                                          ) -> None:
+    """``simulate`` of a scenario folding l3 onto l1 (the user pushes the hand along -y):
+    with ``self_collisions: true`` the summary has the self-contact's depth and time and no
+    energy injected; without it, no contact at all."""
+    summaries = {}
+    for on in (False, True):
+        doc = {'scenario': {
+            'name': 'fold', 'linkage': {'name': 'fold', 'task': 'spatial', 'links': [
+                _link('l1', 0.1), _link('l2', 0.03), _link('l3', 0.1)]},
+            'gravity': [0.0, 0.0, 0.0], 'q0': [0.0, math.pi / 2, math.pi / 2 - 0.3],
+            'duration': 1.0, 'dt': 0.001, 'mode': 'penalty',
+            'device': {'mass': [1.0, 1.0, 1.0, 0.01, 0.01, 0.01],
+                       'wrench_limit': [20.0, 20.0, 20.0, 2.0, 2.0, 2.0]},
+            'user': {'type': 'constant_wrench', 'wrench': [0.0, -0.5, 0.0, 0.0, 0.0, 0.0]},
+            'control': {'k_pc': [100.0] * 3 + [0.5] * 3, 'b_pc': [70.0] * 3 + [0.375] * 3,
+                        'k_tc': 200.0, 'b_tc': 50.0},
+            'lmi': {'model': 'eq20', 'update_period': 10},
+            've': {'internal_step': 0.001, 'vt_coupling': False},
+            'contacts': {'stiffness': 2000.0, 'damping': 20.0, 'link_radius': RADIUS,
+                         'obstacles': [], 'self_collisions': on}}}
+        path = tmp_path / f'fold_{on}.yaml'
+        path.write_text(yaml.safe_dump(doc))
+        summaries[on] = simulate(load_scenario(str(path))).summary()
+    assert summaries[False]['max_penetration_m'] == 0.0
+    assert summaries[False]['contact_time_s'] == 0.0
+    s = summaries[True]
+    assert 0.0 < s['max_penetration_m'] < RADIUS and s['contact_time_s'] > 0.1
+    assert s['energy_injected_j'] == 0.0 and s['energy_dissipated_j'] > 0.0
