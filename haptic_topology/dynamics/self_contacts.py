@@ -6,7 +6,8 @@
 cylinders, mesh hulls) on two different links is checked, except
 
 * the shapes of adjacent links, a link and its parent (and two links joined by a loop
-  closure): they meet at their joint, where their shapes overlap by construction;
+  closure, or through links of zero length: joints at one point, as in a wrist): they meet
+  at their joint, where their shapes overlap by construction;
 * the pairs the linkage's SRDF disables (``Linkage.disabled_collisions``, URDF link names). A
   shape of a URDF ``<collision>`` counts as the URDF link it is declared on, also when that
   link is merged into a chain link by a fixed joint or carried by a locked side branch (the
@@ -69,7 +70,7 @@ from haptic_topology.dynamics.contacts import (
     _force,
     point_jacobian,
 )
-from haptic_topology.model.linkage import Linkage
+from haptic_topology.model.linkage import Linkage, _placement_offset
 from haptic_topology.model.meshes import capsule_shape, distance_request
 from haptic_topology.model.solids import box_vertices
 
@@ -86,6 +87,12 @@ def self_pairs(linkage: Linkage, shapes: Sequence[LinkCapsule | LinkSolid]
     on different links, not adjacent, not disabled by the SRDF (see the module doc)."""
     names = linkage.link_names
     adjacent = {(i, i + 1) for i in range(linkage.dof - 1)}
+    # through links of zero length: joints i + 1 ... j at one point
+    for i in range(linkage.dof):
+        j = i + 1
+        while j + 1 < linkage.dof and _placement_offset(linkage.links, j + 1) == 0.0:
+            j += 1
+            adjacent.add((i, j))
     for loop in linkage.loops:
         if loop.to in names:
             ends = sorted((names.index(loop.link), names.index(loop.to)))

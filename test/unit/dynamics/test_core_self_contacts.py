@@ -328,6 +328,14 @@ def test_adjacent_links_are_never_checked() -> None:
         {'name': 'c', 'link': 'l3', 'point': [0.1, 0.0, 0.0], 'to': 'l1',
          'to_point': [0.0, 0.0, 0.0], 'kind': 'spherical'}]}})
     assert self_pairs(looped, ContactSettings(ContactParams(), (), RADIUS).shapes(looped)) == []
+    # so does a link of zero length between them (joints 2 and 3 at one point, a wrist): their
+    # capsules overlap at that point in every pose
+    wrist = linkage_from_dict({'linkage': {'name': 'wrist', 'task': 'spatial', 'links': [
+        _link('l1', 0.1), _link('l2', 0.0, axis=[1.0, 0.0, 0.0]), _link('l3', 0.1)]}})
+    dyn, cm = _model(wrist)
+    assert self_pairs(wrist, cm.settings.shapes(wrist)) == []
+    q = np.array([0.3, 0.7, -1.1])
+    assert len(cm.detect(q, margin=0.05)) == 0 and not np.any(cm.torques(q, np.zeros(3))[0])
 
 
 def test_self_collisions_are_for_spatial_tasks_in_one_line() -> None:
