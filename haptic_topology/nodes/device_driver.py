@@ -74,6 +74,7 @@ from haptic_topology.nodes.separate import SeparateLoop
 from haptic_topology.nodes.wire import StateOut
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (
+    STATUS_DEVICE,
     TOPIC_CLOCK,
     TOPIC_COMMAND,
     TOPIC_DIAGNOSTICS,
@@ -252,7 +253,7 @@ class DeviceDriver(LifecycleNode):
                   **loop_values}
         level, message = self.input_publishers.merge(values, level, message)
         self.diag_pub.publish(diagnostics(
-            self, 'device_driver: loop', values, level, message,
+            self, STATUS_DEVICE, values, level, message,
             child.status.get('hardware_id', self.cfg.backend) if child is not None
             else hardware_id(self.backend, self.cfg.backend)))
 

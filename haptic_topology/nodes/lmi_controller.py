@@ -81,6 +81,7 @@ from haptic_topology.nodes.runtime import run_main
 from haptic_topology.sim.lockstep import build_controller_loop
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.vocabulary import (
+    STATUS_CONTROLLER,
     TOPIC_COMMAND,
     TOPIC_DIAGNOSTICS,
     TOPIC_HAND_INPUTS,
@@ -260,7 +261,7 @@ class LmiController(Node):
             values.update(self.host.controller_values())
             level, message = self.host.controller_health() or (level, message)
         level, message = self.input_publishers.merge(values, level, message)
-        self.diag_pub.publish(diagnostics(self, 'lmi_controller: loop', values, level,
+        self.diag_pub.publish(diagnostics(self, STATUS_CONTROLLER, values, level,
                                                  message))
 
 
