@@ -15,6 +15,7 @@ example-robot-data is not installed). Run alone: ``.venv/bin/python bench/mesh_c
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.metadata as md
 import json
 import time
@@ -37,11 +38,12 @@ def _pct(samples_ns: list[int]) -> dict[str, float]:
             'p99_us': round(float(np.percentile(a, 99)), 1), 'n': int(a.size)}
 
 
-def _ve(name: str, contacts: bool) -> tuple[VirtualEnvironment, ContactModel | None,
-                                            np.ndarray]:
+def _ve(name: str, contacts: bool, self_collisions: bool = False
+        ) -> tuple[VirtualEnvironment, ContactModel | None, np.ndarray]:
     sc = load_scenario(name)
     dyn = LinkageDynamics(sc.linkage)
-    cm = (ContactModel(dyn.model, sc.linkage, sc.contacts)
+    cm = (ContactModel(dyn.model, sc.linkage, dataclasses.replace(
+        sc.contacts, self_collisions=self_collisions))
           if contacts and sc.contacts is not None else None)
     ve = VirtualEnvironment(dyn, sc.q0, sc.dq0, sc.internal_step,
                             coupling=sc.coupling_gains(), contacts=cm)
@@ -76,9 +78,11 @@ def queries(name: str, n: int = 2000) -> dict[str, Any]:
             'query': _pct(samples)}
 
 
-def updates(name: str, contacts: bool, warm: int = 60, timed: int = 100) -> dict[str, Any]:
-    """One 100 Hz VE update (10 inputs held 1 ms each, then the snapshot), in contact."""
-    ve, cm, wrench = _ve(name, contacts)
+def updates(name: str, contacts: bool, warm: int = 60, timed: int = 100,
+            self_collisions: bool = False) -> dict[str, Any]:
+    """One 100 Hz VE update (10 inputs held 1 ms each, then the snapshot), in contact;
+    ``self_collisions``: the contacts check the links against each other too."""
+    ve, cm, wrench = _ve(name, contacts, self_collisions)
     seq = 0
     total: list[int] = []
     torques: list[int] = []

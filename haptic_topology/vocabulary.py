@@ -210,6 +210,16 @@ MESSAGE_MODES: tuple[int, ...] = tuple(int(m) for m in ControlMode)
 STATUS_BITS: int = int(functools.reduce(operator.or_, DeviceStatus))
 
 
+# -- diagnostics status names ------------------------------------------------------------------
+#: The ``/diagnostics`` status each node publishes (``name`` of its ``DiagnosticStatus``):
+#: ``run``'s watcher and a bag's index find a node's figures by these.
+STATUS_DEVICE = 'device_driver: loop'
+STATUS_VE = 've_sim: loop'
+STATUS_CONTROLLER = 'lmi_controller: loop'
+STATUS_TOPIC_DEVICE = 'topic_device: device'
+STATUS_FOXGLOVE = 'foxglove_bridge: server'
+
+
 # -- topics ------------------------------------------------------------------------------------
 TOPIC_STATE = 'haptic/device/state'
 #: ``sampled_state_rate_hz`` of the states a second, by ``device_driver``'s monotonic clock

@@ -39,11 +39,11 @@ from haptic_topology.messages.check import (
 from haptic_topology.model.linkage import Linkage
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.trace import contact_depth
-from haptic_topology.vocabulary import TaskSpace
+from haptic_topology.vocabulary import STATUS_CONTROLLER, STATUS_DEVICE, TaskSpace
 
 WATCHDOG = 4
-DEVICE_STATUS = 'device_driver: loop'
-CONTROLLER_STATUS = 'lmi_controller: loop'
+DEVICE_STATUS = STATUS_DEVICE
+CONTROLLER_STATUS = STATUS_CONTROLLER
 #: Topics the graph also publishes that newer bags have (not required to read a bag).
 PATH_TOPIC = vocab.TOPIC_VT_PATH
 #: Largest gap between consecutive state seqs within one run (10 s of 1 kHz states; a
@@ -345,7 +345,7 @@ def index_bag(bag: Bag, scenario: str, dof: int | None, task_dim: int | None,
                 handlers[kind](msg)
                 break
         else:
-            if topic != '/diagnostics':
+            if topic != vocab.TOPIC_DIAGNOSTICS:
                 continue
             try:
                 dmsg = decode(raw)

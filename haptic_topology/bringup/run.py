@@ -67,7 +67,7 @@ from haptic_topology.device.loop_process import CHILD_MODULE
 from haptic_topology.errors import BringupError, ConfigError
 from haptic_topology.paths import scenario_help
 from haptic_topology.processes import STOP_TIMEOUT, RunUsage, terminate
-from haptic_topology.vocabulary import LAW_MODES, TOPIC_STATE, Clock
+from haptic_topology.vocabulary import LAW_MODES, STATUS_FOXGLOVE, TOPIC_STATE, Clock
 
 if TYPE_CHECKING:
     from haptic_topology.sim.scenario import Scenario
@@ -77,7 +77,7 @@ if TYPE_CHECKING:
 #: Default port of ``--foxglove`` (the Foxglove app's default for a WebSocket connection).
 FOXGLOVE_PORT = 8765
 #: The bridge's ``/diagnostics`` status.
-FOXGLOVE_STATUS = 'foxglove_bridge: server'
+FOXGLOVE_STATUS = STATUS_FOXGLOVE
 
 
 @dataclass

@@ -18,6 +18,9 @@ from typing import Any
 from haptic_topology.bringup.options import FOXGLOVE_NODE, NODES
 from haptic_topology.errors import TransitionRefused, WaitTimeout
 from haptic_topology.vocabulary import (
+    STATUS_CONTROLLER,
+    STATUS_DEVICE,
+    STATUS_VE,
     TOPIC_COMMAND,
     TOPIC_HAND_INPUTS,
     TOPIC_LMI,
@@ -31,9 +34,9 @@ from haptic_topology.vocabulary import (
 
 #: ``/diagnostics`` status names of the graph's nodes.
 RECORDER_STATUS = 'recorder: bag'
-DEVICE_STATUS = 'device_driver: loop'
-VE_STATUS = 've_sim: loop'
-CONTROLLER_STATUS = 'lmi_controller: loop'
+DEVICE_STATUS = STATUS_DEVICE
+VE_STATUS = STATUS_VE
+CONTROLLER_STATUS = STATUS_CONTROLLER
 
 
 #: ``DiagnosticStatus.ERROR``.
@@ -350,9 +353,9 @@ class GraphWatcher:
         clock) states and commands may be lost on the way: only the reliable topics are
         compared, and the recorder's counts must also have settled."""
 
-        dev = self.status.get('device_driver: loop', {})
-        ctl = self.status.get('lmi_controller: loop', {})
-        ve = self.status.get('ve_sim: loop', {})
+        dev = self.status.get(DEVICE_STATUS, {})
+        ctl = self.status.get(CONTROLLER_STATUS, {})
+        ve = self.status.get(VE_STATUS, {})
         rec = self.status.get(RECORDER_STATUS, {})
         hand = ctl.get(f'sent {TOPIC_HAND_INPUTS}')
         # The VE has taken the last hand input sent (by its seq: a batch that DDS dropped on

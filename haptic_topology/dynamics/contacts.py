@@ -54,6 +54,11 @@ model injected (integration error only; ``test_core_contacts``).
 
 ``J_i`` (3 x d) is the linear velocity Jacobian of the link point ``p_i`` (Pinocchio's joint
 Jacobian, world-aligned at the joint, shifted to ``p_i``). Units SI, world frame.
+
+**Self-collisions** (``self_collisions: true``, spatial tasks): the same model between pairs
+of the linkage's own links, the SRDF's disabled pairs left out
+(:mod:`haptic_topology.dynamics.self_contacts`); their torques, power, elastic energy and
+candidates are added to this model's.
 """
 
 from __future__ import annotations
@@ -61,7 +66,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pinocchio as pin
@@ -86,6 +91,9 @@ from haptic_topology.model.solids import (
     solid_gaps,
 )
 from haptic_topology.validate import as_bool, as_float, check_keys
+
+if TYPE_CHECKING:
+    from haptic_topology.dynamics.self_contacts import SelfContacts
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _PLANES = (ObstacleKind.HALF_PLANE, ObstacleKind.PLANE)
@@ -122,6 +130,7 @@ class LinkCapsule:
     b: np.ndarray
     radius: float
     chained: bool = False
+    urdf_link: str = ''
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,7 +141,8 @@ class LinkSolid:
     (link_R_solid); ``kind`` ``mesh`` (spatial tasks): the convex hull of ``mesh`` (``size``:
     its scale) with its frame at ``centre``, turned by ``rotation``; in a planar task ``kind``
     ``polygon``: the projection of a box, cylinder or mesh hull on the link's xy plane,
-    ``vertices`` (k x 3, z = 0, counter-clockwise, link frame)."""
+    ``vertices`` (k x 3, z = 0, counter-clockwise, link frame). ``urdf_link``: the URDF link
+    whose ``<collision>`` it is."""
 
     link: int
     kind: str
@@ -141,6 +151,7 @@ class LinkSolid:
     size: tuple[float, ...]
     vertices: np.ndarray | None = None
     mesh: MeshGeometry | None = None
+    urdf_link: str = ''
 
 
 LinkShape = LinkCapsule | LinkSolid
@@ -162,6 +173,9 @@ class ContactSettings:
     links: tuple[tuple[str, float | None], ...] = ()
     lmi_local: bool = True
     where: str = 'contacts'
+    #: Penalty contacts between the linkage's own links too (spatial tasks:
+    #: :mod:`haptic_topology.dynamics.self_contacts`).
+    self_collisions: bool = False
 
     @classmethod
     def from_config(cls, raw: Any, where: str, linkage: Linkage, base: Path | None = None
@@ -171,7 +185,7 @@ class ContactSettings:
         of the scenario file (relative mesh obstacle files)."""
         c = check_keys(raw, where, required=('obstacles',), optional=(
             'stiffness', 'damping', 'friction', 'slip_velocity', 'margin', 'link_radius',
-            'links', 'lmi_local'))
+            'links', 'lmi_local', 'self_collisions'))
         params = ContactParams(
             stiffness=as_float(c.get('stiffness', 2000.0), f'{where}.stiffness', lo=0.0,
                                lo_open=True),
@@ -195,8 +209,15 @@ class ContactSettings:
                             if collide else None))
         obstacles = obstacles_from_config(c['obstacles'], f'{where}.obstacles', linkage.task,
                                           base)
+        self_collisions = as_bool(c.get('self_collisions', False), f'{where}.self_collisions')
+        if self_collisions and linkage.task.planar:
+            raise ConfigError(f'{where}.self_collisions: only for spatial tasks (a planar '
+                              f'linkage\'s links move in parallel planes and pass over one '
+                              f'another, so their projections overlapping is no collision); '
+                              f'remove the key or set it false')
         settings = cls(params, obstacles, default, tuple(choices),
-                       as_bool(c.get('lmi_local', True), f'{where}.lmi_local'), where)
+                       as_bool(c.get('lmi_local', True), f'{where}.lmi_local'), where,
+                       self_collisions)
         settings.shapes(linkage)
         return settings
 
@@ -238,20 +259,23 @@ class ContactSettings:
             for shape in link.collision:
                 centre = np.array(shape.xyz, dtype=float)
                 rot = np.array(shape.rotation, dtype=float).reshape(3, 3)
-                what = shape.kind
+                what, u = shape.kind, shape.urdf_link
                 if shape.kind == 'sphere':
-                    out.append(LinkCapsule(i, centre, centre.copy(), shape.size[0]))
+                    out.append(LinkCapsule(i, centre, centre.copy(), shape.size[0], urdf_link=u))
                     continue
                 if shape.kind == 'capsule':
                     half = 0.5 * shape.size[1] * rot[:, 2]
-                    out.append(LinkCapsule(i, centre - half, centre + half, shape.size[0]))
+                    out.append(LinkCapsule(i, centre - half, centre + half, shape.size[0],
+                                           urdf_link=u))
                     continue
                 if shape.kind == 'box':
                     half_extents = 0.5 * np.array(shape.size)
                     out.append(LinkSolid(i, 'polygon', centre, rot, tuple(half_extents.tolist()),
-                                         convex_hull_xy(box_vertices(centre, rot, half_extents)))
+                                         convex_hull_xy(box_vertices(centre, rot, half_extents)),
+                                         urdf_link=u)
                                if planar else
-                               LinkSolid(i, 'box', centre, rot, tuple(half_extents.tolist())))
+                               LinkSolid(i, 'box', centre, rot, tuple(half_extents.tolist()),
+                                         urdf_link=u))
                     continue
                 if shape.kind == 'mesh':
                     where = f'{linkage.urdf_path}: link {shape.urdf_link!r} <mesh>'
@@ -259,22 +283,24 @@ class ContactSettings:
                     geometry = load_mesh(resolve_mesh(shape.mesh, base, where), (
                         shape.size[0], shape.size[1], shape.size[2]), where)
                     out.append(LinkSolid(i, 'polygon', centre, rot, shape.size, convex_hull_xy(
-                        centre + geometry.vertices @ rot.T)) if planar else
-                               LinkSolid(i, 'mesh', centre, rot, shape.size, mesh=geometry))
+                        centre + geometry.vertices @ rot.T), urdf_link=u) if planar else
+                               LinkSolid(i, 'mesh', centre, rot, shape.size, mesh=geometry,
+                                         urdf_link=u))
                     continue
                 if shape.kind == 'cylinder':
                     radius, half_length = shape.size[0], 0.5 * shape.size[1]
                     axis_z = abs(float(rot[2, 2]))
                     if not planar:
-                        out.append(LinkSolid(i, 'cylinder', centre, rot, (radius, half_length)))
+                        out.append(LinkSolid(i, 'cylinder', centre, rot, (radius, half_length),
+                                             urdf_link=u))
                         continue
                     if axis_z >= 1.0 - _AXIS_TOL:       # along z: projects to a disc
-                        out.append(LinkCapsule(i, centre, centre.copy(), radius))
+                        out.append(LinkCapsule(i, centre, centre.copy(), radius, urdf_link=u))
                         continue
                     if axis_z <= _AXIS_TOL:             # in the plane: a rectangle
                         out.append(LinkSolid(i, 'polygon', centre, rot, (radius, half_length),
                                              rectangle_of_cylinder(centre, rot, radius,
-                                                                   half_length)))
+                                                                   half_length), urdf_link=u))
                         continue
                     what = (f'cylinder tilted out of the plane (axis z = {rot[2, 2]:.6g} in the '
                             f'link frame, whose projection has elliptic ends)')
@@ -348,7 +374,10 @@ class ContactSet:
     """Contact candidates at one configuration (c of them): ``links`` (c,) link index,
     ``obstacles`` (c,) obstacle index, ``points`` (c x 3, m, world, on the link axes),
     ``normals`` (c x 3, unit, from the obstacle towards the link), ``gaps`` (c,) m (negative:
-    penetration), ``jacobians`` (c x 3 x d): linear velocity of each point, ``v_i = J_i qdot``."""
+    penetration), ``jacobians`` (c x 3 x d): linear velocity of each point, ``v_i = J_i qdot``.
+    A self-contact (:mod:`~haptic_topology.dynamics.self_contacts`) has obstacle -1, its link
+    a's index and point, the normal from link b towards a and the relative Jacobian
+    ``J_a(p_a) - J_b(p_b)``."""
 
     links: np.ndarray
     obstacles: np.ndarray
@@ -398,8 +427,18 @@ def contact_potential(params: ContactParams, gaps: np.ndarray) -> float:
     return 0.5 * params.stiffness * float(depth @ depth)
 
 
+def point_jacobian(model: pin.Model, data: Any, joint: int, point: np.ndarray) -> np.ndarray:
+    """The linear velocity Jacobian (3 x d, world) of the point ``point`` ((3,) m, world) fixed
+    to the body of ``joint``, from ``data``'s joint Jacobians (``computeJointJacobians``
+    current): ``v_p = v_o + w x (p - o) = J_v qdot + [p - o]x^T J_w qdot``."""
+    j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, model.nv)
+    ax, ay, az = point - data.oMi[joint].translation
+    return j6[:3] + np.array([[0.0, az, -ay], [-az, 0.0, ax], [ay, -ax, 0.0]]) @ j6[3:]
+
+
 class ContactModel:
-    """Detection and contact torques of a linkage's capsules against the obstacles (eqs. 1-2).
+    """Detection and contact torques of a linkage's shapes against the obstacles, and against
+    each other with ``self_collisions`` (eqs. 1-2).
 
     Holds its own Pinocchio ``Data`` (the VE's workspace stays untouched)."""
 
@@ -480,6 +519,10 @@ class ContactModel:
         self._solid_slot = np.array([self._solid_joints.index(sol.link + 1) for sol in solids],
                                     dtype=np.int64)
         self._slot_of = self._solid_slot.tolist()
+        self._self: SelfContacts | None = None
+        if settings.self_collisions:
+            from haptic_topology.dynamics.self_contacts import SelfContacts
+            self._self = SelfContacts(linkage, shapes)
 
     def _axes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World ends of every capsule's axis (n x 3 each) at ``q`` (forward kinematics;
@@ -677,8 +720,9 @@ class ContactModel:
 
     def detect(self, q: np.ndarray, margin: float = 0.0,
                jacobians: bool = True) -> ContactSet:
-        """Candidates with ``gap < margin`` at ``q`` (see module doc), the capsules' then the
-        solids', with their Jacobians when ``jacobians`` (else zeros)."""
+        """Candidates with ``gap < margin`` at ``q`` (see module doc), the capsules', the
+        solids', then the self-contacts', with their Jacobians when ``jacobians`` (else
+        zeros)."""
         p0, p1 = self._axes(q)
         caps, obs, s, gaps, normals = self.candidates(p0, p1)
         keep = np.nonzero(gaps < margin)[0]
@@ -699,13 +743,15 @@ class ContactModel:
             model, data = self.model, self.data
             pin.computeJointJacobians(model, data, q)
             for r in range(links.size):
-                joint = int(links[r]) + 1
-                j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, self.dof)
-                ax, ay, az = points[r] - data.oMi[joint].translation
-                # v_p = v_o + w x (p - o) = J_v qdot + [p - o]x^T J_w qdot
-                jac[r] = j6[:3] + np.array([[0.0, az, -ay], [-az, 0.0, ax],
-                                            [ay, -ax, 0.0]]) @ j6[3:]
-        return ContactSet(links, obs, points, np.array(normals), gaps, jac)
+                jac[r] = point_jacobian(model, data, int(links[r]) + 1, points[r])
+        normals = np.array(normals)
+        if self._self is not None:      # self-contacts: obstacle -1, relative Jacobians
+            parts = self._self.detect(self.model, self.data, q, margin, jacobians)
+            links = np.concatenate((links, parts[0])).astype(int)
+            obs = np.concatenate((obs, np.full(parts[0].size, -1))).astype(int)
+            points, normals = np.vstack((points, parts[1])), np.vstack((normals, parts[2]))
+            gaps, jac = np.concatenate((gaps, parts[3])), np.concatenate((jac, parts[4]))
+        return ContactSet(links, obs, points, normals, gaps, jac)
 
     def torques(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, float]:
         """``sum_i J_i^T F_i`` (d, N m / N) at ``(q, dq)`` and the contacts' power on the VT
@@ -713,7 +759,7 @@ class ContactModel:
         link in contact one joint Jacobian ``J`` (6 x d, world-aligned at the joint), per
         penetrating candidate the point's velocity ``v_o + w x a`` (``a``: point - joint
         origin), and the torques ``J^T (sum F, sum a x F)`` (``sum_i J_i^T F_i`` with
-        :meth:`detect`'s ``J_i``, to rounding)."""
+        :meth:`detect`'s ``J_i``, to rounding), plus the self-contacts' if on."""
         p0, p1 = self._axes(q)
         # (joint, point, gap, normal) of every penetrating candidate, capsules then solids
         hits: list[tuple[int, Any, float, Any]] = []
@@ -729,7 +775,7 @@ class ContactModel:
                 s_links, s_points, s_gaps, s_normals, strict=True)]
         tau = np.zeros(self.dof)
         if not hits:
-            return tau, 0.0
+            return self._with_self(q, dq, tau, 0.0)
         model, data, params = self.model, self.data, self.params
         pin.computeJointJacobians(model, data, q)
         by_joint: dict[int, list[tuple[Any, float, Any]]] = {}
@@ -757,19 +803,30 @@ class ContactModel:
                 power += fx * vx + fy * vy + fz * vz
             # one joint's contacts: J^T (sum F, sum a x F)
             tau += j6.T @ np.array([fx_sum, fy_sum, fz_sum, mx, my, mz])
-        return tau, power
+        return self._with_self(q, dq, tau, power)
+
+    def _with_self(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, power: float
+                   ) -> tuple[np.ndarray, float]:
+        """``tau`` and ``power`` plus the self-contacts' (:mod:`.self_contacts`), if on; the
+        link placements of :meth:`_axes` at ``q`` current."""
+        if self._self is None:
+            return tau, power
+        tau_s, power_s = self._self.torques(self.model, self.data, q, dq, self.params)
+        return tau + tau_s, power + power_s
 
     def potential(self, q: np.ndarray) -> float:
         """``U`` (J) at ``q`` (see module doc)."""
         return contact_potential(self.params, self.gaps(q))
 
     def gaps(self, q: np.ndarray) -> np.ndarray:
-        """The gaps (m) at ``q`` of every capsule candidate and of the solids' penetrating
-        candidates (the others are culled, see ``_solid_hits``): all that ``U`` and the
-        penetration depth need, without normals or Jacobians."""
+        """The gaps (m) at ``q`` of every capsule candidate and of the solids' and the
+        self-contacts' penetrating candidates (the others are culled, see ``_solid_hits``):
+        all that ``U`` and the penetration depth need, without normals or Jacobians."""
         gaps = self.candidates(*self._axes(q), gaps_only=True)[3]
         if self._solids:
             gaps = np.concatenate((gaps, self._solid_hits(0.0)[3]))
+        if self._self is not None:
+            gaps = np.concatenate((gaps, self._self.gaps(self.data.oMi)))
         return gaps
 
     def local(self, q: np.ndarray) -> LocalContacts:
@@ -785,6 +842,10 @@ class LocalContacts:
     at configuration ``q`` (d). Between updates the LMI evaluates them linearised,
     ``g_i(q) = g_i + n_i^T J_i (q - q_update)``, ``v_i = J_i qdot``, with the same contact
     model as the VE (:func:`contact_forces`): at the update's ``(q, qdot)`` the two agree.
+    A self-contact's ``J_i`` is the relative Jacobian ``J_a(p_a) - J_b(p_b)``: then
+    ``n_i^T J_i`` is its gap's gradient, ``J_i qdot`` the relative velocity its force takes and
+    ``J_i^T F_i`` the torques on both links, so all of this holds for it unchanged
+    (:mod:`~haptic_topology.dynamics.self_contacts`).
     ``local`` False: the LMI holds the forces of the update instead (contacts at the VE's
     rate only)."""
 

@@ -129,7 +129,8 @@ class Linkage:
     #: Loop closures (:mod:`~haptic_topology.model.loops`): empty for a serial linkage.
     loops: tuple[LoopClosure, ...] = ()
     #: Link pairs (names, each pair sorted) whose collisions the SRDF disables
-    #: (:func:`~haptic_topology.model.robots.read_srdf`); no self-collision is checked.
+    #: (:func:`~haptic_topology.model.robots.read_srdf`), left out of the self-collisions
+    #: (:mod:`~haptic_topology.dynamics.self_contacts`).
     disabled_collisions: tuple[tuple[str, str], ...] = ()
 
     @property

@@ -37,6 +37,7 @@ from __future__ import annotations
 import importlib.metadata as md
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -224,6 +225,44 @@ def distance_request() -> Any:
 
 _REQUEST = distance_request()
 _EYE = np.eye(3)
+
+
+def _pin_coal_box() -> bool:
+    """Fix the shape of coal's ``Box`` for this process, the same in every process; True
+    when it is the one every run uses.
+
+    coal 3.0's box support function (``getShapeSupport(const Box*, ...)``) scales the half
+    extents on the side away from the query direction by a ``static const inflate``,
+    initialised on the process's first box support call: ``1 + 1e-10`` if that call's
+    direction has a zero component, 1 otherwise. So the first box query a process makes fixes
+    every later box query's witness points and normals in their last bits, and a scenario's
+    run depended on which scenarios ran before it in the process. This query, made on import
+    before any of the contacts' queries, has a direction with zero components (coal's default
+    first direction (1, 0, 0) on a box at the identity): every process renders boxes with
+    ``inflate = 1 + 1e-10`` (5e-12 m on a 5 cm box's far side), the box a process gets whose
+    first box query is axis-aligned, as the contact scenarios' first queries are. If coal made
+    a box query before this module was imported (another library, the caller's own code), the
+    box may already be the other one: warned, as results then differ from a fresh process's
+    in their last bits."""
+    res = coal.DistanceResult()
+    # two 2 m cubes 1 m apart along x: 1 - 1e-10 m with the inflated box, else 1 m
+    dist = coal.distance(coal.Box(2.0, 2.0, 2.0), coal.Transform3s(), coal.Box(2.0, 2.0, 2.0),
+                         coal.Transform3s(_EYE, np.array([-3.0, 0.0, 0.0])),
+                         coal.DistanceRequest(), res)
+    if dist < 1.0 - 0.5e-10:
+        return True
+    warnings.warn('coal made a box query before haptic_topology.model.meshes was imported '
+                  'and so fixed its box shape otherwise (coal 3.0: a static in the box '
+                  'support function): contacts with boxes differ in their last bits from a '
+                  'fresh process; import haptic_topology.model.meshes before using coal',
+                  RuntimeWarning, stacklevel=2)
+    return False
+
+
+#: Whether this process renders coal boxes as every fresh process does: coal 3.0 takes its
+#: box's shape from the first box query of a process, and this module makes that query on
+#: import (False, warned: coal had made one before).
+COAL_BOX_PINNED = _pin_coal_box()
 
 
 def capsule_shape(radius: float, length: float) -> Any:

@@ -17,9 +17,8 @@ and ``ur5_table`` use, so they need no extra.
 
 **SRDF.** A linkage's ``srdf:`` file (or a named robot's SRDF) is read for its
 ``<disable_collisions link1=... link2=.../>`` pairs (:func:`read_srdf`), kept as
-``Linkage.disabled_collisions``. The contacts are link-obstacle only: no link is checked
-against another link of the linkage, so the pairs are known but nothing uses them yet, and a
-scenario asking for self-collisions (``contacts.self_collisions``) is refused in one line.
+``Linkage.disabled_collisions``: a scenario with ``contacts.self_collisions: true`` checks
+every pair of non-adjacent links but these (:mod:`haptic_topology.dynamics.self_contacts`).
 """
 
 from __future__ import annotations

@@ -24,6 +24,7 @@ from haptic_topology.bag.replay import (
     ReplayStats,
 )
 from haptic_topology.errors import BagError, ReplayError
+from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS
 
 #: How long (s) a replay waits at its end for its reliable messages to be acknowledged.
 ACK_TIMEOUT = 10.0
@@ -79,7 +80,7 @@ class Publishers:
         channels = read_channels(bag)
         self.pubs: dict[str, Any] = {}
         for topic, msgtype in topics.items():
-            name = topic if not namespace or topic == '/diagnostics' else (
+            name = topic if not namespace or topic == TOPIC_DIAGNOSTICS else (
                 namespace.rstrip('/') + '/' + topic.lstrip('/'))
             qos = _qos_profile(channels.get(topic, {}).get('metadata', {}), topic)
             owner = (nodes or {}).get(topic.lstrip('/'), node)

@@ -55,6 +55,7 @@ from rclpy.clock import ClockType
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock as ClockMsg
 
+from haptic_topology import vocabulary as vocab
 from haptic_topology.config import node_params
 from haptic_topology.config.resolve import configure_hosted, resolve_device_driver
 from haptic_topology.config.settings import DeviceDriverSettings
@@ -73,13 +74,6 @@ from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.separate import SeparateLoop
 from haptic_topology.nodes.wire import StateOut
 from haptic_topology.sim.scenario import Scenario, load_scenario
-from haptic_topology.vocabulary import (
-    TOPIC_CLOCK,
-    TOPIC_COMMAND,
-    TOPIC_DIAGNOSTICS,
-    TOPIC_STATE,
-    Clock,
-)
 from haptic_topology_msgs.msg import DeviceCommand
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
@@ -92,7 +86,7 @@ class DeviceDriver(LifecycleNode):
         super().__init__('device_driver', **kwargs)
         s = declare_settings(self, DeviceDriverSettings)
         self.cfg = resolve_device_driver(s, scenario or load_scenario(s.scenario))
-        self.lockstep = self.cfg.clock is Clock.LOCKSTEP
+        self.lockstep = self.cfg.clock is vocab.Clock.LOCKSTEP
         self.backend: DeviceBackend | None = None
         self.loop: DeviceLoop | None = None
         self.layout: HostedLoop | SeparateLoop | None = None    # once configured
@@ -108,15 +102,15 @@ class DeviceDriver(LifecycleNode):
         qos = loop_qos(self.cfg.clock)
         self.states = StateOut(self.create_publisher, qos, QOS_SAMPLED, DEVICE_BASE,
                                self.graph.wire, s.sampled_state_rate_hz)
-        self.clock_pub = self.create_publisher(ClockMsg, TOPIC_CLOCK, QOS_CLOCK)
-        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
+        self.clock_pub = self.create_publisher(ClockMsg, vocab.TOPIC_CLOCK, QOS_CLOCK)
+        self.diag_pub = self.create_publisher(DiagnosticArray, vocab.TOPIC_DIAGNOSTICS,
                                               QOS_DIAGNOSTICS)
-        self._endpoints: dict[str, Any] = {TOPIC_STATE: self.states.pub}
+        self._endpoints: dict[str, Any] = {vocab.TOPIC_STATE: self.states.pub}
         if not s.host_controller:
-            self._endpoints[TOPIC_COMMAND] = self.create_subscription(
-                DeviceCommand, TOPIC_COMMAND, self._on_command, qos)
+            self._endpoints[vocab.TOPIC_COMMAND] = self.create_subscription(
+                DeviceCommand, vocab.TOPIC_COMMAND, self._on_command, qos)
         self.input_publishers = PublisherWatch(
-            self, {} if s.host_controller else {TOPIC_COMMAND: ('lmi_controller',)},
+            self, {} if s.host_controller else {vocab.TOPIC_COMMAND: ('lmi_controller',)},
             self._publish_diagnostics)
         self.create_timer(1.0, self._publish_diagnostics,
                           clock=RosClock(clock_type=ClockType.STEADY_TIME))
@@ -218,8 +212,8 @@ class DeviceDriver(LifecycleNode):
         return self.states.pub.get_subscription_count() + hosted >= self.cfg.min_subscribers
 
     def _on_command(self, msg: DeviceCommand) -> None:
-        if (isinstance(self.layout, SeparateLoop) and self.graph.own(msg, TOPIC_COMMAND)
-                and self.input_publishers.admits(TOPIC_COMMAND, self.rejected)):
+        if (isinstance(self.layout, SeparateLoop) and self.graph.own(msg, vocab.TOPIC_COMMAND)
+                and self.input_publishers.admits(vocab.TOPIC_COMMAND, self.rejected)):
             self.layout.on_command(msg)
 
     def publish_state(self, tick: DeviceTick | bytes, ns: int, clock: bool = False) -> None:
@@ -252,7 +246,7 @@ class DeviceDriver(LifecycleNode):
                   **loop_values}
         level, message = self.input_publishers.merge(values, level, message)
         self.diag_pub.publish(diagnostics(
-            self, 'device_driver: loop', values, level, message,
+            self, vocab.STATUS_DEVICE, values, level, message,
             child.status.get('hardware_id', self.cfg.backend) if child is not None
             else hardware_id(self.backend, self.cfg.backend)))
 

@@ -54,7 +54,13 @@ from haptic_topology.nodes.parameters import declare_settings
 from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, TOPIC_QOS, publisher_qos
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.nodes.take import BatchTaker
-from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS, TOPIC_ROLES, TOPIC_TYPES, Clock
+from haptic_topology.vocabulary import (
+    STATUS_FOXGLOVE,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_ROLES,
+    TOPIC_TYPES,
+    Clock,
+)
 
 #: Messages each reader holds between two takes (1 kHz topics: 20 per default period).
 READER_DEPTH = 200
@@ -184,7 +190,7 @@ class FoxgloveBridge(Node):
                                                                strict=True)},
                   **{f'lost {t}': str(n) for t, n in zip(self.topics, self.taker.lost,
                                                           strict=True) if n}}
-        self.diag_pub.publish(diagnostics(self, 'foxglove_bridge: server', values, 0,
+        self.diag_pub.publish(diagnostics(self, STATUS_FOXGLOVE, values, 0,
                                                  f'serving on {self.url}'))
 
     def close(self) -> None:

@@ -47,6 +47,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import UInt64
 
+from haptic_topology import vocabulary as vocab
 from haptic_topology.config import node_params
 from haptic_topology.config.resolve import resolve_lmi_controller, zwidth_warning
 from haptic_topology.config.settings import LmiControllerSettings, scenario_defaults
@@ -80,15 +81,6 @@ from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, QOS_LMI, hand_inputs_qos,
 from haptic_topology.nodes.runtime import run_main
 from haptic_topology.sim.lockstep import build_controller_loop
 from haptic_topology.sim.scenario import Scenario, load_scenario
-from haptic_topology.vocabulary import (
-    TOPIC_COMMAND,
-    TOPIC_DIAGNOSTICS,
-    TOPIC_HAND_INPUTS,
-    TOPIC_LMI,
-    TOPIC_LMI_ACK,
-    TOPIC_STATE,
-    Clock,
-)
 from haptic_topology_msgs.msg import DeviceCommand, DeviceState, HandInputs, LmiUpdate
 
 
@@ -105,7 +97,7 @@ class LmiController(Node):
         self.cfg = c = resolve_lmi_controller(s, sc)
         for line in zwidth_warning(c):          # outside the map: warn, not refuse
             self.get_logger().warn(line)
-        lockstep = c.clock is Clock.LOCKSTEP
+        lockstep = c.clock is vocab.Clock.LOCKSTEP
         self.loop = build_controller_loop(sc, c.mode, c.guard, c.max_dt, c.resync_max_jump,
                                           sc.update_period if lockstep else None, c.gains,
                                           c.passivity)
@@ -116,17 +108,17 @@ class LmiController(Node):
         self.penalty_direction = sc.linkage.constraints.penalty_direction
         self.add_on_set_parameters_callback(self._on_set_parameters)
         qos = loop_qos(c.clock)
-        self.cmd_pub = self.create_publisher(DeviceCommand, TOPIC_COMMAND, qos)
-        self.hand_pub = self.create_publisher(HandInputs, TOPIC_HAND_INPUTS,
+        self.cmd_pub = self.create_publisher(DeviceCommand, vocab.TOPIC_COMMAND, qos)
+        self.hand_pub = self.create_publisher(HandInputs, vocab.TOPIC_HAND_INPUTS,
                                               hand_inputs_qos(c.clock))
-        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS,
+        self.diag_pub = self.create_publisher(DiagnosticArray, vocab.TOPIC_DIAGNOSTICS,
                                               QOS_DIAGNOSTICS)
-        lmi_sub = self.create_subscription(LmiUpdate, TOPIC_LMI, self._on_update, QOS_LMI)
-        self._endpoints = {TOPIC_LMI: lmi_sub, TOPIC_COMMAND: self.cmd_pub,
-                           TOPIC_HAND_INPUTS: self.hand_pub}
+        lmi_sub = self.create_subscription(LmiUpdate, vocab.TOPIC_LMI, self._on_update, QOS_LMI)
+        self._endpoints = {vocab.TOPIC_LMI: lmi_sub, vocab.TOPIC_COMMAND: self.cmd_pub,
+                           vocab.TOPIC_HAND_INPUTS: self.hand_pub}
         self.hosted = hosted
         self.host: LoopHandle | None = None   # the driver's loop, once attached
-        self.ack_pub = (self.create_publisher(UInt64, TOPIC_LMI_ACK, QOS_LMI)
+        self.ack_pub = (self.create_publisher(UInt64, vocab.TOPIC_LMI_ACK, QOS_LMI)
                         if s.ack_updates else None)
         self.graph = GraphFilter(s.graph_id)
         # device-side quantities, published as serialized bytes (nodes.wire)
@@ -136,11 +128,12 @@ class LmiController(Node):
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
         # who publishes its inputs in the graph (the driver's states: separate layout only)
-        inputs = {TOPIC_LMI: ('ve_sim',), **({} if hosted else {TOPIC_STATE: ('device_driver',)})}
+        inputs = {vocab.TOPIC_LMI: ('ve_sim',),
+                  **({} if hosted else {vocab.TOPIC_STATE: ('device_driver',)})}
         self.input_publishers = PublisherWatch(self, inputs, self._publish_diagnostics)
         # A closed chain's updates are reduced (q local): no model to check them against.
         self.admission = UpdateAdmission(None if sc.linkage.loops else LinkageDynamics(
-            sc.linkage), self.input_publishers.gates[TOPIC_LMI])
+            sc.linkage), self.input_publishers.gates[vocab.TOPIC_LMI])
         # separate layout, wall clock, no one waiting for acks: updates in the gap after an
         # answer (control.port.UpdateGap)
         self.gap: UpdateGap | None = (None if hosted or lockstep or s.ack_updates
@@ -148,8 +141,8 @@ class LmiController(Node):
         if hosted:
             self.process_sched_priority = 0       # the driver's loop thread has its own
             return
-        self._endpoints[TOPIC_STATE] = self.create_subscription(
-            DeviceState, TOPIC_STATE, self._on_state, qos)
+        self._endpoints[vocab.TOPIC_STATE] = self.create_subscription(
+            DeviceState, vocab.TOPIC_STATE, self._on_state, qos)
         self.create_timer(self.flush_period, self.flush_hand, clock=steady)
         if lockstep:
             self.create_timer(0.01, self._check_wait, clock=steady)
@@ -174,8 +167,8 @@ class LmiController(Node):
 
     # -- separate ------------------------------------------------------------------------------
     def _on_state(self, msg: DeviceState) -> None:
-        if not (self.graph.own(msg, TOPIC_STATE)
-                and self.input_publishers.admits(TOPIC_STATE, self.rejected)):
+        if not (self.graph.own(msg, vocab.TOPIC_STATE)
+                and self.input_publishers.admits(vocab.TOPIC_STATE, self.rejected)):
             return None
         try:
             seq, stamp, pose, twist, f_h, status = state_from_msg(msg, self.task)
@@ -221,7 +214,7 @@ class LmiController(Node):
             self._take_update(msg)
 
     def _take_update(self, msg: LmiUpdate) -> None:
-        if not self.graph.own(msg, TOPIC_LMI):
+        if not self.graph.own(msg, vocab.TOPIC_LMI):
             return
         try:
             snap = lmi_from_msg(msg, self.task, self.dof, self.penalty_direction)
@@ -249,8 +242,8 @@ class LmiController(Node):
                        'layout': 'hosted' if self.hosted else 'separate',
                        'lockstep_timeouts': str(self.port.lockstep_timeouts + (
                            self.host.lockstep_timeouts if self.host else 0)),
-                       f'sent {TOPIC_COMMAND}': str(self.port.commands),
-                       f'sent {TOPIC_HAND_INPUTS}': str(self.port.batcher.batches),
+                       f'sent {vocab.TOPIC_COMMAND}': str(self.port.commands),
+                       f'sent {vocab.TOPIC_HAND_INPUTS}': str(self.port.batcher.batches),
                        'controller_id': str(CONTROLLER_ID),
                        'updates_deferred': str(self.gap.deferred if self.gap else 0),
                        'rejected_messages': str(self.rejected.total), **self.rejected.values(),
@@ -260,7 +253,7 @@ class LmiController(Node):
             values.update(self.host.controller_values())
             level, message = self.host.controller_health() or (level, message)
         level, message = self.input_publishers.merge(values, level, message)
-        self.diag_pub.publish(diagnostics(self, 'lmi_controller: loop', values, level,
+        self.diag_pub.publish(diagnostics(self, vocab.STATUS_CONTROLLER, values, level,
                                                  message))
 
 

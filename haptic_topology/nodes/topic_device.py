@@ -59,10 +59,10 @@ from haptic_topology.nodes.device_messages import fill_pose, fill_twist, fill_wr
 from haptic_topology.nodes.diagnostics import diagnostics
 from haptic_topology.nodes.qos import QOS_DIAGNOSTICS, topic_qos
 from haptic_topology.nodes.runtime import spin
-from haptic_topology.vocabulary import TOPIC_DIAGNOSTICS
+from haptic_topology.vocabulary import STATUS_TOPIC_DEVICE, TOPIC_DIAGNOSTICS
 
 #: ``/diagnostics`` status name of the player.
-STATUS_NAME = 'topic_device: device'
+STATUS_NAME = STATUS_TOPIC_DEVICE
 #: The counters of the line printed at the end.
 STOP_COUNTERS = ('cycles', 'commands', 'nonzero_commands', 'nonfinite_commands',
                  'timeout_cycles', 'max_abs_command', 'engaged')

@@ -79,6 +79,7 @@ from haptic_topology.sim.lockstep import initial_device_pose, virtual_environmen
 from haptic_topology.sim.scenario import Scenario, load_scenario
 from haptic_topology.sim.ve import HandFeed
 from haptic_topology.vocabulary import (
+    STATUS_VE,
     TOPIC_DIAGNOSTICS,
     TOPIC_HAND_INPUTS,
     TOPIC_LMI,
@@ -236,7 +237,7 @@ class VeSim(Node):
         })
         problem = None if self.ve.state_finite else 'VE state not finite'
         problem = problem or self.input_publishers.problem()
-        self.diag_pub.publish(diagnostics(self, 've_sim: loop', values, 2 if problem else 0,
+        self.diag_pub.publish(diagnostics(self, STATUS_VE, values, 2 if problem else 0,
                                           problem or 'ok'))
 
     def _publish_viz(self) -> None:

@@ -260,9 +260,6 @@ def load_scenario(name_or_path: str) -> Scenario:
                           'VE integrates; expected eq17, or scenario.gravity: [0, 0, 0]')
     ve = VeSettings.from_config(raw.get('ve', {}), f'{w}.ve', dt)
     name = as_str(raw.get('name', path.stem), f'{w}.name')
-    if isinstance(raw.get('contacts'), Mapping) and 'self_collisions' in raw['contacts']:
-        raise ConfigError(f'{w}.contacts.self_collisions: link-link contacts are not modelled '
-                          '(each link touches the obstacles only); remove the key')
     contacts = (ContactSettings.from_config(raw['contacts'], f'{w}.contacts', linkage,
                                             path.parent)
                 if 'contacts' in raw else None)

@@ -10,7 +10,12 @@ a missing and an unreadable mesh are refused in one line."""
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
 import re
+import subprocess
+import sys
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -26,7 +31,7 @@ from haptic_topology.model import Linkage, load_linkage
 from haptic_topology.model.meshes import resolve_mesh
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.model.solids import CoalPair
-from haptic_topology.sim.lockstep import simulate
+from haptic_topology.sim.lockstep import simulate, virtual_environment
 from haptic_topology.sim.scenario import load_scenario
 from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology.vocabulary import TaskSpace
@@ -393,6 +398,69 @@ def test_robots_touch_the_table_with_their_own_meshes(name: str) -> None:
     s = simulate(replace(sc, duration=0.45)).summary()
     assert s['contact_time_s'] > 0.0 and s['energy_injected_j'] == 0.0
     assert 0.0 < s['max_penetration_m'] < 1e-3
+
+
+def _ur5_table_columns() -> dict[str, np.ndarray]:
+    """``ur5_table``'s trace over 0.6 s (the links reach the table at about 0.25 s; the
+    differences of a box's last bits show from 0.55 s)."""
+    return simulate(replace(load_scenario('ur5_table'), duration=0.6)).columns
+
+
+def test_a_run_does_not_depend_on_what_ran_before_it_in_the_process() -> None:
+    """Determinism: ``ur5_table`` run in this process after ``panda_table``'s VE was made
+    (its initial contact potential: coal queries of the Panda's meshes and finger boxes
+    against the table and the box) equals, bit for bit, the same run in a fresh interpreter.
+    (coal 3.0 fixes its box's shape on the process's first box query; the meshes module
+    fixes it on import, the same in every process.)"""
+    virtual_environment(load_scenario('panda_table'))
+    got = _ur5_table_columns()
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn')) as pool:
+        fresh = pool.submit(_ur5_table_columns).result(timeout=300)
+    assert np.nanmax(got['penetration']) > 0.0      # the links touched the table
+    assert sorted(got) == sorted(fresh)
+    differ = {k: float(np.nanmax(np.abs(got[k] - fresh[k].astype(float))))
+              for k in sorted(got) if not np.array_equal(got[k], fresh[k], equal_nan=True)}
+    assert differ == {}
+
+
+#: A fresh interpreter: coal queries a capsule against a turned box (a first box direction
+#: without zero components), then two 2 m cubes 1 m apart along x (the second box at x = -3).
+_BOX_PROBE = """
+import sys, warnings
+import coal, numpy as np
+if sys.argv[1] == 'first':
+    import haptic_topology.model.meshes
+turned = np.array([[0.36, 0.48, -0.8], [-0.8, 0.6, 0.0], [0.48, 0.64, 0.6]])
+coal.distance(coal.Capsule(0.1, 0.3), coal.Transform3s(np.eye(3), np.array([5.0, 1.0, 2.0])),
+              coal.Box(1.0, 1.0, 1.0), coal.Transform3s(turned, np.zeros(3)),
+              coal.DistanceRequest(), coal.DistanceResult())
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter('always')
+    import haptic_topology.model.meshes
+print(' | '.join(f'{w.category.__name__}: {w.message}' for w in caught))
+print(repr(coal.distance(coal.Box(2.0, 2.0, 2.0), coal.Transform3s(), coal.Box(2.0, 2.0, 2.0),
+                         coal.Transform3s(np.eye(3), np.array([-3.0, 0.0, 0.0])),
+                         coal.DistanceRequest(), coal.DistanceResult())))
+"""
+
+
+def test_coals_box_is_the_same_in_every_process() -> None:
+    """coal 3.0 fixes its box's shape on the process's first box query (``1 + 1e-10`` times
+    the half extents on the side away from the direction if that direction has a zero
+    component, else exact); the meshes module makes that query on import: after it, a turned
+    box queried first changes nothing (the cubes are 1 - 1e-10 m apart, as in a process that
+    queried no other box). A box queried before the import is warned about in one line."""
+    root = Path(__file__).resolve().parents[3]
+    out = [subprocess.run([sys.executable, '-c', _BOX_PROBE, when], capture_output=True,
+                          text=True, cwd=root, env={**os.environ, 'PYTHONPATH': str(root)},
+                          check=True, timeout=120).stdout.splitlines()
+           for when in ('first', 'after')]
+    assert out[0] == ['', '0.9999999999']
+    assert out[1] == [
+        'RuntimeWarning: coal made a box query before haptic_topology.model.meshes was '
+        'imported and so fixed its box shape otherwise (coal 3.0: a static in the box '
+        'support function): contacts with boxes differ in their last bits from a fresh '
+        'process; import haptic_topology.model.meshes before using coal', '1.0']
 
 
 def test_setup_installs_the_meshes_the_scenarios_use(monkeypatch: pytest.MonkeyPatch) -> None:

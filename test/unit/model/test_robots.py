@@ -19,7 +19,8 @@ import pytest
 import yaml
 
 from haptic_topology.dynamics.contacts import ContactSettings
-from haptic_topology.errors import ConfigError, LinkageError
+from haptic_topology.dynamics.self_contacts import self_pairs
+from haptic_topology.errors import LinkageError
 from haptic_topology.model.linkage import linkage_from_dict, load_linkage
 from haptic_topology.model.robots import ROBOTS, VERSION, read_srdf, robot_files
 from haptic_topology.sim.scenario import load_scenario
@@ -229,7 +230,10 @@ def test_srdf_errors_are_one_line(tmp_path: Path) -> None:
         linkage_from_dict({'linkage': {'srdf': str(bad), 'links': []}}, 'p')
 
 
-def test_self_collisions_are_refused_in_one_line(tmp_path: Path) -> None:
+def test_self_collisions_honour_the_srdfs_pairs(tmp_path: Path) -> None:
+    """ur5_table with ``self_collisions: true``: the pairs checked are the chain's non-adjacent
+    links less the SRDF's disabled pairs, by URDF link: ``ee_link`` (merged into wrist_3_link by
+    a fixed joint) keeps its own name, so wrist_1-wrist_3 is off and wrist_1-ee_link on."""
     doc = yaml.safe_load((REPO / 'config' / 'scenarios' / 'ur5_table.yaml').read_text())
     doc['scenario']['linkage']['urdf'] = str(
         SHIPPED / 'robots/ur_description/urdf/ur5_robot.urdf')
@@ -240,11 +244,18 @@ def test_self_collisions_are_refused_in_one_line(tmp_path: Path) -> None:
             o['file'] = str(REPO / 'config' / 'meshes' / 'box.stl')
     path = tmp_path / 's.yaml'
     path.write_text(yaml.safe_dump(doc))
-    with pytest.raises(ConfigError) as err:
-        load_scenario(str(path))
-    assert str(err.value) == (f'{path}: scenario.contacts.self_collisions: link-link contacts '
-                              'are not modelled (each link touches the obstacles only); '
-                              'remove the key')
+    sc = load_scenario(str(path))
+    assert sc.contacts is not None and sc.contacts.self_collisions
+    shapes = sc.contacts.shapes(sc.linkage)
+    pairs = {(shapes[i].urdf_link, shapes[j].urdf_link)
+             for i, j in self_pairs(sc.linkage, shapes)}
+    assert pairs == {
+        ('shoulder_link', 'forearm_link'), ('shoulder_link', 'wrist_1_link'),
+        ('shoulder_link', 'wrist_2_link'), ('shoulder_link', 'wrist_3_link'),
+        ('shoulder_link', 'ee_link'), ('upper_arm_link', 'wrist_1_link'),
+        ('upper_arm_link', 'wrist_2_link'), ('upper_arm_link', 'wrist_3_link'),
+        ('upper_arm_link', 'ee_link'), ('forearm_link', 'ee_link'),
+        ('wrist_1_link', 'ee_link')}
 
 
 def test_robot_errors_are_one_line() -> None:
