@@ -439,8 +439,10 @@ class VeSimSettings(NodeSettings):
     idle_update_rate_hz: float = param(50.0, 'LMI updates per second while no hand input '
                                        'comes (start-up, controller stopped or restarting), '
                                        'so a controller can sync', lo=0.1, hi=1000.0)
-    max_hand_wrench: float = param(1000.0, 'hand inputs with a hand or coupling wrench entry '
-                                   'beyond this (N, N m) are rejected', lo=1e-3, hi=1e9)
+    max_hand_wrench: float = param(1000.0, 'hand inputs with an entry beyond this (N, N m) '
+                                   'in a wrench applied to the VT (the hand wrench; the '
+                                   'coupling wrench with vt_coupling) are rejected', lo=1e-3,
+                                   hi=1e9)
     viz_rate_hz: float = param(30.0, 'rate of /tf, joint states, markers and the Pose/Twist/'
                                'Wrench mirrors (Hz)', lo=0.1,
                                hi=200.0)

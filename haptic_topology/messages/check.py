@@ -392,14 +392,18 @@ def check_update_contacts(msg: Any, dof: int
     return points, normals, gaps, jac
 
 
-def check_hand_inputs(msg: Any, dim: int, max_wrench: float
+def check_hand_inputs(msg: Any, dim: int, max_wrench: float, coupling_applied: bool = True
                       ) -> tuple[list[int], list[int], list[float], np.ndarray, np.ndarray,
                                  np.ndarray, np.ndarray]:
     """A ``HandInputs`` batch of n samples: ``(seqs, state_seqs, stamps_s, pose, twist, F_h,
     F_pc)``, the vectors n x ``dim``. n >= 1; ``seq`` and ``state_seq`` n entries each in
     [1, MAX_SEQ], strictly ascending; ``stamp`` n stamps, each as ``header.stamp``; every
-    vector n x dim and finite; every wrench entry within ``max_wrench``. One bad field
-    rejects the whole batch.
+    vector n x dim and finite; every entry of a wrench the VE applies to the VT within
+    ``max_wrench``: ``hand_wrench`` always, ``coupling_wrench`` when ``coupling_applied``
+    (VT coupling, ``F_vt = F_h - F_pc``). Without VT coupling ``F_pc`` only reports the
+    coordination wrench on the device, which grows with the distance between device and VT
+    (eq. 15): bounding it would throw away the batch's ``F_h`` that the VT moves under. One
+    bad field rejects the whole batch.
 
     Example::
 
@@ -432,7 +436,8 @@ def check_hand_inputs(msg: Any, dim: int, max_wrench: float
         seconds.append(float(sec) + 1e-9 * float(nanosec))
     pose, twist, f_h, f_pc = (array(msg, f, n * dim).reshape(n, dim)
                               for f in ('pose', 'twist', 'hand_wrench', 'coupling_wrench'))
-    for name, w in (('hand_wrench', f_h), ('coupling_wrench', f_pc)):
+    bounded = (('hand_wrench', f_h), ('coupling_wrench', f_pc))
+    for name, w in bounded if coupling_applied else bounded[:1]:
         bad = np.abs(w) > max_wrench
         if np.any(bad):
             row = int(np.flatnonzero(bad.any(axis=1))[0])

@@ -167,11 +167,12 @@ def vt_wrenches_from_hand_inputs(msg: HandInputs, task: TaskSpace, vt_coupling: 
 
     The whole batch is checked first (:func:`haptic_topology.messages.check.check_hand_inputs`:
     sizes n and n x task_dim, integer ranges, ascending seqs, finite values, every wrench
-    entry within ``max_wrench`` (N, N m): a hand input far beyond any device's force would
-    only blow the VT up); one bad field rejects it all.
+    entry of a wrench applied to the VT within ``max_wrench`` (N, N m; ``coupling_wrench``
+    only with VT coupling): a hand input far beyond any device's force would only blow the VT
+    up); one bad field rejects it all.
     """
-    seqs, state_seqs, stamps, pose, twist, f_h, f_pc = check_hand_inputs(msg, task.dim,
-                                                                        max_wrench)
+    seqs, state_seqs, stamps, pose, twist, f_h, f_pc = check_hand_inputs(
+        msg, task.dim, max_wrench, vt_coupling)
     f_vt = f_h - f_pc if vt_coupling else f_h
     return seqs, state_seqs, stamps, pose, twist, f_vt
 

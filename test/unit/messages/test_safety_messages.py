@@ -262,6 +262,24 @@ def test_bad_message_rejected_with_reason(kind: str, make: Callable[[], Any], re
     assert counter.values()[f'rejected_{reason}'] == '1' and counter.total == 1
 
 
+def test_the_coupling_wrench_is_bounded_only_where_the_vt_feels_it() -> None:
+    """``max_hand_wrench`` bounds what the VE applies to the VT. Without VT coupling (``F_vt =
+    F_h``, the eq. 20 scenarios) ``coupling_wrench`` only reports ``F_pc`` on the device, which
+    grows with the distance between device and VT (eq. 15: 100 N/m x 10 m on spatial_arm4's
+    20 s run, once its device sits at a workspace stop): the batch is taken with ``F_h``; with
+    VT coupling it is refused, naming the field. A non-finite one is refused either way."""
+    far = [0.0] * 3 + [11.5, 1000.17, -3.97]       # sample 1: F_pc beyond +-100
+    batch = _hand(coupling_wrench=far)
+    *_, f_vt = vt_wrenches_from_hand_inputs(batch, TASK, False, 100.0)
+    assert f_vt.tolist() == [[0.4, 0.0, 0.0], [0.5, 0.0, 0.0]]
+    with pytest.raises(MessageError, match=r'HandInputs.coupling_wrench must be within \+-100, '
+                       r'got \[11.5, 1000.17, -3.97\] \(sample 1\)'):
+        vt_wrenches_from_hand_inputs(batch, TASK, True, 100.0)
+    with pytest.raises(MessageError, match='HandInputs.coupling_wrench has non-finite'):
+        vt_wrenches_from_hand_inputs(_hand(coupling_wrench=[math.nan] + [0.0] * 5), TASK,
+                                     False, 100.0)
+
+
 def test_huge_finite_values_are_finite_and_every_non_finite_kind_is_not() -> None:
     """Entries of any finite size pass the finiteness check; inf, -inf and NaN never do."""
     state = state_from_msg(_state(pose=[1e200, -1e300, 0.0]), TASK)
