@@ -18,7 +18,9 @@ state publisher included) reports its readers matched
 (:func:`~haptic_topology.bringup.watch.loop_readers`), and each subscription of the loop's
 inputs its writers (:func:`~haptic_topology.bringup.watch.loop_writers`); the run is over
 when the driver's lifecycle state is ``inactive`` (it deactivates itself after
-``run_duration`` from engagement). Then it stops the device, controller, VE and the recorder
+``run_duration`` from engagement), or ends as soon as ``ve_sim`` reports a hand input batch it
+rejected (one line with its reason: the VE did not take those inputs, so the run is not the
+loop's from then on). Then it stops the device, controller, VE and the recorder
 with SIGINT (SIGTERM, then SIGKILL, after a timeout each), reads the bag back as a stream in a
 process of its own (:mod:`haptic_topology.bringup.analysis`) and writes ``trace.parquet``
 (``--csv``: also ``trace.csv``), ``plot.png`` and ``summary.json`` next to the bag's files,
@@ -298,17 +300,24 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
     cpu: dict[str, float] = {}
     memory: dict[str, dict[str, Any]] = {}
     partition: Partitioner | None = None
+    watched: list[GraphWatcher] = []
 
     def alive() -> None:
         for p in procs:
             if p.name not in codes and p.popen.poll() is not None:
                 raise BringupError(f'{p.name} exited with status {p.popen.returncode}:\n'
                                    f'{_tail(p.log)}')
+        # The VE refused hand inputs: the run is not the loop's from then on (and the
+        # end of the run would wait in vain for the VE to take them).
+        for w in watched:
+            if (reason := w.hand_inputs_rejected()) is not None:
+                raise BringupError(f'{reason} (bag: {bag})')
 
     try:
         env = {} if domain_id is None else {'ROS_DOMAIN_ID': str(domain_id)}
         with GraphWatcher('haptic_bringup', alive, domain_id=domain_id,
                           graph_id=graph) as watch:
+            watched.append(watch)
             py = [sys.executable, '-m']
             if foxglove is not None:
                 host, port = foxglove

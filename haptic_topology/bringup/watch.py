@@ -380,6 +380,21 @@ class GraphWatcher:
         return all(n is not None and n.isdigit()
                    and received.get(t.lstrip('/'), -1) >= int(n) for t, n in sent.items())
 
+    def hand_inputs_rejected(self) -> str | None:
+        """Why the run cannot stand, in one line, once ``ve_sim`` reports hand input batches
+        of this graph that it rejected (``rejected_messages``, the first one's reason in
+        ``hand_rejection``); None while it reports none. The VE never integrates a rejected
+        batch's inputs, so the VT from then on is not the loop's: the run must end on this,
+        not wait for the VE to take inputs it has refused."""
+        ve = self.status.get(VE_STATUS, {})
+        count = ve.get('rejected_messages', '0')
+        if not count.isdigit() or int(count) == 0:
+            return None
+        n = int(count)
+        reason = ve.get('hand_rejection') or 'its reason not reported'
+        return (f've_sim rejected {n} hand input batch{"es" if n > 1 else ""} (the first: '
+                f'{reason}); the VE did not take their inputs, so the run was stopped')
+
     def run_counts(self) -> dict[str, dict[str, str]]:
         """What :meth:`recorder_has_the_run` compares, as the nodes last reported it."""
         keys = ('loop_running', 'seq', 'hand_pending', 'last_state_seq', 'path_pending',

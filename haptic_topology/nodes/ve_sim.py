@@ -39,7 +39,8 @@ Diagnostics: ``hand_inputs`` (samples taken), ``hand_batches`` (messages),
 ``lost_hand_inputs``, ``batch_*`` (arrival periods of the batches), ``update_*``,
 ``viz_device_states`` (device states taken for the viz, from
 ``haptic/device/state_sampled``), ``viz_rejected_states`` (malformed
-ones skipped).
+ones skipped), ``rejected_messages`` (hand input batches rejected) and ``hand_rejection``
+(the first one's reason, empty while none was: ``run`` ends on it).
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ from haptic_topology.nodes.convert import (
     GraphFilter,
     MessageError,
     RejectCounter,
+    stamp_seconds,
     vt_wrenches_from_hand_inputs,
 )
 from haptic_topology.nodes.diagnostics import PublisherWatch, diagnostics, matched, monotonic
@@ -127,6 +129,9 @@ class VeSim(Node):
         self.feed = HandFeed(self.ve, self.update_period)
         self.batches = 0
         self.rejected = RejectCounter()
+        #: The first rejected batch's reason (and when), for ``run`` to end on
+        #: (``hand_rejection`` in ``/diagnostics``); empty while none was.
+        self.first_rejection = ''
         self._last_publish = -math.inf
         self._last_input = -math.inf
         self._idle_period = c.idle_period
@@ -180,6 +185,8 @@ class VeSim(Node):
             self.admission.admit(seqs, state_seqs, stamps, pose, twist)
         except MessageError as exc:
             self.rejected.add(exc)
+            if not self.first_rejection:
+                self.first_rejection = self._rejection(msg, exc)
             self.get_logger().warn(f'hand input batch rejected: {exc}',
                                    throttle_duration_sec=1.0)
             return
@@ -196,6 +203,13 @@ class VeSim(Node):
                 self._publish_update()
                 self._publish_path()
         self.viz.keep_samples(msg, pose[-1], twist[-1], self.ve.q)
+
+    def _rejection(self, msg: HandInputs, exc: MessageError) -> str:
+        """``exc``'s text, with the batch's time in the run (s from the first input taken)
+        when its stamp can tell it."""
+        t0 = self.feed.t0
+        t = stamp_seconds(msg.header.stamp) - t0 if t0 is not None else math.nan
+        return f'{exc} (at {t:.3f} s of the run)' if math.isfinite(t) and t >= 0.0 else str(exc)
 
     def _publish_path(self) -> None:
         path = self.ve.take_path()
@@ -226,6 +240,7 @@ class VeSim(Node):
             'lmi_updates': str(self._update_seq),
             'controller_restarts': str(feed.controller_restarts),
             'rejected_messages': str(self.rejected.total),
+            'hand_rejection': self.first_rejection,
             **self.rejected.values(),
             **self.graph.values(),
             **self.input_publishers.values(),

@@ -30,3 +30,24 @@ def test_the_run_ends_once_the_ve_took_the_last_input_even_if_dds_dropped_some()
     assert _watcher(470, 5000, 300).recorder_has_the_run(False)
     # The last batch is still on its way: not yet.
     assert not _watcher(499, 4990, 0).recorder_has_the_run(False)
+
+
+def test_a_rejected_hand_input_batch_ends_the_run_with_its_reason() -> None:
+    """The VE never takes a batch it rejected, so the VE's last seq never reaches the
+    controller's and the end of the run would wait in vain: ``run`` ends on the VE's report
+    instead, in one line naming the count and the first reason (as ve_sim words it)."""
+    w = _watcher(400, 4000, 0)
+    assert w.hand_inputs_rejected() is None           # a VE that rejected nothing
+    w.status['ve_sim: loop'].update({'rejected_messages': '0', 'hand_rejection': ''})
+    assert w.hand_inputs_rejected() is None
+    assert not w.recorder_has_the_run(False)          # ... waits: the VE is behind
+    first = ('HandInputs.coupling_wrench must be within +-1000, got [11.5, 1000.17, -3.97, '
+             '-0.09, 0.07, 0.33] (sample 3) (at 10.907 s of the run)')
+    w.status['ve_sim: loop'].update({'rejected_messages': '91', 'hand_rejection': first})
+    assert w.hand_inputs_rejected() == (
+        've_sim rejected 91 hand input batches (the first: HandInputs.coupling_wrench must be '
+        'within +-1000, got [11.5, 1000.17, -3.97, -0.09, 0.07, 0.33] (sample 3) (at 10.907 s '
+        'of the run)); the VE did not take their inputs, so the run was stopped')
+    w.status['ve_sim: loop']['rejected_messages'] = '1'
+    assert str(w.hand_inputs_rejected()).startswith('ve_sim rejected 1 hand input batch (the '
+                                                    'first: HandInputs.coupling_wrench')
