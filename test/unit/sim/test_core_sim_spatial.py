@@ -4,6 +4,7 @@ package:// references."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.metadata as md
 import json
 import subprocess
@@ -17,6 +18,7 @@ from haptic_topology.errors import ConfigError, LinkageError
 from haptic_topology.model.linkage import linkage_from_dict
 from haptic_topology.paths import resolve_package_uri
 from haptic_topology.sim import Trace, load_scenario, simulate
+from haptic_topology.sim.lockstep import SimStep
 from haptic_topology.sim.plots import plot_trace
 from haptic_topology.sim.trace_io import read_trace
 from haptic_topology.vocabulary import ControlMode
@@ -49,6 +51,40 @@ def test_eq14_holds_the_device_where_eq10_drifts(runs: dict[ControlMode, Trace])
     assert s10['first_limit_s'] is not None and 1.0 < s10['first_limit_s'] < 2.0
     counts = runs[ControlMode.PENALTY].columns['constraint_count']
     assert counts.min() >= 2     # J_h is 6 x k with rank <= 4: t >= 2 throughout
+
+
+def test_a_device_at_its_stop_holds_the_vt_only_through_vt_coupling() -> None:
+    """spatial_arm4 run for 6 s (its scenario: 2 s): its device reaches the y stop (0.3 m)
+    at 2.025 s. Without VT coupling (Section VIII, eq. 20: the VT moves freely under
+    ``F_vt = F_h``) nothing holds the VT: it runs on, 2.2 m beyond the device at 6 s, its
+    kinetic energy exactly the work of the hand's 0.05 N along y over its path (no other
+    force acts on it), in both laws alike; the coordination wrench of eq. 15 grows with the
+    distance on the device side only (its actuators saturate at 20 N). With the coordination
+    acting on the VT (``vt_coupling``) the VT stays at the stop with the device, within 2 mm
+    (``F_h / K_pc`` = 0.5 mm at rest)."""
+    sc = dataclasses.replace(load_scenario('spatial_arm4'), duration=6.0)
+    energy: list[float] = []
+
+    def at_end(step: SimStep) -> None:
+        if step.k == 6000:
+            energy.append(step.ve.kinetic_energy())
+            assert step.answer.hand is not None
+            assert step.answer.hand.vt_wrench.tolist() == [0.0, 0.05, 0.0, 0.0, 0.0, 0.0]
+
+    free = simulate(sc, observer=at_end)
+    c = free.columns
+    drift = np.linalg.norm(c['device_pose'][:, :3] - c['vt_pose'][:, :3], axis=1)
+    assert free.summary()['first_limit_s'] == pytest.approx(2.025, abs=1e-3)
+    assert c['device_pose'][6000, 1] == 0.3 and drift[6000] > 2.0
+    assert energy[0] == pytest.approx(0.05 * (c['vt_pose'][6000, 1] - c['vt_pose'][0, 1]),
+                                      rel=1e-9)
+    assert np.abs(c['applied'][6000, :2]).tolist() == [20.0, 20.0]
+    eq10 = simulate(sc, ControlMode.ACCELERATION_ONLY).columns['vt_pose']
+    np.testing.assert_array_equal(eq10, c['vt_pose'])     # the VT ignores the device
+    held = simulate(dataclasses.replace(sc, vt_coupling=True)).columns
+    assert held['device_pose'][6000, 1] == 0.3
+    assert np.linalg.norm(held['device_pose'][:, :3] - held['vt_pose'][:, :3],
+                          axis=1).max() < 2e-3
 
 
 def test_spatial_plot_has_both_projections(runs: dict[ControlMode, Trace],
