@@ -382,12 +382,14 @@ class GraphWatcher:
 
     def hand_inputs_rejected(self) -> str | None:
         """Why the run cannot stand, in one line, once ``ve_sim`` reports hand input batches
-        of this graph that it rejected (``rejected_messages``, the first one's reason in
-        ``hand_rejection``); None while it reports none. The VE never integrates a rejected
-        batch's inputs, so the VT from then on is not the loop's: the run must end on this,
-        not wait for the VE to take inputs it has refused."""
+        of this graph whose contents it rejected (``rejected_hand_batches``, the first one's
+        reason in ``hand_rejection``); None while it reports none. The VE never integrates a
+        rejected batch's inputs, so the VT from then on is not the loop's: the run must end
+        on this, not wait for the VE to take inputs it has refused. (Well-formed batches
+        that the VE's admission refuses as another sender's are not counted there: the run
+        goes on without them.)"""
         ve = self.status.get(VE_STATUS, {})
-        count = ve.get('rejected_messages', '0')
+        count = ve.get('rejected_hand_batches', '0')
         if not count.isdigit() or int(count) == 0:
             return None
         n = int(count)

@@ -39,8 +39,10 @@ Diagnostics: ``hand_inputs`` (samples taken), ``hand_batches`` (messages),
 ``lost_hand_inputs``, ``batch_*`` (arrival periods of the batches), ``update_*``,
 ``viz_device_states`` (device states taken for the viz, from
 ``haptic/device/state_sampled``), ``viz_rejected_states`` (malformed
-ones skipped), ``rejected_messages`` (hand input batches rejected) and ``hand_rejection``
-(the first one's reason, empty while none was: ``run`` ends on it).
+ones skipped), ``rejected_messages`` (hand input batches rejected), of them
+``rejected_hand_batches`` (those whose contents failed the checks, not the well-formed ones
+the admission refuses as another sender's) and ``hand_rejection`` (the first of those's
+reason, empty while none was: ``run`` ends on it).
 """
 
 from __future__ import annotations
@@ -129,8 +131,11 @@ class VeSim(Node):
         self.feed = HandFeed(self.ve, self.update_period)
         self.batches = 0
         self.rejected = RejectCounter()
-        #: The first rejected batch's reason (and when), for ``run`` to end on
-        #: (``hand_rejection`` in ``/diagnostics``); empty while none was.
+        #: Batches of the graph whose contents failed the checks (sizes, ranges, finite,
+        #: ``max_hand_wrench``), and the first one's reason (and when), for ``run`` to end on
+        #: (``rejected_hand_batches``, ``hand_rejection`` in ``/diagnostics``). Not the
+        #: well-formed batches the admission refuses (another sender's, proven so).
+        self.bad_batches = 0
         self.first_rejection = ''
         self._last_publish = -math.inf
         self._last_input = -math.inf
@@ -179,14 +184,17 @@ class VeSim(Node):
     def _on_hand(self, msg: HandInputs) -> None:
         if not self.graph.own(msg, TOPIC_HAND_INPUTS):
             return
+        checked = False
         try:
             seqs, state_seqs, stamps, pose, twist, f_vt = vt_wrenches_from_hand_inputs(
                 msg, self.task, self.scenario.vt_coupling, self.max_hand_wrench)
+            checked = True
             self.admission.admit(seqs, state_seqs, stamps, pose, twist)
         except MessageError as exc:
             self.rejected.add(exc)
-            if not self.first_rejection:
-                self.first_rejection = self._rejection(msg, exc)
+            if not checked:
+                self.bad_batches += 1
+                self.first_rejection = self.first_rejection or self._rejection(msg, exc)
             self.get_logger().warn(f'hand input batch rejected: {exc}',
                                    throttle_duration_sec=1.0)
             return
@@ -240,6 +248,7 @@ class VeSim(Node):
             'lmi_updates': str(self._update_seq),
             'controller_restarts': str(feed.controller_restarts),
             'rejected_messages': str(self.rejected.total),
+            'rejected_hand_batches': str(self.bad_batches),
             'hand_rejection': self.first_rejection,
             **self.rejected.values(),
             **self.graph.values(),

@@ -38,16 +38,20 @@ def test_a_rejected_hand_input_batch_ends_the_run_with_its_reason() -> None:
     instead, in one line naming the count and the first reason (as ve_sim words it)."""
     w = _watcher(400, 4000, 0)
     assert w.hand_inputs_rejected() is None           # a VE that rejected nothing
-    w.status['ve_sim: loop'].update({'rejected_messages': '0', 'hand_rejection': ''})
+    # ... or only refused another sender's well-formed batches (the admission's ``session``,
+    # ``continuity``, ``source``): the run goes on without them.
+    w.status['ve_sim: loop'].update({'rejected_messages': '7', 'rejected_hand_batches': '0',
+                                     'hand_rejection': ''})
     assert w.hand_inputs_rejected() is None
     assert not w.recorder_has_the_run(False)          # ... waits: the VE is behind
     first = ('HandInputs.coupling_wrench must be within +-1000, got [11.5, 1000.17, -3.97, '
              '-0.09, 0.07, 0.33] (sample 3) (at 10.907 s of the run)')
-    w.status['ve_sim: loop'].update({'rejected_messages': '91', 'hand_rejection': first})
+    w.status['ve_sim: loop'].update({'rejected_messages': '98', 'rejected_hand_batches': '91',
+                                     'hand_rejection': first})
     assert w.hand_inputs_rejected() == (
         've_sim rejected 91 hand input batches (the first: HandInputs.coupling_wrench must be '
         'within +-1000, got [11.5, 1000.17, -3.97, -0.09, 0.07, 0.33] (sample 3) (at 10.907 s '
         'of the run)); the VE did not take their inputs, so the run was stopped')
-    w.status['ve_sim: loop']['rejected_messages'] = '1'
+    w.status['ve_sim: loop']['rejected_hand_batches'] = '1'
     assert str(w.hand_inputs_rejected()).startswith('ve_sim rejected 1 hand input batch (the '
                                                     'first: HandInputs.coupling_wrench')
