@@ -388,6 +388,7 @@ def run_graph(scenario: str, mode: str, duration: float, bag: Path, params: Path
             except WaitTimeout as exc:
                 raise WaitTimeout(f'{exc}; the nodes\' last reports: '
                                   f'{watch.run_counts()}') from None
+            alive()     # a rejection first reported with the counts that ended the wait
     finally:
         # Device first, recorder last (it keeps every message until then).
         codes.update(stop([p for p in reversed(procs) if p.name not in codes]))
