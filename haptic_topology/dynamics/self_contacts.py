@@ -240,6 +240,8 @@ class SelfContacts:
             return []
         count = self._near_pairs(placements, self._joint_slot, self._rows, self._a, self._b,
                                  limit, self._near)
+        if not count:
+            return []
         out: list[SelfHit] = []
         placed: set[int] = set()
         poses, res = self._poses, self._result
