@@ -1,6 +1,6 @@
 """Contacts between the linkage and static obstacles: the ``sum_i J_i^T F_i`` of eqs. 1, 2, 17.
 
-(One module of ~820 lines on purpose: the contact candidates, gaps, forces and torques of every
+(One module of ~900 lines on purpose: the contact candidates, gaps, forces and torques of every
 shape pair share one set of arrays per step, which the VE and the LMI both run.)
 
 **Geometry.** Each link carries capsules (a sphere is a capsule of zero length); obstacles
