@@ -224,13 +224,14 @@ class SelfContacts:
         ``limit + SLACK`` (:func:`~haptic_topology.dynamics.contact_bounds.near_self_pairs`,
         one compiled call): the distance of the centres of two spheres around the shapes less
         both radii, and the largest separation of two oriented boxes around them over the
-        separating-axis test's 15 axes (a capsule's box: its axis's length plus ``2 r`` by
-        ``2 r`` by ``2 r``; a mesh's: the box around its hull). Each is at most the signed
+        separating-axis test's 15 axes (a capsule's box: ``L + 2 r`` along its axis of length
+        ``L``, ``2 r`` across; a mesh's: the box around its hull). Each is at most the signed
         distance of the two shapes: a convex set's signed distance to a point is 1-Lipschitz,
         the separation of two convex sets along any unit axis is at most their signed
         distance, and a shape's signed distance to another only grows when either shrinks
-        into its box. A skipped pair is therefore apart by at least ``limit + SLACK``, and
-        coal's gap for it is not below ``limit``: GJK's distance is the norm of a point of
+        into its box. A skipped pair is therefore apart by at least ``limit + SLACK`` less
+        the bounds' rounding (1e-15 m at a robot's sizes), and coal's gap for it is not
+        below ``limit``: GJK's distance is the norm of a point of
         the Minkowski difference, at least the true distance, and only within its tolerance
         (1e-10 m, below ``SLACK``) of touching can EPA report a penetration. So the hits are
         those of every pair queried one by one, bit for bit (``test_core_self_contacts``):
