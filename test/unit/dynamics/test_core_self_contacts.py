@@ -11,7 +11,6 @@ touch."""
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 from pathlib import Path
@@ -351,29 +350,6 @@ def test_self_collisions_are_for_spatial_tasks_in_one_line() -> None:
         ContactSettings.from_config({'obstacles': [], 'self_collisions': 'yes'},
                                     's: contacts', _fold())
     assert not ContactSettings.from_config({'obstacles': []}, 'c', _fold()).self_collisions
-
-
-def test_the_broad_phase_keeps_every_pair_within_the_limit() -> None:
-    """The Panda's link meshes (panda_table, 32 shape pairs) at random poses: the pairs the
-    bounding spheres let through, queried, are every pair whose gap (every pair queried) is
-    below the limit, with the same numbers."""
-    sc = load_scenario('panda_table')
-    assert sc.contacts is not None
-    dyn = LinkageDynamics(sc.linkage)
-    cm = ContactModel(dyn.model, sc.linkage, dataclasses.replace(sc.contacts,
-                                                                 self_collisions=True))
-    culled = cm._self
-    assert culled is not None and len(culled) == 32
-    every = copy.copy(culled)
-    every._bound_radii = np.full(len(culled), np.inf)      # no pair skipped
-    rng = np.random.default_rng(3)
-    for _ in range(40):
-        q = sc.q0 + rng.uniform(-1.5, 1.5, sc.linkage.dof)
-        cm.detect(q)        # forward kinematics in cm.data
-        for limit in (0.0, 0.01, 0.05):
-            want = every.hits(cm.data.oMi, limit)
-            got = culled.hits(cm.data.oMi, limit)
-            assert [(h[0], h[1], h[4]) for h in got] == [(h[0], h[1], h[4]) for h in want]
 
 
 def _every_self_pair(cm: ContactModel, linkage: Linkage, q: np.ndarray
