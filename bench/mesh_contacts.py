@@ -5,18 +5,19 @@ mesh table and a box): the cost of one signed-distance query of a link mesh's co
 against the table and the box (coal GJK/EPA, through ``CoalPair.gap``), of one
 ``ContactModel.torques`` (every RK4 stage: forward kinematics, the culled pairs, the forces),
 and of one 100 Hz VE update as ``ve_sim`` runs it (10 hand inputs of 1 ms, RK4, then the LMI
-snapshot), resting on the table and the box under the scenario's user wrench, with and
-without the contacts. CPU time of the calling thread (``time.thread_time_ns``), percentiles
-after a warm-up. ``make bench`` runs it (:func:`section`, skipped with the reason where
-example-robot-data is not installed). Run alone: ``.venv/bin/python bench/mesh_contacts.py
-[--json OUT]``.
+snapshot), resting on the table and the box under the scenario's user wrench: with the
+contacts against the obstacles, with the self-collisions too (as the scenarios ship), and
+without contacts. CPU time of the calling thread (``time.thread_time_ns``), percentiles
+after a warm-up. ``make bench`` runs it (:func:`section`; the two robots ship in
+``config/robots/``, so it needs no extra). Run alone: ``.venv/bin/python
+bench/mesh_contacts.py [--json OUT]``; the self-collisions alone, with the ``torques`` call's
+cost: ``bench/self_contacts.py``.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.metadata as md
 import json
 import time
 from typing import Any
@@ -25,7 +26,6 @@ import numpy as np
 
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics.contacts import ContactModel
-from haptic_topology.errors import HapticTopologyError
 from haptic_topology.sim import VirtualEnvironment, load_scenario
 
 CLOCK = time.thread_time_ns
@@ -108,49 +108,54 @@ def updates(name: str, contacts: bool, warm: int = 60, timed: int = 100,
     return out
 
 
+def pairs(name: str) -> int:
+    """The shape pairs scenario ``name`` checks against each other with self-collisions on."""
+    sc = load_scenario(name)
+    assert sc.contacts is not None
+    cm = ContactModel(LinkageDynamics(sc.linkage).model, sc.linkage,
+                      dataclasses.replace(sc.contacts, self_collisions=True))
+    return len(cm._self) if cm._self is not None else 0
+
+
 #: The scenarios measured: robots of example-robot-data touching a mesh table and a box.
 SCENARIOS = ('panda_table', 'ur5_table')
 
 
 def run(n: int = 2000, warm: int = 60, timed: int = 100) -> dict[str, Any]:
-    return {name: {'queries': queries(name, n),
+    """Per scenario: the coal query, the self pairs, and the VE update with the contacts
+    against the obstacles, with the self-collisions too, and without contacts."""
+    return {name: {'queries': queries(name, n), 'pairs': pairs(name),
                    'with_contacts': updates(name, True, warm, timed),
+                   'with_self': updates(name, True, warm, timed, True),
                    'without_contacts': updates(name, False, warm, timed)}
             for name in SCENARIOS}
 
 
 def section(n: int = 2000, warm: int = 60, timed: int = 100) -> dict[str, Any]:
-    """``make bench``'s mesh section: :func:`run`, or ``{'skipped': why}`` where
-    example-robot-data (the robots' URDFs and meshes, an optional extra) is not installed,
-    ``why`` the loader's own one-line error, which says how to install it."""
-    try:
-        md.distribution('example-robot-data')
-    except md.PackageNotFoundError:
-        why = 'example-robot-data is not installed'
-        try:
-            load_scenario(SCENARIOS[0])
-        except HapticTopologyError as exc:
-            why = str(exc)
-        return {'skipped': why}
+    """``make bench``'s mesh section: :func:`run` (the robots ship in ``config/robots/``)."""
     return run(n, warm, timed)
+
+
+def _ms(r: dict[str, Any]) -> str:
+    """A VE update's ``p50 / p99`` (ms)."""
+    return f'{r["update"]["p50_us"] / 1e3:.2f} / {r["update"]["p99_us"] / 1e3:.2f}'
 
 
 def table(res: dict[str, Any]) -> list[str]:
     """The section's lines: per scenario the coal query (a link mesh's hull against the table
-    or the box) and the 100 Hz VE update with and without the contacts, p50/p99."""
-    if 'skipped' in res:
-        return [f'meshes (coal): skipped: {res["skipped"]}']
+    or the box), a ``torques`` call and the 100 Hz VE update with the contacts, with the
+    self-collisions too (and their pairs), and without contacts, p50/p99."""
     lines = ['meshes (coal)  hulls  query p50/p99 [us]  torques p50/p99 [us]  VE update '
-             'p50/p99 [ms] with / without contacts  fits 100 Hz']
+             'p50/p99 [ms] with contacts / + self-collisions (pairs) / without contacts  '
+             'fits 100 Hz']
     for name, r in res.items():
-        q, w, wo = r['queries'], r['with_contacts'], r['without_contacts']
+        q, w, ws = r['queries'], r['with_contacts'], r['with_self']
         lines.append(
             f'{name:13s}  {q["mesh_solids"]:5d}  {q["query"]["p50_us"]:8.1f} / '
             f'{q["query"]["p99_us"]:6.1f}  {w["torques_call"]["p50_us"]:9.0f} / '
-            f'{w["torques_call"]["p99_us"]:7.0f}  {w["update"]["p50_us"] / 1e3:10.2f} / '
-            f'{w["update"]["p99_us"] / 1e3:5.2f}  {wo["update"]["p50_us"] / 1e3:7.2f} / '
-            f'{wo["update"]["p99_us"] / 1e3:5.2f}            '
-            f'{"yes" if w["fits_100hz"] else "NO"}')
+            f'{w["torques_call"]["p99_us"]:7.0f}  {_ms(w):>11s}  {_ms(ws):>11s} '
+            f'({r["pairs"]:2d})  {_ms(r["without_contacts"]):>11s}  '
+            f'{"yes" if w["fits_100hz"] and ws["fits_100hz"] else "NO"}')
     return lines
 
 

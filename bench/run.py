@@ -45,7 +45,7 @@ appended to ``bench/RESULTS.md`` with the date, machine and versions):
 10. Mesh contacts (``bench/mesh_contacts.py``, run after section 2): the Panda's and the UR5's
     collision meshes against a mesh table and a box (``panda_table``, ``ur5_table``): one
     coal query p50/p99, one ``ContactModel.torques``, and one 100 Hz VE update with and
-    without the contacts; skipped, with the reason, where example-robot-data is not installed.
+    without the contacts and with self-collisions. ``--meshes-only``: this section alone.
 
 Then a table of every figure beside its goal (issues 11 and 26). Run: ``make bench`` (about
 26 minutes), or ``.venv/bin/python bench/run.py --quick`` (short runs, for trying the script;
@@ -640,6 +640,16 @@ def floor_line(res: dict[str, Any]) -> str:
         f'{res[key]["period_p99_us"]:.0f} us' for key in ('floor', 'floor_end') if key in res)
 
 
+def _append_results(res: dict[str, Any], how: str, text: str) -> None:
+    """Append one partial run's ``text`` to RESULTS.md under its date, machine, the options
+    it ran with (``how``) and the versions."""
+    with (BENCH / 'RESULTS.md').open('a', encoding='utf-8') as f:
+        f.write(f'\n## {res["date"]} - {res["machine"]["cores"]} cores, '
+                f'{res["machine"]["cpu"]} ({how})\n\nversions: {json.dumps(res["versions"])}\n\n'
+                f'```\n{text}\n```\n')
+    print(f'appended {BENCH / "RESULTS.md"}')
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description='haptic_topology benchmarks (make bench)')
     ap.add_argument('--loop-duration', type=float, default=30.0)
@@ -649,23 +659,28 @@ def main() -> None:
                     'minute (shorter: after its first half)')
     ap.add_argument('--quick', action='store_true',
                     help='5 s runs to try the script; nothing is written to RESULTS.md')
+    ap.add_argument('--meshes-only', action='store_true',
+                    help='the mesh section only (section 10: coal queries and VE updates with '
+                    'the robots\' meshes, with and without self-collisions; no ROS)')
     ap.add_argument('--vendors-only', action='store_true',
                     help='the machine floor and the vendor backends on their emulators only '
                     '(section 9)')
     a = ap.parse_args()
     if a.quick:
         a.loop_duration, a.recorder_duration, a.memory_duration = 5.0, 5.0, 10.0
+    if a.meshes_only:
+        res = {'date': time.strftime('%Y-%m-%d %H:%M:%S %Z'), 'machine': _machine(),
+               'versions': _versions(), 'meshes': mesh_contacts.section()}
+        text = '\n'.join(mesh_contacts.table(res['meshes']))
+        print(text)
+        _append_results(res, '--meshes-only', text)
+        return
     if a.vendors_only:
         res = run_vendors(a.loop_duration)
         text = (vendor_loops.table(res['vendors'], res['floor']) + '\n'
                 + floor_line(res))
         print(text)
-        with (BENCH / 'RESULTS.md').open('a', encoding='utf-8') as f:
-            f.write(f'\n## {res["date"]} - {res["machine"]["cores"]} cores, '
-                    f'{res["machine"]["cpu"]} (--vendors-only, --loop-duration '
-                    f'{a.loop_duration:g})\n\nversions: {json.dumps(res["versions"])}\n\n'
-                    f'```\n{text}\n```\n')
-        print(f'appended {BENCH / "RESULTS.md"}')
+        _append_results(res, f'--vendors-only, --loop-duration {a.loop_duration:g}', text)
         return
     res = run(a.loop_duration, a.recorder_duration, a.memory_duration)
     head = headline(res)

@@ -2,8 +2,8 @@
 
 On ``panda_table`` and ``ur5_table`` (the robots' own collision meshes, the SRDF's disabled
 pairs left out): one ``ContactModel.torques`` call (every RK4 stage) and one 100 Hz VE update,
-with the contacts checking the links against each other and without (the scenarios as
-shipped), as :func:`mesh_contacts.updates` measures them (CPU time of the calling thread,
+with the contacts checking the links against each other (the scenarios as shipped) and
+without, as :func:`mesh_contacts.updates` measures them (CPU time of the calling thread,
 percentiles after a warm-up). Run: ``.venv/bin/python bench/self_contacts.py [--json OUT]``
 (needs nothing beyond the default install: the two robots ship in ``config/robots/``).
 """
@@ -11,29 +11,15 @@ percentiles after a warm-up). Run: ``.venv/bin/python bench/self_contacts.py [--
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
 import mesh_contacts
 
-from haptic_topology.dynamics import LinkageDynamics
-from haptic_topology.dynamics.contacts import ContactModel
-from haptic_topology.sim import load_scenario
-
-
-def pairs(name: str) -> int:
-    """The shape pairs checked against each other in scenario ``name``."""
-    sc = load_scenario(name)
-    assert sc.contacts is not None
-    cm = ContactModel(LinkageDynamics(sc.linkage).model, sc.linkage,
-                      dataclasses.replace(sc.contacts, self_collisions=True))
-    return len(cm._self) if cm._self is not None else 0
-
 
 def run(warm: int = 60, timed: int = 100) -> dict[str, Any]:
-    return {name: {'pairs': pairs(name),
+    return {name: {'pairs': mesh_contacts.pairs(name),
                    'with_self': mesh_contacts.updates(name, True, warm, timed, True),
                    'without_self': mesh_contacts.updates(name, True, warm, timed, False)}
             for name in mesh_contacts.SCENARIOS}

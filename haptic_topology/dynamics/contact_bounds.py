@@ -30,6 +30,13 @@ caveat is coal's: its box support function (coal 3.0) scales boxes by a static s
 process's first box query, so skipping a query that would have been that first one moves
 later box contacts in their last bits, unless the process fixed the static beforehand.
 
+**Self pairs** (:func:`near_self_pairs`, ``contacts.self_collisions``): two shapes of the
+linkage's own links (capsules, boxes, cylinders, mesh hulls), each with a sphere and an oriented
+box around it (a capsule's along its axis), both placed by their links: the distance of the
+spheres' centres less both radii, and the boxes' separating-axis bound, each below
+``limit + SLACK``, for the same reasons (the proof:
+:meth:`~haptic_topology.dynamics.self_contacts.SelfContacts.hits_at`).
+
 Units SI (m), world frame; rotations act on column vectors.
 """
 
@@ -178,4 +185,48 @@ def near_pairs(placements: np.ndarray, slot: np.ndarray, solids: np.ndarray,
                     continue
             out[count] = s * n_ob + k
             count += 1
+    return count
+
+
+@njit(int64(float64[:, :, :], int64[:], float64[:, :], int64[:], int64[:], float64, int64[:]),
+      cache=True)
+def near_self_pairs(placements: np.ndarray, slot: np.ndarray, shapes: np.ndarray,
+                    first: np.ndarray, second: np.ndarray, limit: float,
+                    out: np.ndarray) -> int:
+    """The pairs ``n`` of a linkage's own shapes (``first[n]``, ``second[n]``) whose bounds
+    are below ``limit`` (m) with :data:`SLACK`: the distance of their spheres' centres less
+    both radii, and (both boxed) the separating-axis bound of their boxes. Their indices in
+    ``out[:count]``, ascending; returns ``count``. ``placements``: the homogeneous world
+    placements (4 x 4) of the joints carrying the shapes, ``slot[s]`` shape ``s``'s;
+    ``shapes``: rows as :data:`SOLID_COLUMNS` says (link frame)."""
+    n_shapes = shapes.shape[0]
+    centres = np.empty((n_shapes, 3))
+    box_c = np.empty((n_shapes, 3))
+    box_a = np.empty((n_shapes, 3, 3))
+    for s in range(n_shapes):       # every shape's sphere and box, placed once
+        m = placements[slot[s]]
+        row = shapes[s]
+        for i in range(3):
+            centres[s, i] = (m[i, 0] * row[0] + m[i, 1] * row[1] + m[i, 2] * row[2]) + m[i, 3]
+            box_c[s, i] = (m[i, 0] * row[4] + m[i, 1] * row[5] + m[i, 2] * row[6]) + m[i, 3]
+            for j in range(3):
+                box_a[s, i, j] = (m[i, 0] * row[7 + j] + m[i, 1] * row[10 + j]
+                                  + m[i, 2] * row[13 + j])
+    scratch = np.empty((3, 3))
+    count = 0
+    for n in range(first.shape[0]):
+        a, b = first[n], second[n]
+        dx = centres[a, 0] - centres[b, 0]
+        dy = centres[a, 1] - centres[b, 1]
+        dz = centres[a, 2] - centres[b, 2]
+        bound = math.sqrt(dx * dx + dy * dy + dz * dz) - (shapes[a, 3] + shapes[b, 3])
+        if bound - SLACK >= limit:
+            continue
+        if shapes[a, 19] > 0.0 and shapes[b, 19] > 0.0:
+            bound = _separation(box_c[a], box_a[a], shapes[a, 16:19], box_c[b], box_a[b],
+                                shapes[b, 16:19], scratch)
+            if bound - SLACK >= limit:
+                continue
+        out[count] = n
+        count += 1
     return count

@@ -1,6 +1,6 @@
 """Contacts between the linkage and static obstacles: the ``sum_i J_i^T F_i`` of eqs. 1, 2, 17.
 
-(One module of ~820 lines on purpose: the contact candidates, gaps, forces and torques of every
+(One module of ~900 lines on purpose: the contact candidates, gaps, forces and torques of every
 shape pair share one set of arrays per step, which the VE and the LMI both run.)
 
 **Geometry.** Each link carries capsules (a sphere is a capsule of zero length); obstacles
@@ -103,6 +103,8 @@ _ROUND = (ObstacleKind.DISC, ObstacleKind.SPHERE)
 _COAL = (ObstacleKind.BOX, ObstacleKind.MESH)
 #: Chains up to this many links take discs and spheres in scalar arithmetic.
 _SCALAR_LINKS = 8
+#: The joint placements of a model whose broad phases have nothing to place.
+_NO_PLACEMENTS = np.zeros((0, 4, 4))
 
 
 @dataclass(frozen=True)
@@ -514,15 +516,19 @@ class ContactModel:
         self._obstacle_rows = np.array([_obstacle_row(ob) for ob in obstacles]).reshape(
             -1, bounds.OBSTACLE_COLUMNS)
         self._near = np.empty(len(solids) * len(obstacles), dtype=np.int64)
-        # the joints carrying solids, and each solid's index among them
-        self._solid_joints = sorted({sol.link + 1 for sol in solids})
-        self._solid_slot = np.array([self._solid_joints.index(sol.link + 1) for sol in solids],
-                                    dtype=np.int64)
-        self._slot_of = self._solid_slot.tolist()
+        # the joints carrying solids or self-contact shapes, whose world placements are
+        # stacked once per call for both broad phases (_placements), and each solid's index
+        # among them
+        self._joints = sorted({sol.link + 1 for sol in solids} | (
+            {shape.link + 1 for shape in shapes} if settings.self_collisions else set()))
+        self._stack = bool(solids and obstacles) or settings.self_collisions
         self._self: SelfContacts | None = None
         if settings.self_collisions:
             from haptic_topology.dynamics.self_contacts import SelfContacts
-            self._self = SelfContacts(linkage, shapes)
+            self._self = SelfContacts(linkage, shapes, self._joints)
+        self._solid_slot = np.array([self._joints.index(sol.link + 1) for sol in solids],
+                                    dtype=np.int64)
+        self._slot_of = self._solid_slot.tolist()
 
     def _axes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World ends of every capsule's axis (n x 3 each) at ``q`` (forward kinematics;
@@ -623,10 +629,20 @@ class ContactModel:
             normals.append([vx / dist, vy / dist, vz / dist])
         return np.array(gaps), np.array(ss), np.array(normals)
 
-    def _solid_hits(self, limit: float) -> tuple[list[int], list[int], list[list[float]],
-                                                  list[float], list[list[float]]]:
-        """The solid candidates with ``gap < limit`` (``limit >= 0``) at the placements of the
-        last :meth:`_axes`: ``(links, obstacles, points, gaps, normals)``, solid by solid and
+    def _placements(self) -> np.ndarray:
+        """The world placements (homogeneous, m x 4 x 4) of the joints carrying solids or
+        self-contact shapes, at the last :meth:`_axes`: both broad phases' input, stacked
+        once per call."""
+        if not self._stack:         # nothing to place: no solid meets an obstacle
+            return _NO_PLACEMENTS
+        oMi = self._oMi
+        return np.array([oMi[j].homogeneous for j in self._joints])
+
+    def _solid_hits(self, limit: float, placements: np.ndarray
+                    ) -> tuple[list[int], list[int], list[list[float]], list[float],
+                               list[list[float]]]:
+        """The solid candidates with ``gap < limit`` (``limit >= 0``) at ``placements``
+        (:meth:`_placements`): ``(links, obstacles, points, gaps, normals)``, solid by solid and
         obstacle by obstacle, each pair's candidates in the order of
         :func:`~haptic_topology.model.solids.solid_gaps` (the same numbers, tested). A pair is
         skipped when a lower bound of its gaps is at least ``limit``: the obstacle's distance
@@ -644,10 +660,8 @@ class ContactModel:
         obstacles = self.settings.obstacles
         if not obstacles:
             return links, obs, points, gaps, normals
-        # the joints' placements (world), then the pairs whose lower bounds are below the
-        # limit, solid by solid, obstacle by obstacle (contact_bounds)
-        oMi = self._oMi
-        placements = np.array([oMi[j].homogeneous for j in self._solid_joints])
+        # the pairs whose lower bounds are below the limit, solid by solid, obstacle by
+        # obstacle (contact_bounds)
         count = self._near_pairs(placements, self._solid_slot, self._solid_rows,
                                  self._obstacle_rows, self._planar, limit, self._near)
         if not count:
@@ -730,8 +744,9 @@ class ContactModel:
         normals = normals.reshape(-1, 3)[keep]
         points = p0[caps] + s[:, None] * (p1[caps] - p0[caps])
         links = self._cap_link[caps]
+        placements = self._placements()
         if self._solids:
-            s_links, s_obs, s_points, s_gaps, s_normals = self._solid_hits(margin)
+            s_links, s_obs, s_points, s_gaps, s_normals = self._solid_hits(margin, placements)
             if s_links:
                 links = np.concatenate((links, s_links)).astype(int)
                 obs = np.concatenate((obs, s_obs)).astype(int)
@@ -746,7 +761,8 @@ class ContactModel:
                 jac[r] = point_jacobian(model, data, int(links[r]) + 1, points[r])
         normals = np.array(normals)
         if self._self is not None:      # self-contacts: obstacle -1, relative Jacobians
-            parts = self._self.detect(self.model, self.data, q, margin, jacobians)
+            parts = self._self.detect(self.model, self.data, q, placements, margin,
+                                      jacobians)
             links = np.concatenate((links, parts[0])).astype(int)
             obs = np.concatenate((obs, np.full(parts[0].size, -1))).astype(int)
             points, normals = np.vstack((points, parts[1])), np.vstack((normals, parts[2]))
@@ -769,23 +785,24 @@ class ContactModel:
                      (p0[caps[i]] + s[i] * (p1[caps[i]] - p0[caps[i]])).tolist(),
                      float(gaps[i]), normals[i].tolist())
                     for i in np.flatnonzero(gaps < 0.0).tolist()]
+        placements = self._placements()
         if self._solids:
-            s_links, _, s_points, s_gaps, s_normals = self._solid_hits(0.0)
+            s_links, _, s_points, s_gaps, s_normals = self._solid_hits(0.0, placements)
             hits += [(link + 1, point, gap, normal) for link, point, gap, normal in zip(
                 s_links, s_points, s_gaps, s_normals, strict=True)]
         tau = np.zeros(self.dof)
         if not hits:
-            return self._with_self(q, dq, tau, 0.0)
+            return self._with_self(q, dq, tau, 0.0, placements)
         model, data, params = self.model, self.data, self.params
         pin.computeJointJacobians(model, data, q)
         by_joint: dict[int, list[tuple[Any, float, Any]]] = {}
         for joint, point, gap, normal in hits:
             by_joint.setdefault(joint, []).append((point, gap, normal))
         power = 0.0
-        placements = self._oMi
+        oMi = self._oMi
         for joint, items in by_joint.items():
             j6 = pin.getJointJacobian(model, data, joint, _LWA).reshape(6, self.dof)
-            ox, oy, oz = placements[joint].translation.tolist()
+            ox, oy, oz = oMi[joint].translation.tolist()
             v0x, v0y, v0z, wx, wy, wz = (j6 @ dq).tolist()
             fx_sum = fy_sum = fz_sum = mx = my = mz = 0.0
             for point, gap, normal in items:
@@ -803,16 +820,19 @@ class ContactModel:
                 power += fx * vx + fy * vy + fz * vz
             # one joint's contacts: J^T (sum F, sum a x F)
             tau += j6.T @ np.array([fx_sum, fy_sum, fz_sum, mx, my, mz])
-        return self._with_self(q, dq, tau, power)
+        return self._with_self(q, dq, tau, power, placements)
 
-    def _with_self(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, power: float
-                   ) -> tuple[np.ndarray, float]:
+    def _with_self(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, power: float,
+                   placements: np.ndarray) -> tuple[np.ndarray, float]:
         """``tau`` and ``power`` plus the self-contacts' (:mod:`.self_contacts`), if on; the
-        link placements of :meth:`_axes` at ``q`` current."""
+        link placements of :meth:`_axes` at ``q`` current, ``placements`` their
+        :meth:`_placements`."""
         if self._self is None:
             return tau, power
-        tau_s, power_s = self._self.torques(self.model, self.data, q, dq, self.params)
-        return tau + tau_s, power + power_s
+        found = self._self.torques(self.model, self.data, q, dq, self.params, placements)
+        if found is None:       # no pair penetrates: tau and power as they are
+            return tau, power
+        return tau + found[0], power + found[1]
 
     def potential(self, q: np.ndarray) -> float:
         """``U`` (J) at ``q`` (see module doc)."""
@@ -823,10 +843,11 @@ class ContactModel:
         self-contacts' penetrating candidates (the others are culled, see ``_solid_hits``):
         all that ``U`` and the penetration depth need, without normals or Jacobians."""
         gaps = self.candidates(*self._axes(q), gaps_only=True)[3]
+        placements = self._placements()
         if self._solids:
-            gaps = np.concatenate((gaps, self._solid_hits(0.0)[3]))
+            gaps = np.concatenate((gaps, self._solid_hits(0.0, placements)[3]))
         if self._self is not None:
-            gaps = np.concatenate((gaps, self._self.gaps(self.data.oMi)))
+            gaps = np.concatenate((gaps, self._self.gaps(placements)))
         return gaps
 
     def local(self, q: np.ndarray) -> LocalContacts:

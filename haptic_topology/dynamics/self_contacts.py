@@ -24,8 +24,10 @@ placements (GJK apart, EPA overlapping, tolerance ``meshes.COAL_TOLERANCE``; a c
 coal's capsule, :func:`~haptic_topology.model.meshes.capsule_shape`, a box, a cylinder, a mesh
 as its convex hull): the gap ``g`` (m, negative: penetration), the witness points ``p_a`` on
 link a's shape and ``p_b`` on link b's (m, world) and the unit normal ``n`` from b towards a.
-A pair whose bounding spheres are at least the query's limit apart is skipped without a coal
-query (the distance of the centres less both radii is a lower bound of the gap).
+A pair is skipped without a coal query where a lower bound of its gap is at least the query's
+limit: its shapes' bounding spheres, or their oriented boxes (the separating-axis test), in one
+compiled call (:mod:`~haptic_topology.dynamics.contact_bounds`; why this keeps every pair below
+the limit: :meth:`SelfContacts.hits_at`).
 
 **Force** (the penalty model of :mod:`haptic_topology.dynamics.contacts` applied to the pair):
 ``F = f_n n + f_t`` with ``v = v_a(p_a) - v_b(p_b)`` (m/s, world) the relative velocity of the
@@ -68,6 +70,7 @@ from haptic_topology.dynamics.contacts import (
     LinkSolid,
     _bounding_sphere,
     _force,
+    _solid_row,
     point_jacobian,
 )
 from haptic_topology.model.linkage import Linkage, _placement_offset
@@ -146,12 +149,34 @@ def _coal_shape(shape: LinkCapsule | LinkSolid
     return geometry, shape.rotation, shape.centre, bound, radius
 
 
+def _bound_row(shape: LinkCapsule | LinkSolid,
+               made: tuple[Any, np.ndarray, np.ndarray, np.ndarray, float]) -> np.ndarray:
+    """The broad phase's row of ``shape`` (:data:`contact_bounds.SOLID_COLUMNS`, link frame):
+    the sphere of :func:`_coal_shape` (``made``) and an oriented box around the shape (a
+    capsule's: along its axis, half extents ``(r, r, length / 2 + r)``; a solid's as against
+    the obstacles: a box, a cylinder's box, the box around a mesh's hull)."""
+    _, rotation, centre, bound, radius = made
+    if isinstance(shape, LinkCapsule):
+        from haptic_topology.dynamics.contact_bounds import SOLID_COLUMNS
+        r = shape.radius
+        row = np.zeros(SOLID_COLUMNS)
+        row[4:7], row[7:16], row[19] = centre, rotation.ravel(), 1.0
+        row[16:19] = (r, r, radius)         # radius: half the length plus r
+    else:
+        row = _solid_row(shape, None)       # its box; the sphere is set below
+    row[0:3], row[3] = bound, radius
+    return row
+
+
 class SelfContacts:
     """The self-collision pairs of a linkage's contact ``shapes`` and their contacts (see the
-    module doc). Works on the link placements ``oMi`` of a Pinocchio ``Data`` whose forward
-    kinematics are current (the :class:`~haptic_topology.dynamics.contacts.ContactModel`'s)."""
+    module doc). Works on the world placements of the ``joints`` (each a homogeneous 4 x 4,
+    stacked in that order, forward kinematics current): the
+    :class:`~haptic_topology.dynamics.contacts.ContactModel`'s, which stacks them once per
+    call for its solids and these pairs (default: the joints carrying the pairs' shapes)."""
 
-    def __init__(self, linkage: Linkage, shapes: Sequence[LinkCapsule | LinkSolid]) -> None:
+    def __init__(self, linkage: Linkage, shapes: Sequence[LinkCapsule | LinkSolid],
+                 joints: Sequence[int] | None = None) -> None:
         if linkage.task.planar:
             raise ValueError('SelfContacts: self-collisions are for spatial tasks')
         pairs = self_pairs(linkage, shapes)
@@ -159,65 +184,98 @@ class SelfContacts:
         slot = {k: n for n, k in enumerate(used)}
         #: The pairs, by their shapes' places in ``used``.
         self.pairs = [(slot[i], slot[j]) for i, j in pairs]
-        self._a = np.array([a for a, _ in self.pairs], dtype=int)
-        self._b = np.array([b for _, b in self.pairs], dtype=int)
+        self._a = np.array([a for a, _ in self.pairs], dtype=np.int64)
+        self._b = np.array([b for _, b in self.pairs], dtype=np.int64)
         self._links = [shapes[k].link for k in used]
-        self._joints = sorted({link + 1 for link in self._links})
-        self._joint_slot = np.array([self._joints.index(link + 1) for link in self._links],
-                                    dtype=int)
+        #: The joints whose placements the ``placements`` arguments stack, in order.
+        self.joints = (list(joints) if joints is not None
+                       else sorted({link + 1 for link in self._links}))
+        self._joint_slot = np.array([self.joints.index(link + 1) for link in self._links],
+                                    dtype=np.int64)
+        self._slot = self._joint_slot.tolist()
         made = [_coal_shape(shapes[k]) for k in used]
         self._geometry = [m[0] for m in made]
         self._rotation = [m[1] for m in made]
         self._centre = [m[2] for m in made]
-        # homogeneous (x, y, z, 1): placed by a joint's 3 x 4 [R | o] in one product
-        self._bound_centre = np.hstack((np.array([m[3] for m in made], dtype=float).reshape(
-            -1, 3), np.ones((len(made), 1))))
-        bound_radius = np.array([m[4] for m in made], dtype=float)
-        self._bound_radii = bound_radius[self._a] + bound_radius[self._b] if pairs else None
+        # the broad phase's rows (contact_bounds: sphere and box, link frame), its output,
+        # and each shape's coal placement, and the result, made once
+        from haptic_topology.dynamics import contact_bounds as bounds
+        self._near_pairs = bounds.near_self_pairs
+        self._rows = np.array([_bound_row(shapes[k], m) for k, m in zip(used, made, strict=True)
+                               ]).reshape(-1, bounds.SOLID_COLUMNS)
+        self._near = np.empty(len(self.pairs), dtype=np.int64)
+        self._poses = [coal.Transform3s() for _ in used]
+        self._result = coal.DistanceResult()
         self._request = distance_request()
 
     def __len__(self) -> int:
         return len(self.pairs)
 
     def hits(self, oMi: Any, limit: float) -> list[SelfHit]:
-        """The pairs with ``gap < limit`` at the placements ``oMi`` (a Pinocchio ``Data``'s,
-        forward kinematics current), pair by pair in a fixed order."""
+        """:meth:`hits_at` the placements ``oMi`` (a Pinocchio ``Data``'s, forward kinematics
+        current)."""
+        return self.hits_at(np.array([oMi[j].homogeneous for j in self.joints]), limit)
+
+    def hits_at(self, placements: np.ndarray, limit: float) -> list[SelfHit]:
+        """The pairs with ``gap < limit`` (m, ``limit >= 0``) at ``placements`` (the
+        ``joints``' homogeneous world placements, m x 4 x 4), pair by pair in a fixed order.
+
+        A pair is queried (coal) only where both lower bounds of its gap are below
+        ``limit + SLACK`` (:func:`~haptic_topology.dynamics.contact_bounds.near_self_pairs`,
+        one compiled call): the distance of the centres of two spheres around the shapes less
+        both radii, and the largest separation of two oriented boxes around them over the
+        separating-axis test's 15 axes (a capsule's box: ``L + 2 r`` along its axis of length
+        ``L``, ``2 r`` across; a mesh's: the box around its hull). Each is at most the signed
+        distance of the two shapes: a convex set's signed distance to a point is 1-Lipschitz,
+        the separation of two convex sets along any unit axis is at most their signed
+        distance, and a shape's signed distance to another only grows when either shrinks
+        into its box. A skipped pair is therefore apart by at least ``limit + SLACK`` less
+        the bounds' rounding (1e-15 m at a robot's sizes), and coal's gap for it is not
+        below ``limit``: GJK's distance is the norm of a point of
+        the Minkowski difference, at least the true distance, and only within its tolerance
+        (1e-10 m, below ``SLACK``) of touching can EPA report a penetration. So the hits are
+        those of every pair queried one by one, bit for bit (``test_core_self_contacts``):
+        the same coal query on the same placements, each shape's placement and the result
+        being coal objects made once and overwritten (the result cleared first)."""
         if not self.pairs:
             return []
-        frames = np.array([oMi[j].homogeneous for j in self._joints])[:, :3, :]
-        slot = self._joint_slot
-        centres = np.einsum('sij,sj->si', frames[slot], self._bound_centre)
-        apart = centres[self._a] - centres[self._b]
-        bounds = np.sqrt(np.einsum('ij,ij->i', apart, apart)) - self._bound_radii
+        count = self._near_pairs(placements, self._joint_slot, self._rows, self._a, self._b,
+                                 limit, self._near)
+        if not count:
+            return []
         out: list[SelfHit] = []
-        placed: dict[int, Any] = {}
-        for n in np.flatnonzero(bounds < limit).tolist():
+        placed: set[int] = set()
+        poses, res = self._poses, self._result
+        for n in self._near[:count].tolist():
             a, b = self.pairs[n]
             for k in (a, b):
                 if k not in placed:
-                    rot, origin = frames[slot[k], :, :3], frames[slot[k], :, 3]
-                    placed[k] = coal.Transform3s(rot @ self._rotation[k],
-                                                 rot @ self._centre[k] + origin)
-            res = coal.DistanceResult()
-            gap = float(coal.distance(self._geometry[a], placed[a], self._geometry[b],
-                                      placed[b], self._request, res))
+                    frame = placements[self._slot[k]]
+                    rot, origin = frame[:3, :3], frame[:3, 3]
+                    poses[k].setRotation(rot @ self._rotation[k])
+                    poses[k].setTranslation(rot @ self._centre[k] + origin)
+                    placed.add(k)
+            res.clear()
+            gap = float(coal.distance(self._geometry[a], poses[a], self._geometry[b],
+                                      poses[b], self._request, res))
             if gap < limit:
                 # coal's normal points from the first shape (a) to the second (b)
                 out.append((self._links[a], self._links[b], np.array(res.getNearestPoint1()),
                             np.array(res.getNearestPoint2()), gap, -np.array(res.normal)))
         return out
 
-    def gaps(self, oMi: Any) -> list[float]:
-        """The gaps (m) of the penetrating pairs at the placements ``oMi``."""
-        return [hit[4] for hit in self.hits(oMi, 0.0)]
+    def gaps(self, placements: np.ndarray) -> list[float]:
+        """The gaps (m) of the penetrating pairs at ``placements`` (:meth:`hits_at`)."""
+        return [hit[4] for hit in self.hits_at(placements, 0.0)]
 
-    def detect(self, model: pin.Model, data: Any, q: np.ndarray, margin: float,
-               jacobians: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                         np.ndarray]:
+    def detect(self, model: pin.Model, data: Any, q: np.ndarray, placements: np.ndarray,
+               margin: float, jacobians: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                        np.ndarray, np.ndarray]:
         """``(links, points, normals, gaps, jacobians)`` of the pairs with ``gap < margin`` at
-        ``q`` (``data``'s forward kinematics at ``q``): link a, ``p_a``, ``n``, ``g`` and the
-        relative Jacobian ``J_a(p_a) - J_b(p_b)`` (c x 3 x d; zeros unless ``jacobians``)."""
-        hits = self.hits(data.oMi, margin)
+        ``q`` (``data``'s forward kinematics at ``q``, ``placements`` its joints'): link a,
+        ``p_a``, ``n``, ``g`` and the relative Jacobian ``J_a(p_a) - J_b(p_b)`` (c x 3 x d;
+        zeros unless ``jacobians``)."""
+        hits = self.hits_at(placements, margin)
         dof = model.nv
         jac = np.zeros((len(hits), 3, dof))
         if jacobians and hits:
@@ -231,14 +289,15 @@ class SelfContacts:
                 np.array([h[4] for h in hits], dtype=float), jac)
 
     def torques(self, model: pin.Model, data: Any, q: np.ndarray, dq: np.ndarray,
-                params: ContactParams) -> tuple[np.ndarray, float]:
+                params: ContactParams, placements: np.ndarray
+                ) -> tuple[np.ndarray, float] | None:
         """``sum J_a(p_a)^T F - J_b(p_b)^T F`` (d, N m / N) of the penetrating pairs at
-        ``(q, dq)`` (``data``'s forward kinematics at ``q``) and their power
-        ``sum F^T (v_a - v_b)`` (W)."""
-        tau = np.zeros(model.nv)
-        hits = self.hits(data.oMi, 0.0)
+        ``(q, dq)`` (``data``'s forward kinematics at ``q``, ``placements`` its joints') and
+        their power ``sum F^T (v_a - v_b)`` (W); None when no pair penetrates."""
+        hits = self.hits_at(placements, 0.0)
         if not hits:
-            return tau, 0.0
+            return None
+        tau = np.zeros(model.nv)
         pin.computeJointJacobians(model, data, q)
         power = 0.0
         for la, lb, pa, pb, gap, n in hits:
