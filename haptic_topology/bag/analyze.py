@@ -33,8 +33,9 @@ from the state stamps). It writes into DIR:
   (:mod:`haptic_topology.bag.energy_series`: the controller replayed offline from the bag's
   states and updates, every command equal to the recorded one); the energy table and
   ``summary.json`` then take the observer's figures from that series, and
-  ``energy_series`` says ``exact``, or why there is none (``refused: state N: ...``, ``not
-  reconstructed: ...``). By default bags of at most
+  ``energy_series`` says ``exact`` (``exact before state N (...)`` when the bag lacks
+  an LMI update the commands from state N on name, as a cut bag may), or why there is none
+  (``refused: state N: ...``, ``not reconstructed: ...``). By default bags of at most
   :data:`~haptic_topology.bag.energy_series.AUTO_STATES` device states are reconstructed;
   ``--energy`` reconstructs any bag, ``--no-energy`` none.
 
@@ -207,7 +208,11 @@ def _energy(p: Path, energy: bool | None, rows: int, diagnostics: dict[str, dict
     series = energy_series(p, diagnostics.get(CONTROLLER_STATUS), first_seq, plot, scenario)
     if not series.exact:
         return {'energy_series': f'refused: {series.refused}'}, None
-    return dict(series.figures(), energy_series='exact'), series.plot
+    exact = 'exact' if not series.unchecked else (
+        f'exact before state {series.unchecked_from} ({series.unchecked} commands from it '
+        f'on not reconstructed: LMI update {series.absent_update}, '
+        'which the controller had taken, is not in the bag)')
+    return dict(series.figures(), energy_series=exact), series.plot
 
 
 def reduce_bag(path: str | Path, scenario: str = '', dof: int | None = None,

@@ -106,6 +106,14 @@ class ControllerPlan:
     #: and which recorded commands' states are in the bag (only those are compared).
     matched_updates: int = -1
     present: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    #: Set by a full iteration of :meth:`items` (bags with ``update_seq``): the recorded
+    #: commands whose states are in the bag but not all of their inputs, so not published
+    #: nor compared: the first command naming an update the bag does not hold (the
+    #: recorder received it after that command and was stopped before writing it, e.g. a
+    #: cut bag) and every command after it (the controller's state carries over); that
+    #: update's seq (-1: none).
+    unchecked: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    absent_update: int = -1
 
     def command(self, seq: int) -> int:
         """Index of the recorded command answering state ``seq``, -1 if none."""
@@ -153,13 +161,16 @@ class ControllerPlan:
     def items(self) -> Iterator[Item]:
         """The plan's items, read from the bag as they are taken: before each state, the
         updates the controller had taken by then (module doc of
-        :mod:`haptic_topology.nodes.replay`)."""
+        :mod:`haptic_topology.nodes.replay`). They end before the first state whose
+        recorded command names an update the bag does not hold (:attr:`unchecked`)."""
         upgrade = upgraders(self.bag)
 
         def data(m: BagMessage) -> bytes:    # as the installed type (fields appended since)
             return upgrade[m.msgtype](m.data) if m.msgtype in upgrade else m.data
 
         present = np.zeros(self.seqs.size, dtype=bool)
+        unchecked = np.zeros(self.seqs.size, dtype=bool)
+        absent = -1                         # the first update named but not in the bag
         updates = self._updates()
         placed = 0                          # updates placed so far (plan order)
         groups = 0
@@ -171,6 +182,12 @@ class ControllerPlan:
                 t_first = m.log_time if t_first is None else t_first
                 t = (m.log_time - t_first) * 1e-9
                 ci = self.command(seq)
+                if absent < 0 and ci >= 0:
+                    absent = self._absent_update(ci)
+                if absent >= 0:             # inputs incomplete from here on: not published
+                    if ci >= 0:
+                        unchecked[ci] = True
+                    continue
                 if ci >= 0:
                     present[ci] = True
                 last, grouped = target(seq, ci, header, placed)
@@ -182,9 +199,17 @@ class ControllerPlan:
                 yield Item(t, m.topic, m.msgtype, data(m), seq)
         finally:
             updates.close()
-        self.present = present
+        self.present, self.unchecked, self.absent_update = present, unchecked, absent
         self.matched_updates = (groups if self.update_seq is not None
                                 else int(self.group_seqs.size))  # type: ignore[union-attr]
+
+    def _absent_update(self, ci: int) -> int:
+        """The update that recorded command ``ci`` names as its controller's newest, if the
+        bag does not hold it (-1 otherwise, and for bags before ``update_seq``)."""
+        if self.update_seq is None or self.sorted_seqs is None:
+            return -1
+        newest = int(self.update_seq[ci])
+        return newest if newest >= 0 and _find(self.sorted_seqs, newest) < 0 else -1
 
     def _target_by_seq(self, seq: int, ci: int, header: Any, placed: int) -> tuple[int, bool]:
         """Index of the last update to place before state ``seq``: the first update, not
@@ -363,16 +388,25 @@ class CheckResult:
     seqs: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint64))
     diffs: np.ndarray = field(default_factory=lambda: np.zeros(0))
     missing_seqs: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint64))
+    #: Recorded commands not compared because the bag lacks some of their inputs (of
+    #: ``recorded``; :attr:`ControllerPlan.unchecked`), from state ``unchecked_from`` on,
+    #: the first naming LMI update ``absent_update``.
+    unchecked: int = 0
+    unchecked_from: int = -1
+    absent_update: int = -1
 
     @property
     def ok(self) -> bool:
         return self.compared > 0 and self.max_abs_diff <= self.tolerance
 
     def line(self) -> str:
+        unchecked = (f', {self.unchecked} not checked: from state {self.unchecked_from} on, '
+                     f'LMI update {self.absent_update}, which the controller had taken, is not '
+                     'in the bag' if self.unchecked else '')
         return (f'controller check ({self.scenario}, {self.mode}): {self.compared} commands '
-                f'compared of {self.recorded} recorded ({self.missing} not answered live); '
-                f'max |difference| {self.max_abs_diff:.3g} (tolerance {self.tolerance:g}): '
-                f'{"OK" if self.ok else "DIFFERENT"}')
+                f'compared of {self.recorded} recorded ({self.missing} not answered live'
+                f'{unchecked}); max |difference| {self.max_abs_diff:.3g} (tolerance '
+                f'{self.tolerance:g}): {"OK" if self.ok else "DIFFERENT"}')
 
 
 class CommandCheck:
@@ -413,12 +447,16 @@ class CommandCheck:
     def result(self, tolerance: float, scenario: str, stats: ReplayStats) -> CheckResult:
         """The verdict over the recorded commands whose states were published (after
         :meth:`ControllerPlan.items` has run through)."""
-        present = self.cp.present if self.cp.present.size else np.zeros_like(self.got)
+        cp = self.cp
+        present = cp.present if cp.present.size else np.zeros_like(self.got)
+        unchecked = cp.unchecked if cp.unchecked.size else np.zeros_like(self.got)
         compared = present & self.got
         diffs = self.diff[compared]
-        return CheckResult(int(compared.sum()), int(present.sum()),
+        skipped = cp.seqs[unchecked]
+        return CheckResult(int(compared.sum()), int(present.sum() + unchecked.sum()),
                            int(self.live.sum()) + len(self.other),
                            int((present & ~self.got).sum()),
                            float(np.max(diffs)) if diffs.size else math.inf, tolerance,
-                           self.cp.mode, scenario, stats, self.cp.seqs[compared], diffs,
-                           self.cp.seqs[present & ~self.got])
+                           cp.mode, scenario, stats, cp.seqs[compared], diffs,
+                           cp.seqs[present & ~self.got], int(skipped.size),
+                           int(skipped[0]) if skipped.size else -1, cp.absent_update)

@@ -20,7 +20,11 @@ entry, ``==``): the series is the run's only if each of them is. At the first di
 reconstruction stops and the series is refused with one line naming the state seq
 (:attr:`EnergySeries.refused`); nothing of it is drawn or summed. A difference means the
 bag's controller ran with other parameters than the ones read (a live change of ``k_tc``,
-a params file other than the defaults), other code, or that the bag was altered.
+a params file other than the defaults), other code, or that the bag was altered. A bag
+that lacks an LMI update some recorded command names (its recorder received the update after
+the command and was stopped before writing it: a cut bag) has its series end before that
+command (:attr:`EnergySeries.unchecked`): the controller's inputs from there on are not in
+the bag.
 
 Memory: the plan's arrays (about 70 bytes a recorded command) and the rows a plot draws
 (:class:`~haptic_topology.sim.trace_stats.PlotRows`, at most
@@ -69,7 +73,10 @@ class EnergySeries:
     bag); the figures of ``simulate``'s summary over the rows (``observer_min``, ...);
     ``plot``: the rows the energy figure draws; ``account``: the account after the last
     state (:meth:`~haptic_topology.control.passivity.EnergyAccount.summary`); ``seconds``:
-    the wall time the reconstruction took."""
+    the wall time the reconstruction took; ``unchecked``: the recorded commands at the end
+    whose inputs are not all in the bag, not reconstructed
+    (:attr:`~haptic_topology.bag.controller_check.ControllerPlan.unchecked`), the first of
+    them answering state ``unchecked_from`` and naming LMI update ``absent_update``."""
 
     refused: str | None = None
     rows: int = 0
@@ -81,6 +88,9 @@ class EnergySeries:
     plot: Trace | None = None
     account: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+    unchecked: int = 0
+    unchecked_from: int = -1
+    absent_update: int = -1
 
     @property
     def exact(self) -> bool:
@@ -288,4 +298,8 @@ def _replay(bag: Bag, controller: dict[str, str], first_seq: int | None, plot: b
         return out
     out.plot = rows.end()
     out.account = account.summary()
+    skipped = cp.seqs[cp.unchecked]
+    if skipped.size:
+        out.unchecked, out.unchecked_from = int(skipped.size), int(skipped[0])
+        out.absent_update = cp.absent_update
     return out

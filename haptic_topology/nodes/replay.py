@@ -33,7 +33,11 @@ the recorded ones state by state. What the controller needs to reproduce a comma
   VE had published (its header stamp) by then is applied, at least the next one.
 
 Only commands whose state is in the bag are compared (the recorder may have joined after
-the device started).
+the device started). A command naming an update the bag does not hold has inputs the bag
+lacks: the recorder received that update after the command and was stopped before writing
+it (a cut bag; on a loaded machine an update may reach the recorder milliseconds after the
+commands that name it). The check ends before the first such command's state and counts it
+and every recorded command after it as not checked, naming the update, in its result line.
 
 The check runs in lock-step, not in recorded time: each state is published once the live
 controller has answered the previous one (again if no answer comes within 0.3 s: the

@@ -1,7 +1,9 @@
 """Test helper: a synthetic lock-step bag of the graph written with the project's writer:
 N device states 1 ms apart, each answered by a command naming the newest LMI update the
 controller had (one update every 10 states, received 0.2 ms before the state that first
-uses it), and the hand inputs in batches of 10 (as lmi_controller sends them).
+uses it), and the hand inputs in batches of 10 (as lmi_controller sends them). The updates
+of ``without`` are left out: a recorder stopped after writing the commands that name one of
+them and before writing it (it received the update after them, as a loaded machine may).
 
     python synthetic_bag.py OUT N
 """
@@ -50,7 +52,7 @@ def _stamp(store: Any, ns: int) -> Any:
         store.types['builtin_interfaces/msg/Time'](ns // 10**9, ns % 10**9), 'base')
 
 
-def write_bag(path: Path, n: int) -> None:
+def write_bag(path: Path, n: int, without: frozenset[int] = frozenset()) -> None:
     """The bag of ``n`` states at ``path`` (module doc)."""
     store = typestore_with_haptic_msgs()
     names = list(TOPICS)
@@ -67,7 +69,7 @@ def write_bag(path: Path, n: int) -> None:
     hand: list[int] = []
     for s in range(1, n + 1):
         ns = T0 + s * 1_000_000
-        if s % UPDATE_EVERY == 1:
+        if s % UPDATE_EVERY == 1 and s // UPDATE_EVERY + 1 not in without:
             put(2, ns - 200_000, _message(store, types[2], header=_stamp(store, ns - 200_000),
                                           seq=np.uint64(s // UPDATE_EVERY + 1), task_dim=3))
         put(0, ns, _message(store, types[0], header=_stamp(store, ns), seq=s, task_dim=3,

@@ -140,6 +140,28 @@ def test_the_check_compares_each_answer_as_it_arrives(tmp_path: Path) -> None:
     assert int(np.count_nonzero(res.diffs)) == 2
 
 
+def test_commands_whose_update_the_bag_lacks_are_not_checked(tmp_path: Path) -> None:
+    """A bag cut after the commands naming LMI update 20 and before that update (its recorder
+    received it after them): the controller's inputs from state 191 on are not in the bag, so
+    the plan ends before it and the verdict counts its 10 commands as not checked, naming the
+    update, instead of comparing them with a controller that never had it."""
+    write_bag(tmp_path / 'b', 200, without=frozenset({20}))
+    cp, check = _check(tmp_path / 'b')
+    states = [it.seq for it in cp.items() if it.seq >= 0]
+    assert states == list(range(1, 191)), f'published states {states[0]}..{states[-1]}'
+    res = check.result(DEFAULT_TOLERANCE, 'fig8', ReplayStats())
+    assert (res.compared, res.recorded, res.missing, res.unchecked, res.unchecked_from,
+            res.absent_update) == (190, 200, 0, 10, 191, 20) and res.ok
+    assert ('190 commands compared of 200 recorded (0 not answered live, 10 not checked: '
+            'from state 191 on, LMI update 20, which the controller had taken, is not in the '
+            'bag)') in res.line()
+    write_bag(tmp_path / 'whole', 200)
+    _, whole = _check(tmp_path / 'whole')
+    res = whole.result(DEFAULT_TOLERANCE, 'fig8', ReplayStats())
+    assert (res.compared, res.unchecked, res.absent_update) == (200, 0, -1)
+    assert 'not checked' not in res.line()
+
+
 def _fingerprint(cp: ControllerPlan) -> tuple[int, int, int, int, str, str]:
     h = hashlib.sha256()
     n = 0
