@@ -15,11 +15,11 @@ import coal
 import numpy as np
 import pinocchio as pin
 import pytest
+from two_links import two_link_urdf
 
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics import contact_bounds as bounds
 from haptic_topology.dynamics.contacts import ContactModel, ContactParams, ContactSettings
-from haptic_topology.model import load_linkage
 from haptic_topology.model.meshes import distance_request
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.model.solids import CoalPair, solid_gaps
@@ -28,8 +28,6 @@ from haptic_topology.sim.ve import VirtualEnvironment
 from haptic_topology.vocabulary import TaskSpace
 
 BOX12 = Path(__file__).resolve().parents[2] / 'fixtures' / 'meshes' / 'box12.stl'
-_INERTIAL = ('<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" '
-             'ixz="0" iyz="0"/></inertial>')
 #: A plane, a sphere, a box and a mesh around the links' reach (0.1 m, 0.3 m).
 OBSTACLES: list[dict[str, Any]] = [
     {'type': 'plane', 'point': [0.0, 0.0, -0.06], 'normal': [0.1, -0.2, 1.0]},
@@ -43,7 +41,6 @@ OBSTACLES: list[dict[str, Any]] = [
 def _model(tmp_path: Path) -> tuple[Any, ContactModel, list[Any]]:
     """Link 1 (yaw) carries a box, a cylinder and a mesh (the 12-triangle box, off its
     frame); link 2 (about (0, 1, 1) at x = 0.1) a long thin box and a mesh; OBSTACLES."""
-    limit = '<limit lower="-3" upper="3" effort="1" velocity="1"/>'
 
     def col(origin: str, geometry: str) -> str:
         return f'<collision><origin {origin}/><geometry>{geometry}</geometry></collision>'
@@ -55,17 +52,7 @@ def _model(tmp_path: Path) -> tuple[Any, ContactModel, list[Any]]:
     l2 = (col('xyz="0.15 0 0" rpy="0 0 0.05"', '<box size="0.3 0.01 0.01"/>')
           + col('xyz="0.25 0.01 0" rpy="0.2 0.1 0"',
                 f'<mesh filename="{BOX12}" scale="0.03 0.03 0.03"/>'))
-    path = tmp_path / 'b.urdf'
-    path.write_text(f'''<robot name="b">
-  <link name="base"/>
-  <link name="l1">{_INERTIAL}{l1}</link>
-  <link name="l2">{_INERTIAL}{l2}</link>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
-    <axis xyz="0 0 1"/>{limit}</joint>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
-    <origin xyz="0.1 0 0"/><axis xyz="0 1 1"/>{limit}</joint>
-</robot>''')
-    linkage = load_linkage(path)
+    linkage = two_link_urdf(tmp_path, l1, l2, 'b.urdf')
     dyn = LinkageDynamics(linkage)
     settings = ContactSettings(ContactParams(), obstacles_from_config(
         OBSTACLES, 'test', TaskSpace.SPATIAL), 0.003, where='test')

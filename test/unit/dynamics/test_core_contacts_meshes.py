@@ -23,11 +23,12 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pytest
+from two_links import two_link_urdf
 
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics.contacts import ContactModel, ContactParams, ContactSettings
 from haptic_topology.errors import ConfigError
-from haptic_topology.model import Linkage, load_linkage
+from haptic_topology.model import Linkage
 from haptic_topology.model.meshes import resolve_mesh
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.model.solids import CoalPair
@@ -38,8 +39,6 @@ from haptic_topology.vocabulary import TaskSpace
 
 BOX12 = Path(__file__).resolve().parents[2] / 'fixtures' / 'meshes' / 'box12.stl'
 SPATIAL = TaskSpace.SPATIAL
-_INERTIAL = ('<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" '
-             'ixz="0" iyz="0"/></inertial>')
 #: The box of link 1 (m): 0.1 x 0.02 x 0.03, from x = 0 to 0.1, turned a little.
 BOX_ORIGIN = '<origin xyz="0.05 0 0" rpy="0.1 -0.2 0.3"/>'
 BOX_SIZE = (0.1, 0.02, 0.03)
@@ -63,18 +62,7 @@ def _box_collision(mesh: bool) -> str:
 def _urdf(tmp_path: Path, l1: str, l2: str = '', name: str = 'm.urdf') -> Linkage:
     """Link 1 (yaw about z at the origin) carries ``l1``; link 2 (about (0, 1, 1) at x = 0.1
     of link 1) carries ``l2``."""
-    path = tmp_path / name
-    limit = '<limit lower="-3" upper="3" effort="1" velocity="1"/>'
-    path.write_text(f'''<robot name="m">
-  <link name="base"/>
-  <link name="l1">{_INERTIAL}{l1}</link>
-  <link name="l2">{_INERTIAL}{l2}</link>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
-    <axis xyz="0 0 1"/>{limit}</joint>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
-    <origin xyz="0.1 0 0"/><axis xyz="0 1 1"/>{limit}</joint>
-</robot>''')
-    return load_linkage(path)
+    return two_link_urdf(tmp_path, l1, l2, name)
 
 
 def _contacts(linkage: Linkage, obstacles: list[dict[str, Any]], **params: float
