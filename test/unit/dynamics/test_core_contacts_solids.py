@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from two_links import two_link_urdf
 
 from haptic_topology.dynamics import LinkageDynamics
 from haptic_topology.dynamics.contacts import (
@@ -24,7 +25,7 @@ from haptic_topology.dynamics.contacts import (
     LinkSolid,
 )
 from haptic_topology.errors import ConfigError
-from haptic_topology.model import Linkage, load_linkage
+from haptic_topology.model import Linkage
 from haptic_topology.model.obstacles import obstacles_from_config
 from haptic_topology.model.solids import (
     convex_hull_xy,
@@ -170,8 +171,6 @@ def test_solids_against_a_box_obstacle_by_hand() -> None:
 
 # ----------------------------------------------------------------------------- URDF links
 
-_INERTIAL = ('<inertial><mass value="1"/><inertia ixx="0.001" iyy="0.001" izz="0.001" '
-             'ixy="0" ixz="0" iyz="0"/></inertial>')
 BOX_L1 = ('<collision><origin xyz="0.05 0 0"/><geometry><box size="0.1 0.02 0.03"/></geometry>'
           '</collision>')
 CYL_L2 = ('<collision><origin xyz="0.04 0 0" rpy="0 1.5707963267948966 0"/>'
@@ -184,19 +183,7 @@ def _urdf(tmp_path: Path, l1: str = BOX_L1, l2: str = CYL_L2, planar: bool = Fal
           axis2: str = '0 0 1', name: str = 'solids.urdf') -> Linkage:
     """Link 1 (yaw about z at the origin) carries a 0.1 x 0.02 x 0.03 box from x = 0 to 0.1;
     link 2 (about ``axis2`` at x = 0.1 of link 1) a cylinder r = 0.01 from x = 0 to 0.08."""
-    path = tmp_path / name
-    limit = '<limit lower="-3" upper="3" effort="1" velocity="1"/>'
-    path.write_text(f'''<robot name="solids">
-  {'<haptic_topology task="planar"/>' if planar else ''}
-  <link name="base"/>
-  <link name="l1">{_INERTIAL}{l1}</link>
-  <link name="l2">{_INERTIAL}{l2}</link>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
-    <axis xyz="0 0 1"/>{limit}</joint>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
-    <origin xyz="0.1 0 0"/><axis xyz="{axis2}"/>{limit}</joint>
-</robot>''')
-    return load_linkage(path)
+    return two_link_urdf(tmp_path, l1, l2, name, axis2, planar, 0.001, 'solids')
 
 
 def _contacts(linkage: Linkage, obstacles: list[dict], **params: float
