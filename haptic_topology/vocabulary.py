@@ -218,6 +218,7 @@ STATUS_VE = 've_sim: loop'
 STATUS_CONTROLLER = 'lmi_controller: loop'
 STATUS_TOPIC_DEVICE = 'topic_device: device'
 STATUS_FOXGLOVE = 'foxglove_bridge: server'
+STATUS_RECORDER = 'recorder: bag'
 
 
 # -- topics ------------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ from haptic_topology.errors import TransitionRefused, WaitTimeout
 from haptic_topology.vocabulary import (
     STATUS_CONTROLLER,
     STATUS_DEVICE,
+    STATUS_RECORDER,
     STATUS_VE,
     TOPIC_COMMAND,
     TOPIC_HAND_INPUTS,
@@ -33,7 +34,7 @@ from haptic_topology.vocabulary import (
 )
 
 #: ``/diagnostics`` status names of the graph's nodes.
-RECORDER_STATUS = 'recorder: bag'
+RECORDER_STATUS = STATUS_RECORDER
 DEVICE_STATUS = STATUS_DEVICE
 VE_STATUS = STATUS_VE
 CONTROLLER_STATUS = STATUS_CONTROLLER

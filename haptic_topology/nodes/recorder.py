@@ -59,6 +59,7 @@ from haptic_topology.nodes.runtime import EXECUTOR_SHUTDOWN, SPIN_PERIOD, run_ma
 from haptic_topology.nodes.take import BatchTaker
 from haptic_topology.processes import STOP_TIMEOUT
 from haptic_topology.vocabulary import (
+    STATUS_RECORDER,
     TOPIC_COMMAND,
     TOPIC_DEVICE_POSE,
     TOPIC_DEVICE_TWIST,
@@ -230,7 +231,7 @@ class Recorder(Node):
         if failed is not None:      # within one status period of the failure
             level, message = 2, f'writing the bag failed: {_describe(failed)}'
             values['not written'] = str(self.writer_thread.unwritten(sum(self.taker.taken)))
-        self.diag_pub.publish(diagnostics(self, 'recorder: bag', values, level, message))
+        self.diag_pub.publish(diagnostics(self, STATUS_RECORDER, values, level, message))
 
     @property
     def counts(self) -> dict[str, int]:

@@ -25,7 +25,7 @@ def _spelled(path: Path) -> list[str]:
 
 
 def test_the_vocabulary_has_the_status_names() -> None:
-    assert {'STATUS_DEVICE', 'STATUS_VE', 'STATUS_CONTROLLER'} <= set(OWNED)
+    assert {'STATUS_DEVICE', 'STATUS_VE', 'STATUS_CONTROLLER', 'STATUS_RECORDER'} <= set(OWNED)
 
 
 def test_no_module_but_the_vocabulary_spells_a_topic_or_status_name() -> None:
